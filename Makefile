@@ -1,0 +1,22 @@
+# The README's two commands are `make demo` and `make test`; both install first (idempotent).
+PYTHON ?= python3
+PIP = $(PYTHON) -m pip
+
+.PHONY: install demo test cmake-build bench
+
+install:
+	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy
+	$(PIP) install -q --no-build-isolation -e ".[test]"
+
+demo: install
+	modi demo --out demo_out
+
+test: install
+	$(PYTHON) -m pytest -q -p no:cacheprovider tests
+
+cmake-build:
+	cmake -S . -B build/cmake -DCMAKE_PREFIX_PATH="$$($(PYTHON) -c 'import torch; print(torch.utils.cmake_prefix_path)')"
+	cmake --build build/cmake -j 2
+
+bench: install
+	$(PYTHON) benchmarks/compare.py --json benchmarks/results/cpu.json

@@ -1,0 +1,10 @@
+// The one registration unit: declares every modi_ext operator schema.
+// Implementations register per dispatch key in their own files (cpu/, cuda/).
+#include <torch/library.h>
+
+#include "modi_ext.h"
+
+TORCH_LIBRARY(modi_ext, m) {
+  modi_ext::define_skeletal_ops(m);
+  modi_ext::define_fk_ops(m);
+}

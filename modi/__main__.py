@@ -1,0 +1,5 @@
+import sys
+
+from modi.cli import main
+
+sys.exit(main())

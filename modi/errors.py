@@ -1,0 +1,27 @@
+"""Exceptions that mean "the user gave us something wrong" (as opposed to a bug).
+
+The CLI turns any ``UserError`` into one clear line and a non-zero exit; everything
+else is a bug and keeps its traceback.
+"""
+
+
+class UserError(Exception):
+    """Bad input or arguments from the user: printed as one line by the CLI."""
+
+
+class BvhError(UserError, ValueError):
+    """A malformed BVH file. ``line`` is the 1-based line number where the problem was found."""
+
+    def __init__(self, message: str, line: int | None = None, path: str | None = None):
+        self.line = line
+        self.path = path
+        where = ""
+        if path is not None:
+            where += f"{path}:"
+        if line is not None:
+            where += f"{line}:"
+        super().__init__(f"{where} {message}".strip() if where else message)
+
+
+class CheckpointError(UserError):
+    """A checkpoint that cannot be read or does not hold what is needed."""

@@ -1,0 +1,102 @@
+"""Build and install modi + the modi_ext C++/CUDA extension.
+
+Install with ``pip install --no-build-isolation -e .`` after ``pip install torch==2.13.0``
+(build isolation would fetch a different, multi-GB torch to build against).
+
+Environment switches:
+  MODI_EXT_BUILD=0      build no extension (the package runs on the dense reference)
+  MODI_EXT_CUDA=1|0     force the CUDA sources on or off (default: on when torch has CUDA and nvcc is found)
+  MODI_EXT_DEBUG=1      -O0 -g
+"""
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import sys
+
+from setuptools import find_packages, setup
+
+ROOT = os.path.dirname(os.path.abspath(__file__))
+
+
+def _flag(name: str) -> str | None:
+    value = os.environ.get(name)
+    return None if value is None else value.strip().lower()
+
+
+def extension_modules():
+    if _flag("MODI_EXT_BUILD") in ("0", "false", "no", "off"):
+        print("modi_ext: MODI_EXT_BUILD=0, not building the extension", file=sys.stderr)
+        return [], {}
+    try:
+        import torch
+        from torch.utils import cpp_extension
+    except ImportError:
+        print("modi_ext: torch is not installed at build time; the extension is skipped "
+              "(install torch first and use --no-build-isolation)", file=sys.stderr)
+        return [], {}
+    cxx = os.environ.get("CXX", "c++")
+    if shutil.which(cxx) is None:
+        print(f"modi_ext: no C++ compiler ({cxx}) found; the extension is skipped, "
+              "modi runs on the dense reference", file=sys.stderr)
+        return [], {}
+
+    cpp_sources = sorted(glob.glob("csrc/*.cpp") + glob.glob("csrc/cpu/*.cpp"))
+    cuda_sources = sorted(glob.glob("csrc/cuda/*.cu") + glob.glob("csrc/cuda/*.cpp"))
+    want_cuda = _flag("MODI_EXT_CUDA")
+    has_nvcc = cpp_extension.CUDA_HOME is not None and shutil.which(
+        os.path.join(cpp_extension.CUDA_HOME, "bin", "nvcc")) is not None
+    if want_cuda in ("1", "true", "yes", "on"):
+        use_cuda = True
+    elif want_cuda in ("0", "false", "no", "off"):
+        use_cuda = False
+    else:
+        use_cuda = torch.cuda.is_available() or (torch.version.cuda is not None and has_nvcc)
+        use_cuda = use_cuda and torch.version.cuda is not None and has_nvcc
+
+    debug = _flag("MODI_EXT_DEBUG") in ("1", "true", "yes", "on")
+    opt = ["-O0", "-g"] if debug else ["-O3"]
+    cxx_flags = opt + ["-std=c++17", "-fopenmp", "-DAT_PARALLEL_OPENMP=1"]
+    if not debug:
+        cxx_flags += ["-march=x86-64-v2", "-ffp-contract=fast"] if os.uname().machine == "x86_64" else []
+    define_macros = [("MODI_EXT_WITH_CUDA", "1")] if use_cuda else []
+    kwargs = dict(
+        name="modi_ext._C",
+        sources=cpp_sources + (cuda_sources if use_cuda else []),
+        include_dirs=[os.path.join(ROOT, "csrc")],
+        define_macros=define_macros,
+        extra_compile_args={"cxx": cxx_flags, "nvcc": opt + ["-std=c++17", "--use_fast_math"]},
+        extra_link_args=["-fopenmp"],
+    )
+    ext = cpp_extension.CUDAExtension(**kwargs) if use_cuda else cpp_extension.CppExtension(**kwargs)
+    print(f"modi_ext: building the {'CPU+CUDA' if use_cuda else 'CPU'} extension", file=sys.stderr)
+    return [ext], {"build_ext": cpp_extension.BuildExtension.with_options(use_ninja=True)}
+
+
+ext_modules, cmdclass = extension_modules()
+
+setup(
+    name="modi",
+    version="0.1.0",
+    description="MoDi and GANimator motion synthesis with fast skeleton-aware operators (modi_ext)",
+    long_description=open(os.path.join(ROOT, "README.md"), encoding="utf-8").read(),
+    long_description_content_type="text/markdown",
+    python_requires=">=3.10",
+    packages=find_packages(include=["modi", "modi.*", "modi_ext", "modi_ext.*"]),
+    install_requires=[
+        "torch>=2.4",
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "tqdm>=4.60",
+        "matplotlib>=3.7",
+        "pillow>=9.0",
+        "tensorboard>=2.12",
+        "scikit-learn>=1.3",
+    ],
+    extras_require={"test": ["pytest>=7", "hypothesis>=6.80", "pytest-benchmark>=4", "expecttest"]},
+    entry_points={"console_scripts": ["modi=modi.cli:main"]},
+    ext_modules=ext_modules,
+    cmdclass=cmdclass,
+    zip_safe=False,
+)
