@@ -57,7 +57,8 @@ def extension_modules():
 
     debug = _flag("MODI_EXT_DEBUG") in ("1", "true", "yes", "on")
     opt = ["-O0", "-g"] if debug else ["-O3"]
-    cxx_flags = opt + ["-std=c++17", "-fopenmp", "-DAT_PARALLEL_OPENMP=1"]
+    # The language standard is torch's choice (C++20 for torch 2.13 headers); our sources stay C++17-clean.
+    cxx_flags = opt + ["-fopenmp", "-DAT_PARALLEL_OPENMP=1"]
     if not debug:
         cxx_flags += ["-march=x86-64-v2", "-ffp-contract=fast"] if os.uname().machine == "x86_64" else []
     define_macros = [("MODI_EXT_WITH_CUDA", "1")] if use_cuda else []
@@ -66,7 +67,7 @@ def extension_modules():
         sources=cpp_sources + (cuda_sources if use_cuda else []),
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=define_macros,
-        extra_compile_args={"cxx": cxx_flags, "nvcc": opt + ["-std=c++17", "--use_fast_math"]},
+        extra_compile_args={"cxx": cxx_flags, "nvcc": opt + ["--use_fast_math"]},
         extra_link_args=["-fopenmp"],
     )
     ext = cpp_extension.CUDAExtension(**kwargs) if use_cuda else cpp_extension.CppExtension(**kwargs)

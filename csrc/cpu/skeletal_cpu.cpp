@@ -1,0 +1,723 @@
+// CPU kernels of the skeletal operators.
+//
+// Every pass is "one small GEMM per entity": for a row entity j and a tile of batch elements, gather the
+// time-shifted inputs of j's neighbors into a contiguous (K x N) panel (rows = neighbor x channel x tap, columns =
+// batch x time, time innermost), multiply by the entity's weight block (a strided view of the compact weight, or a
+// once-per-call transposed copy), and write the tile out with the style / demodulation / bias / fold / blur applied
+// in the epilogue.  Tasks (batch tile x entity) run under at::parallel_for with thread-local panels; the weight
+// gradient accumulates into thread-local copies reduced at the end.  The GEMM is the BLAS that libtorch ships
+// (sgemm_/dgemm_, single-threaded inside the parallel region), with an ATen fallback when it is not exported.
+#include <algorithm>
+#include <cstring>
+#include <vector>
+
+#include <ATen/Parallel.h>
+#include <torch/library.h>
+
+#include "skeletal.h"
+
+extern "C" {
+void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const float* alpha,
+            const float* a, const int* lda, const float* b, const int* ldb, const float* beta, float* c,
+            const int* ldc) __attribute__((weak));
+void dgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const double* alpha,
+            const double* a, const int* lda, const double* b, const int* ldb, const double* beta, double* c,
+            const int* ldc) __attribute__((weak));
+}
+
+namespace modi_ext {
+namespace {
+
+// ------------------------------------------------------------------------------------------------ GEMM
+// Row-major C (M x N) = alpha * op(A) (M x K) * op(B) (K x N) + beta * C.
+template <typename T>
+void gemm_fallback(bool ta, bool tb, int64_t M, int64_t N, int64_t K, T alpha, const T* A, int64_t lda,
+                   const T* B, int64_t ldb, T beta, T* C, int64_t ldc) {
+  auto opts = at::TensorOptions().dtype(c10::CppTypeToScalarType<T>::value);
+  at::Tensor a = ta ? at::from_blob(const_cast<T*>(A), {K, M}, {lda, 1}, opts).t()
+                    : at::from_blob(const_cast<T*>(A), {M, K}, {lda, 1}, opts);
+  at::Tensor b = tb ? at::from_blob(const_cast<T*>(B), {N, K}, {ldb, 1}, opts).t()
+                    : at::from_blob(const_cast<T*>(B), {K, N}, {ldb, 1}, opts);
+  at::Tensor c = at::from_blob(C, {M, N}, {ldc, 1}, opts);
+  at::Tensor prod = at::mm(a, b);
+  if (beta == T(0)) {
+    c.copy_(prod.mul_(alpha));
+  } else {
+    c.mul_(beta).add_(prod, alpha);
+  }
+}
+
+template <typename T>
+void gemm(bool ta, bool tb, int64_t M, int64_t N, int64_t K, T alpha, const T* A, int64_t lda, const T* B,
+          int64_t ldb, T beta, T* C, int64_t ldc) {
+  if (M == 0 || N == 0) return;
+  // Column-major view: C^T (N x M) = op(B)^T (N x K) * op(A)^T (K x M).
+  const char tra = tb ? 'T' : 'N', trb = ta ? 'T' : 'N';
+  const int m = static_cast<int>(N), n = static_cast<int>(M), k = static_cast<int>(K);
+  const int la = static_cast<int>(ldb), lb = static_cast<int>(lda), lc = static_cast<int>(ldc);
+  if constexpr (std::is_same_v<T, float>) {
+    if (sgemm_ != nullptr) {
+      sgemm_(&tra, &trb, &m, &n, &k, &alpha, B, &la, A, &lb, &beta, C, &lc);
+      return;
+    }
+  } else {
+    if (dgemm_ != nullptr) {
+      dgemm_(&tra, &trb, &m, &n, &k, &alpha, B, &la, A, &lb, &beta, C, &lc);
+      return;
+    }
+  }
+  gemm_fallback<T>(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
+}
+
+// ------------------------------------------------------------------------------------------------ time maps
+inline int64_t mirror(int64_t q, int64_t L) { return q < 0 ? -q : (q >= L ? 2 * (L - 1) - q : q); }
+inline int64_t ceil_div_pos(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+// Optional per-(b, channel, entity) factor with arbitrary strides (style: entity stride 0; demod: full).
+template <typename T>
+struct Scale {
+  const T* p = nullptr;
+  int64_t sb = 0, sc = 0, se = 0;
+  inline T at(int64_t b, int64_t c, int64_t e) const { return p ? p[b * sb + c * sc + e * se] : T(1); }
+};
+
+// Panel rows (s, c, u) x columns (bl, t):  f(b,c,e_s) * src[b, c, e_s, pad(stride*t + u - h)], t in [0, Tout).
+// src is (B, C, Es, Ts).  Out-of-range frames are zero or mirrored (reflect).
+template <typename T>
+void gather_strided(T* dst, int64_t ldd, const T* src, int64_t C, int64_t Es, int64_t Ts, const int64_t* ents,
+                    int64_t k, int64_t b0, int64_t nb, int64_t Tout, int64_t stride, int64_t U, bool reflect,
+                    const Scale<T>& f) {
+  const int64_t h = U / 2;
+  for (int64_t s = 0; s < k; ++s) {
+    const int64_t e = ents[s];
+    for (int64_t c = 0; c < C; ++c) {
+      for (int64_t u = 0; u < U; ++u) {
+        T* d = dst + ((s * C + c) * U + u) * ldd;
+        const int64_t off = u - h;
+        int64_t tlo = off >= 0 ? 0 : ceil_div_pos(-off, stride);
+        int64_t thi = (Ts - 1 - off) >= 0 ? (Ts - 1 - off) / stride + 1 : 0;
+        tlo = std::min(tlo, Tout);
+        thi = std::max(std::min(thi, Tout), tlo);
+        for (int64_t bl = 0; bl < nb; ++bl) {
+          const int64_t b = b0 + bl;
+          const T* r = src + ((b * C + c) * Es + e) * Ts;
+          const T fv = f.at(b, c, e);
+          T* dd = d + bl * Tout;
+          for (int64_t t = 0; t < tlo; ++t) dd[t] = reflect ? fv * r[mirror(stride * t + off, Ts)] : T(0);
+          if (stride == 1) {
+            const T* rr = r + off;
+            for (int64_t t = tlo; t < thi; ++t) dd[t] = fv * rr[t];
+          } else {
+            for (int64_t t = tlo; t < thi; ++t) dd[t] = fv * r[stride * t + off];
+          }
+          for (int64_t t = thi; t < Tout; ++t) dd[t] = reflect ? fv * r[mirror(stride * t + off, Ts)] : T(0);
+        }
+      }
+    }
+  }
+}
+
+// Transposed panel rows (s, c, u) x columns (bl, q), q in [0, Tp) of a padded output domain:
+//   f(b,c,e_s) * src[b, c, e_s, (q - u) / stride] where (q - u) is a multiple of stride in range, else 0.
+template <typename T>
+void gather_transposed(T* dst, int64_t ldd, const T* src, int64_t C, int64_t Es, int64_t Ts, const int64_t* ents,
+                       int64_t k, int64_t b0, int64_t nb, int64_t Tp, int64_t stride, int64_t U, const Scale<T>& f) {
+  for (int64_t s = 0; s < k; ++s) {
+    const int64_t e = ents[s];
+    for (int64_t c = 0; c < C; ++c) {
+      for (int64_t u = 0; u < U; ++u) {
+        T* d = dst + ((s * C + c) * U + u) * ldd;
+        for (int64_t bl = 0; bl < nb; ++bl) {
+          const int64_t b = b0 + bl;
+          const T* r = src + ((b * C + c) * Es + e) * Ts;
+          const T fv = f.at(b, c, e);
+          T* dd = d + bl * Tp;
+          if (stride == 1) {
+            const int64_t lo = std::min(u, Tp), hi = std::min(u + Ts, Tp);
+            for (int64_t q = 0; q < lo; ++q) dd[q] = T(0);
+            for (int64_t q = lo; q < hi; ++q) dd[q] = fv * r[q - u];
+            for (int64_t q = hi; q < Tp; ++q) dd[q] = T(0);
+          } else {
+            std::fill(dd, dd + Tp, T(0));
+            for (int64_t t = 0; t < Ts; ++t) {
+              const int64_t q = stride * t + u;
+              if (q >= Tp) break;
+              dd[q] = fv * r[t];
+            }
+          }
+        }
+      }
+    }
+  }
+}
+
+// Fold a padded-domain row g (length L + 2h) onto [0, L): the adjoint of zero / reflect padding.
+template <typename T>
+inline void fold_row(const T* g, T* out, int64_t L, int64_t h, bool reflect) {
+  for (int64_t t = 0; t < L; ++t) out[t] = g[t + h];
+  if (reflect) {
+    for (int64_t q = 0; q < h; ++q) out[mirror(q - h, L)] += g[q];
+    for (int64_t q = L + h; q < L + 2 * h; ++q) out[mirror(q - h, L)] += g[q];
+  }
+}
+
+// StyleGAN2 blur after upsampling: y[t] = (v[t-2] + 3 v[t-1] + 3 v[t] + v[t+1]) / 4, zero outside [0, L).
+template <typename T>
+inline void blur_row(const T* v, T* y, int64_t L) {
+  for (int64_t t = 0; t < L; ++t) {
+    T acc = T(3) * v[t];
+    if (t >= 2) acc += v[t - 2];
+    if (t >= 1) acc += T(3) * v[t - 1];
+    if (t + 1 < L) acc += v[t + 1];
+    y[t] = T(0.25) * acc;
+  }
+}
+
+// Its adjoint: gv[s] = (g[s-1] + 3 g[s] + 3 g[s+1] + g[s+2]) / 4.
+template <typename T>
+inline void blur_adjoint_row(const T* g, T* gv, int64_t L) {
+  for (int64_t s = 0; s < L; ++s) {
+    T acc = T(3) * g[s];
+    if (s >= 1) acc += g[s - 1];
+    if (s + 1 < L) acc += T(3) * g[s + 1];
+    if (s + 2 < L) acc += g[s + 2];
+    gv[s] = T(0.25) * acc;
+  }
+}
+
+// ------------------------------------------------------------------------------------------------ topology
+struct Csr {
+  std::vector<int64_t> off, idx;          // row entity -> input entities (pairs p in [off[j], off[j+1]))
+  std::vector<int64_t> toff, tent, tpair;  // input entity -> (row entity, pair), ordered by row entity
+  int64_t rows = 0, cols = 0, max_deg = 0, max_tdeg = 0;
+};
+
+Csr make_csr(const at::Tensor& index, const at::Tensor& offsets, int64_t n_cols) {
+  TORCH_CHECK(index.device().is_cpu() && offsets.device().is_cpu(), "index and offsets must be CPU tensors here");
+  TORCH_CHECK(index.scalar_type() == at::kLong, "index must be int64, got ", index.scalar_type());
+  TORCH_CHECK(offsets.scalar_type() == at::kLong, "offsets must be int64, got ", offsets.scalar_type());
+  TORCH_CHECK(index.dim() == 1, "index must be 1-D, got ", index.dim(), " dims");
+  TORCH_CHECK(offsets.dim() == 1 && offsets.numel() >= 2, "offsets must be 1-D with at least 2 entries");
+  Csr g;
+  g.rows = offsets.numel() - 1;
+  g.cols = n_cols;
+  auto oc = offsets.contiguous();
+  auto ic = index.contiguous();
+  const int64_t* o = oc.data_ptr<int64_t>();
+  const int64_t* ix = ic.data_ptr<int64_t>();
+  const int64_t nnz = index.numel();
+  TORCH_CHECK(o[0] == 0 && o[g.rows] == nnz, "offsets must run from 0 to index.numel()=", nnz, ", got ", o[0],
+              "..", o[g.rows]);
+  g.off.assign(o, o + g.rows + 1);
+  g.idx.assign(ix, ix + nnz);
+  for (int64_t j = 0; j < g.rows; ++j) {
+    const int64_t deg = o[j + 1] - o[j];
+    TORCH_CHECK(deg > 0, "offsets: entity ", j, " has no neighbors");
+    g.max_deg = std::max(g.max_deg, deg);
+  }
+  std::vector<int64_t> cnt(n_cols, 0);
+  for (int64_t p = 0; p < nnz; ++p) {
+    TORCH_CHECK(ix[p] >= 0 && ix[p] < n_cols, "index[", p, "] = ", ix[p], " is out of range [0, ", n_cols, ")");
+    cnt[ix[p]]++;
+  }
+  g.toff.assign(n_cols + 1, 0);
+  for (int64_t n = 0; n < n_cols; ++n) {
+    g.toff[n + 1] = g.toff[n] + cnt[n];
+    g.max_tdeg = std::max(g.max_tdeg, cnt[n]);
+  }
+  g.tent.resize(nnz);
+  g.tpair.resize(nnz);
+  std::vector<int64_t> pos(g.toff.begin(), g.toff.end() - 1);
+  for (int64_t j = 0; j < g.rows; ++j)
+    for (int64_t p = o[j]; p < o[j + 1]; ++p) {
+      const int64_t q = pos[ix[p]]++;
+      g.tent[q] = j;
+      g.tpair[q] = p;
+    }
+  return g;
+}
+
+// (C0, nnz, C1, U) -> (C1, nnz, C0, U) with pairs in transposed order: out[c1, q, c0, u] = w[c0, tpair[q], c1, u].
+template <typename T>
+std::vector<T> transpose_weight(const T* w, int64_t C0, int64_t nnz, int64_t C1, int64_t U,
+                                const std::vector<int64_t>& tpair) {
+  std::vector<T> out(static_cast<size_t>(C0 * nnz * C1 * U));
+  at::parallel_for(0, C1, 1, [&](int64_t lo, int64_t hi) {
+    for (int64_t c1 = lo; c1 < hi; ++c1)
+      for (int64_t q = 0; q < nnz; ++q)
+        for (int64_t c0 = 0; c0 < C0; ++c0) {
+          const T* src = w + ((c0 * nnz + tpair[q]) * C1 + c1) * U;
+          T* dst = out.data() + ((c1 * nnz + q) * C0 + c0) * U;
+          for (int64_t u = 0; u < U; ++u) dst[u] = src[u];
+        }
+  });
+  return out;
+}
+
+// ------------------------------------------------------------------------------------------------ geometry
+struct Geo {
+  int64_t kind, B, Cin, Cout, Ein, Eout, Tin, Tout, U, h, nnz;
+  bool reflect;
+};
+
+bool parse_padding(c10::string_view mode) {
+  if (mode == "zeros") return false;
+  if (mode == "reflect") return true;
+  TORCH_CHECK(false, "padding_mode must be 'zeros' or 'reflect', got '", std::string(mode), "'");
+  return false;
+}
+
+void check_float(const at::Tensor& t, const char* name, const at::Tensor& x) {
+  TORCH_CHECK(t.device() == x.device(), name, " is on ", t.device(), " but x is on ", x.device());
+  TORCH_CHECK(t.scalar_type() == x.scalar_type(), name, " has dtype ", t.scalar_type(), " but x has ",
+              x.scalar_type());
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+}
+
+Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
+                 const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
+                 const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
+                 c10::string_view padding_mode) {
+  TORCH_CHECK(x.device().is_cpu(), "x must be a CPU tensor for the CPU kernel, got ", x.device());
+  TORCH_CHECK(x.dim() == 4, "x must be 4-D (B, C, E, T), got ", x.dim(), " dims");
+  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble, "x must be float32 or float64, got ",
+              x.scalar_type());
+  TORCH_CHECK(x.is_contiguous(), "x must be contiguous");
+  TORCH_CHECK(weight.dim() == 4, "weight must be 4-D compact (C0, nnz, C1, U), got ", weight.dim(), " dims");
+  check_float(weight, "weight", x);
+  Geo g{};
+  g.kind = kind;
+  g.reflect = parse_padding(padding_mode);
+  g.B = x.size(0);
+  g.Tin = x.size(3);
+  TORCH_CHECK(g.B > 0, "x has an empty batch (B == 0)");
+  TORCH_CHECK(g.Tin > 0, "x has zero frames (T == 0)");
+  g.U = weight.size(3);
+  TORCH_CHECK(g.U % 2 == 1, "weight kernel width U=", g.U, " must be odd");
+  g.h = g.U / 2;
+  g.nnz = weight.size(1);
+  TORCH_CHECK(index.dim() == 1 && index.numel() == g.nnz, "weight has ", g.nnz, " pairs (dim 1) but index has ",
+              index.numel(), " entries");
+  TORCH_CHECK(offsets.dim() == 1 && offsets.numel() >= 2, "offsets must be 1-D with at least 2 entries");
+  const int64_t rows = offsets.numel() - 1;
+  if (kind == kUp) {
+    g.Cin = weight.size(0);
+    g.Cout = weight.size(2);
+    TORCH_CHECK(x.size(2) == rows, "x has ", x.size(2), " coarse entities but offsets describes ", rows);
+    TORCH_CHECK(n_out > 0, "n_out must be positive, got ", n_out);
+    g.Ein = rows;
+    g.Eout = n_out;
+    g.Tout = 2 * g.Tin;
+    TORCH_CHECK(!g.reflect || g.h < g.Tout, "reflect padding of ", g.h, " frames needs more than ", g.h,
+                " frames, got ", g.Tout);
+  } else {
+    g.Cout = weight.size(0);
+    g.Cin = weight.size(2);
+    g.Ein = x.size(2);
+    g.Eout = rows;
+    if (kind == kConv) {
+      TORCH_CHECK(g.Ein == rows, "x has ", g.Ein, " entities but the neighbor lists (offsets) describe ", rows);
+      g.Tout = g.Tin;
+    } else {
+      TORCH_CHECK(g.Tin >= 2, "x needs at least 2 frames to downsample, got ", g.Tin);
+      g.Tout = g.Tin / 2;
+    }
+    TORCH_CHECK(!g.reflect || g.h < g.Tin, "reflect padding of ", g.h, " frames needs more than ", g.h,
+                " frames, got ", g.Tin);
+  }
+  TORCH_CHECK(x.size(1) == g.Cin, "x has ", x.size(1), " channels but weight expects ", g.Cin);
+  if (bias.has_value()) {
+    check_float(*bias, "bias", x);
+    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == g.Cout, "bias must have shape (", g.Cout, "), got ",
+                bias->sizes());
+  }
+  if (style.has_value()) {
+    check_float(*style, "style", x);
+    TORCH_CHECK(style->dim() == 2 && style->size(0) == g.B && style->size(1) == g.Cin, "style must be (B, Cin) = (",
+                g.B, ", ", g.Cin, "), got ", style->sizes());
+  }
+  if (scale.has_value()) {
+    check_float(*scale, "scale", x);
+    TORCH_CHECK(scale->dim() == 3 && scale->size(0) == g.B && scale->size(1) == g.Cout && scale->size(2) == g.Eout,
+                "scale must be (B, Cout, E_out) = (", g.B, ", ", g.Cout, ", ", g.Eout, "), got ", scale->sizes());
+  }
+  return g;
+}
+
+// Batch elements per tile: about `target` panel columns, and enough tiles to keep every thread busy.
+int64_t batch_tile(int64_t B, int64_t cols_per_b, int64_t n_entities, int64_t target = 512) {
+  int64_t nb = std::max<int64_t>(1, target / std::max<int64_t>(1, cols_per_b));
+  nb = std::min(nb, B);
+  const int64_t threads = at::get_num_threads();
+  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < 2 * threads) nb = (nb + 1) / 2;
+  return nb;
+}
+
+template <typename T>
+Scale<T> style_scale(const std::optional<at::Tensor>& style, int64_t C) {
+  Scale<T> s;
+  if (style.has_value()) {
+    s.p = style->data_ptr<T>();
+    s.sb = C;
+    s.sc = 1;
+    s.se = 0;
+  }
+  return s;
+}
+
+template <typename T>
+Scale<T> entity_scale(const T* p, int64_t C, int64_t E) {
+  Scale<T> s;
+  s.p = p;
+  s.sb = C * E;
+  s.sc = E;
+  s.se = 1;
+  return s;
+}
+
+// ------------------------------------------------------------------------------------------------ forward
+template <typename T>
+void forward_conv_down(const Geo& g, const Csr& csr, const T* x, const T* w, const T* bias, const Scale<T>& sty,
+                       const T* scale, T* y) {
+  const int64_t stride = g.kind == kDown ? 2 : 1;
+  const int64_t nb = batch_tile(g.B, g.Tout, g.Eout);
+  const int64_t nbt = (g.B + nb - 1) / nb;
+  const int64_t maxK = csr.max_deg * g.Cin * g.U, cols = nb * g.Tout;
+  const int64_t lda = g.nnz * g.Cin * g.U;
+  at::parallel_for(0, nbt * g.Eout, 1, [&](int64_t lo, int64_t hi) {
+    std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
+    for (int64_t task = lo; task < hi; ++task) {
+      const int64_t bt = task / g.Eout, j = task % g.Eout;
+      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * g.Tout;
+      const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * g.Cin * g.U;
+      gather_strided<T>(panel.data(), N, x, g.Cin, g.Ein, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride,
+                        g.U, g.reflect, sty);
+      gemm<T>(false, false, g.Cout, N, K, T(1), w + p0 * g.Cin * g.U, lda, panel.data(), N, T(0), acc.data(), N);
+      for (int64_t bl = 0; bl < nbl; ++bl) {
+        const int64_t b = b0 + bl;
+        for (int64_t o = 0; o < g.Cout; ++o) {
+          const T f = scale ? scale[(b * g.Cout + o) * g.Eout + j] : T(1);
+          const T bb = bias ? bias[o] : T(0);
+          const T* src = acc.data() + o * N + bl * g.Tout;
+          T* dst = y + ((b * g.Cout + o) * g.Eout + j) * g.Tout;
+          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = src[t] * f + bb;
+        }
+      }
+    }
+  });
+}
+
+template <typename T>
+void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* bias, const Scale<T>& sty,
+                const T* scale, T* y) {
+  // For fine entity f: V (Cout x nb*Tp) = Wt_f (Cout x k*Cin*U) * transposed panel of its coarse sources.
+  const std::vector<T> wt = transpose_weight<T>(w, g.Cin, g.nnz, g.Cout, g.U, csr.tpair);
+  const int64_t Tp = g.Tout + 2 * g.h;
+  const int64_t nb = batch_tile(g.B, Tp, g.Eout);
+  const int64_t nbt = (g.B + nb - 1) / nb;
+  const int64_t maxK = csr.max_tdeg * g.Cin * g.U, cols = nb * Tp;
+  const int64_t lda = g.nnz * g.Cin * g.U;
+  at::parallel_for(0, nbt * g.Eout, 1, [&](int64_t lo, int64_t hi) {
+    std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
+    std::vector<T> v(static_cast<size_t>(g.Tout)), bl_out(static_cast<size_t>(g.Tout));
+    for (int64_t task = lo; task < hi; ++task) {
+      const int64_t bt = task / g.Eout, f = task % g.Eout;
+      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tp;
+      const int64_t q0 = csr.toff[f], k = csr.toff[f + 1] - q0, K = k * g.Cin * g.U;
+      if (k == 0) {
+        for (int64_t bl = 0; bl < nbl; ++bl)
+          for (int64_t o = 0; o < g.Cout; ++o) {
+            T* dst = y + (((b0 + bl) * g.Cout + o) * g.Eout + f) * g.Tout;
+            std::fill(dst, dst + g.Tout, bias ? bias[o] : T(0));
+          }
+        continue;
+      }
+      gather_transposed<T>(panel.data(), N, x, g.Cin, g.Ein, g.Tin, csr.tent.data() + q0, k, b0, nbl, Tp, 2, g.U,
+                           sty);
+      gemm<T>(false, false, g.Cout, N, K, T(1), wt.data() + q0 * g.Cin * g.U, lda, panel.data(), N, T(0),
+              acc.data(), N);
+      for (int64_t bl = 0; bl < nbl; ++bl) {
+        const int64_t b = b0 + bl;
+        for (int64_t o = 0; o < g.Cout; ++o) {
+          const T fs = scale ? scale[(b * g.Cout + o) * g.Eout + f] : T(1);
+          const T bb = bias ? bias[o] : T(0);
+          fold_row<T>(acc.data() + o * N + bl * Tp, v.data(), g.Tout, g.h, g.reflect);
+          blur_row<T>(v.data(), bl_out.data(), g.Tout);
+          T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
+          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = bl_out[t] * fs + bb;
+        }
+      }
+    }
+  });
+}
+
+at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
+                       const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
+                       int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
+                       c10::string_view padding_mode) {
+  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+  const Csr csr = make_csr(index, offsets, kind == kUp ? g.Eout : g.Ein);
+  at::Tensor y = at::empty({g.B, g.Cout, g.Eout, g.Tout}, x.options());
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "skeletal_forward", [&] {
+    using T = scalar_t;
+    const T* bp = bias.has_value() ? bias->data_ptr<T>() : nullptr;
+    const T* sp = scale.has_value() ? scale->data_ptr<T>() : nullptr;
+    const Scale<T> sty = style_scale<T>(style, g.Cin);
+    if (kind == kUp)
+      forward_up<T>(g, csr, x.data_ptr<T>(), weight.data_ptr<T>(), bp, sty, sp, y.data_ptr<T>());
+    else
+      forward_conv_down<T>(g, csr, x.data_ptr<T>(), weight.data_ptr<T>(), bp, sty, sp, y.data_ptr<T>());
+  });
+  return y;
+}
+
+// ------------------------------------------------------------------------------------------------ backward
+// Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
+template <typename T>
+inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_acc, int64_t L) {
+  T dot = T(0);
+  for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
+  if (gs_acc) *gs_acc += dot;
+  if (gx_row)
+    for (int64_t t = 0; t < L; ++t) gx_row[t] = gxp[t] * s;
+}
+
+template <typename T>
+void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, const T* x, const T* w, const T* bias,
+                   const T* style, const T* scale, T* gx, T* gw, T* gb, T* gs, T* gd) {
+  const int64_t Bq = g.B, Co = g.Cout, Ci = g.Cin, Eo = g.Eout, Ei = g.Ein, U = g.U, h = g.h;
+  const Scale<T> sty = [&] {
+    Scale<T> s;
+    if (style) { s.p = style; s.sb = Ci; s.sc = 1; s.se = 0; }
+    return s;
+  }();
+  const Scale<T> dsc = scale ? entity_scale<T>(scale, Co, Eo) : Scale<T>{};
+
+  // bias and scale gradients: plain reductions over the output.
+  if (gb) {
+    at::parallel_for(0, Co, 1, [&](int64_t lo, int64_t hi) {
+      for (int64_t o = lo; o < hi; ++o) {
+        T acc = T(0);
+        for (int64_t b = 0; b < Bq; ++b) {
+          const T* r = gy + (b * Co + o) * Eo * g.Tout;
+          for (int64_t i = 0; i < Eo * g.Tout; ++i) acc += r[i];
+        }
+        gb[o] = acc;
+      }
+    });
+  }
+  if (gd) {  // y = d * z + bias  =>  dL/dd = sum_t gy * (y - bias) / d
+    at::parallel_for(0, Bq * Co * Eo, 16, [&](int64_t lo, int64_t hi) {
+      for (int64_t r = lo; r < hi; ++r) {
+        const int64_t o = (r / Eo) % Co;
+        const T bb = bias ? bias[o] : T(0);
+        const T* a = gy + r * g.Tout;
+        const T* yv = out + r * g.Tout;
+        T acc = T(0);
+        for (int64_t t = 0; t < g.Tout; ++t) acc += a[t] * (yv[t] - bb);
+        gd[r] = acc / scale[r];
+      }
+    });
+  }
+  if (!gx && !gw && !gs) return;
+
+  const int64_t nthreads = at::get_num_threads();
+  std::vector<T> gw_acc;
+  if (gw) gw_acc.assign(static_cast<size_t>(nthreads * g.nnz * Ci * Co * U), T(0));
+  std::vector<T> gs_part;
+  if (gs) gs_part.assign(static_cast<size_t>(Ei * Bq * Ci), T(0));
+  const int64_t wsize = g.nnz * Ci * Co * U;
+
+  if (g.kind == kUp) {
+    // gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); then per coarse entity c the strided panel of gv
+    // feeds both gx'_c = W_c * GV_c and gW_c += X'_c * GV_c^T.
+    std::vector<T> gv(static_cast<size_t>(Bq * Co * Eo * g.Tout));
+    at::parallel_for(0, Bq * Co * Eo, 16, [&](int64_t lo, int64_t hi) {
+      std::vector<T> tmp(static_cast<size_t>(g.Tout));
+      for (int64_t r = lo; r < hi; ++r) {
+        blur_adjoint_row<T>(gy + r * g.Tout, gv.data() + r * g.Tout, g.Tout);
+        if (scale) {
+          const T f = scale[r];
+          for (int64_t t = 0; t < g.Tout; ++t) gv[r * g.Tout + t] *= f;
+        }
+      }
+    });
+    const int64_t Tc = g.Tin;
+    const int64_t nb = batch_tile(Bq, Tc, Ei);
+    const int64_t nbt = (Bq + nb - 1) / nb;
+    const int64_t maxK = csr.max_deg * Co * U, cols = nb * Tc;
+    const int64_t lda = g.nnz * Co * U;
+    at::parallel_for(0, nbt * Ei, 1, [&](int64_t lo, int64_t hi) {
+      std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
+      std::vector<T> xs(static_cast<size_t>(gw ? Ci * cols : 0));
+      T* my_gw = gw ? gw_acc.data() + at::get_thread_num() * wsize : nullptr;
+      for (int64_t task = lo; task < hi; ++task) {
+        const int64_t bt = task / Ei, c = task % Ei;
+        const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * Tc;
+        const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0, K = k * Co * U;
+        gather_strided<T>(panel.data(), N, gv.data(), Co, Eo, g.Tout, csr.idx.data() + p0, k, b0, nbl, Tc, 2, U,
+                          g.reflect, Scale<T>{});
+        if (gx || gs) {
+          gemm<T>(false, false, Ci, N, K, T(1), w + p0 * Co * U, lda, panel.data(), N, T(0), acc.data(), N);
+          for (int64_t bl = 0; bl < nbl; ++bl) {
+            const int64_t b = b0 + bl;
+            for (int64_t i = 0; i < Ci; ++i) {
+              const int64_t xo = ((b * Ci + i) * Ei + c) * Tc;
+              finish_input_row<T>(acc.data() + i * N + bl * Tc, x + xo, style ? style[b * Ci + i] : T(1),
+                                  gx ? gx + xo : nullptr, gs ? &gs_part[(c * Bq + b) * Ci + i] : nullptr, Tc);
+            }
+          }
+        }
+        if (gw) {
+          const int64_t one = c;
+          gather_strided<T>(xs.data(), N, x, Ci, Ei, Tc, &one, 1, b0, nbl, Tc, 1, 1, false, sty);
+          gemm<T>(false, true, Ci, K, N, T(1), xs.data(), N, panel.data(), N, T(1), my_gw + p0 * Co * U, lda);
+        }
+      }
+    });
+  } else {
+    const int64_t stride = g.kind == kDown ? 2 : 1;
+    // Input gradient: for input entity n, G (Ci x nb*Tp) = Wt_n * transposed panel of gy*d over its readers.
+    if (gx || gs) {
+      const std::vector<T> wt = transpose_weight<T>(w, Co, g.nnz, Ci, U, csr.tpair);
+      const int64_t Tp = g.Tin + 2 * h;
+      const int64_t nb = batch_tile(Bq, Tp, Ei);
+      const int64_t nbt = (Bq + nb - 1) / nb;
+      const int64_t maxK = csr.max_tdeg * Co * U, cols = nb * Tp;
+      const int64_t lda = g.nnz * Co * U;
+      at::parallel_for(0, nbt * Ei, 1, [&](int64_t lo, int64_t hi) {
+        std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
+        std::vector<T> row(static_cast<size_t>(g.Tin));
+        for (int64_t task = lo; task < hi; ++task) {
+          const int64_t bt = task / Ei, n = task % Ei;
+          const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * Tp;
+          const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0, K = k * Co * U;
+          if (k == 0) {  // nobody reads this entity
+            for (int64_t bl = 0; bl < nbl; ++bl)
+              for (int64_t i = 0; i < Ci; ++i)
+                if (gx) {
+                  T* dst = gx + (((b0 + bl) * Ci + i) * Ei + n) * g.Tin;
+                  std::fill(dst, dst + g.Tin, T(0));
+                }
+            continue;
+          }
+          gather_transposed<T>(panel.data(), N, gy, Co, Eo, g.Tout, csr.tent.data() + q0, k, b0, nbl, Tp, stride, U,
+                               dsc);
+          gemm<T>(false, false, Ci, N, K, T(1), wt.data() + q0 * Co * U, lda, panel.data(), N, T(0), acc.data(), N);
+          for (int64_t bl = 0; bl < nbl; ++bl) {
+            const int64_t b = b0 + bl;
+            for (int64_t i = 0; i < Ci; ++i) {
+              fold_row<T>(acc.data() + i * N + bl * Tp, row.data(), g.Tin, h, g.reflect);
+              const int64_t xo = ((b * Ci + i) * Ei + n) * g.Tin;
+              finish_input_row<T>(row.data(), x + xo, style ? style[b * Ci + i] : T(1), gx ? gx + xo : nullptr,
+                                  gs ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, g.Tin);
+            }
+          }
+        }
+      });
+    }
+    // Weight gradient: for row entity j, gW_j += (gy*d)_j (Co x N) * X_j^T (N x K).
+    if (gw) {
+      const int64_t nb = batch_tile(Bq, g.Tout, Eo);
+      const int64_t nbt = (Bq + nb - 1) / nb;
+      const int64_t maxK = csr.max_deg * Ci * U, cols = nb * g.Tout;
+      const int64_t ldw = g.nnz * Ci * U;
+      at::parallel_for(0, nbt * Eo, 1, [&](int64_t lo, int64_t hi) {
+        std::vector<T> panel(static_cast<size_t>(maxK * cols)), gz(static_cast<size_t>(Co * cols));
+        T* my_gw = gw_acc.data() + at::get_thread_num() * wsize;
+        for (int64_t task = lo; task < hi; ++task) {
+          const int64_t bt = task / Eo, j = task % Eo;
+          const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * g.Tout;
+          const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+          gather_strided<T>(panel.data(), N, x, Ci, Ei, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride, U,
+                            g.reflect, sty);
+          const int64_t one = j;
+          gather_strided<T>(gz.data(), N, gy, Co, Eo, g.Tout, &one, 1, b0, nbl, g.Tout, 1, 1, false, dsc);
+          gemm<T>(false, true, Co, K, N, T(1), gz.data(), N, panel.data(), N, T(1), my_gw + p0 * Ci * U, ldw);
+        }
+      });
+    }
+  }
+
+  if (gw) {
+    at::parallel_for(0, wsize, 4096, [&](int64_t lo, int64_t hi) {
+      for (int64_t i = lo; i < hi; ++i) {
+        T acc = T(0);
+        for (int64_t t = 0; t < nthreads; ++t) acc += gw_acc[t * wsize + i];
+        gw[i] = acc;
+      }
+    });
+  }
+  if (gs) {
+    for (int64_t bi = 0; bi < Bq * Ci; ++bi) {
+      T acc = T(0);
+      for (int64_t n = 0; n < Ei; ++n) acc += gs_part[n * Bq * Ci + bi];
+      gs[bi] = acc;
+    }
+  }
+}
+
+}  // namespace
+
+at::Tensor skeletal_conv_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
+                             const at::Tensor& index, const at::Tensor& offsets,
+                             const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
+                             c10::string_view padding_mode) {
+  return forward_any(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+}
+
+at::Tensor skeletal_down_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
+                             const at::Tensor& index, const at::Tensor& offsets,
+                             const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
+                             c10::string_view padding_mode) {
+  return forward_any(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+}
+
+at::Tensor skeletal_up_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
+                           const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
+                           const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
+                           c10::string_view padding_mode) {
+  return forward_any(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_backward_cpu(
+    const at::Tensor& grad, const at::Tensor& out, const at::Tensor& x, const at::Tensor& weight,
+    const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
+    const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
+    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
+  TORCH_CHECK(kind == kConv || kind == kDown || kind == kUp, "kind must be 0 (conv), 1 (down) or 2 (up), got ",
+              kind);
+  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+  const Csr csr = make_csr(index, offsets, kind == kUp ? g.Eout : g.Ein);
+  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&grad, "grad"}, {&out, "out"}}) {
+    check_float(*t, name, x);
+    TORCH_CHECK(t->dim() == 4 && t->size(0) == g.B && t->size(1) == g.Cout && t->size(2) == g.Eout &&
+                    t->size(3) == g.Tout,
+                name, " must have the output shape (", g.B, ", ", g.Cout, ", ", g.Eout, ", ", g.Tout, "), got ",
+                t->sizes());
+  }
+  auto empty = [&] { return at::empty({0}, x.options()); };
+  at::Tensor gx = output_mask[0] ? at::empty_like(x) : empty();
+  at::Tensor gw = output_mask[1] ? at::empty_like(weight) : empty();
+  at::Tensor gb = bias.has_value() ? at::empty_like(*bias) : empty();
+  at::Tensor gs = (output_mask[2] && style.has_value()) ? at::empty_like(*style) : empty();
+  at::Tensor gd = (output_mask[3] && scale.has_value()) ? at::empty_like(*scale) : empty();
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "skeletal_backward", [&] {
+    using T = scalar_t;
+    auto ptr = [](at::Tensor& t) -> T* { return t.numel() ? t.data_ptr<T>() : nullptr; };
+    backward_impl<T>(g, csr, grad.data_ptr<T>(), out.data_ptr<T>(), x.data_ptr<T>(), weight.data_ptr<T>(),
+                     bias.has_value() ? bias->data_ptr<T>() : nullptr,
+                     style.has_value() ? style->data_ptr<T>() : nullptr,
+                     scale.has_value() ? scale->data_ptr<T>() : nullptr, ptr(gx), ptr(gw), ptr(gb), ptr(gs), ptr(gd));
+  });
+  return {gx, gw, gb, gs, gd};
+}
+
+TORCH_LIBRARY_IMPL(modi_ext, CPU, m) {
+  m.impl("skeletal_conv", &skeletal_conv_cpu);
+  m.impl("skeletal_down", &skeletal_down_cpu);
+  m.impl("skeletal_up", &skeletal_up_cpu);
+  m.impl("skeletal_backward", &skeletal_backward_cpu);
+}
+
+}  // namespace modi_ext

@@ -1,0 +1,483 @@
+"""GANimator training: WGAN-GP per level, L1 reconstruction from fixed noise, contact consistency, level blocks.
+
+One iteration of a block (two consecutive levels by default) is, for every training clip in turn:
+``d_steps`` discriminator updates on fresh random samples (with a pool of past fakes), ``g_steps`` adversarial
+generator updates (+ contact consistency), and one reconstruction update from the clip's fixed noise ``z*``.
+Inside a block the finer level sees the coarser level's live output, but each level learns only from its own
+losses (the authors' scheme; the output is detached between levels). Levels below the block are frozen.
+
+The checkpoint is one file (written atomically) holding the config, the clips in GANimator form, the pyramid,
+noise amplitudes, ``z*``, every network and optimiser, the fake pools, the RNG state and the position in the
+schedule, so ``train`` on the same run directory resumes exactly where it stopped, and ``generate`` needs
+nothing else.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from modi.errors import CheckpointError, UserError
+from modi.ganimator.config import GanimatorConfig
+from modi.ganimator.data import K, Sequence as Clip, check_compatible, real_pyramid, resample, sequence_pyramid
+from modi.ganimator.networks import GanimatorModel, synthesize
+from modi.skeleton import Skeleton
+
+FORMAT = "modi.ganimator/1"
+CHECKPOINT_NAME = "ganimator.ckpt"
+
+
+# ------------------------------------------------------------------------------------------- (de)serialising
+
+
+def skeleton_to_dict(s: Skeleton) -> dict:
+    return {"names": list(s.names), "parents": list(s.parents), "offsets": torch.as_tensor(s.offsets),
+            "end_sites": {int(k): torch.as_tensor(np.asarray(v, dtype=np.float64)) for k, v in s.end_sites.items()},
+            "rotation_orders": list(s.rotation_orders or [])}
+
+
+def skeleton_from_dict(d: dict) -> Skeleton:
+    return Skeleton(list(d["names"]), list(d["parents"]), d["offsets"].numpy(),
+                    {int(k): v.numpy() for k, v in d["end_sites"].items()}, list(d["rotation_orders"]) or None)
+
+
+def clip_to_dict(c: Clip) -> dict:
+    return {"name": c.name, "skeleton": skeleton_to_dict(c.skeleton), "feet": list(c.feet), "features": c.features,
+            "root_start": c.root_start, "fps": float(c.fps), "scale": float(c.scale),
+            "contact_threshold": float(c.contact_threshold), "size": float(c.size),
+            "kept_joints": list(c.kept_joints)}
+
+
+def clip_from_dict(d: dict) -> Clip:
+    return Clip(name=d["name"], skeleton=skeleton_from_dict(d["skeleton"]), feet=list(d["feet"]),
+                features=d["features"], root_start=d["root_start"], fps=d["fps"], scale=d["scale"],
+                contact_threshold=d["contact_threshold"], size=d["size"], kept_joints=list(d["kept_joints"]))
+
+
+def model_payload(model: GanimatorModel) -> dict:
+    """What ``generate`` needs: config, clips, pyramid, amplitudes, z*, generator weights."""
+    return {"config": model.cfg.to_dict(), "clips": [clip_to_dict(c) for c in model.seqs],
+            "lengths": model.lengths, "amps": model.amps, "z_stars": [z.detach().cpu() for z in model.z_stars],
+            "gens": [g.state_dict() for g in model.gens]}
+
+
+def model_from_payload(p: dict, with_discriminators: bool = False, device: str = "cpu") -> GanimatorModel:
+    cfg = GanimatorConfig.from_dict(p["config"])
+    clips = [clip_from_dict(c) for c in p["clips"]]
+    model = GanimatorModel(cfg, clips, p["lengths"], p["amps"], p["z_stars"], with_discriminators=with_discriminators)
+    for g, sd in zip(model.gens, p["gens"]):
+        g.load_state_dict(sd)
+    return model.to(device)
+
+
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file in the same directory, fsync, then rename over the target."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def checkpoint_path(run: str | Path) -> Path:
+    run = Path(run)
+    return run if run.suffix == ".ckpt" else run / CHECKPOINT_NAME
+
+
+def read_checkpoint(run: str | Path) -> dict:
+    path = checkpoint_path(run)
+    if not path.is_file():
+        raise CheckpointError(f"no GANimator checkpoint at {path}")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # a truncated or foreign file
+        raise CheckpointError(f"cannot read checkpoint {path}: {exc}") from None
+    if not isinstance(ck, dict) or ck.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a GANimator checkpoint (format {ck.get('format') if isinstance(ck, dict) else '?'})")
+    return ck
+
+
+def load_model(run: str | Path, device: str = "cpu") -> GanimatorModel:
+    """The trained generator of a run directory (or ``.ckpt`` file), ready to sample."""
+    ck = read_checkpoint(run)
+    model = model_from_payload(ck["model"], device=device)
+    model.trained_levels = ck["state"]["levels_done"]
+    if ck.get("cond_source") is not None:
+        model.cond_source = model_from_payload(ck["cond_source"], device=device)
+    else:
+        model.cond_source = None
+    model.eval()
+    return model
+
+
+# ------------------------------------------------------------------------------------------- losses
+
+
+class FakePool:
+    """History of generated samples (pix2pix's image pool): half the time D sees an older fake."""
+
+    def __init__(self, size: int) -> None:
+        self.size = int(size)
+        self.items: list[Tensor] = []
+
+    def query(self, fake: Tensor) -> Tensor:
+        if self.size <= 0:
+            return fake
+        fake = fake.detach()
+        if len(self.items) < self.size:
+            self.items.append(fake.clone())
+            return fake
+        if float(torch.rand(())) > 0.5:
+            i = int(torch.randint(self.size, ()))
+            old = self.items[i]
+            self.items[i] = fake.clone()
+            return old
+        return fake
+
+
+def gradient_penalty(disc: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
+    """WGAN-GP: (||grad D(interp)|| - 1)^2, the norm taken over all channels of each frame."""
+    alpha = torch.rand((1,), device=real.device)
+    interp = (alpha * real + (1 - alpha) * fake.detach()).requires_grad_(True)
+    score = disc(interp)
+    (grad,) = torch.autograd.grad(score.sum(), interp, create_graph=True)
+    norm = grad.flatten(1, 2).norm(dim=1)
+    return ((norm - 1.0) ** 2).mean()
+
+
+class ContactConsistency(nn.Module):
+    """Either the foot is still or its contact label is off: mean(|foot velocity| * sigmoid(12 (c - 0.5)))."""
+
+    def __init__(self, skeleton: Skeleton, feet: Sequence[int]) -> None:
+        super().__init__()
+        from modi_ext.layers import ForwardKinematics
+
+        self.fk = ForwardKinematics(skeleton.parents, torch.as_tensor(skeleton.offsets, dtype=torch.float32))
+        self.feet = list(feet)
+        self.J = skeleton.n_joints
+
+    def forward(self, x: Tensor, rate: float = 1.0) -> Tensor:
+        if not self.feet:
+            return x.new_zeros(())
+        from modi.rotations import sixd_to_quat
+
+        J = self.J
+        rot6 = x[:, :, :J].permute(0, 3, 2, 1)  # (B, T, J, 6)
+        quats = sixd_to_quat(rot6)
+        rm = x[:, :, J]  # (B, 6, T): per-fine-frame displacement, so scale to this level's frame step
+        dx, y, dz = rm[:, 0] / rate, rm[:, 1], rm[:, 2] / rate
+        root = torch.stack([torch.cumsum(dx, -1), y, torch.cumsum(dz, -1)], dim=-1)  # (B, T, 3)
+        pos = self.fk(quats, root)[:, :, self.feet]  # (B, T, C, 3)
+        vel = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1) * rate
+        vel = torch.cat([torch.zeros_like(vel[:, :1]), vel], dim=1)  # (B, T, C)
+        label = x[:, 0, J + 1:].transpose(1, 2)  # (B, T, C)
+        return (vel * torch.sigmoid((label - 0.5) * 12.0)).mean()
+
+
+# ------------------------------------------------------------------------------------------- trainer
+
+
+def blocks_of(n_levels: int, group: int) -> list[list[int]]:
+    return [list(range(i, min(i + group, n_levels))) for i in range(0, n_levels, group)]
+
+
+class Trainer:
+    """Holds the model, data pyramids, optimisers and schedule position; ``run()`` trains to the end."""
+
+    def __init__(self, clips: Sequence[Clip], cfg: GanimatorConfig, run_dir: str | Path,
+                 cond_source: GanimatorModel | None = None) -> None:
+        check_compatible(clips)
+        if cfg.conditional and cond_source is None:
+            raise UserError("a conditional (trajectory) model needs a trained unconditional run to sample "
+                            "trajectories from (--conditional-from RUN)")
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.ckpt = checkpoint_path(self.run_dir)
+        self.device = torch.device(cfg.device)
+        torch.manual_seed(cfg.seed)
+        self.clips = list(clips)
+        lengths, _ = sequence_pyramid(self.clips, cfg)
+        self.reals = [[r.unsqueeze(0).to(self.device) for r in real_pyramid(c, l)] for c, l in zip(self.clips, lengths)]
+        amps = []
+        for m, (c, l) in enumerate(zip(self.clips, lengths)):
+            row = []
+            for i in range(len(l)):
+                prev = torch.zeros_like(self.reals[m][0]) if i == 0 else resample(self.reals[m][i - 1], l[i],
+                                                                                    l[i - 1] / l[i])
+                row.append(float(((self.reals[m][i] - prev) ** 2).mean().sqrt()))
+            amps.append(row)
+        E = self.clips[0].n_entities
+        z_stars = [torch.randn(1, K, E, l[0]) for l in lengths]
+        self.model = GanimatorModel(cfg, self.clips, lengths, amps, z_stars).to(self.device)
+        self.cond_source = cond_source.to(self.device) if cond_source is not None else None
+        self.consistency = ContactConsistency(self.clips[0].skeleton, self.clips[0].feet).to(self.device)
+        self.blocks = blocks_of(self.model.n_levels, cfg.group_size)
+        self.state = {"block": 0, "iteration": 0, "levels_done": 0, "block_seconds": [0.0] * len(self.blocks),
+                      "history": []}
+        self.pools = [FakePool(cfg.fake_pool) for _ in range(self.model.n_levels)]
+        self.opt_g: dict[int, torch.optim.Optimizer] = {}
+        self.opt_d: dict[int, torch.optim.Optimizer] = {}
+        self.writer = None
+
+    # --------------------------------------------------------------------------------- persistence
+
+    def _payload(self) -> dict:
+        m = self.model
+        return {
+            "format": FORMAT,
+            "model": model_payload(m),
+            "discs": [d.state_dict() for d in m.discs],
+            "opt_g": {l: o.state_dict() for l, o in self.opt_g.items()},
+            "opt_d": {l: o.state_dict() for l, o in self.opt_d.items()},
+            "pools": [p.items for p in self.pools],
+            "state": dict(self.state),
+            "rng": torch.get_rng_state(),
+            "cond_source": model_payload(self.cond_source) if self.cond_source is not None else None,
+        }
+
+    def save(self) -> None:
+        atomic_save(self._payload(), self.ckpt)
+
+    def restore(self, ck: dict) -> None:
+        p = ck["model"]
+        names = [c["name"] for c in p["clips"]]
+        if names != [c.name for c in self.clips] or p["lengths"] != self.model.lengths:
+            raise CheckpointError(f"{self.ckpt} holds a run on {', '.join(names)}; use another --out to start anew")
+        saved_cfg = GanimatorConfig.from_dict(p["config"])
+        if saved_cfg.to_dict() != self.cfg.to_dict():
+            diff = [k for k, v in saved_cfg.to_dict().items() if self.cfg.to_dict().get(k) != v]
+            raise CheckpointError(f"{self.ckpt} was trained with other settings ({', '.join(diff)}); "
+                                  "use another --out to start anew")
+        m = self.model
+        for z, zs in zip(m.z_stars, p["z_stars"]):
+            z.data.copy_(zs)
+        m.amps = p["amps"]
+        for g, sd in zip(m.gens, p["gens"]):
+            g.load_state_dict(sd)
+        for d, sd in zip(m.discs, ck["discs"]):
+            d.load_state_dict(sd)
+        self.state = dict(ck["state"])
+        for l, sd in ck["opt_g"].items():
+            self._make_opts(int(l))
+            self.opt_g[int(l)].load_state_dict(sd)
+        for l, sd in ck["opt_d"].items():
+            self._make_opts(int(l))
+            self.opt_d[int(l)].load_state_dict(sd)
+        for pool, items in zip(self.pools, ck["pools"]):
+            pool.items = [t.to(self.device) for t in items]
+        torch.set_rng_state(ck["rng"])
+
+    def _make_opts(self, l: int) -> None:
+        if l not in self.opt_g:
+            m = self.model
+            self.opt_g[l] = torch.optim.Adam(m.gens[l].parameters(), lr=self.cfg.lr, betas=self.cfg.betas)
+            self.opt_d[l] = torch.optim.Adam(m.discs[l].parameters(), lr=self.cfg.lr, betas=self.cfg.betas)
+
+    # --------------------------------------------------------------------------------- sampling helpers
+
+    def _conds(self, m: int, lengths: Sequence[int], mode: str) -> list[Tensor] | None:
+        if not self.model.cond_entities:
+            return None
+        ce = self.model.cond_entities
+        if mode == "rec" or self.cond_source is None:
+            return [r[:, :, ce] for r in self.reals[m]]
+        src = self.cond_source
+        T = lengths[-1]
+        with torch.no_grad():
+            full = src.sample(T, 1, fine_noise=True)
+        return [resample(full[:, :, ce], L, T / L) if L != T else full[:, :, ce] for L in lengths]
+
+    def _forward(self, m: int, levels: list[int], mode: str, grad: bool, cached_prev: dict) -> list[Tensor]:
+        """Outputs of the block's levels for clip ``m``; levels below run frozen (cached for reconstruction)."""
+        model = self.model
+        lengths, rates = model.lengths[m], model.rates[m]
+        lo, hi = levels[0], levels[-1] + 1
+        conds = self._conds(m, lengths, mode)
+        if mode == "rec":
+            noises = model.rec_noises(m)
+            prev = cached_prev.get(m)
+            if prev is None and lo > 0:
+                with torch.no_grad():
+                    prev = synthesize(model.gens, rates, lengths, noises, model.n_entities, 0, lo, conds=conds)[-1]
+                cached_prev[m] = prev
+        else:
+            noises = [torch.randn(1, 1, 1, L, device=self.device) * a for L, a in zip(lengths, model.amps[m])]
+            prev = None
+            if lo > 0:
+                with torch.no_grad():
+                    prev = synthesize(model.gens, rates, lengths, noises, model.n_entities, 0, lo, conds=conds)[-1]
+        with torch.set_grad_enabled(grad):
+            return synthesize(model.gens, rates, lengths, noises, model.n_entities, lo, hi, prev=prev, conds=conds,
+                              detach_between=True)
+
+    # --------------------------------------------------------------------------------- the loop
+
+    def run(self, progress: bool = True, log: Callable[[str], None] | None = print,
+            max_seconds: float | None = None) -> GanimatorModel:
+        """Train (or resume) to the end of the schedule; returns the model. ``max_seconds`` stops early
+        (checkpointed) — a budgeted run that a later call continues."""
+        from tqdm import tqdm
+
+        cfg, model = self.cfg, self.model
+        if self.ckpt.is_file():
+            self.restore(read_checkpoint(self.ckpt))
+            if log:
+                log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
+                    f"iteration {self.state['iteration']}")
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(self.run_dir / "tb"))
+        except Exception:  # tensorboard missing: training works without logs
+            self.writer = None
+        started = time.time()
+        M = len(self.clips)
+        n_sub = cfg.d_steps + cfg.g_steps + 1
+        while self.state["block"] < len(self.blocks):
+            b = self.state["block"]
+            levels = self.blocks[b]
+            for l in levels:
+                self._make_opts(l)
+            for l in range(model.n_levels):
+                req = l in levels
+                for p in model.gens[l].parameters():
+                    p.requires_grad_(req)
+            cached_prev: dict = {}
+            bar = tqdm(total=cfg.iterations, initial=self.state["iteration"], disable=not progress,
+                       desc=f"levels {levels[0]}-{levels[-1]} / {model.n_levels}", leave=True, mininterval=2.0)
+            t_block = time.time()
+            t_save = time.time()
+            while self.state["iteration"] < cfg.iterations:
+                losses = self._iteration(levels, M, n_sub, cached_prev)
+                self.state["iteration"] += 1
+                it = self.state["iteration"]
+                bar.update(1)
+                if it % 50 == 0 or it == cfg.iterations:
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items() if k in ("D", "G", "rec", "con")})
+                    if self.writer is not None:
+                        step = b * cfg.iterations + it
+                        for k, v in losses.items():
+                            self.writer.add_scalar(f"block{b}/{k}", v, step)
+                now = time.time()
+                if now - t_save > cfg.checkpoint_every:
+                    self.state["block_seconds"][b] += now - t_block
+                    t_block = now
+                    self.save()
+                    t_save = time.time()
+                if max_seconds is not None and now - started > max_seconds:
+                    self.state["block_seconds"][b] += now - t_block
+                    bar.close()
+                    self.save()
+                    return model
+            bar.close()
+            self.state["block_seconds"][b] += time.time() - t_block
+            self.state["history"].append({"block": b, "levels": levels, **{k: float(v) for k, v in losses.items()}}
+                                         if cfg.iterations else {"block": b, "levels": levels})
+            self.state["block"] += 1
+            self.state["iteration"] = 0
+            self.state["levels_done"] = levels[-1] + 1
+            self.save()
+            if log:
+                log(f"levels {levels[0]}-{levels[-1]} done in {self.state['block_seconds'][b]:.1f} s")
+        if self.writer is not None:
+            self.writer.close()
+        model.trained_levels = model.n_levels
+        return model
+
+    def _iteration(self, levels: list[int], M: int, n_sub: int, cached_prev: dict) -> dict[str, float]:
+        cfg, model = self.cfg, self.model
+        lo = levels[0]
+        out: dict[str, float] = {}
+        for sub in range(n_sub):
+            kind = "D" if sub < cfg.d_steps else ("G" if sub < cfg.d_steps + cfg.g_steps else "R")
+            for m in range(M):
+                reals = self.reals[m]
+                if kind == "D":
+                    fakes = self._forward(m, levels, "random", False, cached_prev)
+                    total = 0.0
+                    for l in levels:
+                        self.opt_d[l].zero_grad(set_to_none=True)
+                    loss = 0.0
+                    for l, fake in zip(levels, fakes):
+                        d = model.discs[l]
+                        pooled = self.pools[l].query(fake)
+                        loss_d = 0.5 * (d(pooled).mean() - d(reals[l]).mean())
+                        gp = gradient_penalty(d, reals[l], fake)
+                        loss = loss + loss_d + cfg.lambda_gp * gp
+                        total += float(loss_d)
+                        out["gp"] = float(gp)
+                    loss.backward()
+                    for l in levels:
+                        self.opt_d[l].step()
+                    out["D"] = total / len(levels)
+                elif kind == "G":
+                    fakes = self._forward(m, levels, "random", True, cached_prev)
+                    loss = 0.0
+                    g_adv = con = 0.0
+                    for l, fake in zip(levels, fakes):
+                        d = model.discs[l]
+                        for p in d.parameters():
+                            p.requires_grad_(False)
+                        adv = -d(fake).mean()
+                        for p in d.parameters():
+                            p.requires_grad_(True)
+                        c = self.consistency(fake, model.rates[m][l]) if cfg.lambda_contact > 0 else fake.new_zeros(())
+                        loss = loss + adv + cfg.lambda_contact * c
+                        g_adv += float(adv)
+                        con += float(c)
+                    for l in levels:
+                        self.opt_g[l].zero_grad(set_to_none=True)
+                    loss.backward()
+                    for l in levels:
+                        self.opt_g[l].step()
+                    out["G"], out["con"] = g_adv / len(levels), con / len(levels)
+                else:
+                    recs = self._forward(m, levels, "rec", True, cached_prev)
+                    loss = 0.0
+                    rec_total = 0.0
+                    for l, rec in zip(levels, recs):
+                        r = (rec - reals[l]).abs().mean()
+                        loss = loss + cfg.lambda_rec * r
+                        rec_total += float(r)
+                        out[f"rec{l}"] = float(r)
+                    for l in levels:
+                        self.opt_g[l].zero_grad(set_to_none=True)
+                    loss.backward()
+                    for l in levels:
+                        self.opt_g[l].step()
+                    out["rec"] = rec_total / len(levels)
+        return out
+
+
+def train(clips: Sequence[Clip], cfg: GanimatorConfig, run_dir: str | Path, progress: bool = True,
+          cond_source: GanimatorModel | None = None, log: Callable[[str], None] | None = print,
+          max_seconds: float | None = None) -> GanimatorModel:
+    """Train (or resume) a GANimator run in ``run_dir``; returns the model (generators in eval mode)."""
+    trainer = Trainer(clips, cfg, run_dir, cond_source=cond_source)
+    model = trainer.run(progress=progress, log=log, max_seconds=max_seconds)
+    model.eval()
+    return model
+
+
+def run_summary(run: str | Path) -> dict:
+    """Schedule position and wall time per block of a run (for reports)."""
+    ck = read_checkpoint(run)
+    st = ck["state"]
+    cfg = GanimatorConfig.from_dict(ck["model"]["config"])
+    blocks = blocks_of(len(ck["model"]["lengths"][0]), cfg.group_size)
+    return {"lengths": ck["model"]["lengths"], "blocks": blocks, "block_seconds": st["block_seconds"],
+            "levels_done": st["levels_done"], "block": st["block"], "iteration": st["iteration"],
+            "history": st["history"], "config": cfg.to_dict()}
+
+
+__all__ = ["Trainer", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
+           "gradient_penalty", "ContactConsistency", "model_payload", "model_from_payload", "atomic_save",
+           "blocks_of"]

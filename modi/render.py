@@ -1,0 +1,500 @@
+"""Stick-figure previews of motion: GIF (Pillow) or MP4 (ffmpeg), one panel per motion or many characters per scene.
+
+Drawing is done directly with ``PIL.ImageDraw`` on palette images: no matplotlib figure per frame, so a 64-frame
+preview takes a fraction of a second. A perspective camera looks at each panel's (smoothed) root so that walking
+characters stay in view while the ground grid and the floor shadow show how they move over the ground.
+"""
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from modi.errors import UserError
+
+_BG, _GRID, _GRID_MAJOR, _SHADOW, _TEXT, _CONTACT, _BORDER = range(7)
+_BASE_COLORS = [(247, 247, 244), (214, 214, 210), (185, 185, 180), (208, 208, 204), (40, 40, 40), (225, 40, 40),
+                (150, 150, 150)]
+# per character: (centre, left, right)
+_CHAR_COLORS = [
+    ((40, 60, 110), (30, 110, 220), (235, 120, 30)),
+    ((35, 95, 55), (40, 160, 90), (160, 60, 170)),
+    ((95, 55, 35), (200, 110, 50), (60, 140, 170)),
+    ((80, 40, 100), (140, 80, 200), (200, 170, 30)),
+    ((20, 90, 100), (30, 170, 180), (210, 80, 110)),
+    ((100, 90, 30), (170, 150, 40), (70, 90, 200)),
+    ((90, 30, 50), (190, 60, 90), (60, 160, 110)),
+    ((60, 60, 60), (110, 110, 110), (180, 120, 60)),
+]
+_FOV = math.radians(40.0)
+_FOOT_WORDS = ("foot", "toe", "ankle", "heel")
+
+
+# Twins: same colour, other palette index. Toggling a corner pixel to its twin keeps a frame that repeats the
+# previous one distinct, because Pillow would otherwise merge identical GIF frames (and change the frame count).
+_BG_TWIN = len(_BASE_COLORS) + 3 * len(_CHAR_COLORS)
+_BORDER_TWIN = _BG_TWIN + 1
+_TWINS = {_BG: _BG_TWIN, _BG_TWIN: _BG, _BORDER: _BORDER_TWIN, _BORDER_TWIN: _BORDER}
+
+
+def _palette() -> list[int]:
+    colors = list(_BASE_COLORS)
+    for triple in _CHAR_COLORS:
+        colors.extend(triple)
+    colors += [_BASE_COLORS[_BG], _BASE_COLORS[_BORDER]]
+    flat = [v for c in colors for v in c]
+    return flat + [0] * (768 - len(flat))
+
+
+def _char_index(i: int, part: int) -> int:
+    return len(_BASE_COLORS) + 3 * (i % len(_CHAR_COLORS)) + part
+
+
+def _side_of(name: str) -> int:
+    """0 centre, 1 left, 2 right, from common naming styles (LeftArm, lHip, L_Knee, Hand.L, left_foot)."""
+    low = name.lower()
+    if low.startswith("left") or "left" in low:
+        return 1
+    if low.startswith("right") or "right" in low:
+        return 2
+    if name[:1] == "L" and (name[1:2].isupper() or name[1:2] in ("_", ".")) or low.endswith((".l", "_l")):
+        return 1
+    if name[:1] == "R" and (name[1:2].isupper() or name[1:2] in ("_", ".")) or low.endswith((".r", "_r")):
+        return 2
+    if name[:1] == "l" and name[1:2].isupper():
+        return 1
+    if name[:1] == "r" and name[1:2].isupper():
+        return 2
+    return 0
+
+
+def foot_joints_by_name(names: Sequence[str]) -> list[int]:
+    """Joints whose names say foot/toe/ankle/heel (what contact highlighting marks when no list is given)."""
+    return [j for j, n in enumerate(names) if any(w in n.lower() for w in _FOOT_WORDS)]
+
+
+def foot_contacts(positions: np.ndarray, feet: Sequence[int], fps: float, up: str = "y",
+                  height_frac: float = 0.06, speed_frac: float = 0.35) -> np.ndarray:
+    """(T, J) bool: a foot joint is in contact when it is low (within ``height_frac`` × body height of the lowest
+    point of the clip) and slow (below ``speed_frac`` × body height per second). Thresholds scale with the body
+    so they work in cm, m or inches."""
+    p = _to_y_up(np.asarray(positions, dtype=np.float64), up)
+    if p.ndim != 3 or p.shape[-1] != 3:
+        raise ValueError(f"positions must be (T, J, 3), got {p.shape}")
+    t, j = p.shape[:2]
+    h = _body_height(p)
+    floor = p[..., 1].min()
+    vel = np.zeros((t, j))
+    if t > 1:
+        v = np.linalg.norm(np.diff(p, axis=0), axis=-1) * fps
+        vel[1:] = v
+        vel[0] = v[0]
+    out = np.zeros((t, j), dtype=bool)
+    feet = list(feet)
+    if feet:
+        out[:, feet] = (p[:, feet, 1] < floor + height_frac * h) & (vel[:, feet] < speed_frac * h)
+    return out
+
+
+def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
+    if up == "y":
+        return p
+    if up == "z":   # rotate -90 deg about X: z-up right-handed data -> y-up right-handed
+        return np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
+    raise ValueError(f"up must be 'y' or 'z', got {up!r}")
+
+
+def _body_height(p: np.ndarray) -> float:
+    """Typical vertical extent of the figure (median over frames), robust to jumps and lying poses."""
+    ext = np.ptp(p, axis=1)                                  # (T, 3)
+    h = float(np.median(np.max(ext, axis=-1)))
+    return h if h > 1e-9 else 1.0
+
+
+def _nice_step(x: float) -> float:
+    e = 10.0 ** math.floor(math.log10(x))
+    return min((m * e for m in (1.0, 2.0, 5.0, 10.0)), key=lambda v: abs(math.log(v / x)))
+
+
+def _smooth_track(xz: np.ndarray, window: int) -> np.ndarray:
+    """Steady camera path: a least-squares line through the ``window`` frames around each frame (shifted inwards
+    at the ends). It removes per-step sway but, unlike a Gaussian, follows constant-speed travel exactly, even at
+    the clip's first and last frames."""
+    n = len(xz)
+    w = min(int(window), n)
+    if w < 3:
+        return xz
+    t = np.arange(n, dtype=np.float64)
+    lo = np.clip(t.astype(int) - w // 2, 0, n - w)
+    hi = lo + w
+
+    def wsum(v: np.ndarray) -> np.ndarray:
+        c = np.concatenate([np.zeros((1,) + v.shape[1:]), np.cumsum(v, axis=0)])
+        return c[hi] - c[lo]
+
+    st, stt = wsum(t), wsum(t * t)
+    sx, stx = wsum(xz), wsum(t[:, None] * xz)
+    slope = (w * stx - st[:, None] * sx) / (w * stt - st * st)[:, None]
+    return (sx - slope * st[:, None]) / w + slope * t[:, None]
+
+
+class _Camera:
+    """Perspective camera at fixed azimuth/elevation/distance looking at a moving target."""
+
+    def __init__(self, azimuth: float, elevation: float, distance: float, width: int, height: int):
+        az, el = math.radians(azimuth), math.radians(elevation)
+        self.back = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        fwd = -self.back
+        right = np.cross(fwd, [0.0, 1.0, 0.0])
+        right /= np.linalg.norm(right)
+        self.basis = np.stack([right, np.cross(right, fwd), fwd])   # rows: right, up, forward
+        self.distance = distance
+        self.w, self.h = width, height
+        self.focal = 0.5 * height / math.tan(0.5 * _FOV)
+        self.near = 0.05 * distance
+
+    def project(self, pts: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        eye = target + self.distance * self.back
+        cam = (pts - eye) @ self.basis.T
+        z = cam[..., 2]
+        zs = np.maximum(z, self.near)
+        xy = np.stack([self.w / 2 + self.focal * cam[..., 0] / zs, self.h / 2 - self.focal * cam[..., 1] / zs], -1)
+        return xy, z
+
+    def segments(self, a: np.ndarray, b: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Project 3-D segments (N,3)->(N,3), clipped at the near plane; returns (M, 2, 2) for the visible ones."""
+        eye = target + self.distance * self.back
+        ca, cb = (a - eye) @ self.basis.T, (b - eye) @ self.basis.T
+        za, zb = ca[:, 2:3], cb[:, 2:3]
+        keep = ((za >= self.near) | (zb >= self.near))[:, 0]
+        ca, cb, za, zb = ca[keep], cb[keep], za[keep], zb[keep]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = np.where(za < self.near, (self.near - za) / (zb - za), 0.0)
+            tb = np.where(zb < self.near, (self.near - zb) / (za - zb), 0.0)
+        ca, cb = ca + (cb - ca) * ta, cb + (ca - cb) * tb
+        c = np.stack([ca, cb], 1)
+        return np.stack([self.w / 2 + self.focal * c[..., 0] / c[..., 2],
+                         self.h / 2 - self.focal * c[..., 1] / c[..., 2]], -1)
+
+
+class _Panel:
+    """One view: the characters it shows, its camera track and its ground grid."""
+
+    def __init__(self, chars: list[int], pos: list[np.ndarray], size: tuple[int, int], fps: float, floor: float,
+                 height: float, azimuth: float, elevation: float, title: str | None, n_frames: int):
+        self.chars = chars
+        w, h = size
+        roots = np.stack([_hold(pos[c][:, 0, :], n_frames) for c in chars])      # (C, T, 3)
+        centre = roots.mean(0)[:, [0, 2]]
+        track = _smooth_track(centre, round(fps))
+        spread = float(np.max(np.linalg.norm(roots[:, :, [0, 2]] - track[None], axis=-1))) if len(chars) > 1 else 0.0
+        visible = max(1.45 * height, 2.2 * (spread + 0.4 * height))
+        aspect = w / h
+        distance = visible / (2 * math.tan(0.5 * _FOV)) / min(1.0, aspect) + 0.4 * height
+        self.cam = _Camera(azimuth, elevation, distance, w, h)
+        self.targets = np.stack([track[:, 0], np.full(n_frames, floor + 0.45 * height), track[:, 1]], -1)
+        self.floor = floor
+        self.step = _nice_step(0.3 * height)
+        self.extent = 0.8 * distance * math.cos(math.radians(elevation))  # stays in front of the camera
+        self.title = title
+        self.line = max(2, round(h / 110))
+
+    def draw_grid(self, draw: ImageDraw.ImageDraw, target: np.ndarray, ox: int, oy: int) -> None:
+        s = self.step
+        n = int(math.ceil(self.extent / s))
+        cx, cz = round(target[0] / s) * s, round(target[2] / s) * s   # snapped to world lines: the grid slides
+        k = np.arange(-n, n + 1) * s
+        # each line only spans the disc of radius ``extent`` around the target: never under or behind the camera
+        half_x = np.sqrt(np.maximum(self.extent ** 2 - (cx + k - target[0]) ** 2, 0.0))
+        half_z = np.sqrt(np.maximum(self.extent ** 2 - (cz + k - target[2]) ** 2, 0.0))
+        lo_a, hi_a = target[2] - half_x - cz, target[2] + half_x - cz
+        lo_b, hi_b = target[0] - half_z - cx, target[0] + half_z - cx
+        y = np.full_like(k, self.floor)
+        a = np.concatenate([np.stack([cx + k, y, cz + lo_a], -1), np.stack([cx + lo_b, y, cz + k], -1)])
+        b = np.concatenate([np.stack([cx + k, y, cz + hi_a], -1), np.stack([cx + hi_b, y, cz + k], -1)])
+        major = np.concatenate([np.abs(cx + k) < 1e-9 * s, np.abs(cz + k) < 1e-9 * s])
+        real = np.concatenate([half_x, half_z]) > 0
+        a, b, major = a[real], b[real], major[real]
+        eye = target + self.cam.distance * self.cam.back
+        keep = ((a - eye) @ self.cam.basis[2] >= self.cam.near) | ((b - eye) @ self.cam.basis[2] >= self.cam.near)
+        segs = self.cam.segments(a, b, target)
+        for seg, is_major in zip(segs, major[keep]):
+            draw.line([(ox + seg[0, 0], oy + seg[0, 1]), (ox + seg[1, 0], oy + seg[1, 1])],
+                      fill=_GRID_MAJOR if is_major else _GRID, width=1)
+
+
+def _hold(a: np.ndarray, n: int) -> np.ndarray:
+    """Pad a per-frame array to ``n`` frames by holding its last frame."""
+    if len(a) >= n:
+        return a[:n]
+    return np.concatenate([a, np.repeat(a[-1:], n - len(a), axis=0)], axis=0)
+
+
+def _as_list(positions) -> list[np.ndarray]:
+    if isinstance(positions, np.ndarray) or hasattr(positions, "detach"):
+        arr = np.asarray(positions.detach().cpu() if hasattr(positions, "detach") else positions, dtype=np.float64)
+        if arr.ndim not in (3, 4):
+            raise ValueError(f"positions must be (T, J, 3) or (N, T, J, 3), got shape {arr.shape}")
+        positions = [arr] if arr.ndim == 3 else list(arr)
+    out = []
+    for i, p in enumerate(positions):
+        a = np.asarray(p.detach().cpu() if hasattr(p, "detach") else p, dtype=np.float64)
+        if a.ndim != 3 or a.shape[-1] != 3 or a.shape[0] < 1:
+            raise ValueError(f"positions[{i}] must be (T, J, 3) with T >= 1, got shape {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"positions[{i}] has non-finite values")
+        out.append(a)
+    if not out:
+        raise ValueError("positions: nothing to render")
+    return out
+
+
+def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], fps: float = 30.0,
+                  size: tuple[int, int] = (320, 320), titles: Sequence[str] | None = None, layout: str = "grid",
+                  contacts: Sequence[np.ndarray | None] | None = None,
+                  names: Sequence[str] | Sequence[Sequence[str]] | None = None, up: str = "y",
+                  azimuth: float = 35.0, elevation: float = 18.0) -> list[Image.Image]:
+    """Draw the frames (palette-mode PIL images) that :func:`render_positions` writes.
+
+    ``parents`` (and ``names``) are one list shared by all motions or one list per motion. ``size`` is per panel
+    in the grid layout (the image is cols×W by rows×H) and the whole image in the scene layout.
+    """
+    pos = [_to_y_up(p, up) for p in _as_list(positions)]
+    n = len(pos)
+    shared = not parents or isinstance(parents[0], (int, np.integer))
+    par = [list(parents)] * n if shared else [list(p) for p in parents]
+    if len(par) != n:
+        raise ValueError(f"got {len(par)} parent lists for {n} motions")
+    for i, (p, pa) in enumerate(zip(pos, par)):
+        if len(pa) != p.shape[1]:
+            raise ValueError(f"motion {i} has {p.shape[1]} joints but its parents list has {len(pa)}")
+        if any(not (-1 <= q < len(pa)) for q in pa):
+            raise ValueError(f"parents of motion {i} hold an index outside [-1, {len(pa)})")
+    if names is None:
+        nm: list[list[str] | None] = [None] * n
+    elif names and isinstance(names[0], str):
+        nm = [list(names)] * n
+    else:
+        nm = [list(x) for x in names]
+    if titles is not None and len(titles) != n:
+        raise ValueError(f"got {len(titles)} titles for {n} motions")
+    if contacts is not None and len(contacts) != n:
+        raise ValueError(f"got {len(contacts)} contact arrays for {n} motions")
+    if layout not in ("grid", "scene"):
+        raise ValueError(f"layout must be 'grid' or 'scene', got {layout!r}")
+    w, h = int(size[0]), int(size[1])
+    if w < 16 or h < 16:
+        raise ValueError(f"size must be at least 16x16 pixels, got {w}x{h}")
+
+    height = max(_body_height(p) for p in pos)
+    floor = min(float(p[..., 1].min()) for p in pos)
+    n_frames = max(len(p) for p in pos)
+    sides = [[_side_of(x) for x in names_i] if names_i else [0] * len(par[i]) for i, names_i in enumerate(nm)]
+    con = [None if contacts is None or contacts[i] is None else _hold(np.asarray(contacts[i], bool), n_frames)
+           for i in range(n)]
+
+    if layout == "grid":
+        cols = math.ceil(math.sqrt(n))
+        rows = math.ceil(n / cols)
+        panels = [(_Panel([i], pos, (w, h), fps, floor, height, azimuth, elevation,
+                          None if titles is None else titles[i], n_frames), (i % cols) * w, (i // cols) * h)
+                  for i in range(n)]
+        img_size = (cols * w, rows * h)
+    else:
+        panels = [(_Panel(list(range(n)), pos, (w, h), fps, floor, height, azimuth, elevation,
+                          None if titles is None else " | ".join(titles), n_frames), 0, 0)]
+        img_size = (w, h)
+
+    font = ImageFont.load_default()
+    palette = _palette()
+    held = [_hold(p, n_frames) for p in pos]
+    frames = []
+    for t in range(n_frames):
+        img = Image.new("P", img_size, _BG)
+        img.putpalette(palette)
+        draw = ImageDraw.Draw(img)
+        for panel, ox, oy in panels:
+            target = panel.targets[t]
+            panel.draw_grid(draw, target, ox, oy)
+            lw = panel.line
+            bones = []   # (depth, xy0, xy1, color)
+            shadows = []
+            joints = []
+            for k, c in enumerate(panel.chars):
+                p = held[c][t]
+                xy, z = panel.cam.project(p, target)
+                flat = p.copy()
+                flat[:, 1] = panel.floor
+                sxy, _ = panel.cam.project(flat, target)
+                for j, q in enumerate(par[c]):
+                    if q < 0:
+                        continue
+                    if z[j] < panel.cam.near or z[q] < panel.cam.near:
+                        continue
+                    bones.append((0.5 * (z[j] + z[q]), xy[q], xy[j], _char_index(k, sides[c][j])))
+                    shadows.append((sxy[q], sxy[j]))
+                for j in range(len(par[c])):
+                    if z[j] >= panel.cam.near:
+                        hit = con[c] is not None and j < con[c].shape[1] and bool(con[c][t, j])
+                        joints.append((z[j], xy[j], _CONTACT if hit else _char_index(k, 0), hit))
+            for a, b in shadows:
+                draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=_SHADOW, width=lw + 1)
+            items = [(d, 0, (a, b, col)) for d, a, b, col in bones]
+            items += [(d, 1, (xy, col, hit)) for d, xy, col, hit in joints]
+            items.sort(key=lambda it: -it[0])
+            for _, kind, data in items:
+                if kind == 0:
+                    a, b, col = data
+                    draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=col, width=lw)
+                else:
+                    xy, col, hit = data
+                    r = lw * (1.6 if hit else 0.8)
+                    draw.ellipse([ox + xy[0] - r, oy + xy[1] - r, ox + xy[0] + r, oy + xy[1] + r], fill=col)
+            if panel.title:
+                draw.text((ox + 6, oy + 4), panel.title, fill=_TEXT, font=font)
+            if layout == "grid" and n > 1:
+                draw.rectangle([ox, oy, ox + w - 1, oy + h - 1], outline=_BORDER)
+        frames.append(img)
+    return frames
+
+
+def _check_out(out_path: str | Path) -> Path:
+    out = Path(out_path)
+    ext = out.suffix.lower()
+    if ext not in (".gif", ".mp4"):
+        raise UserError(f"{out}: output must end in .gif or .mp4 (got {ext or 'no extension'!r})")
+    if ext == ".mp4" and shutil.which("ffmpeg") is None:
+        raise UserError(f"{out}: writing .mp4 needs ffmpeg on PATH (not found); install ffmpeg or write a .gif")
+    if out.parent and not out.parent.exists():
+        raise UserError(f"{out}: folder {out.parent} does not exist")
+    return out
+
+
+def _distinct(frames: list[Image.Image]) -> list[Image.Image]:
+    """Make each of our palette frames differ from the previous one in the top-left pixel's index only."""
+    out, prev = [], None
+    for f in frames:
+        data = f.tobytes()
+        if data == prev and f.mode == "P":
+            px = f.getpixel((0, 0))
+            if px in _TWINS:
+                f = f.copy()
+                f.putpixel((0, 0), _TWINS[px])
+                data = f.tobytes()
+        out.append(f)
+        prev = data
+    return out
+
+
+def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30.0) -> Path:
+    """Write frames as an endlessly looping GIF or (with ffmpeg) an H.264 MP4.
+
+    GIF delays are whole centiseconds, so playback speed is approximate; Pillow merges identical consecutive
+    frames into one longer frame.
+    """
+    out = _check_out(out_path)
+    if not frames:
+        raise ValueError("no frames to save")
+    if out.suffix.lower() == ".gif":
+        frames = _distinct(frames)
+        frames[0].save(out, save_all=True, append_images=frames[1:], duration=max(20, round(1000.0 / fps)), loop=0,
+                       optimize=False)
+        return out
+    w, h = frames[0].size
+    cmd = ["ffmpeg", "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
+           "-r", f"{fps:g}", "-i", "-", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-pix_fmt", "yuv420p",
+           "-c:v", "libx264", str(out)]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdin is not None
+    try:
+        for f in frames:
+            proc.stdin.write(f.convert("RGB").tobytes())
+        proc.stdin.close()
+    except BrokenPipeError:
+        pass
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.wait() != 0:
+        raise UserError(f"{out}: ffmpeg failed: {err.strip().splitlines()[-1] if err.strip() else 'unknown error'}")
+    return out
+
+
+def render_positions(positions, parents: Sequence[int] | Sequence[Sequence[int]], out_path: str | Path,
+                     fps: float = 30.0, size: tuple[int, int] = (320, 320), titles: Sequence[str] | None = None,
+                     layout: str = "grid", contacts: Sequence[np.ndarray | None] | None = None,
+                     names: Sequence[str] | Sequence[Sequence[str]] | None = None, up: str = "y",
+                     azimuth: float = 35.0, elevation: float = 18.0) -> Path:
+    """Render global joint positions (each ``(T, J, 3)``, any units) to a GIF/MP4 stick-figure preview.
+
+    ``layout="grid"``: one panel per motion, each camera following its own root; ``"scene"``: all characters in
+    one panel (crowds), the camera following their mean. ``contacts``: per motion ``(T, J)`` bool (or None), joints
+    drawn larger in red while set. ``names`` colours left/right limbs. Returns the written path.
+    """
+    out = _check_out(out_path)
+    frames = render_frames(positions, parents, fps=fps, size=size, titles=titles, layout=layout, contacts=contacts,
+                           names=names, up=up, azimuth=azimuth, elevation=elevation)
+    return save_frames(frames, out, fps)
+
+
+def _resample_frames(n_src: int, src_fps: float, fps: float, max_frames: int | None) -> np.ndarray:
+    """Frame indices that play a clip in real time at ``fps`` (nearest frame; no interpolation needed to preview)."""
+    duration = (n_src - 1) / src_fps
+    n = int(math.floor(duration * fps + 1e-3)) + 1   # tolerate frame times like 0.0333333
+    if max_frames is not None:
+        n = min(n, int(max_frames))
+    return np.clip(np.round(np.arange(n) * src_fps / fps).astype(int), 0, n_src - 1)
+
+
+def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, fps: float = 30.0,
+               size: tuple[int, int] = (320, 320), layout: str = "grid", titles: Sequence[str] | None = None,
+               contacts: bool = False, up: str = "y", max_frames: int | None = None,
+               azimuth: float = 35.0, elevation: float = 18.0) -> Path:
+    """Preview one or more BVH files (in real time at ``fps``). Missing files raise ``UserError``."""
+    from modi import bvh as bvh_io
+    from modi.kinematics import bvh_positions
+
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise UserError("no BVH files given")
+    out = _check_out(out_path)
+    if not fps > 0:
+        raise UserError(f"fps must be > 0, got {fps}")
+    if max_frames is not None and max_frames < 1:
+        raise UserError(f"max_frames must be >= 1, got {max_frames}")
+    pos, parents, names, con = [], [], [], []
+    for p in paths:
+        if not p.is_file():
+            raise UserError(f"{p}: no such file")
+        if p.suffix.lower() != ".bvh":
+            raise UserError(f"{p}: expected a .bvh file")
+        b = bvh_io.load(p)
+        xyz = np.asarray(bvh_positions(b), dtype=np.float64)
+        xyz = xyz[_resample_frames(len(xyz), b.fps, fps, max_frames)]
+        pos.append(xyz)
+        parents.append(list(b.parents))
+        names.append(list(b.names))
+        if contacts:
+            feet = _feet_of(b)
+            con.append(foot_contacts(xyz, feet, fps, up=up))
+    return render_positions(pos, parents, out, fps=fps, size=size, titles=titles or [p.stem for p in paths],
+                            layout=layout, contacts=con if contacts else None, names=names, up=up,
+                            azimuth=azimuth, elevation=elevation)
+
+
+def _feet_of(b) -> list[int]:
+    """Foot joints: the skeleton's own detection when available, else by name."""
+    sk = b.skeleton()
+    if hasattr(sk, "detect_feet"):
+        try:
+            feet = list(sk.detect_feet(per_side=2))
+        except (ValueError, KeyError):   # detection is a convenience for previews: fall back to names
+            feet = []
+        if feet:
+            return feet
+    return foot_joints_by_name(b.names)

@@ -1,0 +1,250 @@
+"""Batched forward kinematics: local joint quaternions -> global joint positions (and rotations).
+
+``fk`` checks its arguments, then runs the fused C++ kernel (``torch.ops.modi_ext.fk``) when the extension
+is built and the tensors are on the CPU, else the dense torch reference ``fk_reference`` (the test oracle).
+``MODI_EXT_IMPL=ref|ext`` forces a path (see ``modi_ext._loader.impl_choice``).
+
+Semantics (shared with ``modi.kinematics.forward_kinematics``): quaternions are (w, x, y, z) in the parent's
+frame; joint 0's global position *is* ``root_positions`` (its offset is not added); for ``j > 0`` with
+``p = parents[j]``: ``Q[j] = Q[p] * q[j]`` and ``P[j] = P[p] + rotate(Q[p], offsets[j])``.
+Inputs are expected to be unit quaternions; nothing is normalised (normalise first if a network emits them),
+and for non-unit input both paths evaluate ``rotate(Q, v) = v + 2w (u x v) + 2 u x (u x v)`` identically.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from modi_ext._loader import HAS_EXT, impl_choice
+
+__all__ = ["fk", "fk_reference", "ForwardKinematics", "check_parents"]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# dense reference
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ),
+        dim=-1,
+    )
+
+
+def _qrot(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    w, u = q[..., :1], q[..., 1:]
+    t = 2.0 * torch.linalg.cross(u, v.expand_as(u))
+    return v + w * t + torch.linalg.cross(u, t)
+
+
+def fk_reference(
+    local_quats: torch.Tensor,
+    offsets: torch.Tensor,
+    parents: Sequence[int],
+    root_positions: torch.Tensor,
+    return_rotations: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Dense torch FK: one Python step per joint (the oracle the C++ kernel is tested against).
+
+    local_quats (..., J, 4), offsets (J, 3) or (..., J, 3), root_positions (..., 3)
+    -> positions (..., J, 3) [, global_quats (..., J, 4)]. Differentiable through plain torch ops.
+    """
+    J = local_quats.shape[-2]
+    rots: list[torch.Tensor] = [local_quats[..., 0, :]]
+    pos: list[torch.Tensor] = [root_positions]
+    for j in range(1, J):
+        p = parents[j]
+        rots.append(_qmul(rots[p], local_quats[..., j, :]))
+        pos.append(pos[p] + _qrot(rots[p], offsets[..., j, :]))
+    positions = torch.stack(pos, dim=-2)
+    if return_rotations:
+        return positions, torch.stack(rots, dim=-2)
+    return positions
+
+
+# ---------------------------------------------------------------------------------------------------------
+# checks
+# ---------------------------------------------------------------------------------------------------------
+
+
+def check_parents(parents: Sequence[int] | torch.Tensor, n_joints: int | None = None) -> tuple[int, ...]:
+    """Validate a parent list (root first, ``0 <= parents[j] < j``) and return it as a tuple of ints."""
+    if isinstance(parents, torch.Tensor):
+        if parents.dim() != 1 or parents.dtype.is_floating_point or parents.dtype.is_complex:
+            raise ValueError(f"fk: parents must be a 1-D integer list or tensor, got {parents.dtype} {tuple(parents.shape)}")
+        parents = parents.tolist()
+    try:
+        par = tuple(int(p) for p in parents)
+    except (TypeError, ValueError):
+        raise ValueError(f"fk: parents must be a sequence of ints, got {parents!r}") from None
+    if any(int(p) != p for p in parents):
+        raise ValueError("fk: parents must be integers")
+    if not par:
+        raise ValueError("fk: parents is empty (need at least the root joint)")
+    if n_joints is not None and len(par) != n_joints:
+        raise ValueError(f"fk: parents has {len(par)} entries but local_quats has {n_joints} joints (dim -2)")
+    if par[0] != -1:
+        raise ValueError(f"fk: parents[0] must be -1 (joint 0 is the root), got {par[0]}")
+    for j in range(1, len(par)):
+        if not 0 <= par[j] < j:
+            raise ValueError(
+                f"fk: parents[{j}] = {par[j]} is out of range; parents must be topologically sorted (0 <= parents[j] < j)"
+            )
+    return par
+
+
+def _check_tensors(local_quats: torch.Tensor, offsets: torch.Tensor, root_positions: torch.Tensor) -> None:
+    for name, t in (("local_quats", local_quats), ("offsets", offsets), ("root_positions", root_positions)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"fk: {name} must be a torch.Tensor, got {type(t).__name__}")
+    if local_quats.dim() < 2 or local_quats.shape[-1] != 4:
+        raise ValueError(f"fk: local_quats must have shape (..., J, 4), got {tuple(local_quats.shape)}")
+    if local_quats.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"fk: local_quats must be float32 or float64, got {local_quats.dtype}")
+    if local_quats.numel() == 0:
+        raise ValueError(f"fk: local_quats is empty (shape {tuple(local_quats.shape)}): empty batch or zero frames")
+    J = local_quats.shape[-2]
+    for name, t in (("offsets", offsets), ("root_positions", root_positions)):
+        if t.dtype != local_quats.dtype:
+            raise ValueError(f"fk: {name} has dtype {t.dtype}, expected {local_quats.dtype} (same as local_quats)")
+        if t.device != local_quats.device:
+            raise ValueError(f"fk: {name} is on {t.device} but local_quats is on {local_quats.device}")
+    if tuple(offsets.shape) != (J, 3):
+        raise ValueError(f"fk: offsets must have shape (J, 3) = ({J}, 3), got {tuple(offsets.shape)}")
+    if tuple(root_positions.shape) != tuple(local_quats.shape[:-2]) + (3,):
+        raise ValueError(
+            f"fk: root_positions must have shape {tuple(local_quats.shape[:-2]) + (3,)} (local_quats.shape[:-2] + (3,)), "
+            f"got {tuple(root_positions.shape)}"
+        )
+    for name, t in (("local_quats", local_quats), ("offsets", offsets), ("root_positions", root_positions)):
+        if not t.is_contiguous():
+            raise ValueError(f"fk: {name} must be contiguous (call .contiguous() first)")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the op: fake kernels and autograd (registered only when the C++ library defined the schemas)
+# ---------------------------------------------------------------------------------------------------------
+
+
+def _op_defined() -> bool:
+    return HAS_EXT and hasattr(torch.ops.modi_ext, "fk") and hasattr(torch.ops.modi_ext, "fk_backward")
+
+
+if _op_defined():
+
+    @torch.library.register_fake("modi_ext::fk")
+    def _fk_fake(local_quats, offsets, parents, root_positions):
+        positions = local_quats.new_empty(tuple(local_quats.shape[:-1]) + (3,))
+        return positions, torch.empty_like(local_quats)
+
+    @torch.library.register_fake("modi_ext::fk_backward")
+    def _fk_backward_fake(grad_positions, grad_global_quats, local_quats, global_quats, offsets, parents, offsets_grad):
+        grad_root = local_quats.new_empty(tuple(local_quats.shape[:-2]) + (3,))
+        return torch.empty_like(local_quats), grad_root, offsets.new_empty((offsets.shape[0], 3))
+
+    def _fk_setup_context(ctx, inputs, output):
+        local_quats, offsets, parents, _root = inputs
+        _positions, global_quats = output
+        ctx.save_for_backward(local_quats, global_quats, offsets)
+        ctx.parents = parents
+
+    def _fk_backward(ctx, grad_positions, grad_global_quats):
+        local_quats, global_quats, offsets = ctx.saved_tensors
+        if grad_positions is None:
+            grad_positions = local_quats.new_zeros(tuple(local_quats.shape[:-1]) + (3,))
+        if grad_global_quats is not None:
+            grad_global_quats = grad_global_quats.contiguous()
+        grad_q, grad_root, grad_off = torch.ops.modi_ext.fk_backward(
+            grad_positions.contiguous(), grad_global_quats, local_quats, global_quats, offsets,
+            ctx.parents, bool(ctx.needs_input_grad[1]),
+        )
+        return (
+            grad_q if ctx.needs_input_grad[0] else None,
+            grad_off if ctx.needs_input_grad[1] else None,
+            None,
+            grad_root if ctx.needs_input_grad[3] else None,
+        )
+
+    torch.library.register_autograd("modi_ext::fk", _fk_backward, setup_context=_fk_setup_context)
+
+
+def _use_kernel(device: torch.device) -> bool:
+    if impl_choice() != "ext":
+        return False
+    if device.type == "cpu":
+        return True
+    # Fall back to the reference on devices without a kernel (e.g. CUDA when only the CPU part is built).
+    return torch._C._dispatch_has_kernel_for_dispatch_key("modi_ext::fk", device.type.upper())
+
+
+def _fk_checked(local_quats, offsets, parents: tuple[int, ...], root_positions, return_rotations: bool):
+    if _use_kernel(local_quats.device):
+        positions, rotations = torch.ops.modi_ext.fk(local_quats, offsets, list(parents), root_positions)
+        return (positions, rotations) if return_rotations else positions
+    return fk_reference(local_quats, offsets, parents, root_positions, return_rotations)
+
+
+def fk(
+    local_quats: torch.Tensor,
+    offsets: torch.Tensor,
+    parents: Sequence[int] | torch.Tensor,
+    root_positions: torch.Tensor,
+    *,
+    return_rotations: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Global joint positions (..., J, 3) [and global quaternions (..., J, 4) with ``return_rotations``].
+
+    local_quats (..., J, 4) unit (w, x, y, z); offsets (J, 3); parents: J ints, ``parents[0] == -1``,
+    ``0 <= parents[j] < j``; root_positions (..., 3). All float32 or all float64, contiguous, one device.
+    Differentiable w.r.t. local_quats, root_positions and offsets. Raises ValueError/TypeError naming the
+    offending argument.
+    """
+    _check_tensors(local_quats, offsets, root_positions)
+    par = check_parents(parents, local_quats.shape[-2])
+    return _fk_checked(local_quats, offsets, par, root_positions, return_rotations)
+
+
+class ForwardKinematics(nn.Module):
+    """FK for one fixed skeleton: ``forward(local_quats (B,T,J,4), root_positions (B,T,3)) -> (B,T,J,3)``.
+
+    The offsets are a buffer (they follow ``.to()`` and are saved in the state dict, but are not trained);
+    they are cast to the input's dtype. Non-contiguous inputs (e.g. permuted network outputs) are made
+    contiguous here, so the module is a drop-in for any layout.
+    """
+
+    def __init__(self, parents: Sequence[int], offsets: torch.Tensor | Sequence[Sequence[float]]) -> None:
+        super().__init__()
+        off = torch.as_tensor(offsets, dtype=torch.get_default_dtype())
+        if off.dim() != 2 or off.shape[1] != 3:
+            raise ValueError(f"ForwardKinematics: offsets must have shape (J, 3), got {tuple(off.shape)}")
+        self.parents = check_parents(parents, off.shape[0])
+        self.register_buffer("offsets", off.detach().clone().contiguous())
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.parents)
+
+    def forward(
+        self, local_quats: torch.Tensor, root_positions: torch.Tensor, return_rotations: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        offsets = self.offsets.to(dtype=local_quats.dtype)
+        local_quats, root_positions = local_quats.contiguous(), root_positions.contiguous()
+        _check_tensors(local_quats, offsets, root_positions)
+        if local_quats.shape[-2] != self.n_joints:
+            raise ValueError(
+                f"ForwardKinematics: local_quats has {local_quats.shape[-2]} joints, the skeleton has {self.n_joints}"
+            )
+        return _fk_checked(local_quats, offsets, self.parents, root_positions, return_rotations)
+
+    def extra_repr(self) -> str:
+        return f"n_joints={self.n_joints}"

@@ -1,0 +1,215 @@
+"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.ops``.
+
+Topology comes in as plain lists and is turned into CSR buffers (not saved in ``state_dict``: the topology is a
+constructor argument).  Weights are stored compactly, one ``(Cout, Cin, U)`` block per (output entity, input entity)
+pair, drawn from N(0, 1) and multiplied at run time by StyleGAN2's equalised-learning-rate factor
+``1 / sqrt(fan_in)`` where ``fan_in`` counts only the connections the entity really has (|N(j)| * Cin * U), so a
+joint with three neighbors and one with two start at the same output scale.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from modi_ext import ops
+from modi_ext.reference import to_dense
+from modi_ext.topology_tensors import SparseTopology, csr_from_lists
+
+__all__ = ["SkeletalConv", "SkeletalDownsample", "SkeletalUpsample", "ModulatedSkeletalConv", "EqualLinear",
+           "ForwardKinematics"]
+
+
+def _check_channels(**kw: int) -> None:
+    for k, v in kw.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+            raise ValueError(f"{k} must be a positive int, got {v!r}")
+
+
+def _check_kernel(kernel_size: int) -> None:
+    if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size <= 0 or kernel_size % 2 == 0:
+        raise ValueError(f"kernel_size must be a positive odd int, got {kernel_size!r}")
+
+
+class _SkeletalBase(nn.Module):
+    """Shared plumbing: CSR buffers, compact weight, per-pair equalised-lr scale."""
+
+    def _setup(self, topo: SparseTopology, w_shape: tuple[int, int, int, int], fan_entity: torch.Tensor,
+               fan_counts: torch.Tensor, fan_channels: int, kernel_size: int) -> None:
+        self.n_out = topo.n_out
+        self.n_in = topo.n_in
+        self.register_buffer("index", topo.index, persistent=False)
+        self.register_buffer("offsets", topo.offsets, persistent=False)
+        self.weight = nn.Parameter(torch.randn(w_shape))
+        fan_in = fan_counts[fan_entity].to(torch.float64) * fan_channels * kernel_size
+        scale = fan_in.rsqrt().to(torch.get_default_dtype())
+        self.register_buffer("weight_scale", scale, persistent=False)  # (nnz,)
+
+    def _pair_axis_scale(self) -> torch.Tensor:
+        return self.weight_scale.to(self.weight.dtype).view(1, -1, 1, 1)
+
+    def effective_weight(self) -> torch.Tensor:
+        """Compact weight as the op sees it (equalised-lr factor applied)."""
+        return self.weight * self._pair_axis_scale()
+
+
+class SkeletalConv(_SkeletalBase):
+    """In-place skeletal conv: each entity mixes its neighbors' channels over a ``kernel_size`` time window."""
+
+    def __init__(self, in_ch: int, out_ch: int, neighbors: Sequence[Sequence[int]], kernel_size: int = 3,
+                 padding_mode: str = "zeros", bias: bool = True) -> None:
+        super().__init__()
+        _check_channels(in_ch=in_ch, out_ch=out_ch)
+        _check_kernel(kernel_size)
+        if padding_mode not in ("zeros", "reflect"):
+            raise ValueError(f"padding_mode must be 'zeros' or 'reflect', got {padding_mode!r}")
+        topo = csr_from_lists(neighbors, n_in=len(neighbors) if len(neighbors) else None, name="neighbors")
+        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
+        self._setup(topo, (out_ch, topo.nnz, in_ch, kernel_size), topo.pair_entity, topo.fan_in_counts(), in_ch,
+                    kernel_size)
+        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ops.skeletal_conv(x, self.effective_weight(), self.bias, self.index, self.offsets,
+                                 padding_mode=self.padding_mode)
+
+    def dense_weight(self) -> torch.Tensor:
+        """Masked dense ``(Cout, Cin, E, E, U)`` weight, equalised-lr factor applied."""
+        return to_dense(self.effective_weight(), self.index, self.offsets, self.n_in)
+
+    def extra_repr(self) -> str:
+        return (f"{self.in_ch}, {self.out_ch}, entities={self.n_out}, pairs={self.index.numel()}, "
+                f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
+
+
+class SkeletalDownsample(_SkeletalBase):
+    """Convolutional scaler fine -> coarse: ``(B, Cin, E_fine, T) -> (B, Cout, E_coarse, T // 2)``."""
+
+    def __init__(self, in_ch: int, out_ch: int, pooling: Sequence[Sequence[int]], kernel_size: int = 3,
+                 bias: bool = True, padding_mode: str = "zeros") -> None:
+        super().__init__()
+        _check_channels(in_ch=in_ch, out_ch=out_ch)
+        _check_kernel(kernel_size)
+        topo = csr_from_lists(pooling, name="pooling", require_cover=True)
+        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
+        self._setup(topo, (out_ch, topo.nnz, in_ch, kernel_size), topo.pair_entity, topo.fan_in_counts(), in_ch,
+                    kernel_size)
+        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ops.skeletal_down(x, self.effective_weight(), self.bias, self.index, self.offsets,
+                                 padding_mode=self.padding_mode)
+
+    def dense_weight(self) -> torch.Tensor:
+        """Masked dense ``(Cout, Cin, E_coarse, E_fine, U)`` weight, equalised-lr factor applied."""
+        return to_dense(self.effective_weight(), self.index, self.offsets, self.n_in)
+
+
+class SkeletalUpsample(_SkeletalBase):
+    """Coarse -> fine: transposed conv scaler (time x2) followed by the [1,3,3,1] blur.
+
+    ``.weight`` is ``(Cin, nnz, Cout, U)``: the layout of the downsampler it is the adjoint of.
+    """
+
+    def __init__(self, in_ch: int, out_ch: int, pooling: Sequence[Sequence[int]], kernel_size: int = 3,
+                 bias: bool = True, padding_mode: str = "zeros") -> None:
+        super().__init__()
+        _check_channels(in_ch=in_ch, out_ch=out_ch)
+        _check_kernel(kernel_size)
+        topo = csr_from_lists(pooling, name="pooling", require_cover=True)
+        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
+        # fan-in of fine entity f: the coarse entities that contain it
+        self._setup(topo, (in_ch, topo.nnz, out_ch, kernel_size), topo.index, topo.in_degree(), in_ch, kernel_size)
+        self.n_fine = topo.n_in
+        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ops.skeletal_up(x, self.effective_weight(), self.bias, self.index, self.offsets, self.n_fine,
+                               padding_mode=self.padding_mode)
+
+    def dense_weight(self) -> torch.Tensor:
+        """Masked dense ``(Cout, Cin, E_fine, E_coarse, U)``: entry [o,i,f,c,u] carries x[i,c,t] to fine frame 2t+u-U//2."""
+        d = to_dense(self.effective_weight(), self.index, self.offsets, self.n_fine)  # (Ci, Co, Ec, Ef, U)
+        return d.permute(1, 0, 3, 2, 4)
+
+
+class EqualLinear(nn.Module):
+    """StyleGAN2 equalised-lr linear layer: ``y = x @ (W * lr_mul / sqrt(in)).T + b * lr_mul``."""
+
+    def __init__(self, in_dim: int, out_dim: int, bias: bool = True, bias_init: float = 0.0,
+                 lr_mul: float = 1.0) -> None:
+        super().__init__()
+        _check_channels(in_dim=in_dim, out_dim=out_dim)
+        self.weight = nn.Parameter(torch.randn(out_dim, in_dim) / lr_mul)
+        self.bias = nn.Parameter(torch.full((out_dim,), float(bias_init) / lr_mul)) if bias else None
+        self.scale = lr_mul / math.sqrt(in_dim)
+        self.lr_mul = lr_mul
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b = self.bias * self.lr_mul if self.bias is not None else None
+        return torch.nn.functional.linear(x, self.weight * self.scale, b)
+
+
+class ModulatedSkeletalConv(nn.Module):
+    """StyleGAN2 modulated skeletal conv (in place, up or down), with its own affine style layer.
+
+    ``forward(x, w)``: ``s = affine(w)`` (bias initialised to 1), then the fused modulated op; no bias or
+    activation (the generator adds noise and a fused bias + leaky ReLU).  ``topology`` is the neighbor list for
+    ``mode="same"`` and the coarse -> fine pooling map for ``"up"`` / ``"down"``.
+    """
+
+    def __init__(self, in_ch: int, out_ch: int, style_dim: int, topology: Sequence[Sequence[int]],
+                 kernel_size: int = 3, mode: str = "same", demodulate: bool = True,
+                 padding_mode: str = "zeros") -> None:
+        super().__init__()
+        if mode not in ("same", "up", "down"):
+            raise ValueError(f"mode must be 'same', 'up' or 'down', got {mode!r}")
+        _check_channels(style_dim=style_dim)
+        self.mode, self.demodulate = mode, bool(demodulate)
+        self.in_ch, self.out_ch, self.style_dim = in_ch, out_ch, style_dim
+        if mode == "same":
+            self.conv = SkeletalConv(in_ch, out_ch, topology, kernel_size, padding_mode, bias=False)
+        elif mode == "down":
+            self.conv = SkeletalDownsample(in_ch, out_ch, topology, kernel_size, bias=False,
+                                           padding_mode=padding_mode)
+        else:
+            self.conv = SkeletalUpsample(in_ch, out_ch, topology, kernel_size, bias=False,
+                                         padding_mode=padding_mode)
+        self.affine = EqualLinear(style_dim, in_ch, bias_init=1.0)
+
+    @property
+    def weight(self) -> nn.Parameter:
+        return self.conv.weight
+
+    def dense_weight(self) -> torch.Tensor:
+        return self.conv.dense_weight()
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        if w.dim() != 2 or w.shape[1] != self.style_dim:
+            raise ValueError(f"w must be (B, {self.style_dim}), got shape {tuple(w.shape)}")
+        if w.shape[0] != x.shape[0]:
+            raise ValueError(f"w has batch {w.shape[0]} but x has {x.shape[0]}")
+        s = self.affine(w)
+        c = self.conv
+        kw = dict(style=s, demodulate=self.demodulate, padding_mode=c.padding_mode)
+        if self.mode == "same":
+            return ops.skeletal_conv(x, c.effective_weight(), None, c.index, c.offsets, **kw)
+        if self.mode == "down":
+            return ops.skeletal_down(x, c.effective_weight(), None, c.index, c.offsets, **kw)
+        return ops.skeletal_up(x, c.effective_weight(), None, c.index, c.offsets, c.n_fine, **kw)
+
+    def extra_repr(self) -> str:
+        return f"mode={self.mode!r}, demodulate={self.demodulate}, style_dim={self.style_dim}"
+
+
+try:
+    from modi_ext.fk import ForwardKinematics  # type: ignore[attr-defined]  # noqa: F401
+except ImportError:
+    class ForwardKinematics(nn.Module):  # type: ignore[no-redef]
+        """Placeholder until ``modi_ext.fk`` lands: constructing it explains what is missing."""
+
+        def __init__(self, parents: Sequence[int], offsets: torch.Tensor) -> None:
+            super().__init__()
+            raise NotImplementedError("modi_ext.fk is not available in this build; ForwardKinematics needs it")

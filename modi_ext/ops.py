@@ -1,0 +1,284 @@
+"""Public skeletal operators: argument checks, then the C++ kernels or the dense reference.
+
+``MODI_EXT_IMPL=ref|ext|auto`` picks the path (see ``modi_ext._loader``).  On the extension path the demodulation
+coefficients ``d[b,o,j]`` are computed here with small torch ops (a ``(B, Cin) x (Cin, Cout*E)`` product of squared
+weights, never a per-sample weight tensor) and handed to the kernel, which applies the style on the input rows and
+``d`` on the output rows while it packs/unpacks its GEMM operands.
+
+Autograd goes through ``torch.library.register_autograd``: first-order gradients use the C++ backward kernel;
+when a graph of the gradient is requested (``create_graph=True``: R1, path-length regularisation) the backward
+is recomputed differentiably through the dense reference, which is slower but exact to any order.
+"""
+from __future__ import annotations
+
+import torch
+
+from modi_ext import reference
+from modi_ext._loader import HAS_EXT, impl_choice
+from modi_ext.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
+from modi_ext.topology_tensors import pair_entity
+
+__all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_dense", "demod_scale"]
+
+_KIND_CONV, _KIND_DOWN, _KIND_UP = 0, 1, 2
+_FLOATS = (torch.float32, torch.float64)
+
+
+def _is_tracing() -> bool:
+    try:
+        return torch.compiler.is_compiling()
+    except AttributeError:  # pragma: no cover - very old torch
+        return False
+
+
+def _check(kind: int, x, weight, bias, index, offsets, n_out: int | None, style, demodulate, padding_mode) -> int:
+    """Validate every argument; returns the number of output entities. Errors name the argument."""
+    for name, t in (("x", x), ("weight", weight), ("index", index), ("offsets", offsets)):
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if x.dim() != 4:
+        raise ValueError(f"x must be 4-D (B, C, E, T), got shape {tuple(x.shape)}")
+    if x.dtype not in _FLOATS:
+        raise TypeError(f"x must be float32 or float64, got {x.dtype}")
+    if weight.dim() != 4:
+        raise ValueError(f"weight must be 4-D compact (C0, nnz, C1, U), got shape {tuple(weight.shape)}")
+    if weight.dtype != x.dtype:
+        raise TypeError(f"weight dtype {weight.dtype} differs from x dtype {x.dtype}")
+    if weight.device != x.device:
+        raise ValueError(f"weight is on {weight.device} but x is on {x.device}")
+    for name, t in (("x", x), ("weight", weight)):
+        if not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous (call .contiguous())")
+    b, cin, e_in, t_len = x.shape
+    if b == 0:
+        raise ValueError("x has an empty batch (B == 0)")
+    if t_len == 0:
+        raise ValueError("x has zero frames (T == 0)")
+    u = weight.shape[3]
+    if u % 2 != 1:
+        raise ValueError(f"weight kernel width U={u} must be odd")
+    if padding_mode not in reference.PADDING_MODES:
+        raise ValueError(f"padding_mode must be one of {reference.PADDING_MODES}, got {padding_mode!r}")
+    for name, t in (("index", index), ("offsets", offsets)):
+        if t.dtype != torch.int64:
+            raise TypeError(f"{name} must be int64, got {t.dtype}")
+        if t.dim() != 1:
+            raise ValueError(f"{name} must be 1-D, got shape {tuple(t.shape)}")
+        if t.device != x.device:
+            raise ValueError(f"{name} is on {t.device} but x is on {x.device}")
+        if not t.is_contiguous():
+            raise ValueError(f"{name} must be contiguous")
+    if offsets.shape[0] < 2:
+        raise ValueError("offsets must have at least 2 entries (one output entity)")
+    n_rows = offsets.shape[0] - 1
+    if weight.shape[1] != index.shape[0]:
+        raise ValueError(f"weight has {weight.shape[1]} pairs (dim 1) but index has {index.shape[0]}")
+    if kind == _KIND_UP:
+        c_in_w, c_out = weight.shape[0], weight.shape[2]
+        if n_out is None or int(n_out) <= 0:
+            raise ValueError(f"n_out must be a positive int, got {n_out!r}")
+        if e_in != n_rows:
+            raise ValueError(f"x has {e_in} coarse entities but offsets describes {n_rows}")
+        n_idx_range = int(n_out)
+    else:
+        c_in_w, c_out = weight.shape[2], weight.shape[0]
+        if kind == _KIND_CONV and e_in != n_rows:
+            raise ValueError(f"x has {e_in} entities but the neighbor lists (offsets) describe {n_rows}")
+        n_idx_range = e_in
+    if c_in_w != cin:
+        raise ValueError(f"x has {cin} channels but weight expects {c_in_w}")
+    h = u // 2
+    if kind == _KIND_DOWN and t_len < 2:
+        raise ValueError(f"x needs at least 2 frames to downsample, got {t_len}")
+    if padding_mode == "reflect":
+        padded_len = 2 * t_len if kind == _KIND_UP else t_len
+        if padded_len <= h:
+            raise ValueError(f"reflect padding of {h} frames needs more than {h} frames, got {padded_len}")
+    if bias is not None:
+        if not isinstance(bias, torch.Tensor) or bias.dim() != 1 or bias.shape[0] != c_out:
+            raise ValueError(f"bias must be a 1-D tensor of {c_out} output channels, "
+                             f"got {tuple(bias.shape) if isinstance(bias, torch.Tensor) else type(bias).__name__}")
+        if bias.dtype != x.dtype or bias.device != x.device:
+            raise TypeError(f"bias must be {x.dtype} on {x.device}, got {bias.dtype} on {bias.device}")
+    if style is not None:
+        if not isinstance(style, torch.Tensor) or style.dim() != 2 or tuple(style.shape) != (b, cin):
+            raise ValueError(f"style must be (B, Cin) = {(b, cin)}, "
+                             f"got {tuple(style.shape) if isinstance(style, torch.Tensor) else type(style).__name__}")
+        if style.dtype != x.dtype or style.device != x.device:
+            raise TypeError(f"style must be {x.dtype} on {x.device}, got {style.dtype} on {style.device}")
+    if not isinstance(demodulate, bool):
+        raise TypeError(f"demodulate must be a bool, got {type(demodulate).__name__}")
+    if not _is_tracing() and index.device.type == "cpu":
+        off = offsets
+        if int(off[0]) != 0 or int(off[-1]) != index.shape[0]:
+            raise ValueError(f"offsets must run from 0 to index.numel()={index.shape[0]}, "
+                             f"got {int(off[0])}..{int(off[-1])}")
+        counts = off[1:] - off[:-1]
+        if bool((counts <= 0).any()):
+            j = int(torch.nonzero(counts <= 0)[0, 0])
+            raise ValueError(f"offsets: output entity {j} has no neighbors")
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_idx_range):
+            raise ValueError(f"index holds an entity out of range [0, {n_idx_range})")
+    return int(n_out) if kind == _KIND_UP else n_rows
+
+
+def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor, style: torch.Tensor | None,
+                up: bool, n_out: int, batch: int) -> torch.Tensor:
+    """Demodulation coefficients ``(B, Cout, E_out)`` without a per-sample weight: ``s^2 @ sum_{n,u} W^2``."""
+    q = weight.pow(2).sum(-1)  # conv/down (Co, nnz, Ci) ; up (Ci, nnz, Co)
+    if up:
+        acc = q.new_zeros(q.shape[0], n_out, q.shape[2]).index_add(1, index, q)  # (Ci, Ef, Co)
+        a = (torch.einsum("bi,ifo->bof", style.pow(2), acc) if style is not None
+             else acc.sum(0).transpose(0, 1).unsqueeze(0))
+    else:
+        seg = pair_entity(offsets, index.shape[0])
+        acc = q.new_zeros(q.shape[0], n_out, q.shape[2]).index_add(1, seg, q)  # (Co, Eo, Ci)
+        a = (torch.einsum("bi,oji->boj", style.pow(2), acc) if style is not None else acc.sum(2).unsqueeze(0))
+    d = torch.rsqrt(a + reference.DEMOD_EPS)
+    return d.expand(batch, -1, -1).contiguous()
+
+
+def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
+                  offsets: torch.Tensor, *, style: torch.Tensor | None = None, demodulate: bool = False,
+                  padding_mode: str = "zeros") -> torch.Tensor:
+    """In-place skeletal conv ``(B, Cin, E, T) -> (B, Cout, E, T)``; weight ``(Cout, nnz, Cin, U)``.
+
+    ``(index, offsets)`` is the CSR neighbor map (``modi_ext.topology_tensors.csr_from_lists``).  Exact semantics in
+    ``modi_ext.reference``.
+    """
+    n_out = _check(_KIND_CONV, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
+    if impl_choice() == "ref":
+        return reference.skeletal_conv(x, weight, bias, index, offsets, style, demodulate, padding_mode)
+    scale = demod_scale(weight, index, offsets, style, False, n_out, x.shape[0]) if demodulate else None
+    return torch.ops.modi_ext.skeletal_conv(x, weight, bias, index, offsets, style, scale, padding_mode)
+
+
+def skeletal_down(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
+                  offsets: torch.Tensor, *, style: torch.Tensor | None = None, demodulate: bool = False,
+                  padding_mode: str = "zeros") -> torch.Tensor:
+    """Convolutional scaler ``(B, Cin, E_fine, T) -> (B, Cout, E_coarse, T // 2)``; CSR = coarse -> fine map."""
+    n_out = _check(_KIND_DOWN, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
+    if impl_choice() == "ref":
+        return reference.skeletal_down(x, weight, bias, index, offsets, style, demodulate, padding_mode)
+    scale = demod_scale(weight, index, offsets, style, False, n_out, x.shape[0]) if demodulate else None
+    return torch.ops.modi_ext.skeletal_down(x, weight, bias, index, offsets, style, scale, padding_mode)
+
+
+def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
+                offsets: torch.Tensor, n_out: int, *, style: torch.Tensor | None = None, demodulate: bool = False,
+                padding_mode: str = "zeros") -> torch.Tensor:
+    """Coarse -> fine ``(B, Cin, E_coarse, T) -> (B, Cout, n_out, 2T)``: adjoint of down, then [1,3,3,1] blur.
+
+    weight ``(Cin, nnz, Cout, U)`` (the layout of the down op it is the adjoint of); CSR = coarse -> fine map.
+    """
+    n_out = _check(_KIND_UP, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    if impl_choice() == "ref":
+        return reference.skeletal_up(x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    scale = demod_scale(weight, index, offsets, style, True, n_out, x.shape[0]) if demodulate else None
+    return torch.ops.modi_ext.skeletal_up(x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Extension registration: fake kernels (for torch.compile / meta) and autograd.
+
+def _ref_scaled(kind, x, weight, bias, index, offsets, style, scale, padding_mode, n_out):
+    """Reference forward with an explicit output scale: ``scale * op(x * style) + bias`` (differentiable)."""
+    if kind == _KIND_UP:
+        y = reference.skeletal_up(x, weight, None, index, offsets, n_out, style, False, padding_mode)
+    elif kind == _KIND_DOWN:
+        y = reference.skeletal_down(x, weight, None, index, offsets, style, False, padding_mode)
+    else:
+        y = reference.skeletal_conv(x, weight, None, index, offsets, style, False, padding_mode)
+    if scale is not None:
+        y = y * scale.unsqueeze(-1)
+    if bias is not None:
+        y = y + bias.view(1, -1, 1, 1)
+    return y
+
+
+def _out_shape(kind, x, weight, offsets, n_out):
+    b, _, _, t = x.shape
+    if kind == _KIND_UP:
+        return (b, weight.shape[2], n_out, 2 * t)
+    e_out = offsets.shape[0] - 1
+    return (b, weight.shape[0], e_out, t if kind == _KIND_CONV else t // 2)
+
+
+def _register_ext() -> None:
+    lib = torch.library
+
+    def make_fake(kind):
+        if kind == _KIND_UP:
+            def fake(x, weight, bias, index, offsets, n_out, style, scale, padding_mode):
+                return x.new_empty(_out_shape(kind, x, weight, offsets, n_out))
+        else:
+            def fake(x, weight, bias, index, offsets, style, scale, padding_mode):
+                return x.new_empty(_out_shape(kind, x, weight, offsets, None))
+        return fake
+
+    lib.register_fake("modi_ext::skeletal_conv")(make_fake(_KIND_CONV))
+    lib.register_fake("modi_ext::skeletal_down")(make_fake(_KIND_DOWN))
+    lib.register_fake("modi_ext::skeletal_up")(make_fake(_KIND_UP))
+
+    @lib.register_fake("modi_ext::skeletal_backward")
+    def _bwd_fake(grad, out, x, weight, bias, index, offsets, style, scale, padding_mode, kind, n_out, output_mask):
+        gx = torch.empty_like(x) if output_mask[0] else x.new_empty(0)
+        gw = torch.empty_like(weight) if output_mask[1] else x.new_empty(0)
+        gb = x.new_empty(bias.shape) if bias is not None else x.new_empty(0)
+        gs = torch.empty_like(style) if (style is not None and output_mask[2]) else x.new_empty(0)
+        gd = torch.empty_like(scale) if (scale is not None and output_mask[3]) else x.new_empty(0)
+        return gx, gw, gb, gs, gd
+
+    def make_autograd(kind):
+        up = kind == _KIND_UP
+
+        def setup_context(ctx, inputs, output):
+            if up:
+                x, weight, bias, index, offsets, n_out, style, scale, padding_mode = inputs
+            else:
+                x, weight, bias, index, offsets, style, scale, padding_mode = inputs
+                n_out = offsets.shape[0] - 1
+            ctx.save_for_backward(x, weight, bias, index, offsets, style, scale, output)
+            ctx.meta = (padding_mode, n_out)
+
+        def backward(ctx, grad):
+            x, weight, bias, index, offsets, style, scale, out = ctx.saved_tensors
+            padding_mode, n_out = ctx.meta
+            nig = ctx.needs_input_grad
+            if up:
+                need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[6], scale=nig[7])
+            else:
+                need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[5], scale=nig[6])
+            if torch.is_grad_enabled():  # create_graph: differentiate again later -> use the reference
+                args = dict(x=x, weight=weight, bias=bias, style=style, scale=scale)
+                wanted = [k for k, v in need.items() if v and args[k] is not None]
+                res = dict.fromkeys(need)
+                if wanted:
+                    y = _ref_scaled(kind, x, weight, bias, index, offsets, style, scale, padding_mode, n_out)
+                    grads = torch.autograd.grad(y, [args[k] for k in wanted], grad, create_graph=True,
+                                                allow_unused=True)
+                    res.update(zip(wanted, grads))
+                gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
+            else:
+                mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]
+                gx, gw, gb, gs, gd = torch.ops.modi_ext.skeletal_backward(
+                    grad.contiguous(), out, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
+                    n_out, mask)
+                gx = gx if need["x"] else None
+                gw = gw if need["weight"] else None
+                gb = gb if (need["bias"] and bias is not None) else None
+                gs = gs if (need["style"] and style is not None) else None
+                gd = gd if (need["scale"] and scale is not None) else None
+            if up:
+                return gx, gw, gb, None, None, None, gs, gd, None
+            return gx, gw, gb, None, None, gs, gd, None
+
+        return setup_context, backward
+
+    for name, kind in (("skeletal_conv", _KIND_CONV), ("skeletal_down", _KIND_DOWN), ("skeletal_up", _KIND_UP)):
+        setup_context, backward = make_autograd(kind)
+        lib.register_autograd(f"modi_ext::{name}", backward, setup_context=setup_context)
+
+
+if HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_conv"):
+    _register_ext()
