@@ -54,7 +54,7 @@ class Bvh:
     def __post_init__(self) -> None:
         self.offsets = np.asarray(self.offsets, dtype=np.float64).reshape(-1, 3)
         self.motion = np.asarray(self.motion, dtype=np.float64)
-        if self.motion.ndim == 1 and self.motion.size == 0:
+        if self.motion.size == 0:
             self.motion = self.motion.reshape(0, self.n_channels)
         self.end_sites = {int(k): np.asarray(v, dtype=np.float64).reshape(3) for k, v in self.end_sites.items()}
         self.channels = [list(c) for c in self.channels]

@@ -187,51 +187,107 @@ def find_bvh_files(root: str | os.PathLike) -> list[Path]:
     return files
 
 
-def _translating_joints(b: bvh_io.Bvh, tol: float) -> list[int]:
-    """Non-root joints whose position channels move away from their OFFSET by more than ``tol``."""
+def _channel_columns(b: bvh_io.Bvh) -> tuple[np.ndarray, np.ndarray]:
+    """(J,3) motion columns of each joint's rotation channels (in its Euler order) and X/Y/Z position channels;
+    -1 where a joint lacks the channel."""
+    rot = np.full((b.n_joints, 3), -1, dtype=np.int64)
+    pos = np.full((b.n_joints, 3), -1, dtype=np.int64)
+    col = 0
+    for j, chans in enumerate(b.channels):
+        r = 0
+        for c in chans:
+            axis = "XYZ".index(c[0].upper())
+            if c.lower().endswith("rotation"):
+                rot[j, r] = col
+                r += 1
+            else:
+                pos[j, axis] = col
+            col += 1
+    return rot, pos
+
+
+def _bake_moving_anchor(b: bvh_io.Bvh) -> bvh_io.Bvh | None:
+    """For a root 'anchor' with one child that carries the translation (Bandai: ``joint_Root`` -> ``Hips``) and
+    an anchor that itself moves (4 Bandai clips translate ``joint_Root`` too), return a copy with the anchor's
+    motion composed into the child and the anchor frozen at the identity, else ``None``.
+
+    ``Motion.from_bvh`` handles a *static* anchor exactly (the child's translation becomes the root
+    trajectory) but can only average a moving one; after baking every such file takes that exact path.
+    """
+    from modi.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
+
+    if b.n_joints < 2 or [j for j, p in enumerate(b.parents) if p == 0] != [1]:
+        return None
+    rot_cols, pos_cols = _channel_columns(b)
+    if (pos_cols[1] < 0).any():
+        return None  # the child has no position channels to carry the trajectory
     trans = b.local_translations()
-    dev = np.abs(trans[:, 1:] - b.offsets[None, 1:]).max(axis=(0, 2)) if b.n_joints > 1 else np.zeros(0)
-    return [j + 1 for j in np.nonzero(dev > tol)[0].tolist()]
+    euler = b.euler_degrees()
+    scale = max(float(np.abs(trans[:, 1]).max()), 1e-9)
+    anchor_moves = np.ptp(trans[:, 0], axis=0).max() > 1e-9 * scale or np.ptp(euler[:, 0], axis=0).max() > 1e-9
+    child_moves = np.ptp(trans[:, 1], axis=0).max() > 1e-6 * scale
+    if not (anchor_moves and child_moves):
+        return None
+    orders = b.rotation_orders
+    e = torch.from_numpy(euler[:, :2])
+    q0, q1 = euler_to_quat(e[:, 0], orders[0]), euler_to_quat(e[:, 1], orders[1])
+    t = torch.from_numpy(trans[:, :2])
+    anchor_pos = torch.zeros(3, dtype=torch.float64) if (pos_cols[0] >= 0).all() else torch.from_numpy(b.offsets[0])
+    child_pos = t[:, 0] + quat_apply(q0, t[:, 1]) - anchor_pos
+    child_euler = quat_to_euler(quat_mul(q0, q1), orders[1]).numpy()
+    out = b.copy()
+    for axis in range(3):
+        if pos_cols[0, axis] >= 0:
+            out.motion[:, pos_cols[0, axis]] = 0.0
+        if rot_cols[0, axis] >= 0:
+            out.motion[:, rot_cols[0, axis]] = 0.0
+        out.motion[:, pos_cols[1, axis]] = child_pos[:, axis].numpy()
+        if rot_cols[1, axis] >= 0:
+            out.motion[:, rot_cols[1, axis]] = child_euler[:, axis]
+        elif np.abs(child_euler[:, axis]).max() > 1e-9:
+            return None  # the child cannot hold the anchor's rotation about this axis
+    return out
 
 
 def motion_from_bvh(b: bvh_io.Bvh, path: str | None = None) -> Any:
-    """A ``Motion`` that reproduces the file's joint positions.
+    """``Motion.from_bvh`` that also keeps the trajectory of rigs whose root anchor moves.
 
-    ``Motion`` carries one translation (the root's). Rigs such as Bandai's put a static anchor at the root and
-    move its only child (``joint_Root`` -> ``Hips`` with position channels); those are *promoted*: the anchor is
-    dropped and the child becomes the root with its global rotation and position from FK. Any other joint
-    whose position channels move is fixed to its OFFSET, with a warning.
+    Bandai puts a ``joint_Root`` anchor above ``Hips`` and translates ``Hips``; ``Motion.from_bvh`` turns that
+    into an exact motion (Hips' translation becomes the root trajectory, all 22 joints kept) when the anchor
+    is static. When the anchor moves as well, its motion is first composed into ``Hips``
+    (``_bake_moving_anchor``) so the same exact conversion applies.
     """
-    from modi.kinematics import bvh_global_quats_and_positions
     from modi.motion import Motion
-    from modi.rotations import quat_inverse, quat_mul
 
-    sk = b.skeleton()
-    tol = 1e-4 * max(sk.height(), 1e-9)
-    moving = _translating_joints(b, tol)
-    promote = bool(moving) and moving[0] == 1 and sk.children(0) == [1]
-    if not promote:
-        if moving:
-            warnings.warn(f"{path or 'bvh'}: joints {[sk.names[j] for j in moving]} have moving position channels; "
-                          "only the root's translation is kept", stacklevel=2)
-        return Motion.from_bvh(b)
-    if len(moving) > 1:
-        warnings.warn(f"{path or 'bvh'}: joints {[sk.names[j] for j in moving[1:]]} have moving position channels; "
-                      "only the root's translation is kept", stacklevel=2)
-    pos, gq = bvh_global_quats_and_positions(b, dtype=torch.float64)
-    parents = b.parents
-    local = torch.empty_like(gq)
-    local[:, 0] = gq[:, 0]
-    for j in range(1, b.n_joints):
-        local[:, j] = quat_mul(quat_inverse(gq[:, parents[j]]), gq[:, j])
-    # Skeleton.subset() must keep joint 0, so build the promoted skeleton here: joint 1 becomes the root.
-    names = sk.names[1:]
-    new_parents = [-1] + [p - 1 for p in sk.parents[2:]]
-    offsets = sk.offsets[1:].copy()
-    end_sites = {j - 1: v for j, v in sk.end_sites.items() if j >= 1}
-    orders = sk.rotation_orders[1:] if sk.rotation_orders is not None else None
-    new_sk = Skeleton(names, new_parents, offsets, end_sites, orders)
-    return Motion(new_sk, local[:, 1:].contiguous(), pos[:, 1].contiguous(), float(b.fps))
+    baked = _bake_moving_anchor(b)
+    return Motion.from_bvh(baked if baked is not None else b)
+
+
+def feet_positions(rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, feet: Sequence[int]) -> Tensor:
+    """Global positions (..., T, F, 3) of the ``feet`` only: FK restricted to their ancestor chains (cheap)."""
+    from modi.kinematics import forward_kinematics
+
+    needed = sorted({a for f in feet for a in [f, *skeleton.ancestors(f)]} | {0})
+    where = {j: i for i, j in enumerate(needed)}
+    parents = [-1 if skeleton.parents[j] < 0 else where[skeleton.parents[j]] for j in needed]
+    offsets = torch.as_tensor(skeleton.offsets[needed], dtype=rotations.dtype)
+    pos = forward_kinematics(rotations[..., needed, :], offsets, parents, root_positions)[0]
+    return pos[..., [where[f] for f in feet], :]
+
+
+class _torch_threads:
+    """Run a block with a given torch intra-op thread count (small tensors gain nothing from threads, and on a
+    busy machine the spinning costs several times the work)."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.saved = torch.get_num_threads()
+
+    def __enter__(self) -> None:
+        torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc: Any) -> None:
+        torch.set_num_threads(self.saved)
 
 
 def _file_sha(path: Path) -> str:
@@ -289,7 +345,8 @@ def build_dataset(
             return _from_state(torch.load(cache_file, map_location="cpu", weights_only=True), from_cache=True)
         except Exception as exc:  # a corrupt or foreign cache file: rebuild it
             warnings.warn(f"ignoring unreadable dataset cache {cache_file}: {exc}", stacklevel=2)
-    ds = _build(files, rels, shas, config, progress)
+    with _torch_threads(1):
+        ds = _build(files, rels, shas, config, progress)
     if cache:
         _atomic_save(_to_state(ds), cache_file)
     return ds
@@ -351,16 +408,15 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
         clips.append(ClipInfo(rel, source_frames, source_fps, T, len(starts), split, sha))
         if not starts:
             continue
-        offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float64)
-        from modi.kinematics import forward_kinematics
-
-        pos = forward_kinematics(rot, offsets, skeleton.parents, rootp)[0]
-        contacts = foot_contacts(pos, feet, height, config.fps, config.velocity_factor, config.height_factor)
-        idx = torch.tensor(starts)[:, None] + torch.arange(config.window)[None]  # (N, W)
-        w_rot, w_root, w_con = rot[idx], rootp[idx].clone(), contacts[idx]
+        fpos = feet_positions(rot, rootp, skeleton, feet)
+        contacts = foot_contacts(fpos, list(range(len(feet))), height, config.fps, config.velocity_factor,
+                                 config.height_factor)
+        # Encode the clip once (quaternion signs continuous over the clip), then cut overlapping windows.
+        x = rep.encode_parts(rot, rootp, contacts)  # (K, E, T)
+        win = x.unfold(-1, config.window, config.stride)[:, :, : len(starts)].permute(2, 0, 1, 3).contiguous()
         if config.center:
-            w_root[..., [0, 2]] -= w_root[:, :1, [0, 2]]
-        chunks[split].append(rep.encode_parts(w_rot, w_root, w_con).to(dtype))
+            _recenter(win, rep, rootp, starts)
+        chunks[split].append(win.to(dtype))
         clip_idx[split].append(torch.full((len(starts),), ci, dtype=torch.int64))
         starts_all[split].append(torch.tensor(starts, dtype=torch.int64))
 
@@ -380,6 +436,18 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
     normalizer = Normalizer.fit(train, min_std=config.min_std, skip_entities=rep.contacts)
     return MotionDataset(config, skeleton, source_skeleton, kept, feet, rep, normalizer, train, test, clips,
                          ci_train, ci_test, st_train, st_test)
+
+
+def _recenter(win: Tensor, rep: MotionRepresentation, rootp: Tensor, starts: list[int]) -> None:
+    """Move each window (N, K, E, W) so that its first frame stands at x = z = 0 (in place)."""
+    J = rep.n_joints
+    if rep.root == "velocity":
+        win[:, 0, J, 0] = 0.0  # the displacement into the first frame
+        win[:, 2, J, 0] = 0.0
+    else:
+        first = rootp[starts][:, [0, 2]].to(win.dtype)  # (N, 2)
+        win[:, 0, J, :] -= first[:, :1]
+        win[:, 2, J, :] -= first[:, 1:]
 
 
 def _check_same_skeleton(ref: Skeleton, sk: Skeleton, rel: str, height: float) -> None:

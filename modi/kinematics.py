@@ -12,7 +12,7 @@ from torch import Tensor
 
 from modi.rotations import euler_to_quat, quat_apply, quat_mul
 
-__all__ = ["forward_kinematics", "bvh_positions", "bvh_global_quats"]
+__all__ = ["forward_kinematics", "bvh_positions", "bvh_global_quats", "bvh_global_quats_and_positions"]
 
 
 def _check_parents(parents: list[int], n: int) -> list[int]:

@@ -526,7 +526,7 @@ def clip_arrays(kind: str, n_frames: int, fps: float = 30.0,
 
 def generate_clip(kind: str, n_frames: int = 128, fps: float = 30.0,
                   rng: np.random.Generator | int | None = None):
-    """One procedural clip as a :class:`modi.motion.Motion` on :func:`builtin_skeleton`.
+    """One procedural clip as a float64 :class:`modi.motion.Motion` on :func:`builtin_skeleton`.
 
     ``rng`` is a Generator (consumed) or a seed; the same seed gives the same clip.
     """
@@ -535,18 +535,20 @@ def generate_clip(kind: str, n_frames: int = 128, fps: float = 30.0,
 
     local, root = clip_arrays(kind, n_frames, fps, rng)
     q = quat_normalize(matrix_to_quat(torch.from_numpy(local)))
-    q = quat_canonical(q).to(torch.float32)
-    return Motion(skeleton=builtin_skeleton(), rotations=q,
-                  root_positions=torch.from_numpy(root).to(torch.float32), fps=float(fps))
+    q = quat_canonical(q)
+    return Motion(skeleton=builtin_skeleton(), rotations=q, root_positions=torch.from_numpy(root), fps=float(fps))
 
 
 def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, seed: int = 0, fps: float = 30.0,
                   kinds: list[str] | tuple[str, ...] | None = None) -> list[Path]:
     """Write ``n_clips`` BVH files (kinds in turn) and ``labels.json`` ({file name: kind}) into ``out_dir``.
 
-    Clip ``i`` is drawn from ``default_rng([seed, i])`` so a clip does not depend on how many others are written.
+    Clip ``i`` is drawn from ``default_rng([seed, i])``, so a clip does not depend on how many others are written,
+    and equals ``generate_clip(kind, frames, fps, np.random.default_rng([seed, i]))``. All clips' Euler angles
+    are converted in one batched call: thousands of tiny torch calls would cost more than the generation.
     """
     from modi import bvh as bvh_io
+    from modi.rotations import matrix_to_euler
 
     kinds = tuple(KINDS if kinds is None else kinds)
     bad = [k for k in kinds if k not in _BUILDERS]
@@ -556,12 +558,24 @@ def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, see
         raise ValueError(f"n_clips must be >= 1, got {n_clips}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    sk = builtin_skeleton()
+    names = [kinds[i % len(kinds)] for i in range(int(n_clips))]
+    arrays = [clip_arrays(kind, frames, fps, np.random.default_rng([int(seed), i])) for i, kind in enumerate(names)]
+    local = torch.from_numpy(np.stack([a[0] for a in arrays]))
+    orders = set(sk.rotation_orders)
+    if len(orders) != 1:   # pragma: no cover - the built-in skeleton uses one order
+        raise AssertionError("built-in skeleton must use one Euler order")
+    order = orders.pop()
+    euler = matrix_to_euler(local, order).numpy()                          # (N, T, J, 3)
+    rot_channels = [f"{axis}rotation" for axis in order]
+    channels = [["Xposition", "Yposition", "Zposition"] + rot_channels] + [rot_channels] * (sk.n_joints - 1)
     paths, labels = [], {}
-    for i in range(int(n_clips)):
-        kind = kinds[i % len(kinds)]
-        motion = generate_clip(kind, frames, fps, np.random.default_rng([int(seed), i]))
+    for i, kind in enumerate(names):
+        motion = np.concatenate([arrays[i][1], euler[i].reshape(euler.shape[1], -1)], axis=1)
+        b = bvh_io.Bvh(names=list(sk.names), parents=list(sk.parents), offsets=sk.offsets, channels=channels,
+                       end_sites=dict(sk.end_sites), frame_time=1.0 / float(fps), motion=motion)
         path = out / f"{i:04d}_{kind}.bvh"
-        bvh_io.save(motion.to_bvh(), path, precision=4)
+        bvh_io.save(b, path, precision=4)
         paths.append(path)
         labels[path.name] = kind
     (out / "labels.json").write_text(json.dumps(labels, indent=1, sort_keys=True) + "\n")

@@ -192,17 +192,28 @@ class _Panel:
         roots = np.stack([_hold(pos[c][:, 0, :], n_frames) for c in chars])      # (C, T, 3)
         centre = roots.mean(0)[:, [0, 2]]
         track = _smooth_track(centre, round(fps))
-        spread = float(np.max(np.linalg.norm(roots[:, :, [0, 2]] - track[None], axis=-1))) if len(chars) > 1 else 0.0
-        visible = max(1.45 * height, 2.2 * (spread + 0.4 * height))
-        aspect = w / h
-        distance = visible / (2 * math.tan(0.5 * _FOV)) / min(1.0, aspect) + 0.4 * height
-        self.cam = _Camera(azimuth, elevation, distance, w, h)
+        if len(chars) > 1:   # crowds: zoom out smoothly as the characters spread apart
+            spread = np.linalg.norm(roots[:, :, [0, 2]] - track[None], axis=-1).max(0)
+            spread = np.maximum(_smooth_track(spread[:, None], 2 * round(fps))[:, 0], 0.0)
+        else:
+            spread = np.zeros(n_frames)
+        visible = np.maximum(1.45 * height, 2.2 * (spread + 0.4 * height))
+        self.distances = visible / (2 * math.tan(0.5 * _FOV)) / min(1.0, w / h) + 0.4 * height
+        self.cam = _Camera(azimuth, elevation, float(self.distances[0]), w, h)
         self.targets = np.stack([track[:, 0], np.full(n_frames, floor + 0.45 * height), track[:, 1]], -1)
         self.floor = floor
-        self.step = _nice_step(0.3 * height)
-        self.extent = 0.8 * distance * math.cos(math.radians(elevation))  # stays in front of the camera
+        self.height = height
+        self.step = _nice_step(max(0.3 * height, float(np.median(visible)) / 10))
+        self.cos_el = math.cos(math.radians(elevation))
         self.title = title
-        self.line = max(2, round(h / 110))
+
+    def set_frame(self, t: int) -> None:
+        d = float(self.distances[t])
+        self.cam.distance, self.cam.near = d, 0.05 * d
+        self.extent = 0.8 * d * self.cos_el   # the grid stays in front of the camera
+        figure_px = self.cam.focal * self.height / d
+        self.line = int(np.clip(round(figure_px / 60), 1, 6))
+        self.dots = figure_px > 80
 
     def draw_grid(self, draw: ImageDraw.ImageDraw, target: np.ndarray, ox: int, oy: int) -> None:
         s = self.step
@@ -320,6 +331,7 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
         draw = ImageDraw.Draw(img)
         for panel, ox, oy in panels:
             target = panel.targets[t]
+            panel.set_frame(t)
             panel.draw_grid(draw, target, ox, oy)
             lw = panel.line
             bones = []   # (depth, xy0, xy1, color)
@@ -353,7 +365,9 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
                     draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=col, width=lw)
                 else:
                     xy, col, hit = data
-                    r = lw * (1.6 if hit else 0.8)
+                    if not (hit or panel.dots):
+                        continue
+                    r = max(lw, 2) * (1.6 if hit else 0.8)
                     draw.ellipse([ox + xy[0] - r, oy + xy[1] - r, ox + xy[0] + r, oy + xy[1] + r], fill=col)
             if panel.title:
                 draw.text((ox + 6, oy + 4), panel.title, fill=_TEXT, font=font)

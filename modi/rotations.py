@@ -43,6 +43,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "quat_angle",
     "quat_between",
+    "quat_unflip",
 ]
 
 EULER_ORDERS = ("XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX")
@@ -143,6 +144,26 @@ def quat_identity(shape: int | tuple[int, ...] | torch.Size = (), dtype: torch.d
     return q
 
 
+def quat_unflip(q: Tensor, dim: int = 0) -> Tensor:
+    """Flip signs along ``dim`` (time) so consecutive quaternions have a non-negative dot product.
+
+    q and -q are the same rotation, but learned models and linear filters want the continuous choice.
+    The first element keeps its sign.
+    """
+    _check_last(q, 4, "quat_unflip", "quaternions")
+    dim = dim % q.ndim
+    if dim == q.ndim - 1:
+        raise ValueError("quat_unflip: dim must not be the quaternion dimension")
+    n = q.shape[dim]
+    if n < 2:
+        return q
+    dots = (q.narrow(dim, 1, n - 1) * q.narrow(dim, 0, n - 1)).sum(-1, keepdim=True)
+    flips = torch.cumsum((dots < 0).to(torch.int64), dim=dim) % 2
+    first = torch.zeros_like(flips.narrow(dim, 0, 1))
+    sign = 1 - 2 * torch.cat((first, flips), dim=dim)
+    return q * sign.to(q.dtype)
+
+
 def quat_angle(q: Tensor) -> Tensor:
     """Rotation angle in radians, in [0, pi] (sign-invariant); NaN-free gradient away from the identity."""
     _check_last(q, 4, "quat_angle", "quaternions")
@@ -239,23 +260,22 @@ def sixd_to_quat(d6: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------------------- Euler
 
 
-def _axis_matrix(axis: int, angle: Tensor) -> Tensor:
-    c, s = torch.cos(angle), torch.sin(angle)
-    one, zero = torch.ones_like(angle), torch.zeros_like(angle)
+def _axis_matrix(axis: int, c: Tensor, s: Tensor) -> Tensor:
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
     if axis == 0:
         rows = (one, zero, zero, zero, c, -s, zero, s, c)
     elif axis == 1:
         rows = (c, zero, s, zero, one, zero, -s, zero, c)
     else:
         rows = (c, -s, zero, s, c, zero, zero, zero, one)
-    return torch.stack(rows, dim=-1).reshape(angle.shape + (3, 3))
+    return torch.stack(rows, dim=-1).reshape(c.shape + (3, 3))
 
 
-def _axis_quat(axis: int, angle: Tensor) -> Tensor:
-    half = 0.5 * angle
-    zero = torch.zeros_like(angle)
-    comps = [torch.cos(half), zero, zero, zero]
-    comps[axis + 1] = torch.sin(half)
+def _axis_quat(axis: int, c: Tensor, s: Tensor) -> Tensor:
+    """Quaternion of a turn about ``axis`` given cos and sin of the *half* angle."""
+    zero = torch.zeros_like(c)
+    comps = [c, zero, zero, zero]
+    comps[axis + 1] = s
     return torch.stack(comps, dim=-1)
 
 
@@ -264,19 +284,21 @@ def euler_to_matrix(angles: Tensor, order: str, degrees: bool = True) -> Tensor:
     order = _check_order(order)
     _check_last(angles, 3, "euler_to_matrix", "Euler angles")
     a = torch.deg2rad(angles) if degrees else angles
-    m = _axis_matrix(_AXIS[order[0]], a[..., 0])
-    m = m @ _axis_matrix(_AXIS[order[1]], a[..., 1])
-    return m @ _axis_matrix(_AXIS[order[2]], a[..., 2])
+    c, s = torch.cos(a), torch.sin(a)  # one call each: sin/cos dominate on large batches
+    m = _axis_matrix(_AXIS[order[0]], c[..., 0], s[..., 0])
+    m = m @ _axis_matrix(_AXIS[order[1]], c[..., 1], s[..., 1])
+    return m @ _axis_matrix(_AXIS[order[2]], c[..., 2], s[..., 2])
 
 
 def euler_to_quat(angles: Tensor, order: str, degrees: bool = True) -> Tensor:
     """Intrinsic Euler angles -> unit quaternions (not sign-canonicalised: continuous in the angles)."""
     order = _check_order(order)
     _check_last(angles, 3, "euler_to_quat", "Euler angles")
-    a = torch.deg2rad(angles) if degrees else angles
-    q = _axis_quat(_AXIS[order[0]], a[..., 0])
-    q = quat_mul(q, _axis_quat(_AXIS[order[1]], a[..., 1]))
-    return quat_mul(q, _axis_quat(_AXIS[order[2]], a[..., 2]))
+    half = (torch.deg2rad(angles) if degrees else angles) * 0.5
+    c, s = torch.cos(half), torch.sin(half)
+    q = _axis_quat(_AXIS[order[0]], c[..., 0], s[..., 0])
+    q = quat_mul(q, _axis_quat(_AXIS[order[1]], c[..., 1], s[..., 1]))
+    return quat_mul(q, _axis_quat(_AXIS[order[2]], c[..., 2], s[..., 2]))
 
 
 def matrix_to_euler(m: Tensor, order: str, degrees: bool = True) -> Tensor:

@@ -157,6 +157,8 @@ if _op_defined():
         _positions, global_quats = output
         ctx.save_for_backward(local_quats, global_quats, offsets)
         ctx.parents = parents
+        # An unused output (usually the rotations) then arrives as None instead of a materialised zero tensor.
+        ctx.set_materialize_grads(False)
 
     def _fk_backward(ctx, grad_positions, grad_global_quats):
         local_quats, global_quats, offsets = ctx.saved_tensors

@@ -53,8 +53,8 @@ def test_bones_are_rigid_and_feet_stay_above_ground(kind, clips):
         assert pos[..., 1].min() < 3.0, "the character never touches the ground"
 
 
-def _planted(pos: np.ndarray, joint: int, height: float = 2.0) -> tuple[float, float]:
-    """(fraction of frames the joint is within ``height`` of the floor, its worst speed then, cm/s)."""
+def _planted(pos: np.ndarray, joint: int, height: float = 1.05) -> tuple[float, float]:
+    """(fraction of frames the joint is below ``height`` (toes rest at 1 cm), its worst speed then, cm/s)."""
     y = pos[:, joint, 1]
     low = (y[1:] < height) & (y[:-1] < height)
     speed = np.linalg.norm(np.diff(pos[:, joint], axis=0), axis=-1) * FPS

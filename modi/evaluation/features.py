@@ -70,8 +70,8 @@ class FeatureConfig:
     up_axis: int = 1
     body_height: float = 1.0
     pairs: list[tuple[int, int]] = field(default_factory=list)  # (left, right) joints giving the facing
-    channels: list[int] = field(default_factory=lambda: [32, 64, 64, 128, 128])
-    strides: list[int] = field(default_factory=lambda: [2, 2, 1, 2, 1])
+    channels: list[int] = field(default_factory=lambda: [32, 64, 128])
+    strides: list[int] = field(default_factory=lambda: [2, 2, 2])
     temporal_kernel: int = 9
     dropout: float = 0.1
 
@@ -624,7 +624,7 @@ def train_feature_extractor(
             loss.backward()
             opt.step()
             sched.step()
-            run_loss += float(loss) * len(idx)
+            run_loss += loss.item() * len(idx)
             run_correct += int((logits.argmax(1) == y).sum())
             seen += len(idx)
             if bar is not None:

@@ -92,7 +92,7 @@ def preset(name: str, **overrides: Any) -> GanimatorConfig:
     if name == "paper":
         cfg = GanimatorConfig(preset="paper")
     elif name == "fast":
-        cfg = GanimatorConfig(preset="fast", iterations=1500, d_steps=3, fake_pool=50)
+        cfg = GanimatorConfig(preset="fast", iterations=300, d_steps=2)
     elif name == "tiny":
         cfg = GanimatorConfig(preset="tiny", iterations=20, d_steps=1, base_channels=32, fake_pool=0)
     else:

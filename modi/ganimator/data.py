@@ -329,13 +329,19 @@ def load_sequence(path: str | Path, cfg=None, *, keep_joints: Seq[str] | None = 
     of one character, or reading a content / key-frame / trajectory file for a trained model). Joints are then
     matched by name (namespaces ignored), so a reduced export of the same rig also works.
     """
+    return sequence_from_clip(read_clip(path), Path(path).stem, cfg, keep_joints=keep_joints, feet=feet, like=like,
+                              where=str(path))
+
+
+def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq[str] | None = None,
+                       feet: Seq[str] | None = None, like: Sequence | None = None, where: str = "") -> Sequence:
+    """:func:`load_sequence` for a clip already in memory (rotations + root track)."""
     from modi.kinematics import forward_kinematics
 
     from modi.ganimator.config import GanimatorConfig
 
     cfg = cfg or GanimatorConfig()
-    motion = read_clip(path)
-    name = Path(path).stem
+    path = where or name
     skel = motion.skeleton
     names = [strip_namespace(n) for n in skel.names]
     if like is not None:

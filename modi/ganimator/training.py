@@ -412,8 +412,8 @@ class Trainer:
                         loss_d = 0.5 * (d(pooled).mean() - d(reals[l]).mean())
                         gp = gradient_penalty(d, reals[l], fake)
                         loss = loss + loss_d + cfg.lambda_gp * gp
-                        total += float(loss_d)
-                        out["gp"] = float(gp)
+                        total += float(loss_d.detach())
+                        out["gp"] = float(gp.detach())
                     loss.backward()
                     for l in levels:
                         self.opt_d[l].step()
@@ -431,8 +431,8 @@ class Trainer:
                             p.requires_grad_(True)
                         c = self.consistency(fake, model.rates[m][l]) if cfg.lambda_contact > 0 else fake.new_zeros(())
                         loss = loss + adv + cfg.lambda_contact * c
-                        g_adv += float(adv)
-                        con += float(c)
+                        g_adv += float(adv.detach())
+                        con += float(c.detach())
                     for l in levels:
                         self.opt_g[l].zero_grad(set_to_none=True)
                     loss.backward()
@@ -446,8 +446,8 @@ class Trainer:
                     for l, rec in zip(levels, recs):
                         r = (rec - reals[l]).abs().mean()
                         loss = loss + cfg.lambda_rec * r
-                        rec_total += float(r)
-                        out[f"rec{l}"] = float(r)
+                        rec_total += float(r.detach())
+                        out[f"rec{l}"] = float(r.detach())
                     for l in levels:
                         self.opt_g[l].zero_grad(set_to_none=True)
                     loss.backward()

@@ -1,0 +1,391 @@
+"""modi eval: train the feature extractor, and measure real data, a MoDi checkpoint or GANimator outputs.
+
+    modi eval train-features DATA --out features.pt      # ST-GCN on labelled clips; prints held-out top-1
+    modi eval real DATA --features features.pt           # held-out vs train clips: the floor for generators
+    modi eval gen --ckpt CKPT --features F --data DIR    # MoDi samples vs the real clips of DIR
+    modi eval single --source SRC.bvh GEN.bvh ...        # GANimator coverage / global / local diversity
+    modi eval plausibility CLIP.bvh ...                  # foot skating, floating/penetration, jitter
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from modi.errors import UserError
+
+_FMT = argparse.ArgumentDefaultsHelpFormatter
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser("eval", help="evaluation metrics (MoDi and GANimator)", formatter_class=_FMT,
+                              description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="eval_command", metavar="EVAL_COMMAND")
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+    t = sub.add_parser("train-features", formatter_class=_FMT,
+                       help="train the ST-GCN feature extractor on labelled BVH clips",
+                       description="Train the ST-GCN action recogniser whose penultimate features FID/KID/"
+                                   "precision/recall/diversity use. Labels come from a JSON beside each BVH "
+                                   "(Bandai-Namco layout); the split is by file, stratified by class.")
+    t.add_argument("data", help="folder with BVH files and a JSON label file beside each")
+    t.add_argument("--out", required=True, help="where to write the extractor (one .pt file)")
+    t.add_argument("--label-key", default="content", help="JSON key holding the integer class label")
+    t.add_argument("--window", type=int, default=64, help="window length in frames")
+    t.add_argument("--fps", type=float, default=30.0, help="frame rate the clips are resampled to")
+    t.add_argument("--stride", type=int, default=4, help="stride between training windows (frames)")
+    t.add_argument("--eval-stride", type=int, default=16, help="stride between held-out windows (frames)")
+    t.add_argument("--holdout", type=float, default=0.2, help="fraction of each class's files held out")
+    t.add_argument("--epochs", type=int, default=12, help="training epochs (one pass over the windows each)")
+    t.add_argument("--batch-size", type=int, default=64, help="batch size")
+    t.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (one-cycle schedule)")
+    t.add_argument("--max-minutes", type=float, default=None, help="stop training after this many minutes")
+    t.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis of the data")
+    t.add_argument("--seed", type=int, default=0, help="random seed (split, init, batches)")
+    t.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    t.add_argument("--json", default=None, help="also write the training summary here")
+    t.set_defaults(func=cmd_train_features)
+
+    r = sub.add_parser("real", formatter_class=_FMT,
+                       help="real-vs-real floor: held-out clips vs training clips",
+                       description="FID, KID, precision, recall and diversity of the held-out clips against "
+                                   "the training clips (the extractor's own split), plus plausibility of the "
+                                   "held-out clips: the floor a generator is judged against.")
+    r.add_argument("data", help="the labelled folder the extractor was trained on")
+    r.add_argument("--features", required=True, help="feature extractor file from train-features")
+    r.add_argument("--stride", type=int, default=32, help="stride between windows of both sets (frames)")
+    _metric_args(r)
+    r.set_defaults(func=cmd_real)
+
+    g = sub.add_parser("gen", formatter_class=_FMT, help="evaluate a MoDi checkpoint against real clips",
+                       description="Sample N motions from a MoDi checkpoint and compare their features with "
+                                   "the windows of every clip in DATA (FID, KID, precision, recall, "
+                                   "diversity), plus plausibility of the samples.")
+    g.add_argument("--ckpt", required=True, help="MoDi checkpoint")
+    g.add_argument("--features", required=True, help="feature extractor file from train-features")
+    g.add_argument("--data", required=True, help="folder of real BVH clips (same skeleton)")
+    g.add_argument("--n", type=int, default=2000, help="number of generated motions")
+    g.add_argument("--psi", type=float, default=1.0, help="truncation psi (1 = none)")
+    g.add_argument("--ik", action="store_true", help="apply the IK foot-contact cleanup to the samples")
+    g.add_argument("--stride", type=int, default=32, help="stride between windows of real clips (frames)")
+    _metric_args(g)
+    g.set_defaults(func=cmd_gen)
+
+    s = sub.add_parser("single", formatter_class=_FMT,
+                       help="GANimator coverage and diversity of generated BVH against one source BVH",
+                       description="Coverage (30-frame windows, threshold 2.0), global diversity (patched "
+                                   "nearest neighbour, segments >= 30 frames) and local diversity (15-frame "
+                                   "windows) of generated BVH files against the source they were trained on.")
+    s.add_argument("generated", nargs="+", help="generated BVH files (the source's skeleton)")
+    s.add_argument("--source", required=True, help="the training sequence (BVH)")
+    s.add_argument("--json", default=None, help="write the results (means and per-file values) here")
+    s.add_argument("--md", default=None, help="also write a Markdown summary here")
+    s.add_argument("--window", type=int, default=30, help="coverage window (frames)")
+    s.add_argument("--threshold", type=float, default=2.0, help="coverage distance threshold")
+    s.add_argument("--min-segment", type=int, default=30, help="PNN minimum segment length (frames)")
+    s.add_argument("--local-window", type=int, default=15, help="local-diversity window (frames)")
+    s.add_argument("--representation", choices=["matrix", "6d"], default="matrix",
+                   help="pose vector: all 9 rotation-matrix entries, or the first two rows as in the "
+                        "GANimator authors' code (what their published threshold was tuned on)")
+    s.add_argument("--fps", type=float, default=None,
+                   help="resample source and generated clips to this rate first; unset: their rates must match")
+    s.set_defaults(func=cmd_single)
+
+    q = sub.add_parser("plausibility", formatter_class=_FMT, help="foot skating, floating, jitter of BVH clips",
+                       description="Foot skating (horizontal foot speed in contact), floating/penetration "
+                                   "relative to the ground and jitter (mean jerk), in the file's units.")
+    q.add_argument("clips", nargs="+", help="BVH files")
+    q.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis")
+    q.add_argument("--ground", type=float, default=0.0, help="ground height along the up axis")
+    q.add_argument("--json", default=None, help="write per-file and mean values here")
+    q.set_defaults(func=cmd_plausibility)
+
+
+def _metric_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--k", type=int, default=3, help="k of the k-NN manifolds for precision/recall")
+    p.add_argument("--kid-blocks", type=int, default=10, help="disjoint blocks for KID's standard error")
+    p.add_argument("--diversity-pairs", type=int, default=200, help="random pairs for diversity")
+    p.add_argument("--seed", type=int, default=0, help="random seed (sampling, blocks, pairs)")
+    p.add_argument("--json", default=None, help="write the full report (JSON) here")
+    p.add_argument("--md", default=None, help="write a Markdown summary here")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _threads(n: int | None) -> None:
+    if n is not None:
+        import torch
+
+        torch.set_num_threads(max(1, n))
+
+
+def _dump(results: dict[str, Any], args: argparse.Namespace, title: str) -> None:
+    from modi.evaluation.report import to_markdown, write_reports
+
+    write_reports(results, getattr(args, "json", None), getattr(args, "md", None), title)
+    if getattr(args, "md", None) is None:
+        print(to_markdown(results, title))
+
+
+def cmd_train_features(args: argparse.Namespace) -> int:
+    from modi.evaluation import features as F
+
+    _threads(args.threads)
+    if args.window < 8:
+        raise UserError(f"--window must be at least 8 frames, got {args.window}")
+    if not 0 < args.holdout < 1:
+        raise UserError(f"--holdout must be between 0 and 1, got {args.holdout}")
+    clips, class_names, joints, parents, height = F.load_labelled_folder(args.data, args.label_key, args.fps)
+    train_idx, held_idx = F.split_by_file(clips, args.holdout, args.seed)
+    config = F.FeatureConfig(joint_names=joints, parents=parents, class_names=class_names, window=args.window,
+                             fps=args.fps, up_axis=_AXES[args.up_axis], body_height=height,
+                             pairs=F.lr_pairs(joints, parents))
+    if not config.pairs:
+        print("modi: warning: no left/right joint pair found by name; windows keep their heading", file=sys.stderr)
+    wtr, ltr = F.windows_and_labels([clips[i] for i in train_idx], args.window, args.stride)
+    if held_idx:
+        who, lho = F.windows_and_labels([clips[i] for i in held_idx], args.window, args.eval_stride)
+    else:
+        who, lho = None, None
+    print(f"{len(train_idx)} training clips ({len(wtr)} windows), {len(held_idx)} held-out clips "
+          f"({0 if who is None else len(who)} windows), {len(class_names)} classes, {len(joints)} joints")
+    extractor, hist = F.train_feature_extractor(
+        wtr, ltr, config, who, lho, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes, seed=args.seed)
+    extractor.info.update({
+        "data": str(Path(args.data).resolve()),
+        "label_key": args.label_key,
+        "train_files": [clips[i].name for i in train_idx],
+        "heldout_files": [clips[i].name for i in held_idx],
+        "seed": args.seed,
+        "stride": args.stride,
+        "eval_stride": args.eval_stride,
+    })
+    extractor.save(args.out)
+    summary = {k: v for k, v in hist.items() if k != "epochs"}
+    summary["out"] = str(args.out)
+    if "val_top1" in hist:
+        print(f"held-out top-1: {hist['val_top1']:.3f} (class-balanced {hist['val_balanced_top1']:.3f}) "
+              f"on {hist['val_windows']} windows of {len(held_idx)} clips; trained {hist['seconds']:.0f} s")
+    else:
+        print(f"no held-out clips; trained {hist['seconds']:.0f} s")
+    print(f"wrote {args.out}")
+    if args.json:
+        from modi.evaluation.report import write_json
+
+        write_json({"summary": summary, "epochs": hist["epochs"]}, args.json)
+    return 0
+
+
+def _load_bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
+    from modi import bvh as bvh_io
+    from modi.kinematics import bvh_positions
+
+    b = bvh_io.load(path)
+    return bvh_positions(b), list(b.names), float(b.fps)
+
+
+def _real_clips(extractor: Any, files: list[Path]) -> list[np.ndarray]:
+    out = []
+    for f in files:
+        p, names, fps = _load_bvh_positions(f)
+        out.append(extractor.clip_positions(p, names, fps))
+    return out
+
+
+def _plausibility_set(clips: list[np.ndarray], names: list[str], fps: float, ref: list[np.ndarray] | None,
+                      up_axis: int) -> dict[str, Any]:
+    """Mean plausibility figures of clips in the extractor's joints; planted foot heights from ``ref``."""
+    from modi.evaluation.plausibility import aggregate, guess_feet, plausibility_metrics, planted_heights
+
+    feet = guess_feet(names)
+    heights = planted_heights(ref, feet, up_axis) if ref else None
+    per = [plausibility_metrics(c, fps, feet, up_axis=up_axis, foot_heights=heights) for c in clips if len(c) >= 4]
+    out = aggregate(per)
+    out["feet"] = [names[f] for f in feet]
+    return out
+
+
+def _metrics(real: np.ndarray, fake: np.ndarray, args: argparse.Namespace) -> dict[str, Any]:
+    from modi.evaluation.distribution import distribution_metrics
+
+    return distribution_metrics(real, fake, k=args.k, kid_blocks=args.kid_blocks,
+                                diversity_pairs=args.diversity_pairs, seed=args.seed)
+
+
+def cmd_real(args: argparse.Namespace) -> int:
+    from modi.evaluation.features import load_extractor
+
+    ext = load_extractor(args.features)
+    root = Path(args.data)
+    if not root.is_dir():
+        raise UserError(f"data folder not found: {root}")
+    train_files = ext.info.get("train_files")
+    held_files = ext.info.get("heldout_files")
+    if not train_files or not held_files:
+        raise UserError(f"{args.features} holds no train/held-out split (was it trained with held-out clips?)")
+    missing = [f for f in train_files + held_files if not (root / f).is_file()]
+    if missing:
+        raise UserError(f"{len(missing)} clip(s) of the extractor's split are not under {root}, e.g. {missing[0]}")
+    t0 = time.perf_counter()
+    train = _real_clips(ext, [root / f for f in train_files])
+    held = _real_clips(ext, [root / f for f in held_files])
+    f_train = ext.features(ext.windows(train, args.stride))
+    f_held = ext.features(ext.windows(held, args.stride))
+    results: dict[str, Any] = {
+        "data": str(root),
+        "features": str(args.features),
+        "settings": {"stride": args.stride, "k": args.k, "kid_blocks": args.kid_blocks,
+                     "diversity_pairs": args.diversity_pairs, "seed": args.seed},
+        "extractor_heldout_top1": ext.info.get("val_top1"),
+        "distribution (held-out vs train)": _metrics(f_train, f_held, args),
+        "plausibility (held-out clips)": _plausibility_set(held, ext.config.joint_names, ext.config.fps, train,
+                                                           ext.config.up_axis),
+        "seconds": time.perf_counter() - t0,
+    }
+    _dump(results, args, "Real-vs-real floor")
+    return 0
+
+
+def _sampler():
+    try:
+        from modi.modi_model.sampling import sample_motions
+    except ImportError as exc:
+        raise UserError(f"the MoDi model is not available in this installation ({exc})") from None
+    return sample_motions
+
+
+def cmd_gen(args: argparse.Namespace) -> int:
+    from modi.evaluation.features import load_extractor
+
+    if args.n < 4:
+        raise UserError(f"--n must be at least 4, got {args.n}")
+    ext = load_extractor(args.features)
+    sample_motions = _sampler()
+    root = Path(args.data)
+    files = sorted(p for p in root.rglob("*") if p.suffix.lower() == ".bvh") if root.is_dir() else []
+    if not files:
+        raise UserError(f"no .bvh files under {root}")
+    t0 = time.perf_counter()
+    real = _real_clips(ext, files)
+    motions = sample_motions(args.ckpt, args.n, seed=args.seed, psi=args.psi, ik=args.ik)
+    gen = [ext.clip_positions(m.positions(), m.skeleton.names, m.fps) for m in motions]
+    f_real = ext.features(ext.windows(real, args.stride))
+    f_gen = ext.features(ext.windows(gen, ext.config.window))
+    results: dict[str, Any] = {
+        "ckpt": str(args.ckpt),
+        "features": str(args.features),
+        "n_generated_motions": len(motions),
+        "psi": args.psi,
+        "ik": bool(args.ik),
+        "distribution (generated vs real)": _metrics(f_real, f_gen, args),
+        "plausibility (generated)": _plausibility_set(gen, ext.config.joint_names, ext.config.fps, real,
+                                                      ext.config.up_axis),
+        "plausibility (real)": _plausibility_set(real, ext.config.joint_names, ext.config.fps, real,
+                                                 ext.config.up_axis),
+        "seconds": time.perf_counter() - t0,
+    }
+    _dump(results, args, "MoDi evaluation")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _motion(path: str, fps: float | None) -> Any:
+    from modi.motion import Motion
+
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"no such BVH file: {p}")
+    m = Motion.from_bvh(p)
+    return m.resample(fps) if fps is not None else m
+
+
+def cmd_single(args: argparse.Namespace) -> int:
+    import warnings
+
+    from modi.evaluation.report import to_markdown, write_reports
+    from modi.evaluation.single import rotation_features, single_sequence_metrics
+
+    for name in ("window", "min_segment", "local_window"):
+        if getattr(args, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
+        src = _motion(args.source, args.fps)
+        gens = [_motion(g, args.fps) for g in args.generated]
+    src_names = src.skeleton.names
+    feats = []
+    used_src = src
+    for path, m in zip(args.generated, gens):
+        names = m.skeleton.names
+        if names != src_names:
+            missing = [n for n in names if n not in src_names]
+            if missing:
+                raise UserError(f"{path}: joints {missing[:5]} are not in the source skeleton")
+            keep = [src_names.index(n) for n in names]
+            if keep != sorted(keep):
+                raise UserError(f"{path}: joint order differs from the source")
+            if used_src is src:
+                used_src = src.subset(keep)  # exact local rotations of the reduced skeleton
+            elif used_src.skeleton.names != names:
+                raise UserError(f"{path}: generated files use different joint sets")
+        if abs(m.fps - src.fps) > 1e-3 * src.fps:
+            raise UserError(f"{path}: {m.fps:g} fps but the source has {src.fps:g} fps (use --fps to resample both)")
+        feats.append(rotation_features(m.rotations, args.representation))
+    source = rotation_features(used_src.rotations, args.representation)
+    t0 = time.perf_counter()
+    try:
+        res = single_sequence_metrics(feats, source, coverage_window=args.window, threshold=args.threshold,
+                                      min_segment=args.min_segment, local_window=args.local_window)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    out = {
+        "coverage": res["coverage"],
+        "global_diversity": res["global_diversity"],
+        "local_diversity": res["local_diversity"],
+        "source": str(args.source),
+        "representation": args.representation,
+        "settings": res["settings"],
+        "seconds": time.perf_counter() - t0,
+        "per_file": [dict(file=str(p), frames=int(f.shape[0]), **v)
+                     for p, f, v in zip(args.generated, feats, res["per_sequence"])],
+    }
+    write_reports(out, args.json, args.md, "Single-sequence metrics")
+    print(f"coverage {out['coverage']:.4f}  global diversity {out['global_diversity']:.4f}  "
+          f"local diversity {out['local_diversity']:.4f}  ({len(feats)} file(s), {out['seconds']:.1f} s)")
+    if args.json is None and args.md is None:
+        print(to_markdown({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
+    return 0
+
+
+def cmd_plausibility(args: argparse.Namespace) -> int:
+    from modi.evaluation.plausibility import aggregate, guess_feet, plausibility_metrics
+    from modi.evaluation.report import write_json
+
+    axis = _AXES[args.up_axis]
+    per = []
+    for f in args.clips:
+        p = Path(f)
+        if not p.is_file():
+            raise UserError(f"no such BVH file: {p}")
+        pos, names, fps = _load_bvh_positions(p)
+        try:
+            m = plausibility_metrics(pos, fps, guess_feet(names), up_axis=axis, ground=args.ground)
+        except ValueError as exc:
+            raise UserError(f"{p}: {exc}") from None
+        per.append(dict(file=str(p), **m))
+        print(f"{p}: " + "  ".join(f"{k} {v:.4g}" for k, v in m.items()))
+    out = {"mean": aggregate([{k: v for k, v in m.items() if k != "file"} for m in per]), "per_file": per}
+    if args.json:
+        write_json(out, args.json)
+    print(json.dumps(out["mean"], indent=1) if len(per) > 1 else "", end="\n" if len(per) > 1 else "")
+    return 0

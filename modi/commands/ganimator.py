@@ -1,0 +1,137 @@
+"""``modi ganimator train|generate|evaluate``: single-sequence GANimator from the command line."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from modi.errors import UserError
+
+_FMT = argparse.ArgumentDefaultsHelpFormatter
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("ganimator", help="GANimator: learn from one (or a few) BVH clips of any skeleton",
+                              description="GANimator (Li et al. 2022): a coarse-to-fine pyramid of small GANs "
+                                          "trained on a single short motion of any skeleton.",
+                              formatter_class=_FMT)
+    sub = p.add_subparsers(dest="ganimator_command", metavar="SUBCOMMAND")
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+    t = sub.add_parser("train", help="train (or resume) a model on BVH clips", formatter_class=_FMT,
+                       description="Train a GANimator pyramid on one BVH, or several of one character (mixing). "
+                                   "Re-running on the same --out resumes from its checkpoint.")
+    t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
+    t.add_argument("--out", required=True, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
+    t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
+                   help="paper: published schedule (15k iterations per block); fast: CPU schedule; tiny: smoke test")
+    t.add_argument("--iterations", type=int, default=None, help="iterations per block of levels (preset's if omitted)")
+    t.add_argument("--d-steps", type=int, default=None, help="discriminator steps per iteration (preset's if omitted)")
+    t.add_argument("--base-channels", type=int, default=None, help="total hidden width (preset's if omitted)")
+    t.add_argument("--coarse-ratio", type=float, default=None, help="coarsest level / sequence length (0.2)")
+    t.add_argument("--keep-joints", default=None, help="comma-separated joint names to keep (default: automatic)")
+    t.add_argument("--no-joint-reduction", action="store_true", help="keep every joint of the file")
+    t.add_argument("--feet", default=None, help="comma-separated contact joints (default: detected)")
+    t.add_argument("--no-contacts", action="store_true", help="no contact labels / consistency loss")
+    t.add_argument("--fps", type=float, default=None, help="target frame rate by integer striding (30)")
+    t.add_argument("--conditional-from", default=None,
+                   help="train a trajectory-conditioned model; trajectories are sampled from this trained run")
+    t.add_argument("--device", default=None, help="torch device (cpu, cuda)")
+    t.add_argument("--seed", type=int, default=None, help="random seed")
+    t.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    t.add_argument("--max-minutes", type=float, default=None,
+                   help="stop (checkpointed) after this many minutes; run again to continue")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.set_defaults(func=_train)
+
+    g = sub.add_parser("generate", help="sample motions from a trained run", formatter_class=_FMT,
+                       description="Generate BVH (+ GIF previews) from a trained run: random motions of any "
+                                   "length, style transfer (--content), key-frame editing (--keyframes), "
+                                   "trajectory control (--trajectory).")
+    g.add_argument("run", help="run directory (or .ckpt file)")
+    g.add_argument("--frames", type=int, default=None, help="frames per motion (default: the training clip's)")
+    g.add_argument("--n", type=int, default=1, help="number of motions (a crowd when > 1)")
+    g.add_argument("--out", required=True, help="output directory")
+    g.add_argument("--seed", type=int, default=0, help="random seed")
+    g.add_argument("--content", default=None, help="style transfer: BVH whose coarse motion replaces level 0")
+    g.add_argument("--keyframes", default=None, help="key-frame editing: BVH of coarse-level poses")
+    g.add_argument("--trajectory", default=None,
+                   help="root trajectory BVH (conditional runs); without it a conditional run samples one")
+    g.add_argument("--stream", type=int, default=0,
+                   help="with --trajectory: feed the trajectory in segments of this many frames (streaming API)")
+    g.add_argument("--ik", action="store_true", help="fix foot sliding with IK where contacts are predicted")
+    g.add_argument("--fine-noise", action="store_true", help="random noise at every level (default: coarsest only)")
+    g.add_argument("--crowd-spacing", type=float, default=None, help="grid spacing of a crowd (default: 1.5 x body size)")
+    g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
+    g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
+    g.set_defaults(func=_generate)
+
+    e = sub.add_parser("evaluate", help="coverage and diversity of random samples of a run", formatter_class=_FMT,
+                       description="Sample motions and report coverage (30-frame windows, threshold 2.0), global "
+                                   "(patched nearest neighbour) and local diversity against every training clip.")
+    e.add_argument("run", help="run directory (or .ckpt file)")
+    e.add_argument("--n", type=int, default=10, help="number of samples")
+    e.add_argument("--frames", type=int, default=None, help="frames per sample (default: the training clip's)")
+    e.add_argument("--seed", type=int, default=0, help="random seed")
+    e.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    e.set_defaults(func=_evaluate)
+
+
+def _csv(s: str | None) -> list[str] | None:
+    return [x.strip() for x in s.split(",") if x.strip()] if s else None
+
+
+def _train(args) -> int:
+    import torch
+
+    from modi.ganimator.config import preset
+    from modi.ganimator.data import load_sequences
+    from modi.ganimator.training import load_model, train
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = preset(args.preset, iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
+                 coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
+                 fps=args.fps, device=args.device, seed=args.seed)
+    if args.no_joint_reduction:
+        cfg = cfg.replace(joint_reduction=False)
+    if args.no_contacts:
+        cfg = cfg.replace(contacts=False)
+    cond_source = None
+    if args.conditional_from:
+        cond_source = load_model(args.conditional_from, device=cfg.device)
+        cfg = cfg.replace(conditional=True)
+    for b in args.bvh:
+        if not Path(b).is_file():
+            raise UserError(f"BVH file not found: {b}")
+    clips = load_sequences(args.bvh, cfg)
+    if cond_source is not None and [c.name for c in cond_source.seqs] != [c.name for c in clips]:
+        raise UserError("--conditional-from must be a run trained on the same BVH file(s)")
+    c = clips[0]
+    print(f"{len(clips)} clip(s), {c.n_joints} joints, feet {[c.skeleton.names[f] for f in c.feet]}, "
+          f"{', '.join(str(x.n_frames) for x in clips)} frames at {c.fps:.1f} fps")
+    train(clips, cfg, args.out, progress=not args.quiet,
+          max_seconds=args.max_minutes * 60 if args.max_minutes else None, cond_source=cond_source)
+    print(f"checkpoint: {Path(args.out) / 'ganimator.ckpt'}")
+    return 0
+
+
+def _generate(args) -> int:
+    from modi.ganimator.generate import generate_command
+
+    result = generate_command(args)
+    if args.evaluate and result.get("metrics"):
+        print(json.dumps(result["metrics"], indent=2))
+    return 0
+
+
+def _evaluate(args) -> int:
+    from modi.ganimator.generate import evaluate_run
+
+    figures = evaluate_run(args.run, n=args.n, n_frames=args.frames, seed=args.seed)
+    text = json.dumps(figures, indent=2)
+    print(text)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text + "\n")
+    return 0

@@ -1,0 +1,140 @@
+"""``modi train``: train MoDi on a folder of BVH files (or the built-in procedural clips)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+from modi.errors import UserError
+
+
+def register(subparsers) -> None:
+    from modi.modi_model.config import ABLATIONS, PRESETS
+
+    p = subparsers.add_parser(
+        "train", help="train a MoDi generator on BVH clips",
+        description="Train MoDi (skeleton-aware StyleGAN2 for motion) on every BVH under DATA_DIR, or on the "
+                    "built-in procedural clips when DATA_DIR is the word 'procedural'. Writes RUN_DIR/checkpoint.pt "
+                    "(one self-contained file), TensorBoard scalars in RUN_DIR/tb, RUN_DIR/log.jsonl and sample "
+                    "BVH + GIF grids in RUN_DIR/samples. Ctrl-C saves a checkpoint; --resume continues exactly. "
+                    "Multi-process: torchrun --nproc_per_node N -m modi train ... (gloo on CPU, NCCL on GPU).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("data", metavar="DATA_DIR", help="folder of BVH files, or 'procedural'")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (created if missing)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
+                   help="model/optimiser preset: 'paper' (channels 256..32, batch 16, 80k iters) or 'small' (CPU)")
+    p.add_argument("--ablation", action="append", choices=sorted(ABLATIONS), default=[],
+                   help="paper ablation to apply (repeatable)")
+    p.add_argument("--iters", type=int, default=None, help="total iterations (default: the preset's)")
+    p.add_argument("--batch", type=int, default=None, help="total batch size over all processes (default: preset)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate for G and D (default: preset, 0.002)")
+    p.add_argument("--mixing", type=float, default=None, help="style-mixing probability (default: 0.9)")
+    p.add_argument("--frames", type=int, default=None, help="frames per training window (default: 64)")
+    p.add_argument("--fps", type=float, default=None, help="resample clips to this rate (default: 30)")
+    p.add_argument("--stride", type=int, default=None, help="frames between training windows (default: 8)")
+    p.add_argument("--feet", nargs="+", metavar="JOINT", default=None, help="contact joints (default: detected)")
+    p.add_argument("--seed", type=int, default=None, help="training seed (default: 0)")
+    p.add_argument("--log-every", type=int, default=None, help="steps between logged scalars")
+    p.add_argument("--sample-every", type=int, default=None, help="steps between sample grids (0: never)")
+    p.add_argument("--ckpt-every", type=int, default=None, help="steps between checkpoint writes")
+    p.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CKPT",
+                   help="continue from CKPT (default RUN_DIR/checkpoint.pt); config comes from the checkpoint")
+    p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
+    p.add_argument("--no-cache", action="store_true", help="rebuild the dataset instead of using the cache")
+    p.set_defaults(func=run)
+
+
+def _device(name: str):
+    import torch
+
+    if name == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        return torch.device("cpu")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise UserError(f"--device: unknown device {name!r}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError("--device cuda requested but torch has no CUDA device")
+    if dev.type == "cuda" and dev.index is None:
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return dev
+
+
+def build_config(args: argparse.Namespace):
+    from modi.modi_model.config import make_config
+
+    overrides = {}
+    for flag, key in (("iters", "train.iters"), ("batch", "train.batch"), ("lr", "train.lr"),
+                      ("mixing", "train.mixing"), ("frames", "data.n_frames"), ("fps", "data.fps"),
+                      ("stride", "data.stride"), ("feet", "data.feet"), ("seed", "train.seed"),
+                      ("log_every", "train.log_every"), ("sample_every", "train.sample_every"),
+                      ("ckpt_every", "train.ckpt_every")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            overrides[key] = value
+    try:
+        return make_config(args.preset, args.ablation, **overrides)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from modi.modi_model.config import MoDiConfig
+    from modi.modi_model.sampling import load_checkpoint
+    from modi.modi_model.training import NonFiniteLossError, Trainer, init_distributed_from_env, prepare_data
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise UserError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    device = _device(args.device)
+    rank, world = init_distributed_from_env(device)
+    run_dir = Path(args.out)
+    resume_state = None
+    if args.resume is not None:
+        ckpt_path = run_dir / "checkpoint.pt" if args.resume == "auto" else Path(args.resume)
+        resume_state = load_checkpoint(ckpt_path)
+        cfg = MoDiConfig.from_dict(resume_state["config"])
+        for flag, section, attr in (("iters", "train", "iters"), ("log_every", "train", "log_every"),
+                                    ("sample_every", "train", "sample_every"), ("ckpt_every", "train", "ckpt_every")):
+            if getattr(args, flag) is not None:
+                setattr(getattr(cfg, section), attr, getattr(args, flag))
+        cfg.validate()
+    else:
+        cfg = build_config(args)
+        if (run_dir / "checkpoint.pt").exists():
+            raise UserError(f"{run_dir / 'checkpoint.pt'} exists: pass --resume to continue it, or choose a new --out")
+    if args.iters is not None and args.iters < 0:
+        raise UserError(f"--iters must be >= 0, got {args.iters}")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    normalizer = None
+    if resume_state is not None:
+        from modi.normalization import Normalizer
+
+        normalizer = Normalizer.from_state_dict(resume_state["codec"]["normalizer"])
+    data = prepare_data(args.data, cfg, work_dir=run_dir, cache=not args.no_cache, progress=rank == 0,
+                        normalizer=normalizer)
+    if rank == 0:
+        (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
+        s = data.summary
+        print(f"modi train: {data.windows.shape[0]} training windows {tuple(data.windows.shape[1:])} from "
+              f"{s.get('train_clips', '?')} clips; hierarchy {data.hierarchy.entity_counts}; preset {cfg.preset}; "
+              f"{world} process(es) on {device}; {cfg.train.iters} iterations", flush=True)
+    trainer = Trainer(cfg, data, run_dir, device=device, resume=resume_state,
+                      tensorboard=not args.no_tensorboard)
+    try:
+        result = trainer.train()
+    except NonFiniteLossError as exc:
+        raise UserError(str(exc)) from None
+    if rank == 0:
+        losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items() if k in ("d", "g", "r1", "path",
+                                                                                        "touch", "contact"))
+        print(f"modi train: step {result.step} in {result.seconds:.1f} s; checkpoint {result.checkpoint}; {losses}")
+    return 130 if result.interrupted else 0

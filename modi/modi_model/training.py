@@ -1,0 +1,717 @@
+"""Training MoDi: data preparation, the normalised-tensor <-> motion codec, and the StyleGAN2-style ``Trainer``.
+
+One iteration (after rosinality/stylegan2-pytorch and the MoDi authors' ``train.py``): a discriminator step on
+the non-saturating loss, lazy R1 every ``d_reg_every`` steps, a generator step on the non-saturating loss plus
+MoDi's foot-touch and contact-consistency terms (through the FK op), lazy path-length regularisation every
+``g_reg_every`` steps, then the EMA generator and the tracked mean of W are updated.
+
+Exact resume: every source of randomness is a torch RNG whose state goes into the checkpoint (the global CPU/CUDA
+generators for latents and noise, a dedicated generator for batch indices), the optimisers' states are saved, and
+the loop only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from modi.errors import CheckpointError, UserError
+from modi.modi_model.config import MoDiConfig
+from modi.modi_model.losses import (d_logistic_loss, d_r1_penalty, foot_contact_consistency_loss, foot_touch_loss,
+                                    g_nonsaturating_loss, lazy_regularization_adam_params, path_length_penalty)
+from modi.modi_model.networks import Discriminator, Generator, LevelSpec, build_levels
+
+CHECKPOINT_FORMAT = "modi-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+class NonFiniteLossError(RuntimeError):
+    """A loss became NaN/inf: training stops before the optimiser step, and no checkpoint is written."""
+
+
+# =============================================================================================== codec
+class MotionCodec:
+    """Normalised model tensors ``(B, K, E, T)`` <-> motion quantities (rotations, root, contacts, positions).
+
+    Wraps the dataset's :class:`~modi.representation.MotionRepresentation` and normaliser. With
+    ``positions=True`` (the "joint positions instead of rotations" ablation) the edge entities hold each joint's
+    global position relative to the root's ground point (x, z) and its absolute height, zero-padded to K.
+    """
+
+    def __init__(self, representation: Any, normalizer: Any, fps: float, positions: bool = False):
+        self.rep = representation
+        self.normalizer = normalizer
+        self.fps = float(fps)
+        self.positions_mode = bool(positions)
+        sk = representation.skeleton
+        self.skeleton = sk
+        self.feet = list(representation.feet)
+        self.height = float(sk.height())
+        self._fk = None
+
+    # -- shape facts
+    @property
+    def n_channels(self) -> int:
+        return int(self.rep.K)
+
+    @property
+    def n_entities(self) -> int:
+        return int(self.rep.n_entities)
+
+    def _fk_module(self, device: torch.device) -> nn.Module:
+        if self._fk is None:
+            from modi_ext.layers import ForwardKinematics
+
+            self._fk = ForwardKinematics(list(self.skeleton.parents),
+                                         torch.as_tensor(self.skeleton.offsets, dtype=torch.float32))
+        return self._fk.to(device)
+
+    # -- decoding (differentiable)
+    def decode(self, x: Tensor) -> dict[str, Tensor]:
+        """Denormalise and decode: ``positions (B,T,J,3)``, ``root (B,T,3)``, ``contacts (B,T,F)`` (raw label
+        scale) and, for rotation models, ``rotations (B,T,J,4)``."""
+        raw = self.normalizer.denormalize(x)
+        quats, root, contacts = self.rep.decode_parts(raw)
+        if self.positions_mode:
+            J = self.skeleton.n_joints
+            rel = raw[..., :3, :J, :].permute(*range(raw.ndim - 3), -1, -2, -3)  # (..., T, J, 3)
+            ground = torch.stack([root[..., 0], torch.zeros_like(root[..., 1]), root[..., 2]], -1)
+            positions = rel + ground.unsqueeze(-2)
+            return {"positions": positions, "root": root, "contacts": contacts}
+        positions = self._fk_module(x.device)(quats.contiguous(), root.contiguous())
+        return {"rotations": quats, "positions": positions, "root": root, "contacts": contacts}
+
+    def foot_terms(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(foot positions (B, T, F, 3), contact channel (B, F, T)) for the foot-contact losses."""
+        d = self.decode(x)
+        return d["positions"][..., self.feet, :], d["contacts"].transpose(-1, -2)
+
+    def to_motions(self, x: Tensor) -> list[Any]:
+        """Normalised ``(B, K, E, T)`` -> list of :class:`modi.motion.Motion` (rotation models only)."""
+        if self.positions_mode:
+            raise UserError("this model generates joint positions (the 'positions' ablation), not rotations; "
+                            "use sample_positions() instead of BVH output")
+        from modi.motion import Motion
+
+        d = self.decode(x.detach().float())
+        return [Motion(self.skeleton, d["rotations"][i].cpu(), d["root"][i].cpu(), self.fps)
+                for i in range(x.shape[0])]
+
+    # -- encoding the positions ablation's data
+    def positions_from_raw_quat(self, raw: Tensor, quat_rep: Any) -> Tensor:
+        """Raw quaternion tensors (N, K, E, T) of ``quat_rep`` -> raw positions-representation tensors."""
+        quats, root, _ = quat_rep.decode_parts(raw)
+        from modi.kinematics import forward_kinematics
+
+        offsets = torch.as_tensor(self.skeleton.offsets, dtype=raw.dtype)
+        pos = forward_kinematics(quats, offsets, list(self.skeleton.parents), root)[0]  # (N, T, J, 3)
+        ground = torch.stack([root[..., 0], torch.zeros_like(root[..., 1]), root[..., 2]], -1)
+        rel = (pos - ground.unsqueeze(-2)).permute(0, 3, 2, 1)  # (N, 3, J, T)
+        out = raw.clone()
+        J = self.skeleton.n_joints
+        out[:, :, :J, :] = 0
+        out[:, :3, :J, :] = rel
+        return out
+
+    # -- persistence
+    def state_dict(self) -> dict[str, Any]:
+        return {"representation": self.rep.to_dict(), "normalizer": self.normalizer.state_dict(),
+                "fps": self.fps, "positions": self.positions_mode}
+
+    @classmethod
+    def from_state_dict(cls, d: dict[str, Any]) -> "MotionCodec":
+        from modi.normalization import Normalizer
+        from modi.representation import MotionRepresentation
+
+        return cls(MotionRepresentation.from_dict(d["representation"]), Normalizer.from_state_dict(d["normalizer"]),
+                   float(d["fps"]), bool(d.get("positions", False)))
+
+
+# =============================================================================================== data
+@dataclass
+class TrainingData:
+    """Normalised training windows plus everything the model and checkpoint need about them."""
+
+    codec: MotionCodec
+    windows: Tensor  # (N, K, E, T) normalised, float32
+    hierarchy: Any  # modi.topology.PoolingHierarchy
+    source: str
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def skeleton(self) -> Any:
+        return self.codec.skeleton
+
+
+def _dataset_config(cfg: MoDiConfig) -> Any:
+    from modi.dataset import DatasetConfig
+
+    return DatasetConfig(fps=cfg.data.fps, window=cfg.data.n_frames, stride=cfg.data.stride, root=cfg.data.root,
+                         rotation="quat", feet=cfg.data.feet, keep_joints=cfg.data.joints)
+
+
+def write_procedural_data(out_dir: str | os.PathLike, n_clips: int = 48, frames: int = 160, seed: int = 0,
+                          fps: float = 30.0) -> Path:
+    """Write the built-in procedural clips (walk/run/jump/wave/squat/idle) as BVH files; returns the folder."""
+    from modi.procedural import write_dataset
+
+    out = Path(out_dir)
+    write_dataset(out, n_clips=n_clips, frames=frames, seed=seed, fps=fps)
+    return out
+
+
+def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | os.PathLike | None = None,
+                 cache: bool = True, progress: bool = False, normalizer: Any = None) -> TrainingData:
+    """Load a BVH folder (or the word ``procedural``) into normalised training windows for ``cfg``.
+
+    ``procedural`` writes the built-in clips under ``work_dir/procedural_data`` first (or a temp dir).
+    ``normalizer`` (e.g. a resumed checkpoint's) replaces the statistics fitted on the data.
+    """
+    from modi.dataset import build_dataset
+    from modi.normalization import Normalizer
+
+    cfg.validate()
+    src = str(source)
+    if src == "procedural":
+        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_proc_"))
+        folder = base / "procedural_data"
+        if not any(folder.glob("*.bvh")):
+            write_procedural_data(folder, fps=cfg.data.fps)
+        root = folder
+    else:
+        root = Path(src)
+        if not root.exists():
+            raise UserError(f"training data not found: {root} (give a BVH folder or the word 'procedural')")
+    ds = build_dataset(root, _dataset_config(cfg), cache=cache, progress=progress)
+    windows = ds.train
+    codec = MotionCodec(ds.representation, ds.normalizer, cfg.data.fps, positions=False)
+    if cfg.data.rotation == "positions":
+        codec = MotionCodec(ds.representation, ds.normalizer, cfg.data.fps, positions=True)
+        windows = codec.positions_from_raw_quat(ds.train.to(torch.float64), ds.representation).to(ds.train.dtype)
+        codec.normalizer = Normalizer.fit(windows, skip_entities=ds.representation.contacts)
+    if normalizer is not None:
+        if tuple(normalizer.mean.shape) != tuple(windows.shape[1:3]):
+            raise UserError(f"checkpoint normalisation is for (K, E) = {tuple(normalizer.mean.shape)}, "
+                            f"this data has {tuple(windows.shape[1:3])}")
+        codec.normalizer = normalizer
+    hierarchy = build_hierarchy_for(codec, cfg)
+    norm = codec.normalizer.normalize(windows).float().contiguous()
+    summary = {k: v for k, v in ds.summary().items() if isinstance(v, (int, float, str, list, bool))}
+    return TrainingData(codec=codec, windows=norm, hierarchy=hierarchy, source=src, summary=summary)
+
+
+def build_hierarchy_for(codec: MotionCodec, cfg: MoDiConfig) -> Any:
+    from modi.topology import build_hierarchy
+
+    return build_hierarchy(codec.skeleton, codec.feet, neighbor_distance=cfg.model.neighbor_distance)
+
+
+def build_models(cfg: MoDiConfig, levels: list[LevelSpec], n_channels: int) -> tuple[Generator, Discriminator]:
+    return Generator(cfg.model, levels, n_channels), Discriminator(cfg.model, levels, n_channels)
+
+
+# =============================================================================================== helpers
+def _requires_grad(model: nn.Module, flag: bool) -> None:
+    for p in model.parameters():
+        p.requires_grad_(flag)
+
+
+@torch.no_grad()
+def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
+    """EMA of parameters; buffers (w_avg, constant noise) are copied."""
+    for pe, pm in zip(ema.parameters(), model.parameters()):
+        pe.lerp_(pm.detach(), 1.0 - decay)
+    for be, bm in zip(ema.buffers(), model.buffers()):
+        be.copy_(bm)
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
+    """``torch.save`` to a temp file in the same folder, fsync, then ``os.replace``: readers never see half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(obj, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _dist() -> tuple[bool, int, int]:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return True, dist.get_rank(), dist.get_world_size()
+    return False, 0, 1
+
+
+def init_distributed_from_env(device: torch.device | None = None) -> tuple[int, int]:
+    """Initialise the default process group when launched by ``torchrun`` (WORLD_SIZE > 1); gloo on CPU, NCCL on GPU.
+
+    Returns ``(rank, world_size)``; a no-op (0, 1) for a single process.
+    """
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not dist.is_initialized():
+        use_cuda = (device is not None and device.type == "cuda") or (device is None and torch.cuda.is_available())
+        backend = "nccl" if use_cuda else "gloo"
+        if use_cuda:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+        dist.init_process_group(backend=backend)
+    return dist.get_rank(), dist.get_world_size()
+
+
+# =============================================================================================== trainer
+@dataclass
+class TrainResult:
+    step: int
+    interrupted: bool
+    checkpoint: Path | None
+    seconds: float
+    last_losses: dict[str, float]
+
+
+class Trainer:
+    """Trains G/D on ``data`` into ``run_dir`` (checkpoints, TensorBoard scalars, ``log.jsonl``, sample previews).
+
+    In a ``torch.distributed`` process group the models are wrapped in DDP (gradients averaged), each rank draws
+    its own latents/noise/batches, and rank 0 writes every file.
+    """
+
+    def __init__(self, cfg: MoDiConfig, data: TrainingData, run_dir: str | os.PathLike, *,
+                 device: str | torch.device | None = None, resume: str | os.PathLike | dict | None = None,
+                 progress: bool = True, tensorboard: bool = True, write_samples: bool = True,
+                 log: Callable[[str], None] | None = None):
+        self.cfg = cfg.validate()
+        self.data = data
+        self.codec = data.codec
+        self.run_dir = Path(run_dir)
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.distributed, self.rank, self.world = _dist()
+        tc = cfg.train
+        if tc.batch % self.world != 0:
+            raise UserError(f"batch {tc.batch} is not divisible by the {self.world} processes")
+        self.local_batch = tc.batch // self.world
+        self.progress = progress and self.rank == 0
+        self.write_samples = write_samples
+        self.log = log or (lambda msg: print(msg, flush=True))
+
+        if data.windows.ndim != 4 or data.windows.shape[1] != self.codec.n_channels:
+            raise ValueError(f"training windows must be (N, {self.codec.n_channels}, E, T), got "
+                             f"{tuple(data.windows.shape)}")
+        if data.windows.shape[-1] != cfg.data.n_frames:
+            raise ValueError(f"training windows have {data.windows.shape[-1]} frames, config says {cfg.data.n_frames}")
+        self.windows = data.windows.to(self.device)
+        self.levels = build_levels(data.hierarchy, cfg.model, cfg.data.n_frames)
+        if self.levels[-1].n_entities != self.codec.n_entities:
+            raise ValueError(f"hierarchy's finest level has {self.levels[-1].n_entities} entities, the representation "
+                             f"{self.codec.n_entities}")
+
+        torch.manual_seed(tc.seed)  # identical initial weights on every rank
+        self.G, self.D = build_models(cfg, self.levels, self.codec.n_channels)
+        self.G.to(self.device)
+        self.D.to(self.device)
+        self.G_ema = Generator(cfg.model, self.levels, self.codec.n_channels).to(self.device).eval()
+        self.G_ema.load_state_dict(self.G.state_dict())
+        _requires_grad(self.G_ema, False)
+
+        g_lr, g_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.g_reg_every)
+        d_lr, d_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.d_reg_every)
+        self.g_optim = torch.optim.Adam(self.G.parameters(), lr=g_lr, betas=g_betas)
+        self.d_optim = torch.optim.Adam(self.D.parameters(), lr=d_lr, betas=d_betas)
+
+        self.step = 0
+        self.mean_path_length = torch.zeros((), device=self.device)
+        self.data_rng = torch.Generator().manual_seed(tc.seed * 7919 + 17 + self.rank)
+        self.sample_z = torch.randn(tc.n_samples, cfg.model.latent_dim,
+                                    generator=torch.Generator().manual_seed(tc.seed + 12345))
+        self.last_losses: dict[str, float] = {}
+        self._stop_requested = False
+        torch.manual_seed(tc.seed * 1000 + 1 + self.rank)  # per-rank latents and noise
+        if resume is not None:
+            self.load_state(resume)
+
+        self.g_train: nn.Module = self.G
+        self.d_train: nn.Module = self.D
+        if self.distributed:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            self.g_train = DDP(self.G, device_ids=ids, broadcast_buffers=False)
+            self.d_train = DDP(_PairD(self.D), device_ids=ids, broadcast_buffers=False)
+        else:
+            self.d_train = _PairD(self.D)
+        self.writer = None
+        if tensorboard and self.rank == 0:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                self.writer = SummaryWriter(str(self.run_dir / "tb"))
+            except Exception as exc:  # noqa: BLE001 - tensorboard is optional at run time
+                warnings.warn(f"TensorBoard logging disabled: {exc}", stacklevel=2)
+
+    # ------------------------------------------------------------------------------------------- randomness
+    def _z(self, n: int) -> list[Tensor]:
+        """One latent, or two for style mixing with probability ``mixing`` (drawn from the global torch RNG)."""
+        dim = self.cfg.model.latent_dim
+        if self.cfg.train.mixing > 0 and torch.rand(()).item() < self.cfg.train.mixing:
+            return list(torch.randn(2, n, dim, device=self.device).unbind(0))
+        return [torch.randn(n, dim, device=self.device)]
+
+    def _real_batch(self) -> Tensor:
+        idx = torch.randint(self.windows.shape[0], (self.local_batch,), generator=self.data_rng)
+        return self.windows[idx.to(self.windows.device)]
+
+    # ------------------------------------------------------------------------------------------- checks
+    def _check_finite(self, losses: dict[str, Tensor]) -> None:
+        """Stop (on every rank) before any optimiser step if a loss is NaN/inf."""
+        vals = torch.stack([v.detach().float().reshape(()) for v in losses.values()])
+        bad = (~torch.isfinite(vals)).float()
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.all_reduce(bad)
+        if bad.sum() > 0:
+            names = [k for k, b in zip(losses, bad.tolist()) if b > 0]
+            last = self.run_dir / "checkpoint.pt"
+            where = f"; the last good checkpoint is {last}" if last.is_file() else ""
+            raise NonFiniteLossError(
+                f"non-finite loss ({', '.join(names)}) at step {self.step}: training stopped without writing a "
+                f"checkpoint{where}. Try a lower learning rate or check the data for NaN/huge values.")
+
+    def _all_mean(self, t: Tensor) -> Tensor:
+        if self.distributed:
+            import torch.distributed as dist
+
+            t = t.clone()
+            dist.all_reduce(t)
+            t /= self.world
+        return t
+
+    # ------------------------------------------------------------------------------------------- one iteration
+    def train_step(self) -> dict[str, float]:
+        """One D step (+ lazy R1), one G step (+ lazy path length), EMA and mean-W updates."""
+        out = self.d_step()
+        out.update(self.g_step())
+        self.step += 1
+        return out
+
+    def d_step(self) -> dict[str, float]:
+        """Discriminator update on the non-saturating loss, plus lazy R1 every ``d_reg_every`` steps."""
+        tc = self.cfg.train
+        _requires_grad(self.G, False)
+        _requires_grad(self.D, True)
+        real = self._real_batch()
+        with torch.no_grad():
+            fake = self.G(self._z(self.local_batch))
+        fake_pred, real_pred = self.d_train(fake, real)
+        d_loss = d_logistic_loss(real_pred, fake_pred)
+        self._check_finite({"d": d_loss})
+        self.d_optim.zero_grad(set_to_none=True)
+        d_loss.backward()
+        self.d_optim.step()
+        out = {"d": float(d_loss), "real_score": float(real_pred.mean()), "fake_score": float(fake_pred.mean())}
+        if self.step % tc.d_reg_every == 0 and tc.r1_gamma > 0:
+            real_r = real.detach().requires_grad_(True)
+            pred = self.d_train(real_r)
+            r1 = d_r1_penalty(pred, real_r)
+            self._check_finite({"r1": r1})
+            self.d_optim.zero_grad(set_to_none=True)
+            (tc.r1_gamma / 2 * r1 * tc.d_reg_every + 0 * pred[0, 0]).backward()
+            self.d_optim.step()
+            out["r1"] = float(r1)
+        return out
+
+    def g_step(self) -> dict[str, float]:
+        """Generator update (adversarial + foot terms), lazy path length, mean-W tracking and the EMA copy."""
+        tc = self.cfg.train
+        _requires_grad(self.G, True)
+        _requires_grad(self.D, False)
+        zs = self._z(self.local_batch)
+        fake = self.g_train(zs)
+        g_loss = g_nonsaturating_loss(self.D(fake))
+        total = g_loss
+        losses = {"g": g_loss}
+        if tc.touch_weight > 0 or tc.contact_weight > 0:
+            foot_pos, contact = self.codec.foot_terms(fake)
+            touch = foot_touch_loss(contact)
+            fcon = foot_contact_consistency_loss(foot_pos, contact, self.codec.fps, self.codec.height)
+            total = total + tc.touch_weight * touch + tc.contact_weight * fcon
+            losses.update(touch=touch, contact=fcon)
+        self._check_finite(losses)
+        self.g_optim.zero_grad(set_to_none=True)
+        total.backward()
+        self.g_optim.step()
+        out = {k: float(v) for k, v in losses.items()}
+
+        if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:
+            n = max(1, self.local_batch // tc.path_batch_shrink)
+            fake_p, wplus = self.g_train(self._z(n), return_latents=True)
+            path, mean_path, lengths = path_length_penalty(fake_p, wplus, self.mean_path_length, tc.path_decay)
+            self._check_finite({"path": path})
+            self.g_optim.zero_grad(set_to_none=True)
+            (tc.path_weight * tc.g_reg_every * path + 0 * fake_p[0, 0, 0, 0]).backward()
+            self.g_optim.step()
+            self.mean_path_length = self._all_mean(mean_path.detach())
+            out.update(path=float(path), path_length=float(lengths.mean()))
+
+        with torch.no_grad():  # mean of W (truncation target), averaged over processes so replicas agree
+            w_mean = self._all_mean(self.G.mapping(zs[0]).mean(0))
+            self.G.w_avg.lerp_(w_mean, 1.0 - tc.w_avg_beta)
+        _accumulate(self.G_ema, self.G, self._ema_decay())
+        return out
+
+    def _ema_decay(self) -> float:
+        """EMA with a half-life of ``ema_kimg`` thousand samples, ramped up to 5% of the samples seen (StyleGAN2-ADA)
+        so short runs are not dominated by the random initialisation."""
+        tc = self.cfg.train
+        seen = (self.step + 1) * tc.batch
+        half_life = min(tc.ema_kimg * 1000.0, 0.05 * seen)
+        return 0.5 ** (tc.batch / max(half_life, 1e-8))
+
+    # ------------------------------------------------------------------------------------------- loop
+    def train(self, iters: int | None = None) -> TrainResult:
+        """Run until ``iters`` total steps (default ``cfg.train.iters``); Ctrl-C saves a checkpoint and returns."""
+        tc = self.cfg.train
+        target = tc.iters if iters is None else int(iters)
+        self._stop_requested = False
+        old_handler = None
+        if self._is_main_thread():
+            old_handler = signal.signal(signal.SIGINT, self._on_sigint)
+        t0 = time.time()
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=target, initial=min(self.step, target), dynamic_ncols=True, smoothing=0.05,
+                       desc="modi train")
+        interrupted = False
+        ckpt: Path | None = None
+        last_t = time.time()
+        try:
+            while self.step < target:
+                if self._stop_flag():
+                    interrupted = True
+                    break
+                losses = self.train_step()
+                self.last_losses = losses
+                now = time.time()
+                losses["sec_per_iter"] = now - last_t
+                last_t = now
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix({k: f"{losses[k]:.3f}" for k in ("d", "g", "contact") if k in losses})
+                if self.rank == 0 and (self.step % tc.log_every == 0 or self.step == target):
+                    self._log_scalars(losses)
+                if tc.sample_every and self.step % tc.sample_every == 0 and self.write_samples:
+                    self.write_sample_grid()
+                if tc.ckpt_every and self.step % tc.ckpt_every == 0:
+                    ckpt = self.save_checkpoint()
+                if tc.snapshot_every and self.step % tc.snapshot_every == 0:
+                    self.save_checkpoint(self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt")
+            ckpt = self.save_checkpoint()
+            if self.write_samples and (not tc.sample_every or self.step % tc.sample_every != 0):
+                self.write_sample_grid()
+        finally:
+            if bar is not None:
+                bar.close()
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
+            if self.writer is not None:
+                self.writer.flush()
+        if interrupted and self.rank == 0:
+            self.log(f"interrupted at step {self.step}: checkpoint saved to {ckpt}")
+        return TrainResult(self.step, interrupted, ckpt, time.time() - t0, dict(self.last_losses))
+
+    @staticmethod
+    def _is_main_thread() -> bool:
+        import threading
+
+        return threading.current_thread() is threading.main_thread()
+
+    def _on_sigint(self, signum, frame) -> None:  # noqa: ARG002
+        if self._stop_requested:  # second Ctrl-C: give up immediately
+            raise KeyboardInterrupt
+        self._stop_requested = True
+        if self.rank == 0:
+            print("\nmodi: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort)",
+                  flush=True)
+
+    def request_stop(self) -> None:
+        """Ask the loop to save and return at the next iteration boundary (what Ctrl-C does)."""
+        self._stop_requested = True
+
+    def _stop_flag(self) -> bool:
+        flag = torch.tensor(float(self._stop_requested), device=self.device)
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.all_reduce(flag)
+        return bool(flag.item() > 0)
+
+    def _log_scalars(self, losses: dict[str, float]) -> None:
+        rec = {"step": self.step, **{k: round(v, 6) for k, v in losses.items()}}
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with open(self.run_dir / "log.jsonl", "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+        if self.writer is not None:
+            groups = {"d": "loss/d", "g": "loss/g", "r1": "loss/r1", "path": "loss/path", "touch": "loss/touch",
+                      "contact": "loss/contact", "real_score": "score/real", "fake_score": "score/fake",
+                      "path_length": "reg/path_length", "sec_per_iter": "time/sec_per_iter"}
+            for k, v in losses.items():
+                self.writer.add_scalar(groups.get(k, k), v, self.step)
+
+    # ------------------------------------------------------------------------------------------- samples
+    def write_sample_grid(self) -> Path | None:
+        """Fixed latents through G_ema -> ``samples/step_XXXXXXX/`` (BVH per motion + one GIF grid). Rank 0 only."""
+        if self.rank != 0:
+            return None
+        from modi.modi_model.sampling import write_outputs
+
+        out = self.run_dir / "samples" / f"step_{self.step:07d}"
+        with torch.no_grad():
+            x = self.G_ema(self.sample_z.to(self.device), noise_mode="const")
+        try:
+            write_outputs(self.codec, x, out, gif=True, bvh=not self.codec.positions_mode, gif_name="grid.gif")
+        except Exception as exc:  # noqa: BLE001 - a preview must never kill a long run
+            warnings.warn(f"could not write samples at step {self.step}: {exc}", stacklevel=2)
+            return None
+        return out
+
+    # ------------------------------------------------------------------------------------------- checkpoints
+    def _rng_state(self) -> dict[str, Any]:
+        st = {"torch": torch.get_rng_state(), "data": self.data_rng.get_state()}
+        if torch.cuda.is_available():
+            st["cuda"] = torch.cuda.get_rng_state_all()
+        return st
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to generate, and to resume exactly (plain containers + tensors: loads with weights_only)."""
+        rng = self._rng_state()
+        rngs = [rng]
+        if self.distributed:
+            import torch.distributed as dist
+
+            rngs = [None] * self.world
+            dist.all_gather_object(rngs, rng)
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "config": self.cfg.to_dict(),
+            "codec": self.codec.state_dict(),
+            "skeleton": self.codec.skeleton.to_dict(),
+            "hierarchy": self.data.hierarchy.to_dict(),
+            "levels": [lv.to_dict() for lv in self.levels],
+            "G": self.G.state_dict(),
+            "G_ema": self.G_ema.state_dict(),
+            "D": self.D.state_dict(),
+            "g_optim": self.g_optim.state_dict(),
+            "d_optim": self.d_optim.state_dict(),
+            "step": self.step,
+            "mean_path_length": float(self.mean_path_length),
+            "rng": rngs,
+            "world_size": self.world,
+            "data_source": self.data.source,
+            "data_summary": self.data.summary,
+            "last_losses": dict(self.last_losses),
+            "torch_version": torch.__version__,
+        }
+
+    def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
+        """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states)."""
+        state = self.state_dict()
+        path = Path(path) if path is not None else self.run_dir / "checkpoint.pt"
+        if self.rank == 0:
+            atomic_torch_save(state, path)
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.barrier()
+        return path
+
+    def load_state(self, ckpt: str | os.PathLike | dict) -> None:
+        """Restore models, optimisers, step and RNG states from a checkpoint of the same model and skeleton."""
+        from modi.modi_model.sampling import load_checkpoint
+
+        st = load_checkpoint(ckpt) if not isinstance(ckpt, dict) else ckpt
+        if st["config"]["model"] != self.cfg.to_dict()["model"]:
+            raise CheckpointError("checkpoint was trained with a different model config; "
+                                  "resume with the same preset and model options")
+        if not self.codec.skeleton.same_as(_skeleton_from(st)):
+            raise CheckpointError("checkpoint was trained on a different skeleton than this data")
+        try:
+            self.G.load_state_dict(st["G"])
+            self.G_ema.load_state_dict(st["G_ema"])
+            self.D.load_state_dict(st["D"])
+            self.g_optim.load_state_dict(st["g_optim"])
+            self.d_optim.load_state_dict(st["d_optim"])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise CheckpointError(f"checkpoint does not match this model: {exc}") from None
+        self.step = int(st["step"])
+        self.mean_path_length = torch.tensor(float(st.get("mean_path_length", 0.0)), device=self.device)
+        self.last_losses = dict(st.get("last_losses", {}))
+        rngs = st.get("rng") or []
+        if len(rngs) == self.world:
+            rng = rngs[self.rank]
+            torch.set_rng_state(rng["torch"])
+            self.data_rng.set_state(rng["data"])
+            if "cuda" in rng and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(rng["cuda"])
+        else:
+            warnings.warn(f"checkpoint was written by {len(rngs)} process(es), this run has {self.world}: "
+                          "random streams restart (training continues, but not bit-for-bit)", stacklevel=2)
+            torch.manual_seed(self.cfg.train.seed * 1000 + self.rank + 7 * self.step)
+
+
+class _PairD(nn.Module):
+    """Runs D on fake and real in ONE forward (so DDP sees one forward per backward), with separate
+    minibatch-stddev groups for each."""
+
+    def __init__(self, d: Discriminator):
+        super().__init__()
+        self.d = d
+
+    def forward(self, x: Tensor, y: Tensor | None = None):
+        if y is None:
+            return self.d(x)
+        return self.d(x), self.d(y)
+
+
+def _skeleton_from(st: dict[str, Any]) -> Any:
+    from modi.skeleton import Skeleton
+
+    return Skeleton.from_dict(st["skeleton"])
+
+
+def seconds_per_iteration(trainer: Trainer, n: int = 5, warmup: int = 1) -> float:
+    """Mean wall time of ``n`` full training iterations (after ``warmup``), lazy regularisers included in
+    proportion (steps 0, 16, ... run R1; 0, 4, ... path length) -- a benchmark helper, not used by training."""
+    for _ in range(warmup):
+        trainer.train_step()
+    t = time.perf_counter()
+    for _ in range(n):
+        trainer.train_step()
+    return (time.perf_counter() - t) / n
+
+
+__all__ = ["MotionCodec", "TrainingData", "prepare_data", "write_procedural_data", "Trainer", "TrainResult",
+           "NonFiniteLossError", "atomic_torch_save", "init_distributed_from_env", "build_models",
+           "seconds_per_iteration"]

@@ -1,0 +1,147 @@
+"""Known-answer tests for GANimator's single-sequence metrics (modi.evaluation.single)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from modi.evaluation.single import (
+    coverage,
+    local_diversity,
+    patched_nearest_neighbour,
+    rotation_features,
+    single_sequence_metrics,
+    window_distances,
+)
+
+
+def _source(n: int = 240, joints: int = 6, seed: int = 0) -> torch.Tensor:
+    """A smooth, non-repeating 'motion': per-joint rotations from random-walk rotation vectors -> (n, 9J)."""
+    rng = np.random.default_rng(seed)
+    steps = rng.normal(scale=0.15, size=(n, joints, 3))  # ~ a brisk motion at 30 fps
+    rotvec = np.cumsum(steps, axis=0)
+    mats = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(n, joints, 3, 3)
+    return rotation_features(torch.from_numpy(mats))
+
+
+def _brute_windows(g: np.ndarray, s: np.ndarray, T: int) -> np.ndarray:
+    c = np.linalg.norm(g[:, None] - s[None], axis=-1)
+    L, N = c.shape
+    out = np.empty((L - T + 1, N - T + 1))
+    for i in range(L - T + 1):
+        for k in range(N - T + 1):
+            out[i, k] = np.mean([c[i + t, k + t] for t in range(T)])
+    return out
+
+
+def _brute_pnn(g: np.ndarray, s: np.ndarray, tmin: int) -> float:
+    """Appendix B's recursion written as the plain triple loop over (segment start, end, source start)."""
+    c = np.linalg.norm(g[:, None] - s[None], axis=-1)
+    L, N = c.shape
+    G = np.full(L + 1, np.inf)
+    G[0] = 0.0
+    for i in range(tmin, L + 1):
+        for l in range(0, i - tmin + 1):
+            for k in range(0, N - (i - l) + 1):
+                G[i] = min(G[i], G[l] + sum(c[l + t, k + t] for t in range(i - l)))
+    return G[L] / L
+
+
+def test_frame_distance_is_the_frobenius_norm_of_rotation_differences():
+    theta = 0.7
+    ident = np.broadcast_to(np.eye(3), (1, 2, 3, 3)).copy()
+    rx = ident.copy()
+    rx[0, 1] = Rotation.from_rotvec([theta, 0, 0]).as_matrix()
+    full = window_distances(rotation_features(torch.from_numpy(ident)), rotation_features(torch.from_numpy(rx)), 1)
+    # |R - I|_F^2 = 4 (1 - cos theta) for any axis
+    assert full.item() == pytest.approx(np.sqrt(4 * (1 - np.cos(theta))), rel=1e-12)
+    # first two rows only (authors' 6-D): rotation about x leaves row 0 unchanged -> 2 (1 - cos theta)
+    six = window_distances(rotation_features(torch.from_numpy(ident), "6d"),
+                           rotation_features(torch.from_numpy(rx), "6d"), 1)
+    assert six.item() == pytest.approx(np.sqrt(2 * (1 - np.cos(theta))), rel=1e-12)
+
+
+def test_quaternion_input_matches_matrices():
+    r = Rotation.random(30, random_state=2)
+    q_xyzw = r.as_quat().reshape(10, 3, 4)
+    q = torch.from_numpy(np.concatenate([q_xyzw[..., 3:], q_xyzw[..., :3]], axis=-1))  # (w, x, y, z)
+    m = torch.from_numpy(r.as_matrix().reshape(10, 3, 3, 3))
+    assert torch.allclose(rotation_features(q), rotation_features(m), atol=1e-12)
+
+
+def test_window_table_and_pnn_match_brute_force():
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        L, N = int(rng.integers(14, 22)), int(rng.integers(9, 16))
+        g, s = rng.normal(size=(L, 5)), rng.normal(size=(N, 5))
+        assert np.allclose(window_distances(g, s, 4).numpy(), _brute_windows(g, s, 4), atol=1e-12)
+        assert patched_nearest_neighbour(g, s, 4) == pytest.approx(_brute_pnn(g, s, 4), rel=1e-12)
+
+
+def test_source_against_itself_full_coverage_zero_diversity():
+    src = _source()
+    res = single_sequence_metrics([src], src)
+    assert res["coverage"] == 1.0
+    assert res["global_diversity"] == pytest.approx(0.0, abs=1e-6)
+    assert res["local_diversity"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_reordered_segments_have_zero_pnn_only_when_segments_are_long_enough():
+    src = _source(240)
+    swapped = torch.cat([src[120:], src[:120]])  # two 120-frame segments of the source
+    assert patched_nearest_neighbour(swapped, src, 30) == pytest.approx(0.0, abs=1e-6)
+    chopped = torch.cat([src[i : i + 20] for i in (200, 40, 120, 0, 160, 80, 220, 20, 180, 60, 140, 100)])
+    assert patched_nearest_neighbour(chopped, src, 30) > 0.05  # 20-frame pieces cannot be copied whole
+    assert patched_nearest_neighbour(chopped, src, 20) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_reversed_or_shuffled_source_covers_less():
+    src = _source(240)
+    full = coverage(src, src)
+    rev = coverage(torch.flip(src, [0]), src)
+    rng = np.random.default_rng(4)
+    order = rng.permutation(24)
+    shuffled = torch.cat([src[10 * i : 10 * i + 10] for i in order])
+    shuf = coverage(shuffled, src)
+    assert full == 1.0
+    assert rev < 0.5 and shuf < 0.5
+    assert local_diversity(shuffled, src) > local_diversity(src, src) + 0.05
+
+
+def test_threshold_is_applied_to_the_per_frame_mean():
+    src = _source(100, joints=1)
+    # a generated copy offset by a constant rotation of angle a on the one joint: every frame is |R - QR|_F
+    # = sqrt(4 (1 - cos a)) away, so coverage flips exactly where that crosses the threshold
+    a = 2 * np.arcsin(1.0 / (2 * np.sqrt(2)))  # gives distance exactly 1.0
+    q = Rotation.from_rotvec([0, 0, a]).as_matrix()
+    mats = src.reshape(100, 1, 3, 3).numpy()
+    gen = rotation_features(torch.from_numpy(q @ mats))
+    assert coverage(gen, src, threshold=1.0 + 1e-6) == 1.0
+    assert coverage(gen, src, threshold=1.0 - 1e-6) < 1.0
+
+
+def test_metrics_invariant_to_order_of_generated_sequences():
+    src = _source(150)
+    rng = np.random.default_rng(5)
+    gens = [torch.cat([src[a : a + 45] for a in rng.integers(0, 105, size=3)]) + 0.01 * i for i in range(5)]
+    gens.append(_source(120, seed=9))  # different length: processed in its own batch
+    r1 = single_sequence_metrics(gens, src, batch_elements=2 * 135 * 150)
+    perm = [4, 2, 5, 0, 3, 1]
+    r2 = single_sequence_metrics([gens[i] for i in perm], src)
+    for key in ("coverage", "global_diversity", "local_diversity"):
+        assert r2[key] == pytest.approx(r1[key], rel=1e-12)
+    for j, i in enumerate(perm):
+        assert r2["per_sequence"][j] == pytest.approx(r1["per_sequence"][i], rel=1e-12)
+
+
+def test_bad_input_is_rejected_clearly():
+    src = _source(100)
+    with pytest.raises(ValueError, match="fewer than"):
+        coverage(src[:10], src)
+    with pytest.raises(ValueError, match="differ in size"):
+        coverage(src[:, :9], src)
+    with pytest.raises(ValueError, match="quaternions or"):
+        rotation_features(torch.zeros(5, 3, 5))
+    with pytest.raises(ValueError, match="representation"):
+        rotation_features(torch.zeros(5, 3, 3, 3), "euler")
