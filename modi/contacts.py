@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-DEFAULT_VELOCITY_FACTOR = 0.15  # x height per second (~0.26 m/s for a 1.75 m person)
+DEFAULT_VELOCITY_FACTOR = 0.25  # x height per second (~0.44 m/s for a 1.75 m person)
 DEFAULT_HEIGHT_FACTOR = 0.1  # x height above that foot's lowest point in the clip
 
 

@@ -188,7 +188,7 @@ def fix_foot_contact(
 
     def dls(jac: Tensor, rhs: Tensor, damping: float) -> tuple[Tensor, Tensor]:
         """Damped pseudo-inverse applied to rhs, and the pseudo-inverse itself."""
-        pinv = jac.transpose(1, 2) @ torch.linalg.inv(jac @ jac.transpose(1, 2) + damping * eye_r)
+        pinv = torch.linalg.solve(jac @ jac.transpose(1, 2) + damping * eye_r, jac).transpose(1, 2)  # J^T M^-1, M = M^T
         return pinv @ rhs, pinv
 
     sub_rot, sub_root = rot[frames].clone(), root[frames].clone()

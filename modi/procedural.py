@@ -182,7 +182,7 @@ def _ankle_and_rot(g: np.ndarray, yaw: np.ndarray, pitch: np.ndarray) -> tuple[n
     return ankle, rfoot
 
 
-def _assemble(c: _Clip, fps: float) -> tuple[np.ndarray, np.ndarray]:
+def _assemble(c: _Clip) -> tuple[np.ndarray, np.ndarray]:
     """Local rotation matrices (T,J,3,3) and root positions (T,3) for a clip description."""
     n, nj = len(c.t), len(_JOINTS)
     offsets = builtin_skeleton().offsets
@@ -521,7 +521,7 @@ def clip_arrays(kind: str, n_frames: int, fps: float = 30.0,
     t = np.arange(int(n_frames), dtype=np.float64) / float(fps)
     c = _Clip(t)
     _BUILDERS[kind](c, _rng(rng))
-    return _assemble(c, fps)
+    return _assemble(c)
 
 
 def generate_clip(kind: str, n_frames: int = 128, fps: float = 30.0,

@@ -292,10 +292,16 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
         nm = [list(names)] * n
     else:
         nm = [list(x) for x in names]
+    if len(nm) != n or any(x is not None and len(x) != pos[i].shape[1] for i, x in enumerate(nm)):
+        raise ValueError("names must be one joint-name list per motion (or one shared), one name per joint")
     if titles is not None and len(titles) != n:
         raise ValueError(f"got {len(titles)} titles for {n} motions")
-    if contacts is not None and len(contacts) != n:
-        raise ValueError(f"got {len(contacts)} contact arrays for {n} motions")
+    if contacts is not None:
+        if len(contacts) != n:
+            raise ValueError(f"got {len(contacts)} contact arrays for {n} motions")
+        for i, c in enumerate(contacts):
+            if c is not None and np.shape(c) != pos[i].shape[:2]:
+                raise ValueError(f"contacts[{i}] must be (T, J) = {pos[i].shape[:2]}, got {np.shape(c)}")
     if layout not in ("grid", "scene"):
         raise ValueError(f"layout must be 'grid' or 'scene', got {layout!r}")
     w, h = int(size[0]), int(size[1])
@@ -303,7 +309,7 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
         raise ValueError(f"size must be at least 16x16 pixels, got {w}x{h}")
 
     height = max(_body_height(p) for p in pos)
-    floor = min(float(p[..., 1].min()) for p in pos)
+    floors = [float(p[..., 1].min()) for p in pos]   # the ground: each motion's lowest point (files differ)
     n_frames = max(len(p) for p in pos)
     sides = [[_side_of(x) for x in names_i] if names_i else [0] * len(par[i]) for i, names_i in enumerate(nm)]
     con = [None if contacts is None or contacts[i] is None else _hold(np.asarray(contacts[i], bool), n_frames)
@@ -312,12 +318,12 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
     if layout == "grid":
         cols = math.ceil(math.sqrt(n))
         rows = math.ceil(n / cols)
-        panels = [(_Panel([i], pos, (w, h), fps, floor, height, azimuth, elevation,
+        panels = [(_Panel([i], pos, (w, h), fps, floors[i], height, azimuth, elevation,
                           None if titles is None else titles[i], n_frames), (i % cols) * w, (i // cols) * h)
                   for i in range(n)]
         img_size = (cols * w, rows * h)
     else:
-        panels = [(_Panel(list(range(n)), pos, (w, h), fps, floor, height, azimuth, elevation,
+        panels = [(_Panel(list(range(n)), pos, (w, h), fps, min(floors), height, azimuth, elevation,
                           None if titles is None else " | ".join(titles), n_frames), 0, 0)]
         img_size = (w, h)
 
@@ -328,8 +334,13 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
     for t in range(n_frames):
         img = Image.new("P", img_size, _BG)
         img.putpalette(palette)
-        draw = ImageDraw.Draw(img)
-        for panel, ox, oy in panels:
+        for panel, px, py in panels:
+            # each panel draws on its own canvas, so lines leaving it cannot spill into its neighbours
+            canvas = img if len(panels) == 1 else Image.new("P", (w, h), _BG)
+            if canvas is not img:
+                canvas.putpalette(palette)
+            draw = ImageDraw.Draw(canvas)
+            ox = oy = 0
             target = panel.targets[t]
             panel.set_frame(t)
             panel.draw_grid(draw, target, ox, oy)
@@ -352,7 +363,7 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
                     shadows.append((sxy[q], sxy[j]))
                 for j in range(len(par[c])):
                     if z[j] >= panel.cam.near:
-                        hit = con[c] is not None and j < con[c].shape[1] and bool(con[c][t, j])
+                        hit = con[c] is not None and bool(con[c][t, j])
                         joints.append((z[j], xy[j], _CONTACT if hit else _char_index(k, 0), hit))
             for a, b in shadows:
                 draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=_SHADOW, width=lw + 1)
@@ -372,7 +383,9 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
             if panel.title:
                 draw.text((ox + 6, oy + 4), panel.title, fill=_TEXT, font=font)
             if layout == "grid" and n > 1:
-                draw.rectangle([ox, oy, ox + w - 1, oy + h - 1], outline=_BORDER)
+                draw.rectangle([0, 0, w - 1, h - 1], outline=_BORDER)
+            if canvas is not img:
+                img.paste(canvas, (px, py))
         frames.append(img)
     return frames
 

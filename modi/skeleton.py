@@ -226,7 +226,7 @@ class Skeleton:
             ankles = [j for j in ankles if j not in toes]
             ankle = ankles[0] if ankles else (heels[0] if heels else None)
             toe = toes[0] if toes else (toe_ends[0] if toe_ends else None)
-            picks = [x for x in ((ankle, toe) if per_side >= 2 else (ankle if ankle is not None else toe,)) if x is not None]
+            picks = [x for x in ((ankle, toe) if per_side >= 2 else (toe if toe is not None else ankle,)) if x is not None]
             if picks:
                 found[side] = picks
         return found
@@ -264,8 +264,10 @@ class Skeleton:
 
         ``names`` overrides detection (exact joint names, in the order given). Otherwise, for a biped found by
         name (foot/ankle/heel and toe/ball joints with a left/right marker such as ``Left``, ``_L``, ``L_``):
-        ``per_side=1`` gives the ankle (``LeftFoot``, ``Foot_L``; the toe if there is no ankle) for left then
-        right; ``per_side=2`` gives ankle and toe per side ``[L ankle, L toe, R ankle, R toe]`` (GANimator-style).
+        ``per_side=1`` gives the toe/ball joint (``LeftToeBase``, ``Toes_L``; the ankle if there is none) for left
+        then right -- the ball of the foot stays planted through heel-off, so a walk keeps a foot in contact
+        nearly all the time, which the ankle does not; ``per_side=2`` gives ankle and toe per side
+        ``[L ankle, L toe, R ankle, R toe]`` (GANimator-style).
         Anything else -- no named feet, or an upright rest pose whose other limbs also reach the ground (the
         elephant's front "hands") -- falls back to the leaf joints lying lowest in the rest pose (within 15% of
         its vertical extent), in joint order: the crab's six leg tips, the elephant's four toes/hands.

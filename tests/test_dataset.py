@@ -109,7 +109,7 @@ def test_cli_data_info(proc_dir, tmp_path, capsys):
 
     assert main(["data", "info", str(proc_dir), "--window", "32", "--cache-dir", str(tmp_path), "-v"]) == 0
     out = capsys.readouterr().out
-    assert "clips:       7" in out and "feet:        LeftFoot, RightFoot" in out
+    assert "clips:       7" in out and "feet:        LeftToe, RightToe" in out
     assert "0000_walk.bvh" in out and "windows:" in out
     assert main(["data", "info", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err
@@ -129,7 +129,7 @@ def test_bandai_full_dataset(shared_data, tmp_path):
     assert sum(c.split == "test" for c in ds.clips) == 35
     # all 22 joints kept; the joint_Root anchor rides on Hips, whose translation is the root trajectory
     assert ds.source_skeleton.n_joints == 22 and ds.skeleton.n_joints == 22
-    assert [ds.skeleton.names[f] for f in ds.feet] == ["Foot_L", "Foot_R"]
+    assert [ds.skeleton.names[f] for f in ds.feet] == ["Toes_L", "Toes_R"]
     assert ds.train.shape[1:] == (4, 25, 64)
     assert ds.train.shape[0] > 4 * ds.test.shape[0] * 0.6
     assert torch.isfinite(ds.normalized("train")).all() and torch.isfinite(ds.normalized("test")).all()

@@ -28,12 +28,14 @@ REST = np.array([[0, 100, 0], [0, 130, 0], [0, 160, 0], [20, 140, 0], [-20, 140,
 
 
 def _clip(label: int, rng: np.random.Generator, frames: int = 48) -> np.ndarray:
-    """Class 0 waves the LEFT arm, class 1 the RIGHT one; random heading, place, speed and noise."""
+    """Class 0 waves the left arm, class 1 bobs the whole body (a squat); random heading, place, speed, noise."""
     t = np.arange(frames) / 30.0
     pos = np.repeat(REST[None], frames, axis=0).copy()
-    arm = 3 if label == 0 else 4
-    freq = rng.uniform(1.0, 2.0)
-    pos[:, arm, 1] += 25 * np.sin(2 * np.pi * freq * t + rng.uniform(0, 6.3))
+    wave = 25 * np.sin(2 * np.pi * rng.uniform(1.0, 2.0) * t + rng.uniform(0, 6.3))
+    if label == 0:
+        pos[:, 3, 1] += wave
+    else:
+        pos[:, :5, 1] += 0.6 * wave[:, None]
     pos += rng.normal(scale=0.5, size=pos.shape)
     yaw = rng.uniform(0, 2 * np.pi)
     c, s = np.cos(yaw), np.sin(yaw)
@@ -42,7 +44,7 @@ def _clip(label: int, rng: np.random.Generator, frames: int = 48) -> np.ndarray:
 
 
 def _config(**kw) -> FeatureConfig:
-    base = dict(joint_names=NAMES, parents=PARENTS, class_names=["wave_left", "wave_right"], window=32,
+    base = dict(joint_names=NAMES, parents=PARENTS, class_names=["wave", "squat"], window=32,
                 body_height=160.0, pairs=lr_pairs(NAMES, PARENTS), channels=[8, 16], strides=[2, 2],
                 temporal_kernel=5, dropout=0.0)
     base.update(kw)

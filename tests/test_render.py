@@ -63,6 +63,17 @@ def test_grid_puts_motions_side_by_side_and_holds_short_ones(tmp_path):
     assert _gif(two).size == (128, 48)
 
 
+def test_grid_panels_do_not_draw_into_each_other():
+    right = _stick(6)
+    a = render_frames([_stick(6), right], STICK_PARENTS, size=(90, 70))
+    lying = _stick(6)[:, [0, 2, 1, 3]] * np.array([3.0, 0.2, 3.0])   # a very different, wide figure on the left
+    b = render_frames([lying, right], STICK_PARENTS, size=(90, 70))
+    for fa, fb in zip(a, b):
+        la, lb = np.asarray(fa), np.asarray(fb)
+        assert np.array_equal(la[:, 90:], lb[:, 90:])
+    assert not all(np.array_equal(np.asarray(fa)[:, :90], np.asarray(fb)[:, :90]) for fa, fb in zip(a, b))
+
+
 def test_scene_layout_draws_every_character_in_one_image(tmp_path):
     a, b = _stick(5), _stick(5)
     b[..., 0] += 400

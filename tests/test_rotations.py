@@ -220,3 +220,16 @@ def test_gradcheck():
     assert torch.autograd.gradcheck(lambda a: R.quat_slerp(a, q1, t), (q,))
     aa = (torch.randn(6, 3, dtype=torch.float64) * 0.7).requires_grad_(True)
     assert torch.autograd.gradcheck(R.axis_angle_to_quat, (aa,))
+
+
+def test_quat_unflip_makes_sequences_continuous():
+    q = rand_quats(50, seed=16)
+    q = R.quat_slerp(q[:1].expand(50, 4), q[1:2].expand(50, 4), torch.linspace(0, 1, 50, dtype=torch.float64))
+    flipped = q * torch.where(torch.rand(50, 1, generator=torch.Generator().manual_seed(17)) < 0.5, -1.0, 1.0).double()
+    flipped[0] = q[0]
+    fixed = R.quat_unflip(flipped, dim=0)
+    torch.testing.assert_close(fixed, q)
+    batch = R.quat_unflip(torch.stack([flipped, -flipped], dim=1), dim=0)  # (T, 2, 4), time first
+    torch.testing.assert_close(batch[:, 1], -q)
+    with pytest.raises(ValueError, match="quaternion dimension"):
+        R.quat_unflip(q, dim=-1)

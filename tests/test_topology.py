@@ -210,7 +210,7 @@ def test_reduce_patterns_and_keep():
 
 def test_detect_feet_names_override_and_biped():
     sk = _humanoid20()
-    assert [sk.names[j] for j in sk.detect_feet()] == ["LeftFoot", "RightFoot"]
+    assert [sk.names[j] for j in sk.detect_feet()] == ["LeftToeBase", "RightToeBase"]
     assert [sk.names[j] for j in sk.detect_feet(per_side=2)] == ["LeftFoot", "LeftToeBase", "RightFoot", "RightToeBase"]
     assert sk.detect_feet(names=["Head"]) == [sk.index("Head")]
     with pytest.raises(KeyError):
@@ -241,7 +241,7 @@ def test_bandai_hierarchy(shared_data):
     red, kept = sk.reduce()
     assert kept == list(range(22))  # nothing to drop on Bandai's rig
     feet = sk.detect_feet()
-    assert [sk.names[f] for f in feet] == ["Foot_L", "Foot_R"]
+    assert [sk.names[f] for f in feet] == ["Toes_L", "Toes_R"]
     h = build_hierarchy(sk, feet)
     _check_hierarchy(h, 22, 2)
     # joint_Root+Hips pair, spine pair, neck pair, 2 pairs per limb -> 11; then 7 -> 2 -> 1
@@ -258,7 +258,7 @@ def test_mixamo_reduction_matches_ganimator_24(shared_data):
     np.testing.assert_allclose(red.rest_positions(), full.rest_positions()[kept], atol=1e-9)
     for sk in (full, red):
         feet = sk.detect_feet()
-        assert [sk.names[f].split(":")[-1] for f in feet] == ["LeftFoot", "RightFoot"]
+        assert [sk.names[f].split(":")[-1] for f in feet] == ["LeftToeBase", "RightToeBase"]
         _check_hierarchy(build_hierarchy(sk, feet, neighbor_distance=2), sk.n_joints, 2)
     assert 1.5 < reduced_file.height() < 2.1  # metres
 

@@ -1,0 +1,242 @@
+"""Time the dense reference against the C++ extension in one process and write the ratios as JSON.
+
+    python benchmarks/compare.py --json benchmarks/results/cpu.json [--reps 15] [--threads N] [--only REGEX]
+
+Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
+the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.topology`` when importable, a
+built-in fallback otherwise), batch 16, fp32:
+
+  skeletal_conv.<level>.{fwd,fwd_bwd}     in-place SkeletalConv (kernel 3, zero padding, bias)
+  modulated_conv.<level>.{fwd,fwd_bwd}    ModulatedSkeletalConv, mode "same", demodulated
+  scaler_up.<level>.{fwd,fwd_bwd}         SkeletalUpsample from the next coarser level into <level>
+  scaler_down.<level>.{fwd,fwd_bwd}       SkeletalDownsample from <level> into the next coarser one
+  modulated_up.<level>.{fwd,fwd_bwd}      ModulatedSkeletalConv, mode "up", demodulated
+  fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
+
+Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
+the medians are reported.  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import platform
+import re
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from modi_ext import HAS_EXT  # noqa: E402
+from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv, SkeletalDownsample, SkeletalUpsample  # noqa: E402
+
+# Bandai-Namco motion capture skeleton (22 joints), parents in file order.
+BANDAI_PARENTS = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]
+BANDAI_FEET = [16, 20]
+# MoDi Table 3, finest -> coarsest: (channels, frames)
+MODI_LEVELS = [(32, 64), (64, 32), (64, 16), (128, 8), (256, 4)]
+BATCH = 16
+STYLE_DIM = 512
+
+
+def bandai_hierarchy() -> tuple[list[list[list[int]]], list[list[list[int]]], str]:
+    """(neighbors per level finest->coarsest, pooling maps, source description)."""
+    try:
+        from modi import topology
+
+        class _Sk:
+            parents = BANDAI_PARENTS
+            names = [f"j{i}" for i in range(len(BANDAI_PARENTS))]
+
+        h = topology.build_hierarchy(_Sk(), feet=BANDAI_FEET, neighbor_distance=1)
+        return [lv.neighbors for lv in h.levels], [list(map(list, p)) for p in h.pooling], "modi.topology"
+    except Exception:  # noqa: BLE001 - fall back to a self-contained hierarchy
+        return _fallback_hierarchy(), _fallback_pooling(), "built-in fallback"
+
+
+def _fallback_levels() -> list[int]:
+    return [25, 14, 10, 5, 1]
+
+
+def _fallback_hierarchy() -> list[list[list[int]]]:
+    """Chain-like neighbor lists with the entity counts of the real hierarchy (distance 1)."""
+    out = []
+    for n in _fallback_levels():
+        out.append([[m for m in (j - 1, j, j + 1) if 0 <= m < n] for j in range(n)])
+    return out
+
+
+def _fallback_pooling() -> list[list[list[int]]]:
+    counts = _fallback_levels()
+    maps = []
+    for fine, coarse in zip(counts[:-1], counts[1:]):
+        groups = [[] for _ in range(coarse)]
+        for f in range(fine):
+            groups[min(coarse - 1, f * coarse // fine)].append(f)
+        maps.append(groups)
+    return maps
+
+
+def level_names(n: int) -> list[str]:
+    return ["finest"] + [f"level{i}" for i in range(1, n - 1)] + ["coarsest"]
+
+
+def _with_impl(impl: str, fn: Callable[[], object]) -> Callable[[], object]:
+    def run():
+        old = os.environ.get("MODI_EXT_IMPL")
+        os.environ["MODI_EXT_IMPL"] = impl
+        try:
+            return fn()
+        finally:
+            if old is None:
+                del os.environ["MODI_EXT_IMPL"]
+            else:
+                os.environ["MODI_EXT_IMPL"] = old
+    return run
+
+
+def _case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bwd: bool):
+    """(ref_fn, ext_fn) running the module forward (and backward w.r.t. input + parameters)."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    x = inputs[0].detach().clone().requires_grad_(bwd)
+    rest = inputs[1:]
+    grad = None
+
+    def body():
+        nonlocal grad
+        if not bwd:
+            with torch.no_grad():
+                return module(x, *rest)
+        y = module(x, *rest)
+        if grad is None:
+            grad = torch.randn_like(y)
+        return torch.autograd.grad(y, [x] + params, grad)
+
+    return _with_impl("ref", body), _with_impl("ext", body)
+
+
+def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, dict], str]:
+    torch.manual_seed(0)
+    neigh, pools, source = bandai_hierarchy()
+    names = level_names(len(neigh))
+    cases: dict[str, tuple[Callable, Callable]] = {}
+    info: dict[str, dict] = {}
+    for lv, (nb, name) in enumerate(zip(neigh, names)):
+        c, t = MODI_LEVELS[min(lv, len(MODI_LEVELS) - 1)]
+        e = len(nb)
+        x = torch.randn(BATCH, c, e, t)
+        w = torch.randn(BATCH, STYLE_DIM)
+        conv = SkeletalConv(c, c, nb, 3)
+        mod = ModulatedSkeletalConv(c, c, STYLE_DIM, nb, 3, mode="same", demodulate=True)
+        defs = [("skeletal_conv", conv, (x,)), ("modulated_conv", mod, (x, w))]
+        if lv + 1 < len(neigh):
+            c2, t2 = MODI_LEVELS[min(lv + 1, len(MODI_LEVELS) - 1)]
+            e2 = len(neigh[lv + 1])
+            xc = torch.randn(BATCH, c2, e2, t2)
+            defs += [
+                ("scaler_up", SkeletalUpsample(c2, c, pools[lv], 3), (xc,)),
+                ("scaler_down", SkeletalDownsample(c, c2, pools[lv], 3), (x,)),
+                ("modulated_up", ModulatedSkeletalConv(c2, c, STYLE_DIM, pools[lv], 3, mode="up"), (xc, w)),
+            ]
+        for op, module, inputs in defs:
+            for bwd in (False, True):
+                key = f"{op}.{name}.{'fwd_bwd' if bwd else 'fwd'}"
+                cases[key] = _case(module, inputs, bwd)
+                info[key] = {"input_shape": list(inputs[0].shape), "entities_out": e, "channels_out": c,
+                             "pairs": int(sum(len(r) for r in (nb if op in ("skeletal_conv", "modulated_conv")
+                                                           else pools[lv])))}
+    return cases, info, source
+
+
+def fk_cases() -> dict[str, tuple[Callable, Callable]]:
+    path = ROOT / "benchmarks" / "bench_fk.py"
+    if not path.exists():
+        print("compare: benchmarks/bench_fk.py not found; FK cases skipped", file=sys.stderr)
+        return {}
+    spec = importlib.util.spec_from_file_location("bench_fk", path)
+    mod = importlib.util.module_from_spec(spec)
+    try:
+        spec.loader.exec_module(mod)
+        return dict(mod.fk_cases())
+    except Exception as exc:  # noqa: BLE001 - report and keep the skeletal numbers
+        print(f"compare: FK cases skipped ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return {}
+
+
+def time_pair(ref: Callable, ext: Callable, reps: int, min_time: float) -> tuple[float, float, int]:
+    """Interleaved medians (ms) of ref and ext; at least `reps` runs each and `min_time` s in total."""
+    for _ in range(2):
+        ref()
+        ext()
+    rt, et = [], []
+    start = time.perf_counter()
+    while len(rt) < reps or (time.perf_counter() - start < min_time and len(rt) < 200):
+        t0 = time.perf_counter()
+        ref()
+        t1 = time.perf_counter()
+        ext()
+        t2 = time.perf_counter()
+        rt.append(t1 - t0)
+        et.append(t2 - t1)
+    return statistics.median(rt) * 1e3, statistics.median(et) * 1e3, len(rt)
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo", encoding="utf-8"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} logical CPUs, torch {torch.__version__}, {torch.get_num_threads()} threads"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--json", type=Path, help="write results here")
+    ap.add_argument("--reps", type=int, default=15, help="minimum timed runs per side")
+    ap.add_argument("--min-time", type=float, default=1.0, help="minimum seconds per case")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--only", default=None, help="regex: run matching cases only")
+    args = ap.parse_args(argv)
+    if not HAS_EXT:
+        print("compare: the modi_ext C++ extension is not built; nothing to compare", file=sys.stderr)
+        return 2
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cases, info, source = skeletal_cases()
+    cases.update(fk_cases())
+    pattern = re.compile(args.only) if args.only else None
+    desc = machine()
+    print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32")
+    print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
+    results: dict[str, dict] = {}
+    for name, (ref, ext) in cases.items():
+        if pattern and not pattern.search(name):
+            continue
+        ref_ms, ext_ms, n = time_pair(ref, ext, args.reps, args.min_time)
+        results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
+                         "speedup": round(ref_ms / ext_ms, 3), "runs": n, "threads": torch.get_num_threads(),
+                         "machine": desc, **info.get(name, {})}
+        print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
+        tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+        tmp.replace(args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
