@@ -184,6 +184,7 @@ def fix_foot_contact(
     hard_rows = hard.repeat_interleave(3, dim=1).to(torch.float64)[..., None]  # (A, 3F, 1)
     soft_rows = soft.repeat_interleave(3, dim=1).to(torch.float64)[..., None]
     # Root translation moves every foot one-for-one: an identity block per foot.
+    rot_cols = torch.cat((torch.ones(3 * S), torch.zeros(P - 3 * S))).to(torch.float64)[None, None, :]
     jac_root = root_scale * torch.eye(3, dtype=torch.float64).repeat(F, 1).expand(A, 3 * F, 3)
 
     def dls(jac: Tensor, rhs: Tensor, damping: float) -> tuple[Tensor, Tensor]:
@@ -214,7 +215,7 @@ def fix_foot_contact(
         j1 = hard_rows * jac
         dx, pinv1 = dls(j1, hard_rows * e, lam)
         null1 = eye_p - pinv1 @ j1
-        j2 = (soft_rows * jac) @ null1
+        j2 = (soft_rows * jac) @ (null1 * rot_cols)  # blend targets never move the root
         dx2, _unused = dls(j2, soft_rows * (e - jac @ dx), lam_soft)
         dx = dx + dx2
         step = 0.0
