@@ -192,57 +192,88 @@ def fix_foot_contact(
         pinv = torch.linalg.solve(jac @ jac.transpose(1, 2) + damping * eye_r, jac).transpose(1, 2)  # J^T M^-1, M = M^T
         return pinv @ rhs, pinv
 
-    sub_rot, sub_root = rot[frames].clone(), root[frames].clone()
     dof_parents = [parents[k] for k in dofs]
-    for _ in range(max_iters):
-        pos, gq = fk(sub_rot, offsets, parents, sub_root, return_rotations=True)
-        err = tgt - pos[:, feet]  # (A, F, 3)
-        dist = err.norm(dim=-1)
-        hard_err = float(dist[hard].max()) if hard.any() else 0.0
-        soft_err = float(dist[soft].max()) if soft.any() else 0.0
-        if _DEBUG: print(_, hard_err, soft_err)
-        if hard_err <= tol and soft_err <= tol:
-            break
-        cols = []
-        if S:
-            d = pos[:, feet, None, :] - pos[:, None, dofs, :]  # (A, F, S, 3)
-            blocks = _skew_neg(d) * member[None, :, :, None, None]
-            cols.append(blocks.permute(0, 1, 3, 2, 4).reshape(A, 3 * F, 3 * S))  # rows (f, xyz), cols (k, xyz)
-        if adjust_root:
-            cols.append(jac_root)
-        jac = torch.cat(cols, dim=2)  # (A, 3F, P)
-        e = err.reshape(A, 3 * F, 1)
-        j1 = hard_rows * jac
-        dx, pinv1 = dls(j1, hard_rows * e, lam)
-        null1 = eye_p - pinv1 @ j1
-        j2 = (soft_rows * jac) @ (null1 * rot_cols)  # blend targets never move the root
-        dx2, _unused = dls(j2, soft_rows * (e - jac @ dx), lam_soft)
-        dx = dx + dx2
-        step = 0.0
-        if S:
-            # Shorten a frame's whole step (keeping its direction, hence the priority) so that no joint turns by
-            # more than 0.25 rad: far-off targets are approached gradually instead of overshot.
-            ang = dx[:, : 3 * S, 0].reshape(A, S, 3).norm(dim=-1).amax(dim=1)
-            dx = dx * torch.clamp(0.25 / ang.clamp_min(1e-30), max=1.0)[:, None, None]
-            dw = dx[:, : 3 * S, 0].reshape(A, S, 3)
-            step = float(ang.max()) * scale
-            # A world-frame rotation dw about joint k is the local pre-rotation R_parent^T dw.
-            local_dw = quat_apply(quat_conjugate(gq[:, dof_parents]), dw)
-            sub_rot[:, dofs] = quat_normalize(quat_mul(axis_angle_to_quat(local_dw), sub_rot[:, dofs]))
-        if adjust_root:
-            droot = root_scale * dx[:, 3 * S :, 0]
-            sub_root = sub_root + droot
-            step = max(step, float(droot.abs().max()))
-        if hard_err <= tol and step <= 1e-2 * tol:  # soft targets in conflict have settled
-            break
+
+    def solve(sub_rot: Tensor, sub_root: Tensor) -> tuple[Tensor, Tensor]:
+        sub_rot, sub_root = sub_rot.clone(), sub_root.clone()
+        for _ in range(max_iters):
+            pos, gq = fk(sub_rot, offsets, parents, sub_root, return_rotations=True)
+            err = tgt - pos[:, feet]  # (A, F, 3)
+            dist = err.norm(dim=-1)
+            hard_err = float(dist[hard].max()) if hard.any() else 0.0
+            soft_err = float(dist[soft].max()) if soft.any() else 0.0
+            if _DEBUG: print(_, hard_err, soft_err)
+            if hard_err <= tol and soft_err <= tol:
+                break
+            cols = []
+            if S:
+                d = pos[:, feet, None, :] - pos[:, None, dofs, :]  # (A, F, S, 3)
+                blocks = _skew_neg(d) * member[None, :, :, None, None]
+                cols.append(blocks.permute(0, 1, 3, 2, 4).reshape(A, 3 * F, 3 * S))  # rows (f, xyz), cols (k, xyz)
+            if adjust_root:
+                cols.append(jac_root)
+            jac = torch.cat(cols, dim=2)  # (A, 3F, P)
+            e = err.reshape(A, 3 * F, 1)
+            j1 = hard_rows * jac
+            dx, pinv1 = dls(j1, hard_rows * e, lam)
+            # Blend targets never move the root: their task acts on the rotations only, in the null space of the
+            # pinned feet's Jacobian restricted to the rotations.
+            j1r = j1 * rot_cols
+            _unused, pinv1r = dls(j1r, hard_rows * e, lam)
+            j2 = (soft_rows * jac * rot_cols) @ (eye_p - pinv1r @ j1r)
+            dx2, _unused = dls(j2, soft_rows * (e - jac @ dx), lam_soft)
+            dx = dx + dx2
+            step = 0.0
+            if S:
+                # Shorten a frame's whole step (keeping its direction, hence the priority) so that no joint turns by
+                # more than 0.25 rad: far-off targets are approached gradually instead of overshot.
+                ang = dx[:, : 3 * S, 0].reshape(A, S, 3).norm(dim=-1).amax(dim=1)
+                dx = dx * torch.clamp(0.25 / ang.clamp_min(1e-30), max=1.0)[:, None, None]
+                dw = dx[:, : 3 * S, 0].reshape(A, S, 3)
+                step = float(ang.max()) * scale
+                # A world-frame rotation dw about joint k is the local pre-rotation R_parent^T dw.
+                local_dw = quat_apply(quat_conjugate(gq[:, dof_parents]), dw)
+                sub_rot[:, dofs] = quat_normalize(quat_mul(axis_angle_to_quat(local_dw), sub_rot[:, dofs]))
+            if adjust_root:
+                droot = root_scale * dx[:, 3 * S :, 0]
+                sub_root = sub_root + droot
+                step = max(step, float(droot.abs().max()))
+            if hard_err <= tol and step <= 1e-2 * tol:  # soft targets in conflict have settled
+                break
+        return sub_rot, sub_root
+
+    sub_rot, sub_root = solve(rot[frames], root[frames])
+    new_root = root.clone()
+    if adjust_root:
+        # Where the root had to move (pinned feet out of reach), spread the shift smoothly over neighbouring
+        # frames and solve again from there, so the body does not jerk in and out of the correction.
+        shift = torch.zeros_like(root)
+        shift[frames] = sub_root - root[frames]
+        if float(shift.abs().max()) > tol:
+            new_root = root + _smooth(shift, max(2 * blend_frames, 4))
+            sub_rot, sub_root = solve(sub_rot, new_root[frames])
+    new_root[frames] = sub_root
 
     rot_out = motion_rotations.detach().clone()
     root_out = root_positions.detach().clone()
     if S:  # write back only the leg-chain joints: every other rotation stays bit-identical
         rows, cols = frames[:, None].to(out_device), torch.tensor(dofs, device=out_device)[None, :]
         rot_out[rows, cols] = sub_rot[:, dofs].to(out_device, out_dtype)
-    root_out[frames.to(out_device)] = sub_root.to(out_device, out_dtype)
+    root_out = new_root.to(out_device, out_dtype)
     return rot_out, root_out
+
+
+def _smooth(x: Tensor, radius: int) -> Tensor:
+    """Smooth envelope of (T, C) over time: per channel, the largest-magnitude value within ``radius`` frames
+    (so a short spike keeps its full size), then a Hann-window average of that (zero outside the clip)."""
+    T = x.shape[0]
+    idx = (torch.arange(T)[:, None] + torch.arange(-radius, radius + 1)[None, :]).clamp(0, T - 1)  # (T, W)
+    windows = x[idx]  # (T, W, C)
+    pick = windows.abs().argmax(dim=1, keepdim=True)
+    env = windows.gather(1, pick)[:, 0]  # (T, C)
+    win = torch.hann_window(2 * radius + 3, periodic=False, dtype=x.dtype)[1:-1]
+    win = win / win.sum()
+    return torch.nn.functional.conv1d(env.T[:, None, :], win[None, None, :], padding=radius)[:, 0, :].T
 
 
 def _shape(x: object) -> object:

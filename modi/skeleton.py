@@ -222,8 +222,7 @@ class Skeleton:
             toes = [j for j, n in enumerate(self.names) if _side(n) == side and _TOE.search(n) and not _END.search(n)]
             heels = [j for j, n in enumerate(self.names) if _side(n) == side and _HEEL.search(n)]
             toe_ends = [j for j, n in enumerate(self.names) if _side(n) == side and _TOE.search(n) and _END.search(n)]
-            # Ankles named "Foot" may also contain "toe"-free names only; drop ankles that are also toes.
-            ankles = [j for j in ankles if j not in toes]
+            ankles = [j for j in ankles if j not in toes]  # "LeftFootToe" is a toe, not an ankle
             ankle = ankles[0] if ankles else (heels[0] if heels else None)
             toe = toes[0] if toes else (toe_ends[0] if toe_ends else None)
             picks = [x for x in ((ankle, toe) if per_side >= 2 else (toe if toe is not None else ankle,)) if x is not None]
@@ -284,8 +283,8 @@ class Skeleton:
     def height(self) -> float:
         """A characteristic body size in skeleton units, for scale-free thresholds and tolerances.
 
-        For a named biped (see ``detect_feet``): the bone length from a foot's tip (deepest descendant, End Site included) to the head's
-        tip through their lowest common ancestor -- independent of the rest pose, which is meaningless for rigs
+        For a named biped (see ``detect_feet``): the bone length from a foot's tip (deepest descendant, End Site
+        included) to the head's tip through their lowest common ancestor -- independent of the rest pose, which is meaningless for rigs
         such as Bandai's. Otherwise the vertical extent of the rest pose (or its largest extent, or 1.0).
         """
         named = self._named_feet(1)
@@ -297,18 +296,17 @@ class Skeleton:
             head = heads[0]
             for picks in named.values():
                 foot = picks[0]
-                for a, b in ((foot, head),):
-                    anc_a = [a] + self.ancestors(a)
-                    anc_b = set([b] + self.ancestors(b))
-                    lca = next((x for x in anc_a if x in anc_b), 0)
-                    total = 0.0
-                    for tip in (a, b):
-                        total += self._tip_length(tip, lengths)
-                        x = tip
-                        while x != lca:
-                            total += lengths[x]
-                            x = self.parents[x]
-                    best = max(best, total)
+                foot_chain = [foot] + self.ancestors(foot)
+                head_chain = set([head] + self.ancestors(head))
+                lca = next((x for x in foot_chain if x in head_chain), 0)
+                total = 0.0
+                for tip in (foot, head):
+                    total += self._tip_length(tip, lengths)
+                    x = tip
+                    while x != lca:
+                        total += lengths[x]
+                        x = self.parents[x]
+                best = max(best, total)
         if best > 0:
             return float(best)
         pts = [self.rest_positions()] + [

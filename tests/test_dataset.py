@@ -63,6 +63,17 @@ def test_windows_split_and_layout(proc_dir, tmp_path):
     assert torch.isfinite(y).all()
     assert torch.equal(y[:, :, J + 1:], x[:, :, J + 1:])
     assert ds.hierarchy().levels[0].n_entities == E
+    # a window decodes to the clip's own joint positions over its frames, moved to start at x = z = 0
+    from modi import bvh
+    from modi.dataset import motion_from_bvh
+
+    k = int(torch.nonzero(ds.clip_index_train == ds.clip_index_train[-1])[0, 0]) + 1
+    clip, start = ds.clips[int(ds.clip_index_train[k])], int(ds.window_start_train[k])
+    motion = motion_from_bvh(bvh.load(proc_dir / clip.path)).resample(cfg.fps)
+    ref = motion.positions()[start:start + 32]
+    ref = ref - ref[:1, :1] * torch.tensor([1.0, 0.0, 1.0], dtype=ref.dtype)
+    got = ds.representation.positions(ds.train[k].double())
+    assert float((got - ref).abs().max()) < 1e-3 * ds.skeleton.height()
 
 
 def test_cache_hit_and_invalidation(proc_dir, tmp_path, monkeypatch):

@@ -145,3 +145,32 @@ def test_bad_input_is_rejected_clearly():
         rotation_features(torch.zeros(5, 3, 5))
     with pytest.raises(ValueError, match="representation"):
         rotation_features(torch.zeros(5, 3, 3, 3), "euler")
+
+
+def test_cli_single_writes_means_and_per_file_values(tmp_path, capsys):
+    import json
+
+    from modi.cli import main
+    from modi.procedural import generate_clip
+
+    src = generate_clip("wave", 120, 30.0, np.random.default_rng(0))
+    src.save(tmp_path / "src.bvh")
+    src.save(tmp_path / "copy.bvh")
+    rev = type(src)(src.skeleton, torch.flip(src.rotations, [0]), torch.flip(src.root_positions, [0]), src.fps)
+    rev.save(tmp_path / "rev.bvh")
+    out = tmp_path / "single.json"
+    rc = main(["eval", "single", "--source", str(tmp_path / "src.bvh"), str(tmp_path / "copy.bvh"),
+               str(tmp_path / "rev.bvh"), "--json", str(out)])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    assert set(res) >= {"coverage", "global_diversity", "local_diversity", "per_file"}
+    copy, reverse = res["per_file"]
+    assert copy["coverage"] == 1.0 and copy["global_diversity"] == pytest.approx(0.0, abs=1e-3)
+    assert reverse["global_diversity"] > copy["global_diversity"]
+    assert res["coverage"] == pytest.approx((copy["coverage"] + reverse["coverage"]) / 2)
+    assert "coverage" in capsys.readouterr().out
+    # a generated file shorter than the window is one clear error, not a traceback
+    short = type(src)(src.skeleton, src.rotations[:20], src.root_positions[:20], src.fps)
+    short.save(tmp_path / "short.bvh")
+    assert main(["eval", "single", "--source", str(tmp_path / "src.bvh"), str(tmp_path / "short.bvh")]) == 2
+    assert "fewer than the 30-frame window" in capsys.readouterr().err

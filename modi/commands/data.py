@@ -19,11 +19,11 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-fraction", type=float, default=d.test_fraction, help="fraction of FILES held out")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the train/test file split")
     p.add_argument("--drop", nargs="+", metavar="REGEX", default=None,
-                   help="drop joints whose names match any of these regexes (default: fingers and face joints)")
+                   help="drop joints whose names match any of these regexes; none given = fingers and face joints")
     p.add_argument("--keep", nargs="+", metavar="JOINT", default=None, help="joints never dropped")
     p.add_argument("--keep-all-joints", action="store_true", help="no joint reduction at all")
     p.add_argument("--feet", nargs="+", metavar="JOINT", default=None,
-                   help="contact joints (default: detected by name, else lowest leaves of the rest pose)")
+                   help="contact joints; none given = toe per side by name, else the lowest leaves of the rest pose")
     p.add_argument("--root", choices=["velocity", "position"], default=d.root, help="root-motion entity encoding")
     p.add_argument("--rotation", choices=["quat", "6d"], default=d.rotation, help="rotation features (K=4 or 6)")
     p.add_argument("--no-cache", action="store_true", help="rebuild instead of reading/writing the cache")

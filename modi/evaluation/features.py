@@ -436,10 +436,14 @@ class LabelledClip:
 
 
 def _find_label_names(root: Path, key: str) -> list[str] | None:
+    """Names from ``cfg/{key}_label.txt``, minus a prefix they all share (Bandai: ``dataset-1_walk`` -> ``walk``)."""
     for d in [root, *root.parents][:3]:
         f = d / "cfg" / f"{key}_label.txt"
         if f.is_file():
-            return [ln.strip() for ln in f.read_text().splitlines() if ln.strip()]
+            names = [ln.strip() for ln in f.read_text().splitlines() if ln.strip()]
+            prefix = os.path.commonprefix(names) if len(names) > 1 else ""
+            cut = max(prefix.rfind("_"), prefix.rfind("-")) + 1
+            return [n[cut:] for n in names] if cut and all(len(n) > cut for n in names) else names
     return None
 
 

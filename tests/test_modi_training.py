@@ -1,0 +1,278 @@
+"""MoDi training, checkpoints, resume, DDP, NaN handling, sampling and the train/generate CLI (tiny models)."""
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from modi.cli import main
+from modi.errors import CheckpointError, UserError
+from modi.modi_model.config import MoDiConfig, make_config
+from modi.modi_model.sampling import load_checkpoint, sample_motions, sample_positions
+from modi.modi_model.training import NonFiniteLossError, Trainer, prepare_data, write_procedural_data
+
+TINY = {"model.channels": (8, 8, 8, 6, 6), "model.latent_dim": 16, "model.n_mlp": 2, "data.n_frames": 16,
+        "data.stride": 8, "train.batch": 4, "train.sample_every": 0, "train.ckpt_every": 0, "train.log_every": 1,
+        "train.d_reg_every": 2, "train.g_reg_every": 2, "train.snapshot_every": 0}
+
+
+def tiny_cfg(*ablations: str, **kw) -> MoDiConfig:
+    return make_config("small", list(ablations), **{**TINY, **kw})
+
+
+@pytest.fixture(scope="module")
+def proc_dir(tmp_path_factory) -> Path:
+    return write_procedural_data(tmp_path_factory.mktemp("proc") / "data", n_clips=6, frames=40, seed=1)
+
+
+@pytest.fixture(scope="module")
+def proc_data(proc_dir):
+    return prepare_data(proc_dir, tiny_cfg(), cache=False)
+
+
+def make_trainer(data, run_dir, cfg=None, **kw) -> Trainer:
+    kw = {"progress": False, "tensorboard": False, "write_samples": False, **kw}
+    return Trainer(cfg or tiny_cfg(), data, run_dir, **kw)
+
+
+def full_state(tr: Trainer) -> dict[str, torch.Tensor]:
+    out = {}
+    for name, module in (("G", tr.G), ("D", tr.D), ("G_ema", tr.G_ema)):
+        out.update({f"{name}.{k}": v.detach().clone() for k, v in module.state_dict().items()})
+    for name, opt in (("g_opt", tr.g_optim), ("d_opt", tr.d_optim)):
+        for pid, st in opt.state_dict()["state"].items():
+            out.update({f"{name}.{pid}.{k}": torch.as_tensor(v).clone() for k, v in st.items()})
+    out["mean_path_length"] = tr.mean_path_length.clone()
+    return out
+
+
+# --------------------------------------------------------------------------------------------- learning signal
+def _d_only_losses(tr: Trainer, steps: int) -> list[float]:
+    tr.step = 1  # odd step with d_reg_every=2: plain D steps only
+    losses = []
+    for _ in range(steps):
+        losses.append(tr.d_step()["d"])
+        tr.step += 2
+    return losses
+
+
+def test_discriminator_learns_on_procedural_data(proc_data, tmp_path):
+    torch.manual_seed(0)
+    tr = make_trainer(proc_data, tmp_path)
+    losses = _d_only_losses(tr, 12)
+    assert np.mean(losses[-3:]) < np.mean(losses[:3]) - 0.05, losses
+
+
+def test_discriminator_learns_on_real_data(shared_data, tmp_path):
+    src = shared_data / "bvh" / "bandai-namco-1"
+    files = sorted(src.rglob("*.bvh"))[:3]
+    if len(files) < 3:
+        pytest.skip(f"fewer than 3 BVH files under {src}")
+    sub = tmp_path / "bandai"
+    sub.mkdir()
+    for f in files:
+        (sub / f.name).symlink_to(f)
+    data = prepare_data(sub, tiny_cfg(), cache=False)
+    assert data.skeleton.n_joints >= 20 and data.windows.shape[1:] == (4, data.codec.n_entities, 16)
+    torch.manual_seed(0)
+    tr = make_trainer(data, tmp_path / "run")
+    losses = _d_only_losses(tr, 12)
+    assert np.mean(losses[-3:]) < np.mean(losses[:3]) - 0.05, losses
+
+
+# --------------------------------------------------------------------------------------------- checkpoints
+def test_checkpoint_roundtrip_gives_identical_samples(proc_data, tmp_path):
+    tr = make_trainer(proc_data, tmp_path)
+    tr.train(2)
+    ckpt = tmp_path / "checkpoint.pt"
+    assert ckpt.is_file() and not list(tmp_path.glob(".*.tmp"))
+    st = load_checkpoint(ckpt)
+    assert st["step"] == 2 and st["skeleton"]["names"] == proc_data.skeleton.names
+    a = sample_motions(ckpt, 5, seed=3, psi=0.7, batch=2)
+    b = sample_motions(tr.state_dict(), 5, seed=3, psi=0.7, batch=5)
+    assert len(a) == 5
+    for ma, mb in zip(a, b):
+        assert torch.allclose(ma.rotations, mb.rotations, atol=1e-6)
+        assert torch.allclose(ma.root_positions, mb.root_positions, atol=1e-5)
+    first = sample_motions(ckpt, 2, seed=3, psi=0.7)
+    assert torch.allclose(first[1].rotations, a[1].rotations, atol=1e-6)  # motion i does not depend on n
+    other = sample_motions(ckpt, 2, seed=4, psi=0.7)
+    assert not torch.allclose(other[0].rotations, a[0].rotations)
+    assert a[0].n_frames == 16 and a[0].skeleton.names == proc_data.skeleton.names
+
+
+def test_resume_after_interrupt_equals_uninterrupted(proc_data, tmp_path, monkeypatch):
+    n = 5
+    torch.manual_seed(123)  # the trainer reseeds itself; this must not matter
+    straight = make_trainer(proc_data, tmp_path / "a")
+    straight.train(n)
+    expect = full_state(straight)
+
+    interrupted = make_trainer(proc_data, tmp_path / "b")
+    original = Trainer.train_step
+
+    def step_then_ctrl_c(self):
+        out = original(self)
+        if self.step == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does: handled, saved at the iteration boundary
+        return out
+
+    monkeypatch.setattr(Trainer, "train_step", step_then_ctrl_c)
+    res = interrupted.train(n)
+    monkeypatch.setattr(Trainer, "train_step", original)
+    assert res.interrupted and res.step == 2 and load_checkpoint(tmp_path / "b" / "checkpoint.pt")["step"] == 2
+    del interrupted
+    torch.manual_seed(999)
+    resumed = make_trainer(proc_data, tmp_path / "b", resume=tmp_path / "b" / "checkpoint.pt")
+    assert resumed.step == 2
+    resumed.train(n)
+    got = full_state(resumed)
+    assert got.keys() == expect.keys()
+    bad = [k for k in expect if not torch.equal(expect[k], got[k])]
+    assert not bad, f"differs after resume: {bad[:5]}"
+
+
+def test_nan_loss_stops_without_poisoned_checkpoint(proc_data, tmp_path):
+    tr = make_trainer(proc_data, tmp_path, cfg=tiny_cfg(**{"train.ckpt_every": 1}))
+    tr.train(1)
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 1
+    with torch.no_grad():
+        tr.D.final_linear[1].bias.fill_(float("nan"))
+    with pytest.raises(NonFiniteLossError, match="at step 1"):
+        tr.train(3)
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["step"] == 1
+    assert torch.isfinite(load_checkpoint(tmp_path / "checkpoint.pt")["D"]["final_linear.1.bias"]).all()
+
+
+def test_bad_checkpoints_raise_checkpoint_error(proc_data, tmp_path):
+    with pytest.raises(CheckpointError, match="no such"):
+        load_checkpoint(tmp_path / "missing.pt")
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(os.urandom(300))
+    with pytest.raises(CheckpointError, match="not a readable"):
+        load_checkpoint(junk)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(CheckpointError, match="not a MoDi checkpoint"):
+        sample_motions(foreign, 1)
+    tr = make_trainer(proc_data, tmp_path / "run")
+    good = tr.save_checkpoint()
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(CheckpointError):
+        load_checkpoint(cut)
+    assert issubclass(CheckpointError, UserError)
+
+
+# --------------------------------------------------------------------------------------------- DDP
+def _ddp_worker(rank: int, world: int, init_file: str, data, cfg_dict: dict, out_dir: str) -> None:
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        tr = Trainer(MoDiConfig.from_dict(cfg_dict), data, out_dir, progress=False, tensorboard=False,
+                     write_samples=False)
+        assert tr.distributed and tr.local_batch == 2
+        init = torch.cat([p.detach().flatten().clone() for p in tr.G.parameters()])
+        tr.train(3)
+        state = {k: v.detach().clone() for k, v in full_state(tr).items()}
+        torch.save({"state": state, "init": init}, Path(out_dir) / f"rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_ddp_two_cpu_processes_keep_replicas_identical(proc_data, tmp_path):
+    import torch.multiprocessing as mp
+
+    cfg = tiny_cfg()
+    mp.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), proc_data, cfg.to_dict(), str(tmp_path)), nprocs=2,
+             join=True)
+    r0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    r1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    bad = [k for k in r0["state"] if not torch.equal(r0["state"][k], r1["state"][k])]
+    assert not bad, f"replicas differ: {bad[:5]}"
+    g_now = torch.cat([v.flatten() for k, v in r0["state"].items() if k.startswith("G.") and "noise_const" not in k
+                       and "w_avg" not in k])
+    assert not torch.equal(g_now[: r0["init"].numel()], r0["init"])  # it trained
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["world_size"] == 2
+
+
+# --------------------------------------------------------------------------------------------- ablations
+@pytest.mark.parametrize("ablation", ["pool", "pseudo-image", "positions", "root-position"])
+def test_ablations_train(proc_dir, tmp_path, ablation):
+    cfg = tiny_cfg(ablation)
+    data = prepare_data(proc_dir, cfg, cache=False)
+    tr = make_trainer(data, tmp_path, cfg=cfg)
+    tr.train(2)
+    assert all(np.isfinite(v) for v in tr.last_losses.values())
+    ckpt = tr.save_checkpoint()
+    pos = sample_positions(ckpt, 2)
+    assert pos[0].shape == (16, data.skeleton.n_joints, 3)
+    if ablation == "positions":
+        with pytest.raises(UserError, match="positions"):
+            sample_motions(ckpt, 1)
+    else:
+        assert sample_motions(ckpt, 1)[0].n_frames == 16
+
+
+# --------------------------------------------------------------------------------------------- IK cleanup
+def test_ik_cleanup_pins_feet_within_1mm():
+    from modi.modi_model.sampling import cleanup_feet
+    from modi.procedural import generate_clip
+    from modi.representation import modi_representation
+
+    m = generate_clip("walk", 60, rng=3)
+    rep = modi_representation(m.skeleton)
+    rot = m.rotations.clone()
+    t = torch.arange(60, dtype=torch.float32)
+    wobble = torch.stack([torch.cos(0.02 * torch.sin(t / 3)), torch.sin(0.02 * torch.sin(t / 3)),
+                          torch.zeros(60), torch.zeros(60)], -1)
+    for j in (m.skeleton.index("LeftUpLeg"), m.skeleton.index("RightLeg")):  # make the planted feet slide
+        from modi.rotations import quat_mul
+
+        rot[:, j] = quat_mul(rot[:, j], wobble)
+    from modi.motion import Motion
+
+    sliding = Motion(m.skeleton, rot, m.root_positions, m.fps)
+    contacts = rep.contacts_of(m).numpy().astype(bool)
+    assert contacts.any()
+    fixed = cleanup_feet(sliding, contacts, rep.feet)
+    pos = fixed.positions().detach().numpy()
+    for f, foot in enumerate(rep.feet):
+        on = np.flatnonzero(contacts[:, f])
+        runs = np.split(on, np.flatnonzero(np.diff(on) > 1) + 1)
+        for run in runs:
+            p = pos[run, foot]
+            assert np.abs(p - p.mean(0)).max() < 0.1, "foot moved more than 1 mm (0.1 cm) while pinned"
+
+
+# --------------------------------------------------------------------------------------------- CLI
+def test_cli_train_resume_generate(proc_dir, tmp_path, capsys):
+    run = tmp_path / "run"
+    common = ["--preset", "small", "--frames", "16", "--batch", "2", "--no-tensorboard", "--no-cache",
+              "--sample-every", "0"]
+    assert main(["train", str(proc_dir), "--out", str(run), "--iters", "1", *common]) == 0
+    assert (run / "checkpoint.pt").is_file() and (run / "config.json").is_file() and (run / "log.jsonl").is_file()
+    assert main(["train", str(proc_dir), "--out", str(run), "--iters", "1", *common]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main(["train", str(proc_dir), "--out", str(run), "--resume", "--iters", "2", "--no-cache"]) == 0
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 2
+    out = tmp_path / "gen"
+    assert main(["generate", str(run / "checkpoint.pt"), "--n", "3", "--out", str(out), "--batch", "2",
+                 "--psi", "0.8", "--ik"]) == 0
+    assert sorted(p.name for p in out.glob("*.bvh")) == ["motion_0000.bvh", "motion_0001.bvh", "motion_0002.bvh"]
+    assert (out / "samples.gif").is_file() and np.load(out / "motion_0002_contacts.npy").shape == (16, 2)
+    from modi import bvh as bvh_io
+
+    b = bvh_io.load(out / "motion_0000.bvh")
+    assert b.n_frames == 16 and b.names == load_checkpoint(run / "checkpoint.pt")["skeleton"]["names"]
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not a checkpoint")
+    assert main(["generate", str(junk), "--n", "1", "--out", str(out)]) == 2
+    assert "modi: error:" in capsys.readouterr().err
+    assert main(["train", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r2")]) == 2
