@@ -1,18 +1,20 @@
 """Foot-contact cleanup by inverse kinematics (MoDi and GANimator post-processing).
 
 Generated motion predicts contact labels but its feet still slide. While a foot's label is on, the foot is
-pinned at the mean of its positions over that contact run; for ``blend_frames`` frames on either side its target
-eases from the original path to the pin, so the fix does not pop. The targets are then met by damped
-least-squares IK on the leg chains (the joints from each foot up to where the leg branches off the body),
-solved per frame for all feet together with the geometric Jacobian and iterated to convergence, so a pinned
-foot ends within ``tol`` (default ``1e-5 x skeleton height``: ~0.02 mm on a 1.7 m human) of its pin.
-A stiff root-translation degree of freedom lets the body shift slightly when a pinned leg would have to
-over-stretch; joints off the leg chains keep their rotations exactly, and frames with no active target are
-untouched. Works for any skeleton (bipeds, quadrupeds, hexapods) and any unit.
+pinned at the mean of its positions over that contact run (a toe and its ankle pinned together are made
+consistent with their bone length); for ``blend_frames`` frames on either side its target eases from the
+original path to the pin, so the fix does not pop. The targets are met by prioritised damped least-squares IK
+on the leg chains (the joints from each foot up to where the leg branches off the body), per frame for all feet
+together with the geometric Jacobian, iterated to convergence: pinned feet are the primary task and end within
+``tol`` (default ``1e-5 x skeleton height``, ~0.02 mm on a 1.7 m human) of their pins; blend targets are met in
+the remaining freedom. A stiff root translation lets the body dip where pinned legs cannot reach; that shift
+is then smoothed over time and the legs re-solved, so the root does not jerk. Joints off the leg chains keep
+their rotations bit for bit, and frames with no active target keep theirs. Any skeleton and unit.
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -23,7 +25,6 @@ from modi.skeleton import Skeleton
 from modi_ext.fk import fk
 
 __all__ = ["fix_foot_contact", "leg_chain", "contact_targets"]
-_DEBUG = False
 
 
 def leg_chain(parents: Sequence[int], foot: int) -> list[int]:
@@ -105,6 +106,18 @@ def _skew_neg(d: Tensor) -> Tensor:
     return torch.stack((torch.stack((o, z, -y), -1), torch.stack((-z, o, x), -1), torch.stack((y, -x, o), -1)), -2)
 
 
+@contextmanager
+def _one_thread():
+    """The solver is thousands of tiny batched ops; intra-op threads only add overhead (and stall badly on a busy
+    machine), so it runs single-threaded and restores the caller's setting afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def fix_foot_contact(
     motion_rotations: Tensor,
     root_positions: Tensor,
@@ -147,10 +160,16 @@ def fix_foot_contact(
         c = c.astype(bool)
     if blend_frames < 0:
         raise ValueError(f"fix_foot_contact: blend_frames must be >= 0, got {blend_frames}")
-    out_dtype, out_device = motion_rotations.dtype, motion_rotations.device
     if not feet or not c.any():
-        return motion_rotations.clone(), root_positions.clone()
+        return motion_rotations.detach().clone(), root_positions.detach().clone()
+    with _one_thread():
+        rot, root = _fix(motion_rotations, root_positions, skeleton, feet, c, blend_frames, tol, max_iters, adjust_root)
+    return rot.to(motion_rotations.device, motion_rotations.dtype), root.to(root_positions.device, root_positions.dtype)
 
+
+def _fix(motion_rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, feet: list[int], c: np.ndarray,
+         blend_frames: int, tol: float | None, max_iters: int, adjust_root: bool) -> tuple[Tensor, Tensor]:
+    """The solver behind :func:`fix_foot_contact` (arguments already checked); float64 on the CPU inside."""
     parents = list(skeleton.parents)
     tol = 1e-5 * skeleton.height() if tol is None else float(tol)
     scale = max(skeleton.height(), 1e-12)
@@ -171,7 +190,7 @@ def fix_foot_contact(
     chains = [leg_chain(parents, f) for f in feet]
     dofs = sorted({k for ch in chains for k in ch})
     F, S, A = len(feet), len(dofs), frames.numel()
-    P = 3 * S + (3 if adjust_root else 0)
+    P = 3 * S + 3
     member = torch.tensor([[k in ch for k in dofs] for ch in chains], dtype=torch.float64).reshape(F, S)
     # Prioritised damped least squares in scaled coordinates: rotations in radians (their Jacobian columns scale
     # with limb length), the root translation scaled by 1e-2 so it is stiff and only takes a visible share where
@@ -183,8 +202,8 @@ def fix_foot_contact(
     eye_r, eye_p = torch.eye(3 * F, dtype=torch.float64), torch.eye(P, dtype=torch.float64)
     hard_rows = hard.repeat_interleave(3, dim=1).to(torch.float64)[..., None]  # (A, 3F, 1)
     soft_rows = soft.repeat_interleave(3, dim=1).to(torch.float64)[..., None]
-    # Root translation moves every foot one-for-one: an identity block per foot.
     rot_cols = torch.cat((torch.ones(3 * S), torch.zeros(P - 3 * S))).to(torch.float64)[None, None, :]
+    # Root translation moves every foot one-for-one: an identity block per foot.
     jac_root = root_scale * torch.eye(3, dtype=torch.float64).repeat(F, 1).expand(A, 3 * F, 3)
 
     def dls(jac: Tensor, rhs: Tensor, damping: float) -> tuple[Tensor, Tensor]:
@@ -194,7 +213,9 @@ def fix_foot_contact(
 
     dof_parents = [parents[k] for k in dofs]
 
-    def solve(sub_rot: Tensor, sub_root: Tensor) -> tuple[Tensor, Tensor]:
+    def solve(sub_rot: Tensor, sub_root: Tensor, move_root: bool) -> tuple[Tensor, Tensor, float]:
+        """Iterate to convergence; returns the new rotations, root and the largest pinned-foot error."""
+        hard_err = 0.0
         sub_rot, sub_root = sub_rot.clone(), sub_root.clone()
         for _ in range(max_iters):
             pos, gq = fk(sub_rot, offsets, parents, sub_root, return_rotations=True)
@@ -202,7 +223,6 @@ def fix_foot_contact(
             dist = err.norm(dim=-1)
             hard_err = float(dist[hard].max()) if hard.any() else 0.0
             soft_err = float(dist[soft].max()) if soft.any() else 0.0
-            if _DEBUG: print(_, hard_err, soft_err)
             if hard_err <= tol and soft_err <= tol:
                 break
             cols = []
@@ -210,12 +230,11 @@ def fix_foot_contact(
                 d = pos[:, feet, None, :] - pos[:, None, dofs, :]  # (A, F, S, 3)
                 blocks = _skew_neg(d) * member[None, :, :, None, None]
                 cols.append(blocks.permute(0, 1, 3, 2, 4).reshape(A, 3 * F, 3 * S))  # rows (f, xyz), cols (k, xyz)
-            if adjust_root:
-                cols.append(jac_root)
+            cols.append(jac_root if move_root else torch.zeros_like(jac_root))
             jac = torch.cat(cols, dim=2)  # (A, 3F, P)
             e = err.reshape(A, 3 * F, 1)
             j1 = hard_rows * jac
-            dx, pinv1 = dls(j1, hard_rows * e, lam)
+            dx, _pinv1 = dls(j1, hard_rows * e, lam)
             # Blend targets never move the root: their task acts on the rotations only, in the null space of the
             # pinned feet's Jacobian restricted to the rotations.
             j1r = j1 * rot_cols
@@ -234,15 +253,15 @@ def fix_foot_contact(
                 # A world-frame rotation dw about joint k is the local pre-rotation R_parent^T dw.
                 local_dw = quat_apply(quat_conjugate(gq[:, dof_parents]), dw)
                 sub_rot[:, dofs] = quat_normalize(quat_mul(axis_angle_to_quat(local_dw), sub_rot[:, dofs]))
-            if adjust_root:
+            if move_root:
                 droot = root_scale * dx[:, 3 * S :, 0]
                 sub_root = sub_root + droot
                 step = max(step, float(droot.abs().max()))
             if hard_err <= tol and step <= 1e-2 * tol:  # soft targets in conflict have settled
                 break
-        return sub_rot, sub_root
+        return sub_rot, sub_root, hard_err
 
-    sub_rot, sub_root = solve(rot[frames], root[frames])
+    sub_rot, sub_root, _err = solve(rot[frames], root[frames], adjust_root)
     new_root = root.clone()
     if adjust_root:
         # Where the root had to move (pinned feet out of reach), spread the shift smoothly over neighbouring
@@ -250,22 +269,25 @@ def fix_foot_contact(
         shift = torch.zeros_like(root)
         shift[frames] = sub_root - root[frames]
         if float(shift.abs().max()) > tol:
+            # The smoothed envelope is at least the shift each frame needed, so the legs can reach with the root
+            # held; only if they still cannot (a locked-straight leg has no first-order way to shorten) may it move.
             new_root = root + _smooth(shift, max(2 * blend_frames, 4))
-            sub_rot, sub_root = solve(sub_rot, new_root[frames])
+            sub_rot, sub_root, err = solve(sub_rot, new_root[frames], False)
+            if err > tol:
+                sub_rot, sub_root, _err = solve(sub_rot, sub_root, True)
     new_root[frames] = sub_root
 
+    out_dtype, out_device = motion_rotations.dtype, motion_rotations.device
     rot_out = motion_rotations.detach().clone()
-    root_out = root_positions.detach().clone()
     if S:  # write back only the leg-chain joints: every other rotation stays bit-identical
         rows, cols = frames[:, None].to(out_device), torch.tensor(dofs, device=out_device)[None, :]
         rot_out[rows, cols] = sub_rot[:, dofs].to(out_device, out_dtype)
-    root_out = new_root.to(out_device, out_dtype)
-    return rot_out, root_out
+    return rot_out, new_root
 
 
 def _smooth(x: Tensor, radius: int) -> Tensor:
     """Smooth envelope of (T, C) over time: per channel, the largest-magnitude value within ``radius`` frames
-    (so a short spike keeps its full size), then a Hann-window average of that (zero outside the clip)."""
+    (so a short spike keeps its full size), then a Hann-window average of that (edges replicated)."""
     T = x.shape[0]
     idx = (torch.arange(T)[:, None] + torch.arange(-radius, radius + 1)[None, :]).clamp(0, T - 1)  # (T, W)
     windows = x[idx]  # (T, W, C)
@@ -273,7 +295,8 @@ def _smooth(x: Tensor, radius: int) -> Tensor:
     env = windows.gather(1, pick)[:, 0]  # (T, C)
     win = torch.hann_window(2 * radius + 3, periodic=False, dtype=x.dtype)[1:-1]
     win = win / win.sum()
-    return torch.nn.functional.conv1d(env.T[:, None, :], win[None, None, :], padding=radius)[:, 0, :].T
+    padded = torch.nn.functional.pad(env.T[:, None, :], (radius, radius), mode="replicate")
+    return torch.nn.functional.conv1d(padded, win[None, None, :])[:, 0, :].T
 
 
 def _shape(x: object) -> object:

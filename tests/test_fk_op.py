@@ -102,6 +102,28 @@ def test_gradcheck_float64(n_joints, seed):
 
 
 @needs_ext
+def test_gradient_through_one_output_only():
+    # Only the rotations (or only the positions) feed the loss: the other output's gradient is absent.
+    parents = random_tree(9, 8)
+    q, off, root = random_inputs(parents, lead=(3,), dtype=torch.float64, seed=8, requires_grad=True)
+    for pick in (0, 1):
+        got = torch.autograd.grad(fk(q, off, parents, root, return_rotations=True)[pick].sin().sum(), (q, off),
+                                  allow_unused=True)
+        want = torch.autograd.grad(fk_reference(q, off, parents, root, True)[pick].sin().sum(), (q, off),
+                                   allow_unused=True, materialize_grads=True)
+        torch.testing.assert_close(got[0], want[0])
+        torch.testing.assert_close(got[1], want[1])
+
+
+@needs_ext
+def test_meta_tensors_give_shapes():
+    q, off, root = (torch.empty(2, 5, 7, 4, device="meta"), torch.empty(7, 3, device="meta"),
+                    torch.empty(2, 5, 3, device="meta"))
+    pos, rot = fk(q, off, random_tree(7, 0), root, return_rotations=True)
+    assert pos.shape == (2, 5, 7, 3) and rot.shape == (2, 5, 7, 4) and pos.device.type == "meta"
+
+
+@needs_ext
 def test_gradients_match_reference_fp32():
     parents = BANDAI_PARENTS
     q, off, root = random_inputs(parents, lead=(8, 16), seed=3, requires_grad=True)

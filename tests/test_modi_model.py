@@ -20,6 +20,16 @@ from modi.topology import build_hierarchy
 K = 4
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One intra-op thread: these tiny models are dominated by parallel-region overhead, which explodes when
+    the CPU is shared (OpenMP workers spin); one thread is both faster and stable here."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def tiny(levels: int, **kw) -> ModelConfig:
     """A tiny model with one channel width per hierarchy level (so every level is used)."""
     base = dict(latent_dim=16, n_mlp=2, channels=tuple([6] * levels))

@@ -228,8 +228,7 @@ def _requires_grad(model: nn.Module, flag: bool) -> None:
 @torch.no_grad()
 def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
     """EMA of parameters; buffers (w_avg, constant noise) are copied."""
-    for pe, pm in zip(ema.parameters(), model.parameters()):
-        pe.lerp_(pm.detach(), 1.0 - decay)
+    torch._foreach_lerp_(list(ema.parameters()), [p.detach() for p in model.parameters()], 1.0 - decay)
     for be, bm in zip(ema.buffers(), model.buffers()):
         be.copy_(bm)
 
@@ -428,7 +427,8 @@ class Trainer:
         self.d_optim.zero_grad(set_to_none=True)
         d_loss.backward()
         self.d_optim.step()
-        out = {"d": float(d_loss), "real_score": float(real_pred.mean()), "fake_score": float(fake_pred.mean())}
+        out = {"d": float(d_loss.detach()), "real_score": float(real_pred.detach().mean()),
+               "fake_score": float(fake_pred.detach().mean())}
         if self.step % tc.d_reg_every == 0 and tc.r1_gamma > 0:
             real_r = real.detach().requires_grad_(True)
             pred = self.d_train(real_r)
@@ -437,7 +437,7 @@ class Trainer:
             self.d_optim.zero_grad(set_to_none=True)
             (tc.r1_gamma / 2 * r1 * tc.d_reg_every + 0 * pred[0, 0]).backward()
             self.d_optim.step()
-            out["r1"] = float(r1)
+            out["r1"] = float(r1.detach())
         return out
 
     def g_step(self) -> dict[str, float]:
@@ -460,7 +460,7 @@ class Trainer:
         self.g_optim.zero_grad(set_to_none=True)
         total.backward()
         self.g_optim.step()
-        out = {k: float(v) for k, v in losses.items()}
+        out = {k: float(v.detach()) for k, v in losses.items()}
 
         if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:
             n = max(1, self.local_batch // tc.path_batch_shrink)
@@ -471,7 +471,7 @@ class Trainer:
             (tc.path_weight * tc.g_reg_every * path + 0 * fake_p[0, 0, 0, 0]).backward()
             self.g_optim.step()
             self.mean_path_length = self._all_mean(mean_path.detach())
-            out.update(path=float(path), path_length=float(lengths.mean()))
+            out.update(path=float(path.detach()), path_length=float(lengths.mean()))
 
         with torch.no_grad():  # mean of W (truncation target), averaged over processes so replicas agree
             w_mean = self._all_mean(self.G.mapping(zs[0]).mean(0))
@@ -630,9 +630,9 @@ class Trainer:
             "rng": rngs,
             "world_size": self.world,
             "data_source": self.data.source,
-            "data_summary": self.data.summary,
+            "data_summary": _plain(self.data.summary),
             "last_losses": dict(self.last_losses),
-            "torch_version": torch.__version__,
+            "torch_version": str(torch.__version__),
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -693,6 +693,19 @@ class _PairD(nn.Module):
         if y is None:
             return self.d(x)
         return self.d(x), self.d(y)
+
+
+def _plain(obj: Any) -> Any:
+    """Plain Python containers/scalars only (numpy scalars -> Python), so checkpoints load with weights_only."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, (str, int, float, bool)) or obj is None or isinstance(obj, Tensor):
+        return obj
+    if hasattr(obj, "item"):
+        return obj.item()
+    return str(obj)
 
 
 def _skeleton_from(st: dict[str, Any]) -> Any:

@@ -1,0 +1,90 @@
+// Shared helpers of the modi_ext CUDA kernels (skeletal_cuda.cu, fk_cuda.cu).
+//
+// Only torch/ATen/c10-cuda and CUDA runtime headers: <ATen/cuda/CUDAContext.h> is deliberately avoided (it pulls
+// cuBLAS/cuSPARSE headers that a bare nvcc install lacks; see .ci/cuda_compile_check).  Nothing here synchronises
+// with the host, so every op built on it can be captured in a CUDA graph.
+#pragma once
+
+#include <ATen/ATen.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <cuda_runtime.h>
+
+#include <atomic>
+#include <cstdint>
+
+namespace modi_ext {
+namespace cuda {
+
+// Accumulator type: fp32 for float / half / bfloat16, fp64 for double (gradcheck).
+template <typename T>
+struct AccT {
+  using type = float;
+};
+template <>
+struct AccT<double> {
+  using type = double;
+};
+template <typename T>
+using acc_t = typename AccT<T>::type;
+
+template <typename T>
+__device__ __forceinline__ acc_t<T> ld(const T* p) {
+  return static_cast<acc_t<T>>(*p);
+}
+template <typename T, typename A>
+__device__ __forceinline__ void st(T* p, A v) {
+  *p = static_cast<T>(v);
+}
+
+inline at::ScalarType acc_scalar_type(at::ScalarType t) {
+  return t == at::kDouble ? at::kDouble : at::kFloat;
+}
+
+// Multiprocessor count of a device, queried once (a plain attribute query: legal during stream capture).
+inline int sm_count(int device) {
+  static std::atomic<int> cache[64];
+  if (device < 0 || device >= 64) return 108;
+  int v = cache[device].load(std::memory_order_relaxed);
+  if (v > 0) return v;
+  if (cudaDeviceGetAttribute(&v, cudaDevAttrMultiProcessorCount, device) != cudaSuccess || v <= 0) {
+    (void)cudaGetLastError();  // clear the sticky-free error so the next launch check does not report it
+    v = 108;
+  }
+  cache[device].store(v, std::memory_order_relaxed);
+  return v;
+}
+
+inline bool is_cuda_float(at::ScalarType t) {
+  return t == at::kFloat || t == at::kDouble || t == at::kHalf || t == at::kBFloat16;
+}
+
+inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+// Warp sum (all 32 lanes must call it).
+template <typename A>
+__device__ __forceinline__ A warp_sum(A v) {
+#pragma unroll
+  for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(0xffffffffu, v, o);
+  return v;
+}
+
+// Block sum for blockDim.x a multiple of 32 and <= 1024; the result is valid in thread 0.
+// `scratch` holds 32 values; the function ends with the block synchronised, so it can be called again.
+template <typename A>
+__device__ __forceinline__ A block_sum(A v, A* scratch) {
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, nwarps = blockDim.x >> 5;
+  v = warp_sum(v);
+  if (lane == 0) scratch[warp] = v;
+  __syncthreads();
+  A r = A(0);
+  if (warp == 0) {
+    r = lane < nwarps ? scratch[lane] : A(0);
+    r = warp_sum(r);
+  }
+  __syncthreads();
+  return r;
+}
+
+}  // namespace cuda
+}  // namespace modi_ext

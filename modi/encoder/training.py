@@ -1,0 +1,392 @@
+"""Training the encoder (paper 001 §3.4, eqs. 4-8) with the generator frozen.
+
+``L = L_rec + λ_fcon L_fcon + λ_root L_root + λ_pos L_pos`` with the paper's weights 1 / 100 / 2 / 0.1:
+
+* ``L_rec``  -- MSE between m and G(I(m)) on the normalised representation;
+* ``L_fcon`` -- BCE between the data's contact labels and s(contact channel of G(I(m))), s = the generator's
+  own contact sigmoid (``modi_model.losses.contact_probability``);
+* ``L_root`` -- MSE on the root entities only (root-motion entity and root rotation), which otherwise converge
+  slowest;
+* ``L_pos``  -- MSE of global joint positions (FK) in centimetres, so λ_pos = 0.1 means what it meant on the
+  paper's centimetre data on any rig (``latent.space.cm_scale``).
+
+Data: the windows of the generator's own dataset configuration, split 80/20 *by file* exactly as the generator's
+training split (``modi.dataset``), so the test split is unseen by the generator and the encoder alike. The
+prefix variant (§4.2) zeroes every frame from ``prefix_frames`` on (plus a visibility channel) and is still
+supervised by the whole motion.
+
+The checkpoint is one file written atomically; it embeds the generator it was trained against (config, codec,
+levels, EMA weights), so applications need nothing else, and resuming continues the same run exactly.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from modi.encoder.model import EncoderConfig, MotionEncoder, build_encoder, encode
+from modi.errors import CheckpointError, UserError
+from modi.latent.space import cm_scale
+
+ENCODER_FORMAT = "modi-encoder"
+ENCODER_VERSION = 1
+
+
+@dataclass
+class EncoderTrainConfig:
+    iters: int = 5000
+    batch: int = 16
+    lr: float = 0.002
+    beta1: float = 0.9
+    beta2: float = 0.99
+    lambda_rec: float = 1.0
+    lambda_contact: float = 100.0
+    lambda_root: float = 2.0
+    lambda_pos: float = 0.1
+    prefix_frames: int | None = None
+    channel_multiplier: float = 1.0
+    units: str = "auto"
+    seed: int = 0
+    log_every: int = 20
+    ckpt_every: int = 250
+    eval_every: int = 500
+
+    def validate(self) -> "EncoderTrainConfig":
+        if self.iters < 0 or self.batch < 1:
+            raise UserError(f"iters must be >= 0 and batch >= 1 (got {self.iters}, {self.batch})")
+        if self.lr <= 0:
+            raise UserError(f"lr must be positive, got {self.lr}")
+        for name in ("lambda_rec", "lambda_contact", "lambda_root", "lambda_pos"):
+            if getattr(self, name) < 0:
+                raise UserError(f"{name} must be >= 0")
+        if self.channel_multiplier <= 0:
+            raise UserError("channel_multiplier must be positive")
+        return self
+
+
+# =============================================================================================== data
+@dataclass
+class EncoderData:
+    """Normalised windows of the train and test splits (by file) and where they came from."""
+
+    train: Tensor
+    test: Tensor
+    source: str
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def load_encoder_data(codec: Any, gcfg: Any, source: str | os.PathLike, *, cache: bool = True,
+                      progress: bool = False, work_dir: str | os.PathLike | None = None) -> EncoderData:
+    """Windows of ``source`` (BVH folder or 'procedural') cut and split like the generator's training data,
+    normalised with the generator's statistics."""
+    import tempfile
+
+    from modi.dataset import DatasetConfig, build_dataset
+
+    if getattr(codec, "positions_mode", False):
+        raise UserError("the encoder needs a rotation model; this checkpoint is the 'positions' ablation")
+    src = str(source)
+    if src == "procedural":
+        from modi.modi_model.training import write_procedural_data
+
+        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_enc_proc_"))
+        root = base / "procedural_data"
+        if not any(root.glob("*.bvh")):
+            write_procedural_data(root, fps=gcfg.data.fps)
+    else:
+        root = Path(src)
+        if not root.exists():
+            raise UserError(f"data not found: {root} (give a BVH folder or the word 'procedural')")
+    dc = gcfg.data
+    dcfg = DatasetConfig(fps=dc.fps, window=dc.n_frames, stride=dc.stride, root=dc.root, rotation="quat",
+                         feet=dc.feet, keep_joints=dc.joints)
+    ds = build_dataset(root, dcfg, cache=cache, progress=progress)
+    if not ds.skeleton.same_as(codec.skeleton):
+        raise UserError(f"{src}: its skeleton differs from the generator's ({ds.skeleton.n_joints} vs "
+                        f"{codec.skeleton.n_joints} joints or different bones)")
+    if ds.test.shape[0] == 0:
+        raise UserError(f"{src}: the 20% test split has no windows (too few or too short clips)")
+    norm = codec.normalizer
+    info = {k: v for k, v in ds.summary().items() if isinstance(v, (int, float, str, bool, list))}
+    return EncoderData(norm.normalize(ds.train).float().contiguous(), norm.normalize(ds.test).float().contiguous(),
+                       src, info)
+
+
+def split_windows(x: Tensor, test_fraction: float = 0.2, seed: int = 0) -> EncoderData:
+    """A seeded 80/20 split of in-memory windows (for data that has no files, e.g. generated motions)."""
+    n = x.shape[0]
+    n_test = max(1, int(round(n * test_fraction)))
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed))
+    return EncoderData(x[perm[n_test:]].contiguous(), x[perm[:n_test]].contiguous(), "tensor",
+                       {"train_windows": n - n_test, "test_windows": n_test})
+
+
+# =============================================================================================== losses
+def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainConfig, scale: float,
+                   target_decoded: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
+    """The four terms and their weighted total (eq. 8); ``scale`` turns skeleton units into cm."""
+    from modi.modi_model.losses import contact_probability
+
+    J = codec.rep.n_joints
+    rec = F.mse_loss(pred, target)
+    root = F.mse_loss(pred[:, :, J], target[:, :, J]) + F.mse_loss(pred[:, :, 0], target[:, :, 0])
+    out = {"rec": rec, "root": root}
+    need_decode = cfg.lambda_pos > 0 or cfg.lambda_contact > 0
+    zero = pred.new_zeros(())
+    if need_decode:
+        dp = codec.decode(pred)
+        dt = target_decoded if target_decoded is not None else {k: v.detach() for k, v in codec.decode(target).items()}
+        if cfg.lambda_contact > 0 and dp["contacts"].shape[-1] > 0:
+            labels = (dt["contacts"] > 0.5).to(pred.dtype)
+            prob = contact_probability(dp["contacts"]).clamp(1e-6, 1 - 1e-6)
+            out["contact"] = F.binary_cross_entropy(prob, labels)
+        else:
+            out["contact"] = zero
+        out["pos"] = F.mse_loss(dp["positions"] * scale, dt["positions"] * scale) if cfg.lambda_pos > 0 else zero
+    else:
+        out["contact"] = out["pos"] = zero
+    out["total"] = (cfg.lambda_rec * rec + cfg.lambda_contact * out["contact"] + cfg.lambda_root * root
+                    + cfg.lambda_pos * out["pos"])
+    return out
+
+
+# =============================================================================================== checkpoints
+def generator_bundle(g: Any, codec: Any, gcfg: Any = None, step: int = 0) -> dict[str, Any]:
+    """A MoDi-checkpoint-shaped dict holding just what generation needs (loadable by ``load_generator``)."""
+    from modi.modi_model.config import DataConfig, MoDiConfig
+    from modi.modi_model.training import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+
+    if gcfg is None:
+        _, _, t = g.output_shape
+        gcfg = MoDiConfig(model=g.cfg, data=DataConfig(n_frames=t, fps=codec.fps), preset="custom")
+    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": gcfg.to_dict(),
+            "codec": codec.state_dict(), "skeleton": codec.skeleton.to_dict(),
+            "levels": [lv.to_dict() for lv in g.levels], "G_ema": {k: v.detach().cpu() for k, v in
+                                                                   g.state_dict().items()}, "step": int(step)}
+
+
+@dataclass
+class EncoderBundle:
+    """A trained encoder with the generator it inverts into."""
+
+    encoder: MotionEncoder
+    g: Any
+    codec: Any
+    gcfg: Any
+    cfg: EncoderConfig
+    train_cfg: dict[str, Any] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def prefix_frames(self) -> int | None:
+        return self.cfg.prefix_frames
+
+    @torch.no_grad()
+    def project(self, x: Tensor, prefix_frames: int | None = None) -> tuple[Tensor, Tensor]:
+        """(W+ latents, G(I(x))) of normalised motions x."""
+        from modi.latent.space import synthesize
+
+        self.encoder.eval()
+        dev = next(self.encoder.parameters()).device
+        wplus = encode(self.encoder, x.to(dev).float(), prefix_frames)
+        return wplus, synthesize(self.g, wplus)
+
+
+def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "cpu") -> EncoderBundle:
+    """Read an encoder checkpoint (``CheckpointError`` for anything else) and rebuild encoder + generator."""
+    from modi.latent.space import load_model
+
+    if isinstance(path, dict):
+        st, where = path, "encoder checkpoint"
+    else:
+        p = Path(path)
+        where = str(p)
+        if not p.is_file():
+            raise CheckpointError(f"{p}: no such encoder checkpoint")
+        try:
+            st = torch.load(p, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001
+            raise CheckpointError(f"{p}: not a readable encoder checkpoint ({str(exc).splitlines()[0][:200]})") \
+                from None
+    if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
+        hint = " (this is a generator checkpoint; train an encoder with 'modi encoder train')" \
+            if isinstance(st, dict) and st.get("format") == "modi-checkpoint" else ""
+        raise CheckpointError(f"{where}: not a MoDi encoder checkpoint{hint}")
+    if int(st.get("version", 0)) > ENCODER_VERSION:
+        raise CheckpointError(f"{where}: encoder checkpoint version {st['version']} is newer than this modi")
+    g, codec, gcfg = load_model(st["generator"], device=device)
+    try:
+        cfg = EncoderConfig.from_dict(st["encoder_config"])
+        enc = MotionEncoder(g.cfg, g.levels, cfg).to(device)
+        enc.load_state_dict(st["encoder"])
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"{where}: encoder state does not match its config ({exc})") from None
+    enc.eval()
+    return EncoderBundle(enc, g, codec, gcfg, cfg, dict(st.get("train_config", {})),
+                         {k: st.get(k) for k in ("step", "data_source", "data_info", "metrics")})
+
+
+# =============================================================================================== trainer
+@dataclass
+class EncoderTrainResult:
+    step: int
+    checkpoint: Path
+    seconds: float
+    last_losses: dict[str, float]
+    metrics: dict[str, Any] | None
+
+
+class EncoderTrainer:
+    """Trains an encoder for a frozen generator on ``data.train``; writes ``out`` (the checkpoint) and
+    ``out`` + ``.log.jsonl`` (losses, and test metrics every ``eval_every`` steps)."""
+
+    def __init__(self, model: tuple, data: EncoderData, out: str | os.PathLike, cfg: EncoderTrainConfig | None = None,
+                 *, generator_state: dict[str, Any] | None = None, resume: str | os.PathLike | None = None,
+                 progress: bool = True, log: Callable[[str], None] | None = None):
+        g, codec, gcfg = model
+        self.g, self.codec, self.gcfg = g, codec, gcfg
+        self.cfg = (cfg or EncoderTrainConfig()).validate()
+        self.data = data
+        self.out = Path(out)
+        self.progress = progress
+        self.log = log or (lambda msg: print(msg, flush=True))
+        self.device = next(g.parameters()).device
+        k, e, t = g.output_shape
+        if data.train.ndim != 4 or tuple(data.train.shape[1:]) != (k, e, t):
+            raise UserError(f"training windows are {tuple(data.train.shape[1:])}, the generator makes {(k, e, t)}")
+        if data.train.shape[0] == 0:
+            raise UserError("no training windows")
+        for p in g.parameters():
+            p.requires_grad_(False)
+        g.eval()
+        self.generator_state = generator_state or generator_bundle(g, codec, gcfg)
+        torch.manual_seed(self.cfg.seed)
+        self.encoder = build_encoder(g, self.cfg.channel_multiplier, self.cfg.prefix_frames)
+        self.encoder.train()
+        self.optim = torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.lr, betas=(self.cfg.beta1, self.cfg.beta2))
+        self.scale = cm_scale(codec, self.cfg.units)
+        self.rng = torch.Generator().manual_seed(self.cfg.seed * 7919 + 3)
+        self.step = 0
+        self.last_losses: dict[str, float] = {}
+        self.metrics: dict[str, Any] | None = None
+        self.train_x = data.train.to(self.device)
+        if resume is not None:
+            self.load_state(resume)
+
+    # ------------------------------------------------------------------------------------------- steps
+    def train_step(self) -> dict[str, float]:
+        idx = torch.randint(self.train_x.shape[0], (self.cfg.batch,), generator=self.rng)
+        real = self.train_x[idx.to(self.device)]
+        wplus = encode(self.encoder, real)
+        pred = self.g.synthesis(wplus, noise_mode="const")
+        with torch.no_grad():
+            dt = {k: v.detach() for k, v in self.codec.decode(real).items()}
+        losses = encoder_losses(self.codec, pred, real, self.cfg, self.scale, dt)
+        if not torch.isfinite(losses["total"]):
+            raise UserError(f"non-finite encoder loss at step {self.step} ({ {k: float(v) for k, v in losses.items()} }); "
+                            "try a lower --lr")
+        self.optim.zero_grad(set_to_none=True)
+        losses["total"].backward()
+        self.optim.step()
+        self.step += 1
+        return {k: float(v) for k, v in losses.items()}
+
+    def evaluate(self, split: str = "test") -> dict[str, Any]:
+        from modi.encoder.metrics import evaluate_encoder
+
+        x = self.data.test if split == "test" else self.data.train
+        return evaluate_encoder(self.encoder, self.g, self.codec, x, units=self.cfg.units)
+
+    def train(self, iters: int | None = None) -> EncoderTrainResult:
+        target = self.cfg.iters if iters is None else int(iters)
+        t0 = time.time()
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
+        try:
+            while self.step < target:
+                losses = self.train_step()
+                self.last_losses = losses
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(total=f"{losses['total']:.3f}", rec=f"{losses['rec']:.3f}",
+                                    pos=f"{losses['pos']:.2f}")
+                if self.step % self.cfg.log_every == 0 or self.step == target:
+                    self._log({"step": self.step, **{k: round(v, 6) for k, v in losses.items()}})
+                if self.cfg.eval_every and self.step % self.cfg.eval_every == 0:
+                    self.metrics = self.evaluate()
+                    self._log({"step": self.step, "test": self.metrics["encoder"]})
+                if self.cfg.ckpt_every and self.step % self.cfg.ckpt_every == 0:
+                    self.save_checkpoint()
+        finally:
+            if bar is not None:
+                bar.close()
+        self.metrics = self.evaluate()
+        self._log({"step": self.step, "test": self.metrics["encoder"], "final": True})
+        ckpt = self.save_checkpoint()
+        return EncoderTrainResult(self.step, ckpt, time.time() - t0, dict(self.last_losses), self.metrics)
+
+    def _log(self, rec: dict[str, Any]) -> None:
+        path = self.out.with_name(self.out.name + ".log.jsonl")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
+
+    # ------------------------------------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": ENCODER_FORMAT, "version": ENCODER_VERSION,
+            "encoder_config": self.encoder.cfg.to_dict(),
+            "encoder": {k: v.detach().cpu() for k, v in self.encoder.state_dict().items()},
+            "optim": self.optim.state_dict(), "step": self.step,
+            "train_config": asdict(self.cfg), "generator": self.generator_state,
+            "rng": {"data": self.rng.get_state(), "torch": torch.get_rng_state()},
+            "data_source": self.data.source, "data_info": self.data.info,
+            "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": torch.__version__,
+        }
+
+    def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
+        from modi.modi_model.training import atomic_torch_save
+
+        return atomic_torch_save(self.state_dict(), Path(path) if path is not None else self.out)
+
+    def load_state(self, path: str | os.PathLike) -> None:
+        p = Path(path)
+        if not p.is_file():
+            raise CheckpointError(f"{p}: no encoder checkpoint to resume")
+        try:
+            st = torch.load(p, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001
+            raise CheckpointError(f"{p}: unreadable encoder checkpoint ({str(exc).splitlines()[0][:200]})") from None
+        if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
+            raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
+        if st["encoder_config"] != self.encoder.cfg.to_dict():
+            raise CheckpointError(f"{p}: encoder was built differently (e.g. --prefix or --channel-multiplier); "
+                                  "resume with the same options")
+        gen = st.get("generator") or {}
+        if gen.get("config") != self.generator_state.get("config") or gen.get("step") != self.generator_state.get("step"):
+            raise CheckpointError(f"{p}: was trained against a different generator checkpoint")
+        try:
+            self.encoder.load_state_dict(st["encoder"])
+            self.optim.load_state_dict(st["optim"])
+        except (RuntimeError, ValueError, KeyError) as exc:
+            raise CheckpointError(f"{p}: encoder state does not match ({exc})") from None
+        self.step = int(st["step"])
+        self.rng.set_state(st["rng"]["data"])
+        torch.set_rng_state(st["rng"]["torch"])
+        self.metrics = st.get("metrics")
+        self.last_losses = dict(st.get("last_losses") or {})
+
+
+__all__ = ["EncoderTrainConfig", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
+           "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
+           "ENCODER_FORMAT", "ENCODER_VERSION"]
