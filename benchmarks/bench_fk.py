@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from modi_ext import HAS_EXT
-from modi_ext.fk import fk, fk_reference
+from modi_ext.fk import fk
 
 # Bandai-Namco skeleton topology: root, hips, spine chain, arms off the chest, legs off the hips.
 BANDAI_PARENTS = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]
@@ -37,16 +37,20 @@ def _inputs(dtype: torch.dtype = torch.float32, seed: int = 0):
 def fk_cases(dtype: torch.dtype = torch.float32) -> dict[str, tuple[Callable[[], object], Callable[[], object]]]:
     """``{"fk.fwd_bwd": (ref_fn, ext_fn), "fk.fwd": (ref_fn, ext_fn)}`` at B=256, T=64, 22 joints.
 
-    fwd_bwd differentiates positions w.r.t. rotations and root translation with a fixed upstream gradient.
-    ext_fn forces the C++ kernel (raises if the extension is not built).
+    Both go through the public ``fk`` (same argument checks): ref_fn with ``impl="ref"`` (the dense torch
+    reference), ext_fn with ``impl="ext"`` (the C++ kernel; raises if it is not built). fwd_bwd differentiates
+    the positions w.r.t. rotations and root translation with a fixed upstream gradient.
     """
     if not HAS_EXT:
         raise RuntimeError("modi_ext C++ extension is not built: no FK kernel to benchmark")
     q, off, root, grad = _inputs(dtype)
     qg, rg = q.clone().requires_grad_(), root.clone().requires_grad_()
 
+    def ref(*args):
+        return fk(*args, impl="ref")
+
     def ext(*args):
-        return torch.ops.modi_ext.fk(*args)[0]
+        return fk(*args, impl="ext")
 
     def fwd(fn):
         def run():
@@ -61,8 +65,8 @@ def fk_cases(dtype: torch.dtype = torch.float32) -> dict[str, tuple[Callable[[],
         return run
 
     return {
-        "fk.fwd_bwd": (fwd_bwd(fk_reference), fwd_bwd(ext)),
-        "fk.fwd": (fwd(fk_reference), fwd(ext)),
+        "fk.fwd_bwd": (fwd_bwd(ref), fwd_bwd(ext)),
+        "fk.fwd": (fwd(ref), fwd(ext)),
     }
 
 
@@ -80,14 +84,6 @@ def test_fk(benchmark, case, impl):
     benchmark.group = case
     benchmark.pedantic(fn, warmup_rounds=2, rounds=15, iterations=1)
 
-
-@needs_ext
-def test_fk_wrapper_overhead(benchmark):
-    """The public ``fk`` (argument checks + dispatch) on the same inputs, forward only."""
-    q, off, root, _ = _inputs()
-    benchmark.group = "fk.fwd"
-    with torch.no_grad():
-        benchmark.pedantic(lambda: fk(q, off, BANDAI_PARENTS, root), warmup_rounds=2, rounds=15, iterations=1)
 
 
 def _median_ms(fn: Callable[[], object], repeats: int = 21) -> float:

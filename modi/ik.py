@@ -133,8 +133,10 @@ def fix_foot_contact(
     """Pin each foot while its contact label is on; returns new ``(rotations (T,J,4), root_positions (T,3))``.
 
     motion_rotations: (T, J, 4) local unit quaternions (w, x, y, z); root_positions: (T, 3); foot_joints: the
-    F joints the labels refer to (not the root); contacts: (T, F) bool (or 0/1). ``tol`` is the convergence
-    threshold in skeleton units (default ``1e-5 * skeleton.height()``). Output has the input's dtype and device.
+    F joints the labels refer to (not the root); contacts: (T, F) bool (or 0/1). ``blend_frames``: frames over
+    which a pin eases in and out; ``tol``: convergence threshold in skeleton units (default
+    ``1e-5 * skeleton.height()``); ``adjust_root=False`` keeps the root path bit-identical (a pin out of the leg's
+    reach is then only approached). Output has the input's dtype and device; the inputs are not modified.
     """
     if not isinstance(motion_rotations, Tensor) or motion_rotations.ndim != 3 or motion_rotations.shape[-1] != 4:
         raise ValueError(f"fix_foot_contact: motion_rotations must be a (T, J, 4) tensor, got {_shape(motion_rotations)}")

@@ -180,8 +180,14 @@ if _op_defined():
     torch.library.register_autograd("modi_ext::fk", _fk_backward, setup_context=_fk_setup_context)
 
 
-def _use_kernel(device: torch.device) -> bool:
-    if impl_choice() != "ext":
+def _use_kernel(device: torch.device, impl: str | None = None) -> bool:
+    if impl is None:
+        impl = impl_choice()
+    elif impl not in ("ref", "ext"):
+        raise ValueError(f"fk: impl must be 'ref', 'ext' or None, got {impl!r}")
+    elif impl == "ext" and not _op_defined():
+        raise RuntimeError("fk: impl='ext' but the modi_ext C++ extension is not built")
+    if impl != "ext":
         return False
     if device.type in ("cpu", "meta"):  # meta: the fake kernel gives shapes
         return True
@@ -192,8 +198,9 @@ def _use_kernel(device: torch.device) -> bool:
         return False
 
 
-def _fk_checked(local_quats, offsets, parents: tuple[int, ...], root_positions, return_rotations: bool):
-    if _use_kernel(local_quats.device):
+def _fk_checked(local_quats, offsets, parents: tuple[int, ...], root_positions, return_rotations: bool,
+                impl: str | None = None):
+    if _use_kernel(local_quats.device, impl):
         positions, rotations = torch.ops.modi_ext.fk(local_quats, offsets, list(parents), root_positions)
         return (positions, rotations) if return_rotations else positions
     return fk_reference(local_quats, offsets, parents, root_positions, return_rotations)
@@ -206,17 +213,19 @@ def fk(
     root_positions: torch.Tensor,
     *,
     return_rotations: bool = False,
+    impl: str | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Global joint positions (..., J, 3) [and global quaternions (..., J, 4) with ``return_rotations``].
 
     local_quats (..., J, 4) unit (w, x, y, z); offsets (J, 3); parents: J ints, ``parents[0] == -1``,
     ``0 <= parents[j] < j``; root_positions (..., 3). All float32 or all float64, contiguous, one device.
     Differentiable w.r.t. local_quats, root_positions and offsets. Raises ValueError/TypeError naming the
-    offending argument.
+    offending argument. ``impl``: "ref" or "ext" forces a path for this call (default: ``impl_choice()``, i.e.
+    the kernel when built unless ``MODI_EXT_IMPL=ref``); devices without a kernel always use the reference.
     """
     _check_tensors(local_quats, offsets, root_positions)
     par = check_parents(parents, local_quats.shape[-2])
-    return _fk_checked(local_quats, offsets, par, root_positions, return_rotations)
+    return _fk_checked(local_quats, offsets, par, root_positions, return_rotations, impl)
 
 
 class ForwardKinematics(nn.Module):

@@ -199,6 +199,30 @@ def test_cli_train_features_then_real_floor(tmp_path: Path, capsys, one_thread):
     assert "foot_skating" in rep["plausibility (held-out clips)"]
     assert "| fid |" in (tmp_path / "r.md").read_text()
 
+    # `eval gen` with a stand-in sampler (a MoDi checkpoint needs a trained model): procedural motions
+    # of the same skeleton, sampled deterministically per seed as the real sampler promises
+    import modi.commands.eval as ev
+    from modi.procedural import generate_clip
+
+    calls = []
+
+    def fake_sampler(ckpt, n, seed=0, psi=1.0, ik=False):
+        calls.append((ckpt, n, seed, psi, ik))
+        return [generate_clip(("walk", "wave")[i % 2], 40, 30.0, np.random.default_rng([seed, i])) for i in range(n)]
+
+    ev_sampler = ev._sampler
+    ev._sampler = lambda: fake_sampler
+    try:
+        rc = main(["eval", "gen", "--ckpt", "x.ckpt", "--features", str(out), "--data", str(data), "--n", "12",
+                   "--stride", "8", "--json", str(tmp_path / "g.json"), "--md", str(tmp_path / "g.md")])
+    finally:
+        ev._sampler = ev_sampler
+    assert rc == 0 and calls == [("x.ckpt", 12, 0, 1.0, False)]
+    rep = json.loads((tmp_path / "g.json").read_text())
+    d = rep["distribution (generated vs real)"]
+    assert d["n_fake"] == 12 and d["n_real"] > 12 and d["fid"] >= 0
+    assert rep["plausibility (generated)"]["feet"] and "jitter" in rep["plausibility (real)"]
+
 
 def test_cli_errors_are_one_line(tmp_path: Path, capsys):
     from modi.cli import main

@@ -326,10 +326,10 @@ def _good(kind="conv"):
     (lambda a, k: a.__setitem__(0, a[0].transpose(2, 3).contiguous().transpose(2, 3)), ValueError, "x must be contig"),
     (lambda a, k: a.__setitem__(0, a[0][:0]), ValueError, "empty batch"),
     (lambda a, k: a.__setitem__(0, a[0][..., :0]), ValueError, "zero frames"),
-    (lambda a, k: a.__setitem__(0, a[0][:, :2]), ValueError, "channels"),
-    (lambda a, k: a.__setitem__(0, a[0][:, :, :3]), ValueError, "entities"),
-    (lambda a, k: a.__setitem__(1, a[1][..., :2]), ValueError, "odd"),
-    (lambda a, k: a.__setitem__(1, a[1][:, :-1]), ValueError, "pairs"),
+    (lambda a, k: a.__setitem__(0, a[0][:, :2].contiguous()), ValueError, "channels"),
+    (lambda a, k: a.__setitem__(0, a[0][:, :, :3].contiguous()), ValueError, "entities"),
+    (lambda a, k: a.__setitem__(1, a[1][..., :2].contiguous()), ValueError, "odd"),
+    (lambda a, k: a.__setitem__(1, a[1][:, :-1].contiguous()), ValueError, "pairs"),
     (lambda a, k: a.__setitem__(2, a[2][:-1]), ValueError, "bias"),
     (lambda a, k: a.__setitem__(3, a[3].clone().fill_(99)), ValueError, "index"),
     (lambda a, k: a.__setitem__(3, a[3].int()), TypeError, "index must be int64"),
@@ -363,7 +363,7 @@ def test_entity_without_neighbors_is_rejected():
 def test_reflect_needs_enough_frames(kind):
     args, kw = make_case(kind, random.Random(2), dtype=torch.float32, n_joints=4, U=5, T=2, padding="reflect")
     if kind == "up":
-        args = (args[0][..., :1],) + args[1:]
+        args = (args[0][..., :1].contiguous(),) + args[1:]
     with pytest.raises(ValueError, match="reflect padding"):
         call(kind, ops, args, kw)
 

@@ -278,7 +278,7 @@ def cmd_gen(args: argparse.Namespace) -> int:
     motions = sample_motions(args.ckpt, args.n, seed=args.seed, psi=args.psi, ik=args.ik)
     gen = [ext.clip_positions(m.positions(), m.skeleton.names, m.fps) for m in motions]
     f_real = ext.features(ext.windows(real, args.stride))
-    f_gen = ext.features(ext.windows(gen, ext.config.window))
+    f_gen = ext.features(ext.windows(gen, tail=False))  # a 64-frame MoDi sample is exactly one window
     results: dict[str, Any] = {
         "ckpt": str(args.ckpt),
         "features": str(args.features),

@@ -26,22 +26,30 @@ def register(subparsers) -> None:
                    help="model/optimiser preset: 'paper' (channels 256..32, batch 16, 80k iters) or 'small' (CPU)")
     p.add_argument("--ablation", action="append", choices=sorted(ABLATIONS), default=[],
                    help="paper ablation to apply (repeatable)")
-    p.add_argument("--iters", type=int, default=None, help="total iterations (default: the preset's)")
-    p.add_argument("--batch", type=int, default=None, help="total batch size over all processes (default: preset)")
-    p.add_argument("--lr", type=float, default=None, help="Adam learning rate for G and D (default: preset, 0.002)")
-    p.add_argument("--mixing", type=float, default=None, help="style-mixing probability (default: 0.9)")
-    p.add_argument("--frames", type=int, default=None, help="frames per training window (default: 64)")
-    p.add_argument("--fps", type=float, default=None, help="resample clips to this rate (default: 30)")
-    p.add_argument("--stride", type=int, default=None, help="frames between training windows (default: 8)")
-    p.add_argument("--feet", nargs="+", metavar="JOINT", default=None, help="contact joints (default: detected)")
-    p.add_argument("--seed", type=int, default=None, help="training seed (default: 0)")
-    p.add_argument("--log-every", type=int, default=None, help="steps between logged scalars")
-    p.add_argument("--sample-every", type=int, default=None, help="steps between sample grids (0: never)")
-    p.add_argument("--ckpt-every", type=int, default=None, help="steps between checkpoint writes")
+    keep = argparse.SUPPRESS  # unset options keep the preset's value
+    p.add_argument("--iters", type=int, default=keep, help="total iterations (default: paper 80000, small 5000)")
+    p.add_argument("--batch", type=int, default=keep,
+                   help="total batch over all processes (default: paper 16, small 8)")
+    p.add_argument("--lr", type=float, default=keep, help="Adam learning rate for G and D (default: 0.002)")
+    p.add_argument("--mixing", type=float, default=keep, help="style-mixing probability (default: 0.9)")
+    p.add_argument("--frames", type=int, default=keep, help="frames per training window (default: 64)")
+    p.add_argument("--fps", type=float, default=keep, help="resample clips to this rate (default: 30)")
+    p.add_argument("--stride", type=int, default=keep, help="frames between training windows (default: 8)")
+    p.add_argument("--feet", nargs="+", metavar="JOINT", default=keep, help="contact joints (default: detected)")
+    p.add_argument("--drop", nargs="+", metavar="REGEX", default=keep,
+                   help="drop joints whose names match (default: fingers and face joints)")
+    p.add_argument("--keep", nargs="+", metavar="JOINT", default=keep, help="joints never dropped (default: none)")
+    p.add_argument("--seed", type=int, default=keep, help="training seed (default: 0)")
+    p.add_argument("--log-every", type=int, default=keep, help="steps between logged scalars (default: 10)")
+    p.add_argument("--sample-every", type=int, default=keep,
+                   help="steps between sample grids, 0 = never (default: paper 1000, small 500)")
+    p.add_argument("--ckpt-every", type=int, default=keep,
+                   help="steps between checkpoint writes (default: paper 500, small 250)")
     p.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CKPT",
                    help="continue from CKPT (default RUN_DIR/checkpoint.pt); config comes from the checkpoint")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=int, default=argparse.SUPPRESS,
+                   help="torch CPU threads (default: torch's choice; 1 is fastest on a busy machine)")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--no-cache", action="store_true", help="rebuild the dataset instead of using the cache")
     p.set_defaults(func=run)
@@ -72,6 +80,7 @@ def build_config(args: argparse.Namespace):
     for flag, key in (("iters", "train.iters"), ("batch", "train.batch"), ("lr", "train.lr"),
                       ("mixing", "train.mixing"), ("frames", "data.n_frames"), ("fps", "data.fps"),
                       ("stride", "data.stride"), ("feet", "data.feet"), ("seed", "train.seed"),
+                      ("drop", "data.drop_patterns"), ("keep", "data.keep_joints"),
                       ("log_every", "train.log_every"), ("sample_every", "train.sample_every"),
                       ("ckpt_every", "train.ckpt_every")):
         value = getattr(args, flag, None)
@@ -90,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     from modi.modi_model.sampling import load_checkpoint
     from modi.modi_model.training import NonFiniteLossError, Trainer, init_distributed_from_env, prepare_data
 
-    if args.threads is not None:
+    if getattr(args, "threads", None) is not None:
         if args.threads < 1:
             raise UserError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
@@ -104,14 +113,14 @@ def run(args: argparse.Namespace) -> int:
         cfg = MoDiConfig.from_dict(resume_state["config"])
         for flag, section, attr in (("iters", "train", "iters"), ("log_every", "train", "log_every"),
                                     ("sample_every", "train", "sample_every"), ("ckpt_every", "train", "ckpt_every")):
-            if getattr(args, flag) is not None:
+            if getattr(args, flag, None) is not None:
                 setattr(getattr(cfg, section), attr, getattr(args, flag))
         cfg.validate()
     else:
         cfg = build_config(args)
         if (run_dir / "checkpoint.pt").exists():
             raise UserError(f"{run_dir / 'checkpoint.pt'} exists: pass --resume to continue it, or choose a new --out")
-    if args.iters is not None and args.iters < 0:
+    if getattr(args, "iters", 0) < 0:
         raise UserError(f"--iters must be >= 0, got {args.iters}")
     run_dir.mkdir(parents=True, exist_ok=True)
     normalizer = None

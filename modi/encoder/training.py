@@ -104,9 +104,14 @@ def load_encoder_data(codec: Any, gcfg: Any, source: str | os.PathLike, *, cache
         root = Path(src)
         if not root.exists():
             raise UserError(f"data not found: {root} (give a BVH folder or the word 'procedural')")
-    dc = gcfg.data
-    dcfg = DatasetConfig(fps=dc.fps, window=dc.n_frames, stride=dc.stride, root=dc.root, rotation="quat",
-                         feet=dc.feet, keep_joints=dc.joints)
+    try:  # the generator's own mapping from its config to the dataset: identical windows and split
+        from modi.modi_model.training import _dataset_config
+
+        dcfg = _dataset_config(gcfg)
+    except ImportError:  # pragma: no cover - older/newer trainer without the helper
+        dc = gcfg.data
+        dcfg = DatasetConfig(fps=dc.fps, window=dc.n_frames, stride=dc.stride, root=dc.root, rotation="quat",
+                             feet=dc.feet, keep_joints=getattr(dc, "keep_joints", None))
     ds = build_dataset(root, dcfg, cache=cache, progress=progress)
     if not ds.skeleton.same_as(codec.skeleton):
         raise UserError(f"{src}: its skeleton differs from the generator's ({ds.skeleton.n_joints} vs "
@@ -296,7 +301,7 @@ class EncoderTrainer:
         losses["total"].backward()
         self.optim.step()
         self.step += 1
-        return {k: float(v) for k, v in losses.items()}
+        return {k: float(v.detach()) for k, v in losses.items()}
 
     def evaluate(self, split: str = "test") -> dict[str, Any]:
         from modi.encoder.metrics import evaluate_encoder
@@ -351,7 +356,7 @@ class EncoderTrainer:
             "train_config": asdict(self.cfg), "generator": self.generator_state,
             "rng": {"data": self.rng.get_state(), "torch": torch.get_rng_state()},
             "data_source": self.data.source, "data_info": self.data.info,
-            "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": torch.__version__,
+            "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": str(torch.__version__),
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:

@@ -11,8 +11,9 @@ hip-level joint pair -- turned to +Z) -> divided by the body height -> positions
 (6 channels) -> per-(channel, joint) standardisation with training-set statistics.
 
 Network: blocks of [spatial graph conv with the ST-GCN "spatial" partition (self / towards root / away from
-root) and a learnable edge importance] x [temporal conv], BatchNorm, ReLU, residual, time strided 2x in three
-blocks; global average pooling gives the ``feature_dim`` features the metrics use; a linear head classifies.
+root) and a learnable edge importance] x [temporal conv], BatchNorm, ReLU, residual; by default three blocks
+(32, 64, 128 channels), each halving time -- sized to train in a few CPU minutes. Global average pooling gives
+the ``feature_dim`` features the metrics use; a linear head classifies.
 """
 from __future__ import annotations
 
@@ -186,9 +187,9 @@ def resample_positions(positions: np.ndarray, fps: float, target_fps: float) -> 
     return positions[i0] * (1 - w) + positions[i1] * w
 
 
-def make_windows(positions: np.ndarray, window: int, stride: int) -> np.ndarray:
-    """``(n, window, J, 3)`` windows every ``stride`` frames; the last one is aligned to the clip's end so the tail
-    is covered; a clip shorter than ``window`` gives one window padded by holding its last pose."""
+def make_windows(positions: np.ndarray, window: int, stride: int, tail: bool = True) -> np.ndarray:
+    """``(n, window, J, 3)`` windows every ``stride`` frames; with ``tail`` one more aligned to the clip's end so the
+    tail is covered; a clip shorter than ``window`` gives one window padded by holding its last pose."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     n = positions.shape[0]
@@ -198,7 +199,7 @@ def make_windows(positions: np.ndarray, window: int, stride: int) -> np.ndarray:
         pad = np.repeat(positions[-1:], window - n, axis=0)
         return np.concatenate([positions, pad], axis=0)[None]
     starts = list(range(0, n - window + 1, stride))
-    if starts[-1] != n - window:
+    if tail and starts[-1] != n - window:
         starts.append(n - window)
     return np.stack([positions[s : s + window] for s in starts])
 
@@ -341,12 +342,13 @@ class FeatureExtractor:
         p = p[:, select_joints(names, self.config.joint_names)]
         return resample_positions(p, fps, self.config.fps)
 
-    def windows(self, clips: Sequence[np.ndarray], stride: int | None = None) -> np.ndarray:
-        """All windows of clips already in the extractor's joints and fps (``clip_positions``)."""
+    def windows(self, clips: Sequence[np.ndarray], stride: int | None = None, tail: bool = True) -> np.ndarray:
+        """All windows of clips already in the extractor's joints and fps (``clip_positions``). The default stride
+        (= window) without ``tail`` gives each clip ``max(1, frames // window)`` disjoint windows."""
         stride = self.config.window if stride is None else stride
         if not clips:
             raise ValueError("no clips given")
-        return np.concatenate([make_windows(c, self.config.window, stride) for c in clips])
+        return np.concatenate([make_windows(c, self.config.window, stride, tail) for c in clips])
 
     def inputs(self, windows: np.ndarray) -> Tensor:
         """Normalised network input ``(n, 6, T, J)`` of raw windows ``(n, T, J, 3)`` in skeleton units."""

@@ -24,12 +24,13 @@ from modi.ganimator.networks import GanimatorModel, make_noise, synthesize
 # ------------------------------------------------------------------------------------------- decoding / output
 
 
-def decode(model: GanimatorModel, feats: Tensor, base: int = 0) -> tuple[Tensor, Tensor, Tensor]:
-    """Features ``(6, E, T)`` -> local quats ``(T, J, 4)``, root ``(T, 3)`` (starting where the clip started),
-    contact labels ``(T, C)`` in [0, 1]."""
-    seq = model.seqs[base]
+def decode(model: GanimatorModel, feats: Tensor, base: int = 0, root_start: Tensor | None = None
+           ) -> tuple[Tensor, Tensor, Tensor]:
+    """Features ``(6, E, T)`` -> local quats ``(T, J, 4)``, root ``(T, 3)`` (starting at ``root_start``, by
+    default where the training clip started), contact labels ``(T, C)`` in [0, 1]."""
+    start = model.seqs[base].root_start if root_start is None else root_start
     quats, root, contacts = features_to_motion(feats.detach().cpu().to(torch.float32), model.n_joints,
-                                               seq.root_start.to(torch.float32))
+                                               start.detach().cpu().to(torch.float32))
     return quats, root, contacts.clamp(0.0, 1.0)
 
 
@@ -175,10 +176,10 @@ def trajectory_conditions(model: GanimatorModel, traj: Tensor, n_frames: int) ->
     return [resample(traj, L, 1.0 / r) if L != n_frames else traj for L, r in zip(lengths, rates)]
 
 
-def load_trajectory(model: GanimatorModel, path: str | Path) -> Tensor:
-    """Root trajectory (root motion + root rotation entities) of a BVH, ``(1, 6, 2, T)``."""
+def load_trajectory(model: GanimatorModel, path: str | Path) -> tuple[Tensor, Tensor]:
+    """Root trajectory (root motion + root rotation entities) of a BVH ``(1, 6, 2, T)`` and its start position."""
     clip = load_sequence(path, model.cfg, like=model.seqs[0])
-    return clip.features[:, model.cond_entities].unsqueeze(0).to(model.device)
+    return clip.features[:, model.cond_entities].unsqueeze(0).to(model.device), clip.root_start
 
 
 def sample_trajectory(model: GanimatorModel, n_frames: int, seed: int = 0) -> Tensor:
@@ -365,12 +366,15 @@ def generate_command(args) -> dict:
         raise UserError("use only one of --content, --keyframes, --trajectory")
     gen = torch.Generator().manual_seed(args.seed)
     samples: list[Tensor] = []
+    start = None  # root position of frame 0: the input's for content / key-frames / trajectories
     extra: dict = {}
     if args.content:
+        start = load_sequence(args.content, model.cfg, like=seq).root_start
         for i in range(args.n):
             samples.append(style_transfer(model, args.content, seed=args.seed + i)[0])
         extra["mode"] = "style transfer"
     elif args.keyframes:
+        start = load_sequence(args.keyframes, model.cfg, like=seq).root_start
         for i in range(args.n):
             samples.append(keyframe_edit(model, args.keyframes, args.frames, seed=args.seed + i)[0])
         extra["mode"] = "key-frame editing"
@@ -378,8 +382,10 @@ def generate_command(args) -> dict:
         if not model.cond_entities:
             raise UserError("--trajectory needs a trajectory-conditioned run (train with --conditional-from RUN)")
         for i in range(args.n):
-            traj = load_trajectory(model, args.trajectory) if args.trajectory else \
-                sample_trajectory(model, args.frames or seq.n_frames, seed=args.seed + i)
+            if args.trajectory:
+                traj, start = load_trajectory(model, args.trajectory)
+            else:
+                traj = sample_trajectory(model, args.frames or seq.n_frames, seed=args.seed + i)
             if args.stream:
                 st = TrajectoryStream(model, seed=args.seed + i, fine_noise=args.fine_noise)
                 parts = [st.extend(traj[..., s:s + args.stream]) for s in range(0, traj.shape[-1], args.stream)]
@@ -397,7 +403,7 @@ def generate_command(args) -> dict:
     cols = max(1, math.ceil(math.sqrt(len(samples))))
     positions, contact_masks, written = [], [], []
     for i, s in enumerate(samples):
-        quats, root, contacts = decode(model, s)
+        quats, root, contacts = decode(model, s, root_start=start)
         if args.ik:
             quats, root = fix_contacts(seq, quats, root, contacts)
         if len(samples) > 1:  # a crowd: place motions on a grid

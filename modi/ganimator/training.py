@@ -252,8 +252,10 @@ class Trainer:
         if names != [c.name for c in self.clips] or p["lengths"] != self.model.lengths:
             raise CheckpointError(f"{self.ckpt} holds a run on {', '.join(names)}; use another --out to start anew")
         saved_cfg = GanimatorConfig.from_dict(p["config"])
-        if saved_cfg.to_dict() != self.cfg.to_dict():
-            diff = [k for k, v in saved_cfg.to_dict().items() if self.cfg.to_dict().get(k) != v]
+        # the schedule length (and where to run / how often to save) may change on resume; the model may not
+        free = {"iterations", "checkpoint_every", "device"}
+        diff = [k for k, v in saved_cfg.to_dict().items() if k not in free and self.cfg.to_dict().get(k) != v]
+        if diff:
             raise CheckpointError(f"{self.ckpt} was trained with other settings ({', '.join(diff)}); "
                                   "use another --out to start anew")
         m = self.model
@@ -355,6 +357,7 @@ class Trainer:
                        desc=f"levels {levels[0]}-{levels[-1]} / {model.n_levels}", leave=True, mininterval=2.0)
             t_block = time.time()
             t_save = time.time()
+            losses: dict[str, float] = {}
             while self.state["iteration"] < cfg.iterations:
                 losses = self._iteration(levels, M, n_sub, cached_prev)
                 self.state["iteration"] += 1
@@ -379,8 +382,8 @@ class Trainer:
                     return model
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
-            self.state["history"].append({"block": b, "levels": levels, **{k: float(v) for k, v in losses.items()}}
-                                         if cfg.iterations else {"block": b, "levels": levels})
+            self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
+                                          **({k: float(v) for k, v in losses.items()} if cfg.iterations else {})})
             self.state["block"] += 1
             self.state["iteration"] = 0
             self.state["levels_done"] = levels[-1] + 1

@@ -83,9 +83,9 @@ def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.0
         for i in range(steps + 1):
             pred = g.synthesis(wplus, noise_mode="const")
             total, rec, fk = inversion_loss(codec, pred, target, lambda_fk, scale, target_pos)
-            res.history.append(float(total.mean()))
-            res.rec.append(float(rec.mean()))
-            res.fk.append(float(fk.mean()))
+            res.history.append(float(total.detach().mean()))
+            res.rec.append(float(rec.detach().mean()))
+            res.fk.append(float(fk.detach().mean()))
             if callback is not None:
                 callback(i, res.history[-1])
             if i == steps:

@@ -55,7 +55,8 @@ class DataConfig:
     rotation: str = "quaternion"  # "quaternion" (MoDi) | "positions" (ablation: joint positions instead of rotations)
     root: str = "velocity"  # "velocity" (CVPR MoDi) | "position" (ablation, paper Table 6)
     feet: list[str] | None = None  # foot joint names; None = detect by name
-    joints: list[str] | None = None  # keep only these joints (None = all)
+    drop_patterns: list[str] | None = None  # joint-name regexes to drop; None = fingers/face (modi.dataset default)
+    keep_joints: list[str] | None = None  # joints never dropped
 
     def validate(self) -> None:
         if self.rotation not in ("quaternion", "positions"):
@@ -135,11 +136,14 @@ class MoDiConfig:
             return sub_cls(**values)
 
         model = dict(d.get("model", {}))
+        data = dict(d.get("data", {}))
+        if "joints" in data:  # early drafts called keep_joints "joints"
+            data.setdefault("keep_joints", data.pop("joints"))
         if "channels" in model:
             model["channels"] = tuple(int(c) for c in model["channels"])
         return cls(
             model=build(ModelConfig, model),
-            data=build(DataConfig, dict(d.get("data", {}))),
+            data=build(DataConfig, data),
             train=build(TrainConfig, dict(d.get("train", {}))),
             preset=str(d.get("preset", "custom")),
         ).validate()

@@ -183,7 +183,8 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
 
 
 def render_gif(codec: Any, positions: Sequence[np.ndarray], contacts: Sequence[np.ndarray] | None,
-               path: str | os.PathLike, titles: Sequence[str] | None = None, size: tuple[int, int] = (200, 200)) -> Path:
+               path: str | os.PathLike, titles: Sequence[str] | None = None,
+               size: tuple[int, int] = (200, 200)) -> Path:
     """Stick-figure GIF grid of global positions with the feet drawn red while labelled in contact."""
     from modi.render import render_positions
 

@@ -156,7 +156,8 @@ def _dataset_config(cfg: MoDiConfig) -> Any:
     from modi.dataset import DatasetConfig
 
     return DatasetConfig(fps=cfg.data.fps, window=cfg.data.n_frames, stride=cfg.data.stride, root=cfg.data.root,
-                         rotation="quat", feet=cfg.data.feet, keep_joints=cfg.data.joints)
+                         rotation="quat", feet=cfg.data.feet, drop_patterns=cfg.data.drop_patterns,
+                         keep_joints=cfg.data.keep_joints)
 
 
 def write_procedural_data(out_dir: str | os.PathLike, n_clips: int = 48, frames: int = 160, seed: int = 0,
@@ -243,6 +244,9 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
             torch.save(obj, fh)
             fh.flush()
             os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -1,0 +1,462 @@
+// CUDA kernels of modi_ext::fk (semantics: csrc/fk.h, mirrored from csrc/cpu/fk_cpu.cpp).
+//
+// One thread per sample (flattened batch x time) walks the joints root to leaf (forward) or leaf to root
+// (backward).  The parent list travels by value in the kernel parameters (no host-to-device copy, so the op can be
+// captured in a CUDA graph) and is staged in shared memory with the offsets.  Each thread keeps the running state of
+// its walk (forward: global rotation + position per joint; backward: accumulated rotation + position gradient per
+// joint), 7 values per joint in fp32 (fp64 for double):
+//   * in shared memory, laid out [joint][component][thread] (conflict-free), when it fits in 48 KB for a block of
+//     128, 64 or 32 threads;
+//   * else in a global workspace of N * J * 7 accumulator values (bounded by the size of the outputs x 7/3).
+// The offsets gradient is reduced without atomics: per warp (shuffles) into a workspace of
+// J * 3 * (number of warps) accumulator values, then one block per offset component sums the warps.
+#include <torch/library.h>
+
+#include <ATen/ATen.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <cuda_runtime.h>
+
+#include <vector>
+
+#include "cuda_common.cuh"
+#include "fk.h"
+
+namespace modi_ext {
+namespace {
+
+using cuda::acc_t;
+using cuda::ceil_div;
+using cuda::ld;
+using cuda::st;
+
+constexpr int kMaxJoints = 1024;
+constexpr size_t kSmemBudget = 48 * 1024;
+
+struct FkParents {
+  int J;
+  int16_t p[kMaxJoints];
+};
+
+// ---- quaternion helpers (w, x, y, z) ----
+template <typename A>
+__device__ __forceinline__ void qmul(const A* a, const A* b, A* out) {
+  out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+  out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+  out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+  out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+// out = v + 2w (u x v) + 2 u x (u x v); passing -u applies the transpose of that linear map.
+template <typename A>
+__device__ __forceinline__ void qrot(A w, A ux, A uy, A uz, const A* v, A* out) {
+  const A tx = A(2) * (uy * v[2] - uz * v[1]);
+  const A ty = A(2) * (uz * v[0] - ux * v[2]);
+  const A tz = A(2) * (ux * v[1] - uy * v[0]);
+  out[0] = v[0] + w * tx + (uy * tz - uz * ty);
+  out[1] = v[1] + w * ty + (uz * tx - ux * tz);
+  out[2] = v[2] + w * tz + (ux * ty - uy * tx);
+}
+
+// Dynamic shared memory: [state (kSmem only): J * 7 * threads][offsets: J * 3] (accumulator type), [parents: J].
+template <typename A>
+struct FkSmem {
+  A* state;
+  A* off;
+  int16_t* par;
+};
+
+template <typename T, bool kSmem>
+__device__ __forceinline__ FkSmem<acc_t<T>> stage_topology(const T* off, const FkParents& par) {
+  using A = acc_t<T>;
+  extern __shared__ __align__(16) unsigned char fk_smem_raw[];
+  const int J = par.J, nt = blockDim.x;
+  FkSmem<A> s;
+  s.state = reinterpret_cast<A*>(fk_smem_raw);
+  s.off = s.state + (kSmem ? int64_t(J) * 7 * nt : 0);
+  s.par = reinterpret_cast<int16_t*>(s.off + 3 * J);
+  for (int j = threadIdx.x; j < J; j += nt) s.par[j] = par.p[j];
+  for (int j = threadIdx.x; j < 3 * J; j += nt) s.off[j] = ld(off + j);
+  __syncthreads();
+  return s;
+}
+
+// ---- forward ----
+template <typename T, bool kSmem>
+__global__ void fk_forward_kernel(const T* __restrict__ lq, const T* __restrict__ off, const T* __restrict__ root,
+                                  T* __restrict__ pos, T* __restrict__ gq, acc_t<T>* __restrict__ ws, int64_t N,
+                                  const FkParents par) {
+  using A = acc_t<T>;
+  const FkSmem<A> sm = stage_topology<T, kSmem>(off, par);
+  const int J = par.J, nt = blockDim.x;
+  const int64_t n = int64_t(blockIdx.x) * nt + threadIdx.x;
+  if (n >= N) return;  // no barrier below
+  A* S;
+  int64_t sj, sc;  // state (joint j, component c) at S[j * sj + c * sc]: rotation c = 0..3, position c = 4..6
+  if constexpr (kSmem) {
+    S = sm.state + threadIdx.x;
+    sc = nt;
+    sj = int64_t(7) * nt;
+  } else {
+    S = ws + n * J * 7;
+    sc = 1;
+    sj = 7;
+  }
+  const T* q = lq + n * J * 4;
+  T* Qo = gq + n * J * 4;
+  T* Po = pos + n * J * 3;
+#pragma unroll
+  for (int c = 0; c < 4; ++c) {
+    const A v = ld(q + c);
+    S[c * sc] = v;
+    st(Qo + c, v);
+  }
+#pragma unroll
+  for (int c = 0; c < 3; ++c) {
+    const A v = ld(root + n * 3 + c);
+    S[(4 + c) * sc] = v;
+    st(Po + c, v);
+  }
+  A qn[4] = {A(0), A(0), A(0), A(0)};
+  if (J > 1) {
+#pragma unroll
+    for (int c = 0; c < 4; ++c) qn[c] = ld(q + 4 + c);
+  }
+  for (int j = 1; j < J; ++j) {
+    A qj[4];
+#pragma unroll
+    for (int c = 0; c < 4; ++c) qj[c] = qn[c];
+    if (j + 1 < J) {  // prefetch the next local rotation: it does not depend on the walk
+#pragma unroll
+      for (int c = 0; c < 4; ++c) qn[c] = ld(q + (j + 1) * 4 + c);
+    }
+    const int p = sm.par[j];
+    const A* Sp = S + p * sj;
+    A Qp[4], Pp[3];
+#pragma unroll
+    for (int c = 0; c < 4; ++c) Qp[c] = Sp[c * sc];
+#pragma unroll
+    for (int c = 0; c < 3; ++c) Pp[c] = Sp[(4 + c) * sc];
+    A Q[4], r[3];
+    qmul(Qp, qj, Q);
+    qrot(Qp[0], Qp[1], Qp[2], Qp[3], sm.off + 3 * j, r);
+    A* Sj = S + j * sj;
+#pragma unroll
+    for (int c = 0; c < 4; ++c) {
+      Sj[c * sc] = Q[c];
+      st(Qo + j * 4 + c, Q[c]);
+    }
+#pragma unroll
+    for (int c = 0; c < 3; ++c) {
+      const A v = Pp[c] + r[c];
+      Sj[(4 + c) * sc] = v;
+      st(Po + j * 3 + c, v);
+    }
+  }
+}
+
+// ---- backward ----
+// For P[j] = P[p] + A(Q[p], o), A = o + 2w (u x o) + 2u (u.o) - 2o (u.u):
+//   dL/dw += 2 g.(u x o);   dL/du += 2w (o x g) + 2 (u.o) g + 2 (g.u) o - 4 (g.o) u;   dL/do += A((w, -u), g)
+// and for Q[j] = Q[p] (x) q[j]:  dL/dq[j] = conj(Q[p]) (x) G,  dL/dQ[p] += G (x) conj(q[j]).
+// State: accumulated rotation gradient (c = 0..3) and position gradient (c = 4..6) per joint.
+template <typename T, bool kSmem>
+__global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restrict__ ggq, const T* __restrict__ lq,
+                                   const T* __restrict__ gq, const T* __restrict__ off, T* __restrict__ glq,
+                                   T* __restrict__ groot, acc_t<T>* __restrict__ goff_part, int64_t n_warps,
+                                   acc_t<T>* __restrict__ ws, int64_t N, const FkParents par) {
+  using A = acc_t<T>;
+  const FkSmem<A> sm = stage_topology<T, kSmem>(off, par);
+  const int J = par.J, nt = blockDim.x;
+  const int64_t gt = int64_t(blockIdx.x) * nt + threadIdx.x;
+  const bool active = gt < N;  // inactive lanes stay for the warp shuffles of the offsets gradient
+  const int64_t n = active ? gt : 0;
+  const int64_t warp = gt >> 5;
+  const int lane = threadIdx.x & 31;
+  A* S;
+  int64_t sj, sc;
+  if constexpr (kSmem) {
+    S = sm.state + threadIdx.x;
+    sc = nt;
+    sj = int64_t(7) * nt;
+  } else {
+    S = ws + n * J * 7;
+    sc = 1;
+    sj = 7;
+  }
+  if (active) {
+    for (int j = 0; j < J; ++j) {
+      A* Sj = S + j * sj;
+#pragma unroll
+      for (int c = 0; c < 4; ++c) Sj[c * sc] = ggq ? ld(ggq + (n * J + j) * 4 + c) : A(0);
+#pragma unroll
+      for (int c = 0; c < 3; ++c) Sj[(4 + c) * sc] = ld(gpos + (n * J + j) * 3 + c);
+    }
+  }
+  for (int j = J - 1; j >= 1; --j) {
+    A r[3] = {A(0), A(0), A(0)};
+    if (active) {
+      const int p = sm.par[j];
+      const T* Qg = gq + (n * J + p) * 4;
+      const A w = ld(Qg), ux = ld(Qg + 1), uy = ld(Qg + 2), uz = ld(Qg + 3);
+      const A* o = sm.off + 3 * j;
+      A* Sj = S + j * sj;
+      A* Sp = S + p * sj;
+      const A gx = Sj[4 * sc], gy = Sj[5 * sc], gz = Sj[6 * sc];
+      Sp[4 * sc] += gx;
+      Sp[5 * sc] += gy;
+      Sp[6 * sc] += gz;
+      // position term -> gradient of Q[p]
+      const A uxo_x = uy * o[2] - uz * o[1], uxo_y = uz * o[0] - ux * o[2], uxo_z = ux * o[1] - uy * o[0];
+      const A oxg_x = o[1] * gz - o[2] * gy, oxg_y = o[2] * gx - o[0] * gz, oxg_z = o[0] * gy - o[1] * gx;
+      const A u_o = ux * o[0] + uy * o[1] + uz * o[2];
+      const A g_u = gx * ux + gy * uy + gz * uz;
+      const A g_o = gx * o[0] + gy * o[1] + gz * o[2];
+      A gQp[4];
+      gQp[0] = A(2) * (gx * uxo_x + gy * uxo_y + gz * uxo_z);
+      gQp[1] = A(2) * (w * oxg_x + u_o * gx + g_u * o[0]) - A(4) * g_o * ux;
+      gQp[2] = A(2) * (w * oxg_y + u_o * gy + g_u * o[1]) - A(4) * g_o * uy;
+      gQp[3] = A(2) * (w * oxg_z + u_o * gz + g_u * o[2]) - A(4) * g_o * uz;
+      if (goff_part) {
+        const A g[3] = {gx, gy, gz};
+        qrot(w, -ux, -uy, -uz, g, r);
+      }
+      // rotation term
+      const A G[4] = {Sj[0], Sj[sc], Sj[2 * sc], Sj[3 * sc]};
+      const T* qj = lq + (n * J + j) * 4;
+      const A qc[4] = {ld(qj), -ld(qj + 1), -ld(qj + 2), -ld(qj + 3)};  // conj(q[j])
+      const A Qc[4] = {w, -ux, -uy, -uz};                                // conj(Q[p])
+      A out[4], t[4];
+      qmul(Qc, G, out);
+      qmul(G, qc, t);
+      T* go = glq + (n * J + j) * 4;
+#pragma unroll
+      for (int c = 0; c < 4; ++c) {
+        st(go + c, out[c]);
+        Sp[c * sc] += gQp[c] + t[c];
+      }
+    }
+    if (goff_part) {  // uniform branch: every lane of the warp takes part
+#pragma unroll
+      for (int c = 0; c < 3; ++c) {
+        const A v = cuda::warp_sum(r[c]);
+        if (lane == 0) goff_part[int64_t(3 * j + c) * n_warps + warp] = v;
+      }
+    }
+  }
+  if (goff_part && lane == 0) {
+#pragma unroll
+    for (int c = 0; c < 3; ++c) goff_part[int64_t(c) * n_warps + warp] = A(0);  // joint 0 has no offset term
+  }
+  if (active) {
+#pragma unroll
+    for (int c = 0; c < 4; ++c) st(glq + n * J * 4 + c, S[c * sc]);
+#pragma unroll
+    for (int c = 0; c < 3; ++c) st(groot + n * 3 + c, S[(4 + c) * sc]);
+  }
+}
+
+// goff[e] = sum_w part[e * n_warps + w], one block per offset component e.
+template <typename T>
+__global__ void fk_offsets_reduce_kernel(const acc_t<T>* __restrict__ part, int64_t n_warps, T* __restrict__ goff) {
+  using A = acc_t<T>;
+  __shared__ A scratch[32];
+  const A* row = part + int64_t(blockIdx.x) * n_warps;
+  A s = A(0);
+  for (int64_t w = threadIdx.x; w < n_warps; w += blockDim.x) s += row[w];
+  s = cuda::block_sum(s, scratch);
+  if (threadIdx.x == 0) st(goff + blockIdx.x, s);
+}
+
+// ---- host side ----
+FkParents make_parents(at::IntArrayRef parents, int64_t J) {
+  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
+              " entries but local_quats has ", J, " joints (dim -2)");
+  TORCH_CHECK(J >= 1 && parents[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
+  TORCH_CHECK(J <= kMaxJoints, "modi_ext::fk: the CUDA kernel supports at most ", kMaxJoints, " joints, got ", J);
+  FkParents par{};
+  par.J = static_cast<int>(J);
+  par.p[0] = -1;
+  for (int64_t j = 1; j < J; ++j) {
+    TORCH_CHECK(parents[j] >= 0 && parents[j] < j, "modi_ext::fk: parents[", j, "] = ", parents[j],
+                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
+    par.p[j] = static_cast<int16_t>(parents[j]);
+  }
+  return par;
+}
+
+void check_tensor(const at::Tensor& t, const char* name, const at::Tensor& ref) {
+  TORCH_CHECK(t.defined(), "modi_ext::fk: ", name, " is undefined");
+  TORCH_CHECK(t.device() == ref.device(), "modi_ext::fk: ", name, " is on ", t.device(), " but local_quats is on ",
+              ref.device());
+  TORCH_CHECK(t.scalar_type() == ref.scalar_type(), "modi_ext::fk: ", name, " has dtype ", t.scalar_type(),
+              ", expected ", ref.scalar_type(), " (same as local_quats)");
+  TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
+}
+
+struct Dims {
+  int64_t N, J;
+};
+
+Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, at::IntArrayRef root_sizes) {
+  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
+              "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
+              local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
+  TORCH_CHECK(local_quats.is_cuda(), "modi_ext::fk: local_quats must be a CUDA tensor for the CUDA kernel, got ",
+              local_quats.device());
+  TORCH_CHECK(cuda::is_cuda_float(local_quats.scalar_type()),
+              "modi_ext::fk: local_quats must be float32, float64, float16 or bfloat16, got ",
+              local_quats.scalar_type());
+  TORCH_CHECK(local_quats.is_contiguous(), "modi_ext::fk: local_quats must be contiguous");
+  const int64_t J = local_quats.size(-2);
+  TORCH_CHECK(J >= 1, "modi_ext::fk: local_quats has no joints");
+  TORCH_CHECK(local_quats.numel() > 0, "modi_ext::fk: local_quats is empty (shape ", local_quats.sizes(), ")");
+  check_tensor(offsets, "offsets", local_quats);
+  TORCH_CHECK(offsets.dim() == 2 && offsets.size(0) == J && offsets.size(1) == 3,
+              "modi_ext::fk: offsets must have shape (J, 3) = (", J, ", 3), got ", offsets.sizes());
+  const auto lead = local_quats.sizes().slice(0, local_quats.dim() - 2);
+  TORCH_CHECK(root_sizes.size() == lead.size() + 1 && root_sizes.back() == 3 &&
+                  root_sizes.slice(0, root_sizes.size() - 1) == lead,
+              "modi_ext::fk: root_positions must have shape local_quats.shape[:-2] + (3,), got ", root_sizes,
+              " for local_quats ", local_quats.sizes());
+  const int64_t N = local_quats.numel() / (J * 4);
+  TORCH_CHECK(ceil_div(N, 32) < (int64_t(1) << 31), "modi_ext::fk: too many samples for the CUDA kernel: ", N);
+  return {N, J};
+}
+
+struct Plan {
+  int threads;
+  bool smem_state;
+  size_t smem_bytes;
+};
+
+// Largest block (128 / 64 / 32 threads) whose per-thread walk state fits in shared memory; else a global workspace.
+Plan plan_launch(int64_t J, size_t acc_bytes) {
+  const size_t fixed = static_cast<size_t>(J) * 3 * acc_bytes + static_cast<size_t>(J) * sizeof(int16_t);
+  for (int t : {128, 64, 32}) {
+    const size_t bytes = fixed + static_cast<size_t>(t) * J * 7 * acc_bytes;
+    if (bytes <= kSmemBudget) return {t, true, bytes};
+  }
+  return {128, false, fixed};
+}
+
+std::vector<int64_t> root_shape_of(const at::Tensor& local_quats) {
+  std::vector<int64_t> s(local_quats.sizes().begin(), local_quats.sizes().end() - 1);
+  s.back() = 3;
+  return s;
+}
+
+std::tuple<at::Tensor, at::Tensor> fk_cuda(const at::Tensor& local_quats, const at::Tensor& offsets,
+                                           at::IntArrayRef parents, const at::Tensor& root_positions) {
+  TORCH_CHECK(root_positions.defined(), "modi_ext::fk: root_positions is undefined");
+  const Dims d = check_inputs(local_quats, offsets, root_positions.sizes());
+  check_tensor(root_positions, "root_positions", local_quats);
+  const FkParents par = make_parents(parents, d.J);
+  const c10::cuda::CUDAGuard guard(local_quats.device());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
+  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
+  pos_shape.back() = 3;
+  at::Tensor positions = at::empty(pos_shape, local_quats.options());
+  at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
+  const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());
+  const Plan plan = plan_launch(d.J, c10::elementSize(acc_type));
+  at::Tensor ws;
+  if (!plan.smem_state) ws = at::empty({d.N * d.J * 7}, local_quats.options().dtype(acc_type));
+  const unsigned blocks = static_cast<unsigned>(ceil_div(d.N, plan.threads));
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, local_quats.scalar_type(), "modi_ext::fk_cuda", [&] {
+    using T = scalar_t;
+    using A = acc_t<T>;
+    A* wsp = ws.defined() ? ws.data_ptr<A>() : nullptr;
+    if (plan.smem_state) {
+      fk_forward_kernel<T, true><<<blocks, plan.threads, plan.smem_bytes, stream>>>(
+          local_quats.data_ptr<T>(), offsets.data_ptr<T>(), root_positions.data_ptr<T>(), positions.data_ptr<T>(),
+          global_quats.data_ptr<T>(), wsp, d.N, par);
+    } else {
+      fk_forward_kernel<T, false><<<blocks, plan.threads, plan.smem_bytes, stream>>>(
+          local_quats.data_ptr<T>(), offsets.data_ptr<T>(), root_positions.data_ptr<T>(), positions.data_ptr<T>(),
+          global_quats.data_ptr<T>(), wsp, d.N, par);
+    }
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  });
+  return {positions, global_quats};
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
+    const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
+    const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
+    at::IntArrayRef parents, bool offsets_grad) {
+  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2, "modi_ext::fk_backward: local_quats must have shape "
+              "(..., J, 4)");
+  const std::vector<int64_t> root_shape = root_shape_of(local_quats);
+  const Dims d = check_inputs(local_quats, offsets, root_shape);
+  const FkParents par = make_parents(parents, d.J);
+  TORCH_CHECK(global_quats.defined() && global_quats.sizes() == local_quats.sizes(),
+              "modi_ext::fk_backward: global_quats must have the shape of local_quats");
+  check_tensor(global_quats, "global_quats", local_quats);
+  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
+  pos_shape.back() = 3;
+  TORCH_CHECK(grad_positions.defined() && grad_positions.sizes() == at::IntArrayRef(pos_shape),
+              "modi_ext::fk_backward: grad_positions must have shape ", at::IntArrayRef(pos_shape), ", got ",
+              grad_positions.defined() ? grad_positions.sizes() : at::IntArrayRef{});
+  TORCH_CHECK(grad_positions.device() == local_quats.device() &&
+                  grad_positions.scalar_type() == local_quats.scalar_type(),
+              "modi_ext::fk_backward: grad_positions must be a ", local_quats.scalar_type(), " tensor on ",
+              local_quats.device());
+  const at::Tensor gpos = grad_positions.contiguous();
+  at::Tensor ggq;
+  if (grad_global_quats.has_value() && grad_global_quats->defined()) {
+    TORCH_CHECK(grad_global_quats->device() == local_quats.device() &&
+                    grad_global_quats->scalar_type() == local_quats.scalar_type() &&
+                    grad_global_quats->sizes() == local_quats.sizes(),
+                "modi_ext::fk_backward: grad_global_quats must be a ", local_quats.scalar_type(), " tensor on ",
+                local_quats.device(), " of shape ", local_quats.sizes());
+    ggq = grad_global_quats->contiguous();
+  }
+  const c10::cuda::CUDAGuard guard(local_quats.device());
+  const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
+  at::Tensor grad_local = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
+  at::Tensor grad_root = at::empty(root_shape, local_quats.options());
+  at::Tensor grad_off = offsets_grad ? at::empty({d.J, 3}, local_quats.options())
+                                     : at::zeros({d.J, 3}, local_quats.options());
+  const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());
+  const Plan plan = plan_launch(d.J, c10::elementSize(acc_type));
+  at::Tensor ws;
+  if (!plan.smem_state) ws = at::empty({d.N * d.J * 7}, local_quats.options().dtype(acc_type));
+  const int64_t blocks = ceil_div(d.N, plan.threads);
+  const int64_t n_warps = blocks * plan.threads / 32;
+  at::Tensor part;
+  if (offsets_grad) part = at::empty({d.J * 3 * n_warps}, local_quats.options().dtype(acc_type));
+  AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, local_quats.scalar_type(), "modi_ext::fk_backward_cuda",
+                                  [&] {
+    using T = scalar_t;
+    using A = acc_t<T>;
+    A* wsp = ws.defined() ? ws.data_ptr<A>() : nullptr;
+    A* pp = part.defined() ? part.data_ptr<A>() : nullptr;
+    const T* ggq_p = ggq.defined() ? ggq.data_ptr<T>() : nullptr;
+    if (plan.smem_state) {
+      fk_backward_kernel<T, true><<<static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes, stream>>>(
+          gpos.data_ptr<T>(), ggq_p, local_quats.data_ptr<T>(), global_quats.data_ptr<T>(), offsets.data_ptr<T>(),
+          grad_local.data_ptr<T>(), grad_root.data_ptr<T>(), pp, n_warps, wsp, d.N, par);
+    } else {
+      fk_backward_kernel<T, false><<<static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes, stream>>>(
+          gpos.data_ptr<T>(), ggq_p, local_quats.data_ptr<T>(), global_quats.data_ptr<T>(), offsets.data_ptr<T>(),
+          grad_local.data_ptr<T>(), grad_root.data_ptr<T>(), pp, n_warps, wsp, d.N, par);
+    }
+    C10_CUDA_KERNEL_LAUNCH_CHECK();
+    if (offsets_grad) {
+      fk_offsets_reduce_kernel<T><<<static_cast<unsigned>(d.J * 3), 256, 0, stream>>>(pp, n_warps,
+                                                                                       grad_off.data_ptr<T>());
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    }
+  });
+  return {grad_local, grad_root, grad_off};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_IMPL(modi_ext, CUDA, m) {
+  m.impl("fk", &fk_cuda);
+  m.impl("fk_backward", &fk_backward_cuda);
+}
+
+}  // namespace modi_ext
