@@ -201,7 +201,7 @@ def _fix(motion_rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, f
     root_scale = 1e-2 * scale
     lam = (1e-4 * scale) ** 2
     lam_soft = (1e-2 * scale) ** 2  # heavier: a soft target the pinned feet forbid must not cause huge steps
-    eye_r, eye_p = torch.eye(3 * F, dtype=torch.float64), torch.eye(P, dtype=torch.float64)
+    eye_r = torch.eye(3 * F, dtype=torch.float64)
     hard_rows = hard.repeat_interleave(3, dim=1).to(torch.float64)[..., None]  # (A, 3F, 1)
     soft_rows = soft.repeat_interleave(3, dim=1).to(torch.float64)[..., None]
     rot_cols = torch.cat((torch.ones(3 * S), torch.zeros(P - 3 * S))).to(torch.float64)[None, None, :]
@@ -217,7 +217,7 @@ def _fix(motion_rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, f
 
     def solve(sub_rot: Tensor, sub_root: Tensor, move_root: bool) -> tuple[Tensor, Tensor, float]:
         """Iterate to convergence; returns the new rotations, root and the largest pinned-foot error."""
-        hard_err = 0.0
+        hard_err, prev_soft = 0.0, float("inf")
         sub_rot, sub_root = sub_rot.clone(), sub_root.clone()
         for _ in range(max_iters):
             pos, gq = fk(sub_rot, offsets, parents, sub_root, return_rotations=True)
@@ -241,7 +241,8 @@ def _fix(motion_rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, f
             # pinned feet's Jacobian restricted to the rotations.
             j1r = j1 * rot_cols
             _unused, pinv1r = dls(j1r, hard_rows * e, lam)
-            j2 = (soft_rows * jac * rot_cols) @ (eye_p - pinv1r @ j1r)
+            j2 = soft_rows * jac * rot_cols
+            j2 = j2 - (j2 @ pinv1r) @ j1r  # J2 (I - J1r^+ J1r) without forming the P x P projector
             dx2, _unused = dls(j2, soft_rows * (e - jac @ dx), lam_soft)
             dx = dx + dx2
             step = 0.0
@@ -259,8 +260,10 @@ def _fix(motion_rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, f
                 droot = root_scale * dx[:, 3 * S :, 0]
                 sub_root = sub_root + droot
                 step = max(step, float(droot.abs().max()))
-            if hard_err <= tol and step <= 1e-2 * tol:  # soft targets in conflict have settled
+            # Done once the pins hold and the blend targets have settled (met, or as close as the pins allow).
+            if hard_err <= tol and (step <= 1e-2 * tol or prev_soft - soft_err <= max(1e-2 * tol, 1e-3 * soft_err)):
                 break
+            prev_soft = soft_err
         return sub_rot, sub_root, hard_err
 
     sub_rot, sub_root, _err = solve(rot[frames], root[frames], adjust_root)

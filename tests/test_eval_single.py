@@ -22,7 +22,7 @@ def _source(n: int = 240, joints: int = 6, seed: int = 0) -> torch.Tensor:
     steps = rng.normal(scale=0.15, size=(n, joints, 3))  # ~ a brisk motion at 30 fps
     rotvec = np.cumsum(steps, axis=0)
     mats = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(n, joints, 3, 3)
-    return rotation_features(torch.from_numpy(mats))
+    return rotation_features(torch.from_numpy(mats), "matrix")
 
 
 def _brute_windows(g: np.ndarray, s: np.ndarray, T: int) -> np.ndarray:
@@ -53,7 +53,8 @@ def test_frame_distance_is_the_frobenius_norm_of_rotation_differences():
     ident = np.broadcast_to(np.eye(3), (1, 2, 3, 3)).copy()
     rx = ident.copy()
     rx[0, 1] = Rotation.from_rotvec([theta, 0, 0]).as_matrix()
-    full = window_distances(rotation_features(torch.from_numpy(ident)), rotation_features(torch.from_numpy(rx)), 1)
+    full = window_distances(rotation_features(torch.from_numpy(ident), "matrix"),
+                            rotation_features(torch.from_numpy(rx), "matrix"), 1)
     # |R - I|_F^2 = 4 (1 - cos theta) for any axis
     assert full.item() == pytest.approx(np.sqrt(4 * (1 - np.cos(theta))), rel=1e-12)
     # first two rows only (authors' 6-D): rotation about x leaves row 0 unchanged -> 2 (1 - cos theta)
@@ -116,7 +117,7 @@ def test_threshold_is_applied_to_the_per_frame_mean():
     a = 2 * np.arcsin(1.0 / (2 * np.sqrt(2)))  # gives distance exactly 1.0
     q = Rotation.from_rotvec([0, 0, a]).as_matrix()
     mats = src.reshape(100, 1, 3, 3).numpy()
-    gen = rotation_features(torch.from_numpy(q @ mats))
+    gen = rotation_features(torch.from_numpy(q @ mats), "matrix")
     assert coverage(gen, src, threshold=1.0 + 1e-6) == 1.0
     assert coverage(gen, src, threshold=1.0 - 1e-6) < 1.0
 

@@ -286,3 +286,12 @@ def test_cli_train_resume_generate(proc_dir, tmp_path, capsys):
     assert main(["generate", str(junk), "--n", "1", "--out", str(out)]) == 2
     assert "modi: error:" in capsys.readouterr().err
     assert main(["train", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r2")]) == 2
+
+
+def test_cli_demo_runs_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--iters", "1", "--clips", "3", "--n", "2", "--no-progress"]) == 0
+    assert len(list((out / "samples").glob("*.bvh"))) == 2
+    assert (out / "samples" / "samples.gif").is_file() and (out / "training_examples.gif").is_file()
+    assert load_checkpoint(out / "run" / "checkpoint.pt")["step"] == 1
+    assert main(["demo", "--out", str(out), "--iters", "1"]) == 2  # refuses to overwrite a finished demo

@@ -23,6 +23,7 @@ void sgemm_(const char* transa, const char* transb, const int* m, const int* n, 
 void dgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const double* alpha,
             const double* a, const int* lda, const double* b, const int* ldb, const double* beta, double* c,
             const int* ldc) __attribute__((weak));
+int MKL_Set_Num_Threads_Local(int nt) __attribute__((weak));  // MKL's C entry (the lowercase one is Fortran)
 }
 
 namespace modi_ext {
@@ -69,9 +70,30 @@ void gemm(bool ta, bool tb, int64_t M, int64_t N, int64_t K, T alpha, const T* A
   gemm_fallback<T>(ta, tb, M, N, K, alpha, A, lda, B, ldb, beta, C, ldc);
 }
 
+// Our tasks already fill the machine: every BLAS call must run on the calling thread alone.  MKL would otherwise
+// start its own team for calls made outside an OpenMP region (the serial path for small problems), which costs
+// far more than these small products.  The setting is per thread; the guard restores it.
+struct BlasSequential {
+  int prev = -1;
+  BlasSequential() {
+    if (MKL_Set_Num_Threads_Local != nullptr) prev = MKL_Set_Num_Threads_Local(1);
+  }
+  ~BlasSequential() {
+    if (MKL_Set_Num_Threads_Local != nullptr && prev >= 0) MKL_Set_Num_Threads_Local(prev);
+  }
+  BlasSequential(const BlasSequential&) = delete;
+  BlasSequential& operator=(const BlasSequential&) = delete;
+};
+
 // ------------------------------------------------------------------------------------------------ time maps
 inline int64_t mirror(int64_t q, int64_t L) { return q < 0 ? -q : (q >= L ? 2 * (L - 1) - q : q); }
 inline int64_t ceil_div_pos(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+// Threads only pay off above some work: waking a pool costs microseconds (milliseconds on a loaded machine).
+constexpr double kSerialMacs = 1.0e6;
+constexpr int64_t kSerialElems = 1 << 16;
+inline int64_t task_grain(int64_t n_tasks, double macs) { return macs < kSerialMacs ? std::max<int64_t>(n_tasks, 1) : 1; }
+inline int64_t elem_grain(int64_t elems_per_item) { return std::max<int64_t>(1, kSerialElems / std::max<int64_t>(1, elems_per_item)); }
 
 // Optional per-(b, channel, entity) factor with arbitrary strides (style: entity stride 0; demod: full).
 template <typename T>
@@ -242,7 +264,7 @@ template <typename T>
 std::vector<T> transpose_weight(const T* w, int64_t C0, int64_t nnz, int64_t C1, int64_t U,
                                 const std::vector<int64_t>& tpair) {
   std::vector<T> out(static_cast<size_t>(C0 * nnz * C1 * U));
-  at::parallel_for(0, C1, 1, [&](int64_t lo, int64_t hi) {
+  at::parallel_for(0, C1, elem_grain(nnz * C0 * U), [&](int64_t lo, int64_t hi) {
     for (int64_t c1 = lo; c1 < hi; ++c1)
       for (int64_t q = 0; q < nnz; ++q)
         for (int64_t c0 = 0; c0 < C0; ++c0) {
@@ -258,6 +280,7 @@ std::vector<T> transpose_weight(const T* w, int64_t C0, int64_t nnz, int64_t C1,
 struct Geo {
   int64_t kind, B, Cin, Cout, Ein, Eout, Tin, Tout, U, h, nnz;
   bool reflect;
+  double macs;  // multiply-adds of one GEMM pass (forward, input or weight gradient)
 };
 
 bool parse_padding(c10::string_view mode) {
@@ -326,6 +349,8 @@ Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, co
                 " frames, got ", g.Tin);
   }
   TORCH_CHECK(x.size(1) == g.Cin, "x has ", x.size(1), " channels but weight expects ", g.Cin);
+  g.macs = double(g.B) * double(g.kind == kUp ? g.Tin : g.Tout) * double(g.Cout) * double(g.nnz) * double(g.Cin) *
+           double(g.U);
   if (bias.has_value()) {
     check_float(*bias, "bias", x);
     TORCH_CHECK(bias->dim() == 1 && bias->size(0) == g.Cout, "bias must have shape (", g.Cout, "), got ",
@@ -384,7 +409,8 @@ void forward_conv_down(const Geo& g, const Csr& csr, const T* x, const T* w, con
   const int64_t nbt = (g.B + nb - 1) / nb;
   const int64_t maxK = csr.max_deg * g.Cin * g.U, cols = nb * g.Tout;
   const int64_t lda = g.nnz * g.Cin * g.U;
-  at::parallel_for(0, nbt * g.Eout, 1, [&](int64_t lo, int64_t hi) {
+  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+    BlasSequential blas_guard;
     std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
     for (int64_t task = lo; task < hi; ++task) {
       const int64_t bt = task / g.Eout, j = task % g.Eout;
@@ -417,7 +443,8 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
   const int64_t nbt = (g.B + nb - 1) / nb;
   const int64_t maxK = csr.max_tdeg * g.Cin * g.U, cols = nb * Tp;
   const int64_t lda = g.nnz * g.Cin * g.U;
-  at::parallel_for(0, nbt * g.Eout, 1, [&](int64_t lo, int64_t hi) {
+  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+    BlasSequential blas_guard;
     std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
     std::vector<T> v(static_cast<size_t>(g.Tout)), bl_out(static_cast<size_t>(g.Tout));
     for (int64_t task = lo; task < hi; ++task) {
@@ -495,7 +522,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
 
   // bias and scale gradients: plain reductions over the output.
   if (gb) {
-    at::parallel_for(0, Co, 1, [&](int64_t lo, int64_t hi) {
+    at::parallel_for(0, Co, elem_grain(Bq * Eo * g.Tout), [&](int64_t lo, int64_t hi) {
       for (int64_t o = lo; o < hi; ++o) {
         T acc = T(0);
         for (int64_t b = 0; b < Bq; ++b) {
@@ -507,7 +534,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     });
   }
   if (gd) {  // y = d * z + bias  =>  dL/dd = sum_t gy * (y - bias) / d
-    at::parallel_for(0, Bq * Co * Eo, 16, [&](int64_t lo, int64_t hi) {
+    at::parallel_for(0, Bq * Co * Eo, elem_grain(g.Tout), [&](int64_t lo, int64_t hi) {
       for (int64_t r = lo; r < hi; ++r) {
         const int64_t o = (r / Eo) % Co;
         const T bb = bias ? bias[o] : T(0);
@@ -522,8 +549,10 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   if (!gx && !gw && !gs) return;
 
   const int64_t nthreads = at::get_num_threads();
+  // conv/down weight gradient without thread-local copies when entities alone keep every thread busy
+  const bool direct_gw = g.kind != kUp && (Eo >= 4 * nthreads || nthreads == 1);
   std::vector<T> gw_acc;
-  if (gw) gw_acc.assign(static_cast<size_t>(nthreads * g.nnz * Ci * Co * U), T(0));
+  if (gw && !direct_gw) gw_acc.assign(static_cast<size_t>(nthreads * g.nnz * Ci * Co * U), T(0));
   std::vector<T> gs_part;
   if (gs) gs_part.assign(static_cast<size_t>(Ei * Bq * Ci), T(0));
   const int64_t wsize = g.nnz * Ci * Co * U;
@@ -532,8 +561,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     // gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); then per coarse entity c the strided panel of gv
     // feeds both gx'_c = W_c * GV_c and gW_c += X'_c * GV_c^T.
     std::vector<T> gv(static_cast<size_t>(Bq * Co * Eo * g.Tout));
-    at::parallel_for(0, Bq * Co * Eo, 16, [&](int64_t lo, int64_t hi) {
-      std::vector<T> tmp(static_cast<size_t>(g.Tout));
+    at::parallel_for(0, Bq * Co * Eo, elem_grain(g.Tout), [&](int64_t lo, int64_t hi) {
       for (int64_t r = lo; r < hi; ++r) {
         blur_adjoint_row<T>(gy + r * g.Tout, gv.data() + r * g.Tout, g.Tout);
         if (scale) {
@@ -547,7 +575,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     const int64_t nbt = (Bq + nb - 1) / nb;
     const int64_t maxK = csr.max_deg * Co * U, cols = nb * Tc;
     const int64_t lda = g.nnz * Co * U;
-    at::parallel_for(0, nbt * Ei, 1, [&](int64_t lo, int64_t hi) {
+    at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, 2 * g.macs), [&](int64_t lo, int64_t hi) {
+      BlasSequential blas_guard;
       std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
       std::vector<T> xs(static_cast<size_t>(gw ? Ci * cols : 0));
       T* my_gw = gw ? gw_acc.data() + at::get_thread_num() * wsize : nullptr;
@@ -585,7 +614,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
       const int64_t nbt = (Bq + nb - 1) / nb;
       const int64_t maxK = csr.max_tdeg * Co * U, cols = nb * Tp;
       const int64_t lda = g.nnz * Co * U;
-      at::parallel_for(0, nbt * Ei, 1, [&](int64_t lo, int64_t hi) {
+      at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
+        BlasSequential blas_guard;
         std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
         std::vector<T> row(static_cast<size_t>(g.Tin));
         for (int64_t task = lo; task < hi; ++task) {
@@ -616,31 +646,39 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
         }
       });
     }
-    // Weight gradient: for row entity j, gW_j += (gy*d)_j (Co x N) * X_j^T (N x K).
+    // Weight gradient: for row entity j, gW_j += (gy*d)_j (Co x N) * X_j^T (N x K).  With enough entities each
+    // task owns one entity and writes its pairs directly; otherwise tasks split the batch too and accumulate
+    // into thread-local copies.
     if (gw) {
-      const int64_t nb = batch_tile(Bq, g.Tout, Eo);
+      const int64_t nb = batch_tile(Bq, g.Tout, direct_gw ? Bq : Eo);
       const int64_t nbt = (Bq + nb - 1) / nb;
       const int64_t maxK = csr.max_deg * Ci * U, cols = nb * g.Tout;
       const int64_t ldw = g.nnz * Ci * U;
-      at::parallel_for(0, nbt * Eo, 1, [&](int64_t lo, int64_t hi) {
+      const int64_t n_tasks = direct_gw ? Eo : nbt * Eo;
+      at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
+        BlasSequential blas_guard;
         std::vector<T> panel(static_cast<size_t>(maxK * cols)), gz(static_cast<size_t>(Co * cols));
-        T* my_gw = gw_acc.data() + at::get_thread_num() * wsize;
+        T* my_gw = direct_gw ? gw : gw_acc.data() + at::get_thread_num() * wsize;
         for (int64_t task = lo; task < hi; ++task) {
-          const int64_t bt = task / Eo, j = task % Eo;
-          const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * g.Tout;
-          const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
-          gather_strided<T>(panel.data(), N, x, Ci, Ei, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride, U,
-                            g.reflect, sty);
-          const int64_t one = j;
-          gather_strided<T>(gz.data(), N, gy, Co, Eo, g.Tout, &one, 1, b0, nbl, g.Tout, 1, 1, false, dsc);
-          gemm<T>(false, true, Co, K, N, T(1), gz.data(), N, panel.data(), N, T(1), my_gw + p0 * Ci * U, ldw);
+          const int64_t j = task % Eo;
+          const int64_t bt_lo = direct_gw ? 0 : task / Eo, bt_hi = direct_gw ? nbt : bt_lo + 1;
+          for (int64_t bt = bt_lo; bt < bt_hi; ++bt) {
+            const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * g.Tout;
+            const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+            gather_strided<T>(panel.data(), N, x, Ci, Ei, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride,
+                              U, g.reflect, sty);
+            const int64_t one = j;
+            gather_strided<T>(gz.data(), N, gy, Co, Eo, g.Tout, &one, 1, b0, nbl, g.Tout, 1, 1, false, dsc);
+            const T beta = (direct_gw && bt == 0) ? T(0) : T(1);
+            gemm<T>(false, true, Co, K, N, T(1), gz.data(), N, panel.data(), N, beta, my_gw + p0 * Ci * U, ldw);
+          }
         }
       });
     }
   }
 
-  if (gw) {
-    at::parallel_for(0, wsize, 4096, [&](int64_t lo, int64_t hi) {
+  if (gw && !direct_gw) {
+    at::parallel_for(0, wsize, kSerialElems, [&](int64_t lo, int64_t hi) {
       for (int64_t i = lo; i < hi; ++i) {
         T acc = T(0);
         for (int64_t t = 0; t < nthreads; ++t) acc += gw_acc[t * wsize + i];

@@ -42,8 +42,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--device cuda requested but torch has no CUDA device")
     t0 = time.perf_counter()
     model = load_generator(args.ckpt, ema=not args.raw_weights, device=args.device)
+    t1 = time.perf_counter()
     x, codec = generate_tensors(args.ckpt, args.n, seed=args.seed, psi=args.psi, batch=args.batch, model=model)
-    t_gen = time.perf_counter() - t0
+    t_gen = time.perf_counter() - t1
     written = []
     for start in range(0, args.n, args.batch):  # decode/write in chunks to bound memory
         written += write_outputs(codec, x[start:start + args.batch], args.out, ik=args.ik, start_index=start,

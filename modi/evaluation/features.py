@@ -8,7 +8,7 @@ Input pipeline (one place, used for training and evaluation alike, parameters st
 joints selected by name -> resampled to ``fps`` -> windows of ``window`` frames -> each window put in a
 canonical frame (up axis to Y, root's mean ground position to the origin, mean facing -- from the left/right
 hip-level joint pair -- turned to +Z) -> divided by the body height -> positions and per-second velocities
-(6 channels) -> per-(channel, joint) standardisation with training-set statistics.
+(6 channels) -> per-channel standardisation with training-set statistics.
 
 Network: blocks of [spatial graph conv with the ST-GCN "spatial" partition (self / towards root / away from
 root) and a learnable edge importance] x [temporal conv], BatchNorm, ReLU, residual; by default three blocks
@@ -75,6 +75,7 @@ class FeatureConfig:
     strides: list[int] = field(default_factory=lambda: [2, 2, 2])
     temporal_kernel: int = 9
     dropout: float = 0.1
+    joint_norm: bool = False  # standardise per (channel, joint) instead of per channel (erases where joints are)
 
     @property
     def n_classes(self) -> int:
@@ -296,7 +297,8 @@ class STGCN(nn.Module):
         super().__init__()
         A = spatial_partitions(config.parents)
         J = len(config.parents)
-        self.data_bn = nn.BatchNorm1d(6 * J)
+        self.joint_norm = config.joint_norm
+        self.data_bn = nn.BatchNorm1d(6 * J) if config.joint_norm else nn.BatchNorm2d(6)
         blocks = []
         cin = 6
         for i, (c, s) in enumerate(zip(config.channels, config.strides)):
@@ -307,7 +309,10 @@ class STGCN(nn.Module):
 
     def features(self, x: Tensor) -> Tensor:
         n, c, t, v = x.shape
-        x = self.data_bn(x.permute(0, 1, 3, 2).reshape(n, c * v, t)).view(n, c, v, t).permute(0, 1, 3, 2)
+        if self.joint_norm:
+            x = self.data_bn(x.permute(0, 1, 3, 2).reshape(n, c * v, t)).view(n, c, v, t).permute(0, 1, 3, 2)
+        else:
+            x = self.data_bn(x)
         for b in self.blocks:
             x = b(x)
         return x.mean(dim=(2, 3))
@@ -417,6 +422,7 @@ def load_extractor(path: str | os.PathLike) -> FeatureExtractor:
     if not isinstance(st, dict) or st.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a modi feature-extractor file (expected format {FORMAT!r})")
     cfg = dict(st["config"])
+    cfg.setdefault("joint_norm", True)  # files written before the option existed normalised per joint
     config = FeatureConfig(**cfg)
     model = STGCN(config)
     try:
@@ -592,8 +598,10 @@ def train_feature_extractor(
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     x_all = window_inputs(canonicalize(train_windows, config.up_axis, config.pairs, config.body_height), config.fps)
-    mean = x_all.mean(axis=(0, 2), keepdims=True)[0]  # (6, 1, J)
-    std = x_all.std(axis=(0, 2), keepdims=True)[0] + 1e-3
+    # per channel (6, 1, 1) by default: a joint's mean place (left hand on the left) is what tells it apart
+    axes = (0, 2) if config.joint_norm else (0, 2, 3)
+    mean = x_all.mean(axis=axes, keepdims=True)[0]
+    std = x_all.std(axis=axes, keepdims=True)[0] + 1e-3
     std = std.astype(np.float32)
     model = STGCN(config)
     extractor = FeatureExtractor(config, model, mean, std)
@@ -613,6 +621,7 @@ def train_feature_extractor(
         tqdm = None
     bar = tqdm(total=total, desc="train features", unit="step", disable=not (progress and tqdm)) if tqdm else None
     start = time.perf_counter()
+    cpu_start = time.process_time()
     stopped_early = False
     for epoch in range(epochs):
         model.train()
@@ -649,6 +658,7 @@ def train_feature_extractor(
         bar.close()
     model.eval()
     history["seconds"] = time.perf_counter() - start
+    history["cpu_seconds"] = time.process_time() - cpu_start  # comparable when other jobs share the cores
     history["stopped_early"] = stopped_early
     if val_windows is not None and val_labels is not None and len(val_labels):
         pred = extractor.predict(val_windows)

@@ -60,8 +60,9 @@ def plausibility_metrics(
       calibrate it on real data (see ``planted_heights``); by default each clip's own 5th percentile is used;
       ``skating_ratio``: fraction of those contact frames sliding faster than ``contact_speed``
       (default 0.25 body heights/s, i.e. roughly 45 cm/s for an adult — clearly sliding).
-    * ``floating``: mean over frames of how far the lowest joint is above the ground (0 when touching);
-      ``penetration``: mean depth of the lowest joint below the ground; ``max_penetration``.
+    * ``floating``: mean over frames of the lowest foot's clearance (height above the ground minus its
+      planted height from ``foot_heights``, or minus 0 when not given), 0 when touching;
+      ``penetration``: mean depth of that foot below its planted height; ``max_penetration``.
     * ``jitter``: mean norm of the third time derivative of joint positions (units/s^3);
       ``acceleration``: mean norm of the second derivative (units/s^2), to tell jitter from fast motion.
     """
@@ -87,27 +88,28 @@ def plausibility_metrics(
     speed = np.linalg.norm(v, axis=-1)
     fh = fp[..., up_axis] - ground
     if foot_heights is None:
-        base = np.percentile(fh, 5, axis=0)
+        planted = np.zeros(len(feet))
+        base = np.percentile(fh, 5, axis=0)  # contact relative to the clip's own low point
     else:
-        base = np.asarray(foot_heights, dtype=np.float64)
+        planted = base = np.asarray(foot_heights, dtype=np.float64)
         if base.shape != (len(feet),):
             raise ValueError(f"foot_heights: need one height per foot joint ({len(feet)}), got {base.shape}")
+    clearance = (fh - planted).min(axis=1)  # (T,) the lowest foot relative to where it stands when planted
     fh = fh - base
     contact = (fh[1:] < c_h) & (fh[:-1] < c_h)
     n_contact = int(contact.sum())
     skating = float(speed[contact].mean()) if n_contact else 0.0
     ratio = float((speed[contact] > c_v).mean()) if n_contact else 0.0
 
-    lowest = h.min(axis=1)
     acc = np.diff(p, n=2, axis=0) * fps**2
     jerk = np.diff(p, n=3, axis=0) * fps**3
     return {
         "foot_skating": skating,
         "skating_ratio": ratio,
         "contact_fraction": float(n_contact / contact.size),
-        "floating": float(np.clip(lowest, 0, None).mean()),
-        "penetration": float(np.clip(-lowest, 0, None).mean()),
-        "max_penetration": float(np.clip(-lowest, 0, None).max()),
+        "floating": float(np.clip(clearance, 0, None).mean()),
+        "penetration": float(np.clip(-clearance, 0, None).mean()),
+        "max_penetration": float(np.clip(-clearance, 0, None).max()),
         "jitter": float(np.linalg.norm(jerk, axis=-1).mean()),
         "acceleration": float(np.linalg.norm(acc, axis=-1).mean()),
         "body_height": float(body_height),

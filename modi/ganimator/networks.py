@@ -159,7 +159,10 @@ class PatchDiscriminator(nn.Module):
 def make_noise(batch: int, length: int, amp: float, generator: torch.Generator | None = None,
                device: torch.device | str = "cpu") -> Tensor:
     """GANimator's noise: i.i.d. over time, shared by every channel and entity, scaled by the level amplitude."""
-    z = torch.randn(batch, 1, 1, length, generator=generator, device=device)
+    if generator is not None:  # a CPU generator: draw on the CPU, so seeds mean the same on every device
+        z = torch.randn(batch, 1, 1, length, generator=generator).to(device)
+    else:
+        z = torch.randn(batch, 1, 1, length, device=device)
     return z * float(amp)
 
 

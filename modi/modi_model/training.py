@@ -347,6 +347,7 @@ class Trainer:
         self.sample_z = torch.randn(tc.n_samples, cfg.model.latent_dim,
                                     generator=torch.Generator().manual_seed(tc.seed + 12345))
         self.last_losses: dict[str, float] = {}
+        self._latest_reg: dict[str, float] = {}
         self._stop_requested = False
         torch.manual_seed(tc.seed * 1000 + 1 + self.rank)  # per-rank latents and noise
         if resume is not None:
@@ -357,9 +358,16 @@ class Trainer:
         if self.distributed:
             from torch.nn.parallel import DistributedDataParallel as DDP
 
+            import inspect
+
             ids = [self.device.index] if self.device.type == "cuda" else None
-            self.g_train = DDP(self.G, device_ids=ids, broadcast_buffers=False)
-            self.d_train = DDP(_PairD(self.D), device_ids=ids, broadcast_buffers=False)
+            # Buffers (w_avg, constant noise) are identical on every rank by construction and updated with
+            # all-reduced values, so DDP need not re-broadcast them each forward.
+            no_sync = ({"forward_sync_buffers": False} if "forward_sync_buffers" in
+                       inspect.signature(DDP.__init__).parameters else {"broadcast_buffers": False})
+            warnings.filterwarnings("ignore", message="Grad strides do not match bucket view strides")
+            self.g_train = DDP(self.G, device_ids=ids, **no_sync)
+            self.d_train = DDP(_PairD(self.D), device_ids=ids, **no_sync)
         else:
             self.d_train = _PairD(self.D)
         self.writer = None
@@ -516,6 +524,9 @@ class Trainer:
                     interrupted = True
                     break
                 losses = self.train_step()
+                # lazy regularisers run on other steps than the logged ones: report their latest values
+                self._latest_reg.update({k: v for k, v in losses.items() if k in ("r1", "path", "path_length")})
+                losses = {**self._latest_reg, **losses}
                 self.last_losses = losses
                 now = time.time()
                 losses["sec_per_iter"] = now - last_t

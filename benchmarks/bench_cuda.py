@@ -1,0 +1,288 @@
+"""CUDA benchmarks: the dense reference (cuDNN convs on masked weights) vs the modi_ext CUDA kernels.
+
+``cuda_cases(dtype)`` returns ``{case: (ref_fn, ext_fn)}`` of zero-argument callables for ``benchmarks/compare.py
+--device cuda``; every callable ends with ``torch.cuda.synchronize()`` so a wall-clock timer measures the GPU work.
+``cuda_case_info(dtype)`` gives the shapes behind each case.
+
+Cases, on MoDi's generator hierarchy for the Bandai-Namco 22-joint skeleton (channels x frames of MoDi Table 3, the
+hierarchy from ``benchmarks/compare.py``), batch 16 and 256, float32 (``fp32``) or bfloat16 (``bf16``):
+
+  skeletal_conv.<level>.b<B>.<dt>.{fwd,fwd_bwd}    in-place skeletal conv (kernel 3, zero padding, bias)
+  modulated_conv.<level>.b<B>.<dt>.{fwd,fwd_bwd}   the same with a per-sample style and demodulation
+  scaler_up.<level>.b<B>.<dt>.{fwd,fwd_bwd}        coarse -> fine scaler into <level> (transposed conv + blur, bias)
+  scaler_down.<level>.b<B>.<dt>.{fwd,fwd_bwd}      fine -> coarse scaler from <level> (bias)
+  modulated_up.<level>.b<B>.<dt>.{fwd,fwd_bwd}     the up-scaler with style and demodulation
+  fk.b4096.<dt>.{fwd,fwd_bwd}                      forward kinematics, B=4096 x T=64 samples, 22 joints
+
+The cases call the ops directly (``modi_ext.reference.*`` vs ``torch.ops.modi_ext.*``, the demodulation scale
+included on the extension side) rather than through the layers, so bfloat16 runs too and both sides do the same
+work; ``fwd_bwd`` differentiates w.r.t. the input, weight, bias and style with a fixed upstream gradient (FK: w.r.t.
+rotations and root translation).  The reference runs with torch's default backend flags (cuDNN may use TF32 for
+float32 convolutions).
+
+    python benchmarks/bench_cuda.py --dtype fp32 --json benchmarks/results/cuda_fp32.json   # stand-alone
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib.util
+import json
+import re
+import statistics
+import sys
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from modi_ext import ops, reference  # noqa: E402
+from modi_ext.fk import fk_reference  # noqa: E402
+from modi_ext.topology_tensors import csr_from_lists  # noqa: E402
+
+BATCHES = (16, 256)
+FK_B, FK_T = 4096, 64
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+Fn = Callable[[], object]
+
+
+def _compare_module():
+    """benchmarks/compare.py, loaded by path (it owns the MoDi level table and the Bandai hierarchy)."""
+    name = "_modi_bench_compare"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "compare.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _tag(dtype: torch.dtype) -> str:
+    for k, v in DTYPES.items():
+        if v == dtype:
+            return k
+    raise ValueError(f"dtype must be one of {list(DTYPES.values())}, got {dtype}")
+
+
+def _synced(fn: Callable[[], object]) -> Fn:
+    def run():
+        out = fn()
+        torch.cuda.synchronize()
+        return out
+    return run
+
+
+def _pair(ref: Callable[..., torch.Tensor], ext: Callable[..., torch.Tensor], leaves: list[torch.Tensor],
+          bwd: bool) -> tuple[Fn, Fn]:
+    """(ref_fn, ext_fn): forward under no_grad, or forward + grads of every leaf with a fixed upstream gradient."""
+    grad: list[torch.Tensor] = []
+
+    def make(fn):
+        def body():
+            if not bwd:
+                with torch.no_grad():
+                    return fn(*leaves)
+            y = fn(*leaves)
+            if not grad:
+                grad.append(torch.randn_like(y))
+            return torch.autograd.grad(y, leaves, grad[0])
+        return _synced(body)
+
+    return make(ref), make(ext)
+
+
+def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
+    """Yield (op, level name, ref, ext, leaves, info) for every MoDi level at one batch size."""
+    cmp = _compare_module()
+    neigh, pools, _ = cmp.bandai_hierarchy()
+    names = cmp.level_names(len(neigh))
+    levels = cmp.MODI_LEVELS
+    g = torch.Generator(device="cpu").manual_seed(0)
+
+    def rnd(*shape, scale=1.0):
+        return (torch.randn(*shape, generator=g) * scale).to(device=device, dtype=dtype)
+
+    for lv, (nb, name) in enumerate(zip(neigh, names)):
+        c, t = levels[min(lv, len(levels) - 1)]
+        e = len(nb)
+        topo = csr_from_lists(nb, n_in=e)
+        idx, off = topo.index.to(device), topo.offsets.to(device)
+        nnz = idx.numel()
+        x = rnd(batch, c, e, t)
+        w = rnd(c, nnz, c, 3, scale=(3 * 3 * c) ** -0.5)
+        b = rnd(c)
+        s = 1 + 0.1 * rnd(batch, c)
+        info = dict(batch=batch, input_shape=[batch, c, e, t], pairs=nnz)
+        yield ("skeletal_conv", name,
+               lambda x_, w_, b_, i=idx, o=off: reference.skeletal_conv(x_, w_, b_, i, o, None, False, "zeros"),
+               lambda x_, w_, b_, i=idx, o=off: torch.ops.modi_ext.skeletal_conv(x_, w_, b_, i, o, None, None,
+                                                                                 "zeros"),
+               [x, w, b], info)
+
+        def ref_mod(x_, w_, s_, i=idx, o=off):
+            return reference.skeletal_conv(x_, w_, None, i, o, s_, True, "zeros")
+
+        def ext_mod(x_, w_, s_, i=idx, o=off, n=e):
+            d = ops.demod_scale(w_, i, o, s_, False, n, x_.shape[0])
+            return torch.ops.modi_ext.skeletal_conv(x_, w_, None, i, o, s_, d, "zeros")
+
+        yield "modulated_conv", name, ref_mod, ext_mod, [x, w, s], info
+        if lv + 1 >= len(neigh):
+            continue
+        c2, t2 = levels[min(lv + 1, len(levels) - 1)]
+        e2 = len(neigh[lv + 1])
+        ptopo = csr_from_lists(pools[lv], n_in=e)
+        pidx, poff = ptopo.index.to(device), ptopo.offsets.to(device)
+        pnnz = pidx.numel()
+        xc = rnd(batch, c2, e2, t2)
+        wu = rnd(c2, pnnz, c, 3, scale=(3 * c2) ** -0.5)
+        wd = rnd(c2, pnnz, c, 3, scale=(3 * 3 * c) ** -0.5)
+        bu, bd = rnd(c), rnd(c2)
+        su = 1 + 0.1 * rnd(batch, c2)
+        up_info = dict(batch=batch, input_shape=[batch, c2, e2, t2], pairs=pnnz)
+        yield ("scaler_up", name,
+               lambda x_, w_, b_, i=pidx, o=poff, n=e: reference.skeletal_up(x_, w_, b_, i, o, n, None, False,
+                                                                             "zeros"),
+               lambda x_, w_, b_, i=pidx, o=poff, n=e: torch.ops.modi_ext.skeletal_up(x_, w_, b_, i, o, n, None,
+                                                                                      None, "zeros"),
+               [xc, wu, bu], up_info)
+        yield ("scaler_down", name,
+               lambda x_, w_, b_, i=pidx, o=poff: reference.skeletal_down(x_, w_, b_, i, o, None, False, "zeros"),
+               lambda x_, w_, b_, i=pidx, o=poff: torch.ops.modi_ext.skeletal_down(x_, w_, b_, i, o, None, None,
+                                                                                   "zeros"),
+               [x, wd, bd], dict(batch=batch, input_shape=[batch, c, e, t], pairs=pnnz))
+
+        def ref_up(x_, w_, s_, i=pidx, o=poff, n=e):
+            return reference.skeletal_up(x_, w_, None, i, o, n, s_, True, "zeros")
+
+        def ext_up(x_, w_, s_, i=pidx, o=poff, n=e):
+            d = ops.demod_scale(w_, i, o, s_, True, n, x_.shape[0])
+            return torch.ops.modi_ext.skeletal_up(x_, w_, None, i, o, n, s_, d, "zeros")
+
+        yield "modulated_up", name, ref_up, ext_up, [xc, wu, su], up_info
+
+
+def _fk_pairs(dtype: torch.dtype, device: str, tag: str) -> dict[str, tuple[Fn, Fn]]:
+    cmp = _compare_module()
+    parents = list(cmp.BANDAI_PARENTS)
+    J = len(parents)
+    g = torch.Generator(device="cpu").manual_seed(0)
+    q = torch.randn(FK_B, FK_T, J, 4, generator=g)
+    q = (q / q.norm(dim=-1, keepdim=True)).to(device=device, dtype=dtype)
+    off = (torch.randn(J, 3, generator=g) * 0.2).to(device=device, dtype=dtype)
+    root = torch.randn(FK_B, FK_T, 3, generator=g).to(device=device, dtype=dtype)
+    qg, rg = q.clone().requires_grad_(), root.clone().requires_grad_()
+    grad = torch.randn(FK_B, FK_T, J, 3, generator=g).to(device=device, dtype=dtype)
+
+    def ref(a, r):
+        return fk_reference(a, off, parents, r)
+
+    def ext(a, r):
+        return torch.ops.modi_ext.fk(a, off, parents, r)[0]
+
+    def fwd(fn):
+        def body():
+            with torch.no_grad():
+                return fn(q, root)
+        return _synced(body)
+
+    def fwd_bwd(fn):
+        def body():
+            return torch.autograd.grad(fn(qg, rg), (qg, rg), grad)
+        return _synced(body)
+
+    return {f"fk.b{FK_B}.{tag}.fwd_bwd": (fwd_bwd(ref), fwd_bwd(ext)),
+            f"fk.b{FK_B}.{tag}.fwd": (fwd(ref), fwd(ext))}
+
+
+def _build(dtype: torch.dtype) -> tuple[dict[str, tuple[Fn, Fn]], dict[str, dict]]:
+    if not torch.cuda.is_available():
+        raise RuntimeError("bench_cuda: no CUDA device")
+    if not torch._C._dispatch_has_kernel_for_dispatch_key("modi_ext::skeletal_conv", "CUDA"):
+        raise RuntimeError("bench_cuda: modi_ext was built without its CUDA kernels")
+    tag = _tag(dtype)
+    cases: dict[str, tuple[Fn, Fn]] = {}
+    info: dict[str, dict] = {}
+    for batch in BATCHES:
+        for op, level, ref, ext, leaves, meta in _skeletal_defs(dtype, batch, "cuda"):
+            for bwd in (False, True):
+                key = f"{op}.{level}.b{batch}.{tag}.{'fwd_bwd' if bwd else 'fwd'}"
+                leaves_i = [t.detach().clone().requires_grad_(bwd) for t in leaves]
+                cases[key] = _pair(ref, ext, leaves_i, bwd)
+                info[key] = {**meta, "dtype": tag}
+    for key, pair in _fk_pairs(dtype, "cuda", tag).items():
+        cases[key] = pair
+        info[key] = {"batch": FK_B, "frames": FK_T, "joints": 22, "dtype": tag}
+    return cases, info
+
+
+def cuda_cases(dtype: torch.dtype = torch.float32) -> dict[str, tuple[Fn, Fn]]:
+    """``{case: (ref_fn, ext_fn)}`` for every MoDi level (batch 16 and 256) and FK (B=4096), in ``dtype``."""
+    return _build(dtype)[0]
+
+
+def cuda_case_info(dtype: torch.dtype = torch.float32) -> dict[str, dict]:
+    """Shapes behind each case of ``cuda_cases(dtype)`` (input shape, batch, pairs, dtype)."""
+    return _build(dtype)[1]
+
+
+def device_description() -> str:
+    p = torch.cuda.get_device_properties(torch.cuda.current_device())
+    return (f"{p.name} ({p.multi_processor_count} SMs, {p.total_memory / 2**30:.0f} GiB), torch {torch.__version__}, "
+            f"CUDA {torch.version.cuda}, {datetime.date.today().isoformat()}")
+
+
+def time_pair_cuda(ref: Fn, ext: Fn, reps: int = 20, warmup: int = 3) -> tuple[float, float]:
+    """Interleaved medians (ms) with CUDA events (the callables synchronise at their end)."""
+    for _ in range(warmup):
+        ref()
+        ext()
+    rt, et = [], []
+    for _ in range(reps):
+        for fn, acc in ((ref, rt), (ext, et)):
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            fn()
+            end.record()
+            end.synchronize()
+            acc.append(start.elapsed_time(end))
+    return statistics.median(rt), statistics.median(et)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dtype", choices=sorted(DTYPES), default="fp32", help="input dtype (default: fp32)")
+    ap.add_argument("--json", type=Path, help="write {case: {ref_ms, ext_ms, speedup, ...}} here")
+    ap.add_argument("--reps", type=int, default=20, help="timed runs per side (default: 20)")
+    ap.add_argument("--only", default=None, help="regex: run matching cases only")
+    args = ap.parse_args(argv)
+    cases, info = _build(DTYPES[args.dtype])
+    desc = device_description()
+    pattern = re.compile(args.only) if args.only else None
+    print(f"# {desc}")
+    print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
+    results: dict[str, dict] = {}
+    for name, (ref, ext) in cases.items():
+        if pattern and not pattern.search(name):
+            continue
+        ref_ms, ext_ms = time_pair_cuda(ref, ext, args.reps)
+        results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4), "speedup": round(ref_ms / ext_ms, 3),
+                         "runs": args.reps, "machine": desc, **info[name]}
+        print(f"{name:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
+        tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+        tmp.replace(args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
