@@ -422,7 +422,6 @@ def load_extractor(path: str | os.PathLike) -> FeatureExtractor:
     if not isinstance(st, dict) or st.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a modi feature-extractor file (expected format {FORMAT!r})")
     cfg = dict(st["config"])
-    cfg.setdefault("joint_norm", True)  # files written before the option existed normalised per joint
     config = FeatureConfig(**cfg)
     model = STGCN(config)
     try:

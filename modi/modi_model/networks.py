@@ -265,7 +265,7 @@ class _SkeletalPoolDown(nn.Module):
         self.register_buffer("pool", _pool_matrix(pooling, n_fine), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return fir_downsample_time(torch.einsum("bcft,ef->bcet", x, self.pool))
+        return fir_downsample_time(torch.einsum("bcft,ef->bcet", x, self.pool)).contiguous()
 
 
 def _modconv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, mode: str, kernel_size: int | None = None,
