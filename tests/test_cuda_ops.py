@@ -197,6 +197,11 @@ class Case:
         return y.detach(), [None if t is None else next(it) for t in leaves]
 
 
+# fp32 tolerances per gradient, relative to max(1, max |reference|): the weight, bias and style gradients are
+# reductions over batch x time (and entities), and with demodulation the style gradient nearly cancels.
+GRAD_TOL = {"x": 5e-5, "weight": 1e-4, "bias": 1e-4, "style": 3e-4}
+
+
 def assert_near(got: torch.Tensor, want: torch.Tensor, tol: float, what: str = "") -> None:
     """max |got - want| <= tol * max(1, max |want|), compared in float64 on the CPU."""
     got = got.detach().to("cpu", torch.float64)
@@ -236,7 +241,7 @@ def test_backward_matches_reference(kind, U, padding, mod):
         for name, a, b in zip(("x", "weight", "bias", "style"), g, g_ref):
             assert (a is None) == (b is None), name
             if a is not None:
-                assert_near(a, b, 5e-5, f"d/d{name} ({kind}, seed {seed})")
+                assert_near(a, b, GRAD_TOL[name], f"d/d{name} ({kind}, seed {seed})")
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -248,7 +253,7 @@ def test_large_batch_and_channels(kind):
     y, g = c.ext_grads(torch.float32)
     assert_near(y, y_ref, 2e-5, "output")
     for name, a, b in zip(("x", "weight", "bias", "style"), g, g_ref):
-        assert_near(a, b, 1e-4, f"d/d{name}")
+        assert_near(a, b, 2 * GRAD_TOL[name], f"d/d{name}")
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -265,7 +270,7 @@ def test_random_skeletons(kind):
         assert_near(y, y_ref, 2e-5, f"output n={n}")
         for name, a, b in zip(("x", "weight", "bias", "style"), g, g_ref):
             if b is not None:
-                assert_near(a, b, 5e-5, f"d/d{name} n={n}")
+                assert_near(a, b, GRAD_TOL[name], f"d/d{name} n={n}")
 
 
 def test_modi_hierarchy_levels():

@@ -100,11 +100,11 @@ def test_truncation_psi0_gives_the_mean_motion(tiny):
     torch.testing.assert_close(space.mean_motion(g), direct)
     for s in (1, 2):
         z = space.seed_z(g, [s])
-        torch.testing.assert_close(g(z, truncation_psi=0.0, noise_mode="const"), direct, atol=1e-6, rtol=0)
+        torch.testing.assert_close(g(z, truncation_psi=0.0, noise_mode="const"), direct, atol=2e-5, rtol=0)
         seq = space.truncation_sequence(space.seed_w(g, [s])[0], 4, space.mean_w(g))
         x = space.synthesize(g, seq)
-        torch.testing.assert_close(x[-1], direct[0], atol=1e-6, rtol=0)
-        torch.testing.assert_close(x[0], space.synthesize(g, space.seed_w(g, [s]))[0], atol=1e-6, rtol=0)
+        torch.testing.assert_close(x[-1], direct[0], atol=2e-5, rtol=0)
+        torch.testing.assert_close(x[0], space.synthesize(g, space.seed_w(g, [s]))[0], atol=2e-5, rtol=0)
         # psi halfway is the halfway latent
         torch.testing.assert_close(space.truncate(seq[0], 0.5, g.w_avg), seq[2])
 
@@ -155,7 +155,7 @@ def test_inversion_error_falls_with_iterations(tiny):
     assert res.history[-1] < 0.5 * res.history[0]
     assert res.rec[-1] < res.rec[0]
     assert min(res.history[20:]) < min(res.history[:10])
-    final = inversion.inversion_loss(codec, res.motion, target, 0.1, space.cm_scale(codec))[0]
+    final = inversion.inversion_loss(codec, res.motion, target, 1.0, space.position_scale(codec))[0]
     assert abs(float(final) - res.history[-1]) < 1e-3 * max(1.0, res.history[-1])
     with pytest.raises(ValueError, match="target"):
         inversion.invert(g, codec, target[:, :2], steps=1, progress=False)

@@ -8,8 +8,13 @@
 // gradient accumulates into thread-local copies reduced at the end.  The GEMM is the BLAS that libtorch ships
 // (sgemm_/dgemm_, single-threaded inside the parallel region), with an ATen fallback when it is not exported.
 #include <algorithm>
+#include <cstdlib>
 #include <cstring>
 #include <vector>
+
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
 
 #include <ATen/Parallel.h>
 #include <torch/library.h>
@@ -478,6 +483,512 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
   });
 }
 
+// Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
+template <typename T>
+inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_acc, int64_t L) {
+  T dot = T(0);
+  for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
+  if (gs_acc) *gs_acc += dot;
+  if (gx_row)
+    for (int64_t t = 0; t < L; ++t) gx_row[t] = gxp[t] * s;
+}
+
+// ================================================================================================ fp32 fast path
+// Indirect GEMM on AVX2/FMA, used for float32 when the CPU has it (MODI_EXT_CPU_KERNEL=blas forces the BLAS
+// path above).  Instead of gathering a (K x N) panel per entity and letting BLAS repack it, every input is laid out
+// once per call in "column" form: row (phase, channel, entity) holds all batch elements back to back, each padded
+// in time (zero / reflect, or the front zeros of a transposed conv) and, for stride 2, split into even/odd phases.
+// A time shift u is then just a pointer offset, so an entity's operand is a table of K row pointers, and the
+// register-blocked kernels below read those rows in place: columns = batch x padded time, the long GEMM side.
+namespace fastk {
+
+constexpr int64_t MR = 4, NR = 24;  // NN tile: 4 output rows x 24 columns = 12 ymm accumulators
+constexpr int64_t TM = 4, TK = 3;   // NT tile: 4 x 3 dot products, 8 lanes each
+
+inline bool wanted() {
+#if defined(__x86_64__)
+  static const bool cpu = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  const char* env = std::getenv("MODI_EXT_CPU_KERNEL");
+  if (env != nullptr && std::strcmp(env, "blas") == 0) return false;
+  return cpu;
+#else
+  return false;
+#endif
+}
+
+inline int64_t round_up(int64_t a, int64_t m) { return (a + m - 1) / m * m; }
+
+#if defined(__x86_64__)
+// C[0:4, col:col+24] = sum_k a[k*4 + r] * ptr[k][col : col+24]   (a: one packed 4-row panel)
+__attribute__((target("avx2,fma"))) void nn_kernel(int64_t K, const float* a, const float* const* ptr, int64_t col,
+                                                    float* c, int64_t ldc) {
+  __m256 c00 = _mm256_setzero_ps(), c01 = c00, c02 = c00, c10 = c00, c11 = c00, c12 = c00;
+  __m256 c20 = c00, c21 = c00, c22 = c00, c30 = c00, c31 = c00, c32 = c00;
+  for (int64_t k = 0; k < K; ++k) {
+    const float* p = ptr[k] + col;
+    const __m256 b0 = _mm256_loadu_ps(p), b1 = _mm256_loadu_ps(p + 8), b2 = _mm256_loadu_ps(p + 16);
+    __m256 av = _mm256_broadcast_ss(a);
+    c00 = _mm256_fmadd_ps(av, b0, c00);
+    c01 = _mm256_fmadd_ps(av, b1, c01);
+    c02 = _mm256_fmadd_ps(av, b2, c02);
+    av = _mm256_broadcast_ss(a + 1);
+    c10 = _mm256_fmadd_ps(av, b0, c10);
+    c11 = _mm256_fmadd_ps(av, b1, c11);
+    c12 = _mm256_fmadd_ps(av, b2, c12);
+    av = _mm256_broadcast_ss(a + 2);
+    c20 = _mm256_fmadd_ps(av, b0, c20);
+    c21 = _mm256_fmadd_ps(av, b1, c21);
+    c22 = _mm256_fmadd_ps(av, b2, c22);
+    av = _mm256_broadcast_ss(a + 3);
+    c30 = _mm256_fmadd_ps(av, b0, c30);
+    c31 = _mm256_fmadd_ps(av, b1, c31);
+    c32 = _mm256_fmadd_ps(av, b2, c32);
+    a += 4;
+  }
+  _mm256_storeu_ps(c, c00);
+  _mm256_storeu_ps(c + 8, c01);
+  _mm256_storeu_ps(c + 16, c02);
+  c += ldc;
+  _mm256_storeu_ps(c, c10);
+  _mm256_storeu_ps(c + 8, c11);
+  _mm256_storeu_ps(c + 16, c12);
+  c += ldc;
+  _mm256_storeu_ps(c, c20);
+  _mm256_storeu_ps(c + 8, c21);
+  _mm256_storeu_ps(c + 16, c22);
+  c += ldc;
+  _mm256_storeu_ps(c, c30);
+  _mm256_storeu_ps(c + 8, c31);
+  _mm256_storeu_ps(c + 16, c32);
+}
+
+__attribute__((target("avx2,fma"))) inline float hsum(__m256 v) {
+  __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
+  s = _mm_hadd_ps(s, s);
+  s = _mm_hadd_ps(s, s);
+  return _mm_cvtss_f32(s);
+}
+
+// C[i][j] += sum_{col in [c0, c0+n)} l[i][col] * p[j][col]  for a 4 x 3 tile.
+__attribute__((target("avx2,fma"))) void nt_kernel(const float* const* l, const float* const* p, int64_t c0,
+                                                    int64_t n, float* C, int64_t ldc) {
+  __m256 a00 = _mm256_setzero_ps(), a01 = a00, a02 = a00, a10 = a00, a11 = a00, a12 = a00;
+  __m256 a20 = a00, a21 = a00, a22 = a00, a30 = a00, a31 = a00, a32 = a00;
+  const float *l0 = l[0], *l1 = l[1], *l2 = l[2], *l3 = l[3], *p0 = p[0], *p1 = p[1], *p2 = p[2];
+  int64_t c = c0;
+  const int64_t end = c0 + n;
+#define MODI_NT_STEP(x0, x1, x2, x3, y0, y1, y2)                                                      \
+  do {                                                                                                 \
+    const __m256 X0 = (x0), X1 = (x1), X2 = (x2), X3 = (x3), Y0 = (y0), Y1 = (y1), Y2 = (y2);          \
+    a00 = _mm256_fmadd_ps(X0, Y0, a00);                                                                \
+    a01 = _mm256_fmadd_ps(X0, Y1, a01);                                                                \
+    a02 = _mm256_fmadd_ps(X0, Y2, a02);                                                                \
+    a10 = _mm256_fmadd_ps(X1, Y0, a10);                                                                \
+    a11 = _mm256_fmadd_ps(X1, Y1, a11);                                                                \
+    a12 = _mm256_fmadd_ps(X1, Y2, a12);                                                                \
+    a20 = _mm256_fmadd_ps(X2, Y0, a20);                                                                \
+    a21 = _mm256_fmadd_ps(X2, Y1, a21);                                                                \
+    a22 = _mm256_fmadd_ps(X2, Y2, a22);                                                                \
+    a30 = _mm256_fmadd_ps(X3, Y0, a30);                                                                \
+    a31 = _mm256_fmadd_ps(X3, Y1, a31);                                                                \
+    a32 = _mm256_fmadd_ps(X3, Y2, a32);                                                                \
+  } while (0)
+  for (; c + 8 <= end; c += 8)
+    MODI_NT_STEP(_mm256_loadu_ps(l0 + c), _mm256_loadu_ps(l1 + c), _mm256_loadu_ps(l2 + c), _mm256_loadu_ps(l3 + c),
+                 _mm256_loadu_ps(p0 + c), _mm256_loadu_ps(p1 + c), _mm256_loadu_ps(p2 + c));
+  if (c < end) {
+    const __m256i m = _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(end - c)),
+                                         _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+    MODI_NT_STEP(_mm256_maskload_ps(l0 + c, m), _mm256_maskload_ps(l1 + c, m), _mm256_maskload_ps(l2 + c, m),
+                 _mm256_maskload_ps(l3 + c, m), _mm256_maskload_ps(p0 + c, m), _mm256_maskload_ps(p1 + c, m),
+                 _mm256_maskload_ps(p2 + c, m));
+  }
+#undef MODI_NT_STEP
+  C[0] += hsum(a00);
+  C[1] += hsum(a01);
+  C[2] += hsum(a02);
+  C[ldc] += hsum(a10);
+  C[ldc + 1] += hsum(a11);
+  C[ldc + 2] += hsum(a12);
+  C[2 * ldc] += hsum(a20);
+  C[2 * ldc + 1] += hsum(a21);
+  C[2 * ldc + 2] += hsum(a22);
+  C[3 * ldc] += hsum(a30);
+  C[3 * ldc + 1] += hsum(a31);
+  C[3 * ldc + 2] += hsum(a32);
+}
+#else
+void nn_kernel(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
+void nt_kernel(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t) {}
+#endif
+
+// Edge tiles of the NT product (fewer than 4 rows or 3 pointer rows): plain loops.
+void nt_edge(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n, float* C,
+             int64_t ldc) {
+  for (int64_t i = 0; i < mr; ++i)
+    for (int64_t j = 0; j < kr; ++j) {
+      float acc = 0.f;
+      const float *a = l[i] + c0, *b = p[j] + c0;
+      for (int64_t t = 0; t < n; ++t) acc += a[t] * b[t];
+      C[i * ldc + j] += acc;
+    }
+}
+
+// acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
+// columns past N and rows past M are computed and ignored).  Column chunks keep the pointed-to data in L2.
+void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, int64_t N, float* acc,
+             int64_t ldacc) {
+  const int64_t panels = (M + MR - 1) / MR, tiles = (N + NR - 1) / NR;
+  if (K == 0) {
+    std::fill(acc, acc + panels * MR * ldacc, 0.f);
+    return;
+  }
+  const int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
+  for (int64_t t0 = 0; t0 < tiles; t0 += chunk) {
+    const int64_t t1 = std::min(tiles, t0 + chunk);
+    for (int64_t pn = 0; pn < panels; ++pn)
+      for (int64_t t = t0; t < t1; ++t) nn_kernel(K, apack + pn * K * MR, ptr, t * NR, acc + pn * MR * ldacc + t * NR, ldacc);
+  }
+}
+
+// C (M x K, ldc) += L (M pointer rows) * P^T (K pointer rows), contraction over columns [0, N).
+void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K, int64_t N, float* C, int64_t ldc) {
+  const int64_t CH = std::max<int64_t>(64, round_up((320 * 1024) / std::max<int64_t>(1, (K + M) * 4), 8));
+  for (int64_t c0 = 0; c0 < N; c0 += CH) {
+    const int64_t n = std::min(CH, N - c0);
+    for (int64_t m0 = 0; m0 < M; m0 += TM) {
+      const int64_t mr = std::min(TM, M - m0);
+      for (int64_t k0 = 0; k0 < K; k0 += TK) {
+        const int64_t kr = std::min(TK, K - k0);
+        if (mr == TM && kr == TK)
+          nt_kernel(l + m0, p + k0, c0, n, C + m0 * ldc + k0, ldc);
+        else
+          nt_edge(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
+      }
+    }
+  }
+}
+
+// Column layout of a (B, C, E, Ts) tensor: row (phase, c, e) of length row_len; at b*Tq + m it holds
+// f(b,c,e) * src[b, c, e, q] for padded position p = S*m + phase < Lp, q = p - F; q outside [0, Ts) reads the
+// mirror image (reflect) or 0.  Past Lp, between batch blocks and in the slack after the last block: 0.
+struct Cols {
+  std::vector<float> buf;
+  int64_t C = 0, E = 0, Tq = 0, row_len = 0;
+  const float* row(int64_t ph, int64_t c, int64_t e) const { return buf.data() + ((ph * C + c) * E + e) * row_len; }
+};
+
+Cols build_cols(const float* src, int64_t B, int64_t C, int64_t E, int64_t Ts, const Scale<float>& f, int64_t S,
+                int64_t F, int64_t Lp, int64_t Tq, bool reflect, int64_t max_shift) {
+  Cols cl;
+  cl.C = C;
+  cl.E = E;
+  cl.Tq = Tq;
+  int64_t len = round_up(B * Tq + NR + max_shift + 8, 8);
+  if ((len * 4) % 4096 == 0) len += 16;  // avoid rows aliasing in the same cache sets
+  cl.row_len = len;
+  cl.buf.assign(static_cast<size_t>(S * C * E * len), 0.f);
+  const int64_t rows = S * C * E;
+  at::parallel_for(0, rows, elem_grain(B * Tq), [&](int64_t lo, int64_t hi) {
+    for (int64_t r = lo; r < hi; ++r) {
+      const int64_t ph = r / (C * E), c = (r / E) % C, e = r % E;
+      float* dst = cl.buf.data() + r * len;
+      for (int64_t b = 0; b < B; ++b) {
+        const float fv = f.at(b, c, e);
+        const float* s = src + ((b * C + c) * E + e) * Ts;
+        float* d = dst + b * Tq;
+        if (S == 1) {
+          const int64_t lo_m = std::min(std::max<int64_t>(F, 0), Tq), hi_m = std::max(lo_m, std::min({Tq, Lp, F + Ts}));
+          for (int64_t m = 0; m < lo_m; ++m)
+            d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
+          for (int64_t m = lo_m; m < hi_m; ++m) d[m] = fv * s[m - F];
+          for (int64_t m = hi_m; m < Tq; ++m) d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
+        } else {
+          for (int64_t m = 0; m < Tq; ++m) {
+            const int64_t p = S * m + ph;
+            float v = 0.f;
+            if (p < Lp) {
+              const int64_t q = p - F;
+              if (q >= 0 && q < Ts)
+                v = s[q];
+              else if (reflect)
+                v = s[mirror(q, Ts)];
+            }
+            d[m] = fv * v;
+          }
+        }
+      }
+    }
+  });
+  return cl;
+}
+
+// Pack rows [0, M) x columns [0, K) of A (given by an accessor) into 4-row panels; rows past M are 0.
+template <typename Get>
+void pack_a(float* out, int64_t M, int64_t K, Get get) {
+  const int64_t panels = (M + MR - 1) / MR;
+  for (int64_t pn = 0; pn < panels; ++pn)
+    for (int64_t k = 0; k < K; ++k)
+      for (int64_t r = 0; r < MR; ++r) {
+        const int64_t m = pn * MR + r;
+        out[(pn * K + k) * MR + r] = m < M ? get(m, k) : 0.f;
+      }
+}
+
+// Output of a stride-2 transposed pass lives in two phase accumulators; rebuild a padded row of length Lp.
+inline void interleave_row(const float* a0, const float* a1, float* out, int64_t Lp) {
+  for (int64_t q = 0; q < Lp; ++q) out[q] = (q & 1) ? a1[q >> 1] : a0[q >> 1];
+}
+
+// Transposed pass (output entity list = transposed CSR): acc rows = Mrows channels of the output entity; the
+// inputs are `src` rows of the reading entities.  stride 1: one product over taps u (pointer shift U-1-u);
+// stride 2: one product per output phase over taps u = phase + 2r (pointer shift R-1-r).  W(m, q, c, u) returns
+// the weight linking output channel m to input channel c of transposed pair q at tap u.
+template <typename Wget>
+void transposed_products(const Cols& src, int64_t Csrc, const Csr& csr, int64_t n, int64_t b0, int64_t stride,
+                         int64_t U, int64_t Mrows, Wget W, std::vector<float>& apack,
+                         std::vector<const float*>& ptr, std::vector<float>* acc, int64_t N, int64_t ldacc) {
+  const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
+  const int64_t R = stride == 1 ? U : (U + 1) / 2;
+  for (int64_t ph = 0; ph < stride; ++ph) {
+    const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;  // taps of this phase
+    const int64_t K = k * Csrc * Rp;
+    for (int64_t s = 0; s < k; ++s)
+      for (int64_t c = 0; c < Csrc; ++c)
+        for (int64_t r = 0; r < Rp; ++r) {
+          const int64_t shift = stride == 1 ? (U - 1 - r) : (R - 1 - r);
+          ptr[(s * Csrc + c) * Rp + r] = src.row(0, c, csr.tent[q0 + s]) + b0 * src.Tq + shift;
+        }
+    pack_a(apack.data(), Mrows, K, [&](int64_t m, int64_t kk) {
+      const int64_t r = kk % Rp, c = (kk / Rp) % Csrc, s = kk / (Rp * Csrc);
+      return W(m, q0 + s, c, stride == 1 ? r : ph + 2 * r);
+    });
+    nn_gemm(apack.data(), Mrows, K, ptr.data(), N, acc[ph].data(), ldacc);
+  }
+}
+
+void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const float* bias,
+             const Scale<float>& sty, const float* scale, float* y) {
+  const int64_t U = g.U, h = g.h, Ci = g.Cin, Co = g.Cout;
+  if (g.kind != kUp) {
+    const int64_t S = g.kind == kDown ? 2 : 1;
+    const int64_t Lp = g.Tin + 2 * h, Tq = (Lp + S - 1) / S;
+    const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, S, h, Lp, Tq, g.reflect, U);
+    const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
+    const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_deg * Ci * U;
+    const int64_t lda = g.nnz * Ci * U;
+    at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+      std::vector<float> apack(static_cast<size_t>(rows * maxK)), acc(static_cast<size_t>(rows * ldacc));
+      std::vector<const float*> ptr(static_cast<size_t>(maxK));
+      for (int64_t task = lo; task < hi; ++task) {
+        const int64_t bt = task / g.Eout, j = task % g.Eout;
+        const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
+        const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+        for (int64_t s = 0; s < k; ++s)
+          for (int64_t c = 0; c < Ci; ++c)
+            for (int64_t u = 0; u < U; ++u)
+              ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
+        const float* wj = w + p0 * Ci * U;
+        pack_a(apack.data(), Co, K, [&](int64_t o, int64_t kk) { return wj[o * lda + kk]; });
+        nn_gemm(apack.data(), Co, K, ptr.data(), N, acc.data(), ldacc);
+        for (int64_t bl = 0; bl < nbl; ++bl) {
+          const int64_t b = b0 + bl;
+          for (int64_t o = 0; o < Co; ++o) {
+            const float f = scale ? scale[(b * Co + o) * g.Eout + j] : 1.f;
+            const float bb = bias ? bias[o] : 0.f;
+            const float* src = acc.data() + o * ldacc + bl * Tq;
+            float* dst = y + ((b * Co + o) * g.Eout + j) * g.Tout;
+            for (int64_t t = 0; t < g.Tout; ++t) dst[t] = src[t] * f + bb;
+          }
+        }
+      }
+    });
+    return;
+  }
+  // up: fine entity f gathers its coarse sources through the transposed CSR, two output phases
+  const int64_t R = (U + 1) / 2, Lpf = g.Tout + 2 * h, Mq = (Lpf + 1) / 2, Tq = Mq + R - 1;
+  const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, 1, R - 1, Tq, Tq, false, U);
+  const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
+  const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
+  auto W = [&](int64_t o, int64_t q, int64_t i, int64_t u) { return w[((i * g.nnz + csr.tpair[q]) * Co + o) * U + u]; };
+  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+    std::vector<float> apack(static_cast<size_t>(rows * std::max<int64_t>(maxK, 1)));
+    std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
+                                 std::vector<float>(static_cast<size_t>(rows * ldacc))};
+    std::vector<const float*> ptr(static_cast<size_t>(std::max<int64_t>(maxK, 1)));
+    std::vector<float> vp(static_cast<size_t>(Lpf)), v(static_cast<size_t>(g.Tout)), vb(static_cast<size_t>(g.Tout));
+    for (int64_t task = lo; task < hi; ++task) {
+      const int64_t bt = task / g.Eout, f = task % g.Eout;
+      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
+      transposed_products(xc, Ci, csr, f, b0, 2, U, Co, W, apack, ptr, acc, N, ldacc);
+      for (int64_t bl = 0; bl < nbl; ++bl) {
+        const int64_t b = b0 + bl;
+        for (int64_t o = 0; o < Co; ++o) {
+          const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
+          const float bb = bias ? bias[o] : 0.f;
+          interleave_row(acc[0].data() + o * ldacc + bl * Tq, acc[1].data() + o * ldacc + bl * Tq, vp.data(), Lpf);
+          fold_row<float>(vp.data(), v.data(), g.Tout, h, g.reflect);
+          blur_row<float>(v.data(), vb.data(), g.Tout);
+          float* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
+          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = vb[t] * fs + bb;
+        }
+      }
+    }
+  });
+}
+
+// Input, style and weight gradients.  gyd * gsc: gy * d for conv/down; for up gyd = blur^T(gy) * d on the fine
+// grid (gsc empty).
+void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>& gsc, const float* x, const float* w,
+              const float* style, float* gx, float* gw, float* gs_part, bool direct_gw, float* gw_acc, int64_t wsize) {
+  const int64_t U = g.U, h = g.h, Ci = g.Cin, Co = g.Cout, Ei = g.Ein, Eo = g.Eout, B = g.B;
+  Scale<float> sty;
+  if (style) {
+    sty.p = style;
+    sty.sb = Ci;
+    sty.sc = 1;
+  }
+  const bool want_input = gx != nullptr || gs_part != nullptr;
+  auto finish = [&](const float* row, int64_t b, int64_t i, int64_t n, int64_t L) {
+    const int64_t xo = ((b * Ci + i) * Ei + n) * L;
+    finish_input_row<float>(row, x + xo, style ? style[b * Ci + i] : 1.f, gx ? gx + xo : nullptr,
+                            gs_part ? gs_part + (n * B + b) * Ci + i : nullptr, L);
+  };
+  if (g.kind == kUp) {
+    // gv on the fine grid, read like a down-sampler's input: stride 2, padding per mode
+    const int64_t Tc = g.Tin, Lp = g.Tout + 2 * h, Tq = Tc + h;
+    const Cols gvc = build_cols(gyd, B, Co, Eo, g.Tout, Scale<float>{}, 2, h, Lp, Tq, g.reflect, U);
+    const int64_t maxK = csr.max_deg * Co * U, lda = g.nnz * Co * U;
+    auto set_ptrs = [&](std::vector<const float*>& ptr, int64_t c, int64_t b0) {
+      const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0;
+      for (int64_t s = 0; s < k; ++s)
+        for (int64_t o = 0; o < Co; ++o)
+          for (int64_t u = 0; u < U; ++u)
+            ptr[(s * Co + o) * U + u] = gvc.row(u % 2, o, csr.idx[p0 + s]) + b0 * Tq + u / 2;
+      return k * Co * U;
+    };
+    if (want_input) {
+      const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
+      const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR);
+      at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
+        std::vector<float> apack(static_cast<size_t>(rows * maxK)), acc(static_cast<size_t>(rows * ldacc));
+        std::vector<const float*> ptr(static_cast<size_t>(maxK));
+        for (int64_t task = lo; task < hi; ++task) {
+          const int64_t bt = task / Ei, c = task % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
+          const int64_t K = set_ptrs(ptr, c, b0);
+          const float* wc = w + csr.off[c] * Co * U;
+          pack_a(apack.data(), Ci, K, [&](int64_t i, int64_t kk) { return wc[i * lda + kk]; });
+          nn_gemm(apack.data(), Ci, K, ptr.data(), nbl * Tq, acc.data(), ldacc);
+          for (int64_t bl = 0; bl < nbl; ++bl)
+            for (int64_t i = 0; i < Ci; ++i) finish(acc.data() + i * ldacc + bl * Tq, b0 + bl, i, c, Tc);
+        }
+      });
+    }
+    if (gw) {
+      const Cols xl = build_cols(x, B, Ci, Ei, Tc, sty, 1, 0, Tc, Tq, false, U);
+      const int64_t nb = direct_gw ? B : batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
+      const int64_t n_tasks = direct_gw ? Ei : nbt * Ei;
+      at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
+        std::vector<const float*> ptr(static_cast<size_t>(maxK)), lrow(static_cast<size_t>(Ci));
+        float* my = direct_gw ? gw : gw_acc + at::get_thread_num() * wsize;
+        for (int64_t task = lo; task < hi; ++task) {
+          const int64_t c = task % Ei, bt = direct_gw ? 0 : task / Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
+          const int64_t K = set_ptrs(ptr, c, b0);
+          for (int64_t i = 0; i < Ci; ++i) lrow[i] = xl.row(0, i, c) + b0 * Tq;
+          float* C = my + csr.off[c] * Co * U;
+          if (direct_gw)
+            for (int64_t i = 0; i < Ci; ++i) std::fill(C + i * lda, C + i * lda + K, 0.f);
+          nt_gemm(lrow.data(), Ci, ptr.data(), K, nbl * Tq, C, lda);
+        }
+      });
+    }
+    return;
+  }
+  const int64_t S = g.kind == kDown ? 2 : 1;
+  if (want_input) {
+    // transposed pass over the readers of each input entity; output on the padded domain, then folded
+    const int64_t Lp = g.Tin + 2 * h;
+    const int64_t R = S == 1 ? U : (U + 1) / 2;
+    const int64_t Mq = S == 1 ? Lp : (Lp + 1) / 2;
+    const int64_t Tq = Mq + R - 1;
+    const Cols gz = build_cols(gyd, B, Co, Eo, g.Tout, gsc, 1, R - 1, Tq, Tq, false, U);
+    const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
+    const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR), maxK = std::max<int64_t>(1, csr.max_tdeg * Co * R);
+    auto W = [&](int64_t i, int64_t q, int64_t o, int64_t u) { return w[((o * g.nnz + csr.tpair[q]) * Ci + i) * U + u]; };
+    at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
+      std::vector<float> apack(static_cast<size_t>(rows * maxK));
+      std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
+                                   std::vector<float>(static_cast<size_t>(S == 2 ? rows * ldacc : 0))};
+      std::vector<const float*> ptr(static_cast<size_t>(maxK));
+      std::vector<float> gp(static_cast<size_t>(Lp)), row(static_cast<size_t>(g.Tin));
+      for (int64_t task = lo; task < hi; ++task) {
+        const int64_t bt = task / Ei, n = task % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
+        if (csr.toff[n + 1] == csr.toff[n]) {  // nobody reads this entity
+          for (int64_t bl = 0; bl < nbl; ++bl)
+            for (int64_t i = 0; i < Ci; ++i) {
+              std::fill(row.begin(), row.end(), 0.f);
+              finish(row.data(), b0 + bl, i, n, g.Tin);
+            }
+          continue;
+        }
+        transposed_products(gz, Co, csr, n, b0, S, U, Ci, W, apack, ptr, acc, nbl * Tq, ldacc);
+        for (int64_t bl = 0; bl < nbl; ++bl)
+          for (int64_t i = 0; i < Ci; ++i) {
+            const float* a0 = acc[0].data() + i * ldacc + bl * Tq;
+            if (S == 2) {
+              interleave_row(a0, acc[1].data() + i * ldacc + bl * Tq, gp.data(), Lp);
+              a0 = gp.data();
+            }
+            fold_row<float>(a0, row.data(), g.Tin, h, g.reflect);
+            finish(row.data(), b0 + bl, i, n, g.Tin);
+          }
+      }
+    });
+  }
+  if (gw) {
+    const int64_t Lp = g.Tin + 2 * h, Tq = (Lp + S - 1) / S;
+    const Cols xc = build_cols(x, B, Ci, Ei, g.Tin, sty, S, h, Lp, Tq, g.reflect, U);
+    const Cols gl = build_cols(gyd, B, Co, Eo, g.Tout, gsc, 1, 0, g.Tout, Tq, false, U);
+    const int64_t nb = direct_gw ? B : batch_tile(B, Tq, Eo), nbt = (B + nb - 1) / nb;
+    const int64_t n_tasks = direct_gw ? Eo : nbt * Eo;
+    const int64_t maxK = csr.max_deg * Ci * U, ldw = g.nnz * Ci * U;
+    at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
+      std::vector<const float*> ptr(static_cast<size_t>(maxK)), lrow(static_cast<size_t>(Co));
+      float* my = direct_gw ? gw : gw_acc + at::get_thread_num() * wsize;
+      for (int64_t task = lo; task < hi; ++task) {
+        const int64_t j = task % Eo, bt = direct_gw ? 0 : task / Eo, b0 = bt * nb, nbl = std::min(nb, B - b0);
+        const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+        for (int64_t s = 0; s < k; ++s)
+          for (int64_t c = 0; c < Ci; ++c)
+            for (int64_t u = 0; u < U; ++u)
+              ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
+        for (int64_t o = 0; o < Co; ++o) lrow[o] = gl.row(0, o, j) + b0 * Tq;
+        float* C = my + p0 * Ci * U;
+        if (direct_gw)
+          for (int64_t o = 0; o < Co; ++o) std::fill(C + o * ldw, C + o * ldw + K, 0.f);
+        nt_gemm(lrow.data(), Co, ptr.data(), K, nbl * Tq, C, ldw);
+      }
+    });
+  }
+}
+
+}  // namespace fastk
+
+template <typename T>
+void forward_dispatch(const Geo& g, const Csr& csr, const T* x, const T* w, const T* bias, const Scale<T>& sty,
+                      const T* scale, T* y) {
+  if constexpr (std::is_same_v<T, float>) {
+    if (fastk::wanted()) {
+      fastk::forward(g, csr, x, w, bias, sty, scale, y);
+      return;
+    }
+  }
+  if (g.kind == kUp)
+    forward_up<T>(g, csr, x, w, bias, sty, scale, y);
+  else
+    forward_conv_down<T>(g, csr, x, w, bias, sty, scale, y);
+}
+
 at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
                        const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                        int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
@@ -490,25 +1001,12 @@ at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weig
     const T* bp = bias.has_value() ? bias->data_ptr<T>() : nullptr;
     const T* sp = scale.has_value() ? scale->data_ptr<T>() : nullptr;
     const Scale<T> sty = style_scale<T>(style, g.Cin);
-    if (kind == kUp)
-      forward_up<T>(g, csr, x.data_ptr<T>(), weight.data_ptr<T>(), bp, sty, sp, y.data_ptr<T>());
-    else
-      forward_conv_down<T>(g, csr, x.data_ptr<T>(), weight.data_ptr<T>(), bp, sty, sp, y.data_ptr<T>());
+    forward_dispatch<T>(g, csr, x.data_ptr<T>(), weight.data_ptr<T>(), bp, sty, sp, y.data_ptr<T>());
   });
   return y;
 }
 
 // ------------------------------------------------------------------------------------------------ backward
-// Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
-template <typename T>
-inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_acc, int64_t L) {
-  T dot = T(0);
-  for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
-  if (gs_acc) *gs_acc += dot;
-  if (gx_row)
-    for (int64_t t = 0; t < L; ++t) gx_row[t] = gxp[t] * s;
-}
-
 template <typename T>
 void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, const T* x, const T* w, const T* bias,
                    const T* style, const T* scale, T* gx, T* gw, T* gb, T* gs, T* gd) {
@@ -557,10 +1055,11 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   if (gs) gs_part.assign(static_cast<size_t>(Ei * Bq * Ci), T(0));
   const int64_t wsize = g.nnz * Ci * Co * U;
 
+  // up: gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); then per coarse entity c the strided panel of gv
+  // feeds both gx'_c = W_c * GV_c and gW_c += X'_c * GV_c^T.
+  std::vector<T> gv;
   if (g.kind == kUp) {
-    // gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); then per coarse entity c the strided panel of gv
-    // feeds both gx'_c = W_c * GV_c and gW_c += X'_c * GV_c^T.
-    std::vector<T> gv(static_cast<size_t>(Bq * Co * Eo * g.Tout));
+    gv.resize(static_cast<size_t>(Bq * Co * Eo * g.Tout));
     at::parallel_for(0, Bq * Co * Eo, elem_grain(g.Tout), [&](int64_t lo, int64_t hi) {
       for (int64_t r = lo; r < hi; ++r) {
         blur_adjoint_row<T>(gy + r * g.Tout, gv.data() + r * g.Tout, g.Tout);
@@ -570,6 +1069,17 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
         }
       }
     });
+  }
+  bool fast_done = false;
+  if constexpr (std::is_same_v<T, float>) {
+    if (fastk::wanted()) {
+      fastk::backward(g, csr, g.kind == kUp ? gv.data() : gy, g.kind == kUp ? Scale<float>{} : dsc, x, w, style, gx,
+                      gw, gs ? gs_part.data() : nullptr, direct_gw, gw_acc.data(), wsize);
+      fast_done = true;
+    }
+  }
+  if (fast_done) {
+  } else if (g.kind == kUp) {
     const int64_t Tc = g.Tin;
     const int64_t nb = batch_tile(Bq, Tc, Ei);
     const int64_t nbt = (Bq + nb - 1) / nb;

@@ -28,7 +28,7 @@ def register(subparsers) -> None:
     q = sub.add_parser("train", help="train an encoder for a frozen generator", formatter_class=fmt,
                        description="Train the encoder I (reverse synthesis hierarchy -> W+) on the 80% split of DATA "
                                    "(split by file like the generator's data) with the generator frozen; losses: "
-                                   "rec L2 + λ_contact BCE + λ_root root L2 + λ_pos FK-position L2 (cm). Writes ENC "
+                                   "rec L2 + λ_contact BCE + λ_root root L2 + λ_pos FK-position L2. Writes ENC "
                                    "(one self-contained checkpoint with the generator inside) and ENC.log.jsonl, and "
                                    "prints the Table 5 metrics on the 20% test split.")
     q.add_argument("ckpt", metavar="CKPT", help="MoDi generator checkpoint")
@@ -39,11 +39,11 @@ def register(subparsers) -> None:
     q.add_argument("--lr", type=float, default=0.002, help="Adam learning rate")
     q.add_argument("--lambda-contact", type=float, default=100.0, help="weight of the contact BCE")
     q.add_argument("--lambda-root", type=float, default=2.0, help="weight of the root L2")
-    q.add_argument("--lambda-pos", type=float, default=0.1, help="weight of the FK-position L2 (cm²)")
+    q.add_argument("--lambda-pos", type=float, default=0.1, help="weight of the FK-position L2 (positions in tenths of the body size)")
     q.add_argument("--prefix", type=int, default=None, metavar="T",
                    help="train the prefix variant: the encoder sees frames [0, T) only")
     q.add_argument("--channel-multiplier", type=float, default=1.0, help="encoder width relative to the generator")
-    q.add_argument("--units", default="auto", help="data length unit (auto, mm, cm, m, in)")
+    q.add_argument("--units", default="auto", help="data length unit for the mm metrics (auto, mm, cm, m, in)")
     q.add_argument("--seed", type=int, default=0, help="seed")
     q.add_argument("--eval-every", type=int, default=500, help="steps between test-split evaluations (0: end only)")
     q.add_argument("--ckpt-every", type=int, default=250, help="steps between checkpoint writes")

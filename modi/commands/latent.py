@@ -103,7 +103,7 @@ def register(subparsers) -> None:
 
     q = sub.add_parser("invert", help="invert a BVH clip into W+ by optimisation", formatter_class=fmt,
                        description="Optimise a W+ latent so G(W+) matches a window of a BVH clip (L2 on the "
-                                   "representation + λ_FK × position MSE in cm²). Writes input/result BVH side by "
+                                   "representation + λ_FK × position MSE in tenths of the body size). Writes input/result BVH side by "
                                    "side in inversion.gif, the latent (wplus.npy, usable by the other actions), "
                                    "the loss curve (loss.png) and history.json.")
     _common(q)
@@ -111,9 +111,9 @@ def register(subparsers) -> None:
     q.add_argument("--start", type=int, default=0, help="first frame of the window (after resampling)")
     q.add_argument("--steps", type=int, default=300, help="optimisation steps")
     q.add_argument("--lr", type=float, default=0.02, help="Adam learning rate")
-    q.add_argument("--lambda-fk", type=float, default=0.1, help="weight of the FK-position term")
+    q.add_argument("--lambda-fk", type=float, default=1.0,
+                   help="weight of the FK-position term (positions in tenths of the body size)")
     q.add_argument("--init", choices=("mean", "random"), default="mean", help="starting latent")
-    q.add_argument("--units", default="auto", help="data length unit for the position term (auto, mm, cm, m, in)")
     q.set_defaults(func=run_invert)
 
 
@@ -267,15 +267,15 @@ def run_invert(args: argparse.Namespace) -> int:
         raise UserError("--lr must be positive and --lambda-fk >= 0")
     _, _, t = g.output_shape
     target = load_bvh_window(codec, args.bvh, t, args.start).unsqueeze(0)
-    res = invert(g, codec, target, steps=args.steps, lr=args.lr, lambda_fk=args.lambda_fk, init=args.init,
-                 units=args.units)
+    res = invert(g, codec, target, steps=args.steps, lr=args.lr, lambda_fk=args.lambda_fk,
+                 init=args.init)
     write_motions(codec, torch.cat([target.cpu(), res.motion.cpu()]), out, ["input", "inverted"],
                   gif="inversion.gif", titles=["input", f"G(W+) after {args.steps} steps"])
     save_latent(out / "wplus.npy", res.wplus[0])
     (out / "history.json").write_text(json.dumps({"total": res.history, "rec": res.rec, "fk": res.fk}))
     _plot_history(res, out / "loss.png")
     print(f"modi latent invert: loss {res.history[0]:.4f} -> {res.history[-1]:.4f} (rec {res.rec[-1]:.4f}, "
-          f"fk {res.fk[-1]:.3f} cm²); {out / 'inversion.gif'}, {out / 'wplus.npy'}")
+          f"fk {res.fk[-1]:.4f}); {out / 'inversion.gif'}, {out / 'wplus.npy'}")
     return 0
 
 

@@ -7,8 +7,8 @@
   own contact sigmoid (``modi_model.losses.contact_probability``);
 * ``L_root`` -- MSE on the root entities only (root-motion entity and root rotation), which otherwise converge
   slowest;
-* ``L_pos``  -- MSE of global joint positions (FK) in centimetres, so λ_pos = 0.1 means what it meant on the
-  paper's centimetre data on any rig (``latent.space.cm_scale``).
+* ``L_pos``  -- MSE of global joint positions (FK) in tenths of the body size (``latent.space.position_scale``,
+  about decimetres on a human), so λ_pos = 0.1 weighs the same on any rig and unit.
 
 Data: the windows of the generator's own dataset configuration, split 80/20 *by file* exactly as the generator's
 training split (``modi.dataset``), so the test split is unseen by the generator and the encoder alike. The
@@ -33,7 +33,7 @@ from torch import Tensor
 
 from modi.encoder.model import EncoderConfig, MotionEncoder, build_encoder, encode
 from modi.errors import CheckpointError, UserError
-from modi.latent.space import cm_scale
+from modi.latent.space import position_scale
 
 ENCODER_FORMAT = "modi-encoder"
 ENCODER_VERSION = 1
@@ -52,7 +52,7 @@ class EncoderTrainConfig:
     lambda_pos: float = 0.1
     prefix_frames: int | None = None
     channel_multiplier: float = 1.0
-    units: str = "auto"
+    units: str = "auto"  # only for the mm metrics
     seed: int = 0
     log_every: int = 20
     ckpt_every: int = 250
@@ -136,7 +136,7 @@ def split_windows(x: Tensor, test_fraction: float = 0.2, seed: int = 0) -> Encod
 # =============================================================================================== losses
 def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainConfig, scale: float,
                    target_decoded: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
-    """The four terms and their weighted total (eq. 8); ``scale`` turns skeleton units into cm."""
+    """The four terms and their weighted total (eq. 8); ``scale`` turns skeleton units into loss units."""
     from modi.modi_model.losses import contact_probability
 
     J = codec.rep.n_joints
@@ -276,7 +276,7 @@ class EncoderTrainer:
         self.encoder = build_encoder(g, self.cfg.channel_multiplier, self.cfg.prefix_frames)
         self.encoder.train()
         self.optim = torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.lr, betas=(self.cfg.beta1, self.cfg.beta2))
-        self.scale = cm_scale(codec, self.cfg.units)
+        self.scale = position_scale(codec)
         self.rng = torch.Generator().manual_seed(self.cfg.seed * 7919 + 3)
         self.step = 0
         self.last_losses: dict[str, float] = {}

@@ -2,7 +2,8 @@
 
 ``argmin_w ||G(w) - m||² + λ_FK ||FK(G(w)) - FK(m)||²`` with Adam over one W+ tensor per motion, the generator
 frozen and its noise fixed. The first term is the MSE on the normalised representation (what the generator
-outputs); the second the MSE of global joint positions in centimetres (``space.cm_scale``), which mainly fixes
+outputs); the second the MSE of global joint positions in tenths of the body size (``space.position_scale``),
+which mainly fixes
 what rotation errors do to the end effectors. W+ (a style per layer) reaches much more than W (Abdal et al.).
 Starting from the mean latent rather than random noise converges faster and stays in the well-behaved region.
 """
@@ -14,7 +15,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from modi.latent.space import as_wplus, cm_scale, mean_w, random_w
+from modi.latent.space import as_wplus, mean_w, position_scale, random_w
 
 
 @dataclass
@@ -31,7 +32,7 @@ class InversionResult:
 
 def inversion_loss(codec: Any, pred: Tensor, target: Tensor, lambda_fk: float, scale: float,
                    target_pos: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-motion (total, rec, fk) losses (each (B,)): representation MSE + λ · position MSE in cm²."""
+    """Per-motion (total, rec, fk) losses (each (B,)): representation MSE + λ · position MSE (positions × scale)."""
     rec = (pred - target).pow(2).flatten(1).mean(1)
     if lambda_fk <= 0:
         return rec, rec, torch.zeros_like(rec)
@@ -41,8 +42,8 @@ def inversion_loss(codec: Any, pred: Tensor, target: Tensor, lambda_fk: float, s
     return rec + lambda_fk * fk, rec, fk
 
 
-def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.02, lambda_fk: float = 0.1,
-           init: str = "mean", seed: int = 0, progress: bool = True, units: str = "auto",
+def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.02, lambda_fk: float = 1.0,
+           init: str = "mean", seed: int = 0, progress: bool = True,
            callback: Callable[[int, float], None] | None = None) -> InversionResult:
     """Optimise W+ latents so that G(W+) matches ``target`` (B, K, E, T), normalised like the model's data.
 
@@ -69,7 +70,7 @@ def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.0
     wplus = as_wplus(g, w0).clone().contiguous().requires_grad_(True)
     for p in g.parameters():
         p.requires_grad_(False)
-    scale = cm_scale(codec, units) if lambda_fk > 0 else 1.0
+    scale = position_scale(codec)
     with torch.no_grad():
         target_pos = codec.decode(target)["positions"] * scale if lambda_fk > 0 else None
     opt = torch.optim.Adam([wplus], lr=lr, betas=(0.9, 0.999))

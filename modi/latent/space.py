@@ -181,10 +181,12 @@ def mm_per_unit(height: float, units: str = "auto") -> float:
                     "pass --units (mm, cm, m, in)")
 
 
-def cm_scale(codec: Any, units: str = "auto") -> float:
-    """Factor turning skeleton units into centimetres, so position losses weigh the same on any rig
-    (the paper's λ_pos = 0.1 was set on centimetre data)."""
-    return mm_per_unit(codec.height, units) / 10.0
+def position_scale(codec: Any) -> float:
+    """Factor turning skeleton units into *tenths of the body size* (``Skeleton.height()``; about decimetres
+    on a human), the unit of every position loss here (inversion, encoder). The papers do not state theirs; in
+    this unit a typical reconstruction's position MSE is comparable to the representation MSE, so λ_pos = 0.1
+    helps positions without drowning the rotations (Table 5's ablation shows that balance), on any rig."""
+    return 10.0 / float(codec.height)
 
 
 # --------------------------------------------------------------------------------------------- latent files
@@ -318,6 +320,6 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
 
 
 __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean_w", "mean_w", "as_wplus",
-           "check_latent", "mm_per_unit", "cm_scale", "synthesize", "mean_motion", "truncate", "lerp_sequence", "truncation_sequence",
+           "check_latent", "mm_per_unit", "position_scale", "synthesize", "mean_motion", "truncate", "lerp_sequence", "truncation_sequence",
            "interpolation_sequence", "save_latent", "load_latent", "parse_latent", "model_window_from_motion",
            "load_bvh_window", "decode_positions", "write_motions"]

@@ -1,0 +1,291 @@
+"""The encoder into W+ and its applications, on a tiny in-process generator (16 frames, built-in humanoid).
+
+A GAN cannot be trained inside a test, so the fixture makes the tiny generator a decoder of procedural motion by a
+short autoencoder fit (generator + a throwaway encoder); the generator is then frozen and a fresh encoder is
+trained by ``EncoderTrainer`` exactly as ``modi encoder train`` does, on an 80/20 split of the windows.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from modi.encoder import applications as A
+from modi.encoder.metrics import PAPER_TABLE5, evaluate_encoder, format_table5, reconstruction_metrics
+from modi.encoder.model import build_encoder, encode, visible_input
+from modi.encoder.training import (EncoderTrainConfig, EncoderTrainer, encoder_losses, generator_bundle,
+                                   load_encoder, split_windows)
+from modi.errors import CheckpointError, UserError
+from modi.latent import space
+
+T = 16
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def procedural_windows():
+    from modi.normalization import Normalizer
+    from modi.procedural import KINDS, builtin_skeleton, generate_clip
+    from modi.representation import modi_representation
+
+    sk = builtin_skeleton()
+    rep = modi_representation(sk, sk.detect_feet())
+    raw = torch.cat([rep.encode(generate_clip(KINDS[i % 6], 64, 30.0, np.random.default_rng(i)))
+                     .unfold(-1, T, 4).permute(2, 0, 1, 3) for i in range(12)]).float()
+    J = rep.n_joints
+    raw[:, 0, J, 0] = 0.0  # windows start at x = z = 0, like the dataset's
+    raw[:, 2, J, 0] = 0.0
+    return rep, Normalizer.fit(raw, skip_entities=rep.contacts), raw
+
+
+def decoder_generator(steps: int = 250):
+    """(g, codec, normalised windows): a tiny generator fitted as the decoder of an autoencoder, then frozen."""
+    from modi.modi_model.config import ModelConfig
+    from modi.modi_model.networks import Generator, build_levels
+    from modi.modi_model.training import MotionCodec
+    from modi.topology import build_hierarchy
+
+    torch.manual_seed(0)
+    rep, norm, raw = procedural_windows()
+    codec = MotionCodec(rep, norm, 30.0)
+    x = norm.normalize(raw)
+    cfg = ModelConfig(latent_dim=16, n_mlp=2, channels=(8, 8, 8))
+    g = Generator(cfg, build_levels(build_hierarchy(rep.skeleton, rep.feet), cfg, T), rep.K)
+    enc = build_encoder(g)
+    opt = torch.optim.Adam(list(g.parameters()) + list(enc.parameters()), lr=0.005, betas=(0.9, 0.99))
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(steps):
+        xb = x[torch.randint(len(x), (16,), generator=gen)]
+        loss = (g.synthesis(encode(enc, xb), noise_mode="const") - xb).pow(2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    g.eval()
+    for p in g.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():
+        g.w_avg.copy_(encode(enc, x).mean((0, 1)))  # the mean latent of the data's codes
+    return g, codec, x
+
+
+@pytest.fixture(scope="module")
+def model():
+    return decoder_generator()
+
+
+@pytest.fixture(scope="module")
+def trained(model, tmp_path_factory):
+    g, codec, x = model
+    data = split_windows(x, 0.2, seed=0)
+    out = tmp_path_factory.mktemp("enc") / "enc.pt"
+    cfg = EncoderTrainConfig(iters=300, batch=16, lr=0.005, eval_every=0, ckpt_every=0)
+    res = EncoderTrainer((g, codec, None), data, out, cfg, progress=False).train()
+    return res, data, load_encoder(out)
+
+
+# --------------------------------------------------------------------------------------------- model
+def test_encoder_shapes_and_untrained_output_is_the_mean(model):
+    g, codec, x = model
+    enc = build_encoder(g)
+    w = enc(x[:3])
+    assert w.shape == (3, g.n_latent, g.latent_dim)
+    torch.testing.assert_close(enc.w_avg, g.w_avg)  # predictions are offsets from the mean latent
+    with pytest.raises(ValueError, match="encoder input"):
+        enc(x[:2, :, :3])
+
+
+def test_prefix_encoder_ignores_the_hidden_frames(model):
+    g, codec, x = model
+    enc = build_encoder(g, prefix_frames=6).eval()
+    a = x[:2].clone()
+    b = a.clone()
+    b[..., 6:] = torch.randn_like(b[..., 6:]) * 3  # a different future
+    torch.testing.assert_close(encode(enc, a), encode(enc, b))
+    changed = a.clone()
+    changed[..., 2] += 1.0  # a visible frame matters
+    assert (encode(enc, changed) - encode(enc, a)).abs().max() > 1e-6
+    inp, mask = visible_input(a, 6)
+    assert torch.all(inp[..., 6:] == 0) and torch.all(mask[..., :6] == 1) and torch.all(mask[..., 6:] == 0)
+    with pytest.raises(ValueError, match="prefix_frames"):
+        build_encoder(g, prefix_frames=T)
+
+
+def test_losses_are_zero_on_a_perfect_reconstruction_and_weighted(model):
+    g, codec, x = model
+    cfg = EncoderTrainConfig()
+    real = x[:4]
+    same = encoder_losses(codec, real, real, cfg, space.position_scale(codec))
+    assert float(same["rec"]) == 0 and float(same["root"]) == 0 and float(same["pos"]) == 0
+    noisy = real + 0.1 * torch.randn_like(real)
+    out = encoder_losses(codec, noisy, real, cfg, space.position_scale(codec))
+    total = out["rec"] + 100 * out["contact"] + 2 * out["root"] + 0.1 * out["pos"]
+    torch.testing.assert_close(out["total"], total)
+    J = codec.rep.n_joints
+    expected_root = ((noisy[:, :, J] - real[:, :, J]) ** 2).mean() + ((noisy[:, :, 0] - real[:, :, 0]) ** 2).mean()
+    torch.testing.assert_close(out["root"], expected_root)
+
+
+# --------------------------------------------------------------------------------------------- metrics
+def test_metrics_measure_known_displacements_in_mm(model):
+    g, codec, x = model
+    real = x[:3]
+    zero = reconstruction_metrics(codec, real, real)
+    assert all(abs(zero[k]) < 1e-6 for k in ("l2", "l1", "root_mm", "local_mm", "global_mm"))
+    # shift the whole trajectory by d units along x: the root velocity of frame 0 carries the start position
+    d = 5.0
+    J = codec.rep.n_joints
+    shifted = real.clone()
+    shifted[:, 0, J, 0] += d / codec.normalizer.std[0, J]
+    m = reconstruction_metrics(codec, real, shifted)
+    mm = space.mm_per_unit(codec.height)
+    assert mm == 10.0  # the built-in humanoid is in centimetres
+    assert m["root_mm"] == pytest.approx(d * mm, rel=1e-3)
+    assert m["global_mm"] == pytest.approx(d * mm, rel=1e-3)
+    assert m["local_mm"] == pytest.approx(0.0, abs=1e-3)
+    assert m["l2"] == pytest.approx(float(((shifted - real) ** 2).mean()), rel=1e-5)
+
+
+def test_encoder_beats_the_trivial_baselines_on_the_test_split(trained, model):
+    res, data, bundle = trained
+    g, codec, _ = model
+    m = res.metrics
+    assert m["n_windows"] == data.test.shape[0]
+    enc, base = m["encoder"], m["mean_motion"]
+    assert enc["l2"] < base["l2"]
+    assert enc["global_mm"] < 0.8 * base["global_mm"]
+    assert enc["root_mm"] < 0.8 * base["root_mm"]
+    # the reloaded checkpoint gives the same numbers
+    again = evaluate_encoder(bundle.encoder, bundle.g, bundle.codec, data.test)
+    assert again["encoder"]["l2"] == pytest.approx(enc["l2"], rel=1e-4)
+    table = format_table5(m)
+    assert "mean motion" in table and f"{PAPER_TABLE5['global_mm']:.1f}" in table
+
+
+def test_checkpoint_is_self_contained_and_resume_is_exact(model, tmp_path):
+    g, codec, x = model
+    data = split_windows(x[:40], 0.2, seed=1)
+    cfg = EncoderTrainConfig(iters=4, batch=4, eval_every=0, ckpt_every=0)
+    straight = EncoderTrainer((g, codec, None), data, tmp_path / "a.pt", cfg, progress=False)
+    straight.train()
+    half = EncoderTrainer((g, codec, None), data, tmp_path / "b.pt", cfg, progress=False)
+    half.train(2)
+    resumed = EncoderTrainer((g, codec, None), data, tmp_path / "b.pt", cfg, progress=False, resume=tmp_path / "b.pt")
+    assert resumed.step == 2
+    resumed.train()
+    for (k, a), b in zip(straight.encoder.state_dict().items(), resumed.encoder.state_dict().values()):
+        torch.testing.assert_close(a, b, msg=k)
+    bundle = load_encoder(tmp_path / "a.pt")
+    torch.testing.assert_close(bundle.g.synthesis(space.as_wplus(bundle.g, g.w_avg[None]), noise_mode="const"),
+                               space.mean_motion(g))
+    with pytest.raises(CheckpointError, match="generator checkpoint"):
+        torch.save(generator_bundle(g, codec), tmp_path / "gen.pt")
+        load_encoder(tmp_path / "gen.pt")
+    other = EncoderTrainConfig(iters=4, batch=4, eval_every=0, ckpt_every=0, prefix_frames=5)
+    with pytest.raises(CheckpointError, match="built differently"):
+        EncoderTrainer((g, codec, None), data, tmp_path / "c.pt", other, progress=False, resume=tmp_path / "a.pt")
+
+
+# --------------------------------------------------------------------------------------------- applications
+def test_fusion_keeps_prefix_and_suffix_close_to_their_sources(trained, tmp_path):
+    _, data, bundle = trained
+    te = data.test
+    n = te.shape[0] // 2
+    a, b = te[:n], te[n:2 * n]
+    t = T // 2
+    naive, fused = A.fuse(bundle, a, b, t)
+    torch.testing.assert_close(naive[..., :t], a[..., :t])
+    torch.testing.assert_close(naive[..., t:], b[..., t:])
+    margin = 3
+    pre, suf = slice(0, t - margin), slice(t + margin, None)
+
+    def err(x, y, frames):
+        return float((x[..., frames] - y[..., frames]).pow(2).mean())
+
+    assert err(fused, a, pre) < err(fused, b, pre)
+    assert err(fused, b, suf) < err(fused, a, suf)
+    r = A.fuse_motions(bundle, a[:1], b[:1], t, tmp_path, name="ab")
+    assert (tmp_path / "ab.gif").is_file() and len(r["bvh"]) == 4
+    with pytest.raises(UserError, match="fusion frame"):
+        A.concatenate(a, b, 0)
+
+
+def test_applications_write_triplets_and_report(trained, tmp_path):
+    _, data, bundle = trained
+    x = data.test[:1]
+    inv = A.invert_motions(bundle, x, tmp_path / "inv", ["m"], optim_steps=3, progress=False)[0]
+    assert [p.rsplit("_", 1)[1] for p in inv["bvh"]] == ["input.bvh", "naive.bvh", "encoder.bvh"]
+    assert (tmp_path / "inv" / "m.gif").is_file()
+    den = A.denoise_motions(bundle, x, tmp_path / "den", ["m"], sigma=0.5)[0]
+    assert den["l2_naive"] < den["l2_noisy"]  # smoothing removes part of white noise
+    with pytest.raises(UserError, match="--prefix"):
+        A.complete_prefix(bundle, x, tmp_path / "p")
+
+
+def test_noise_smoothing_and_hold_helpers(model):
+    g, codec, x = model
+    noisy = A.add_noise(codec, x[:2], 0.3, seed=0)
+    J = codec.rep.n_joints
+    torch.testing.assert_close(noisy[:, :, J:], x[:2, :, J:])  # root motion and contacts untouched
+    assert float((noisy[:, :, :J] - x[:2, :, :J]).std()) == pytest.approx(0.3, rel=0.1)
+    const = torch.ones(1, 2, 3, 10) * 4.0
+    torch.testing.assert_close(A.smooth_time(const, 2.0), const)
+    held = A.hold_after(codec, x[:1], 5)
+    raw = codec.normalizer.denormalize(held)
+    torch.testing.assert_close(raw[..., :J, 7], raw[..., :J, 4])
+    assert torch.all(raw[:, [0, 2], J, 5:] == 0)  # the root stops
+
+
+def test_raise_arm_lifts_the_edited_frames_only(model):
+    from modi.latent.editing import bone_elevation, find_right_arm
+
+    g, codec, x = model
+    s, e, _ = find_right_arm(codec.skeleton)
+    src = x[:2]
+    edited = A.raise_arm(codec, src, angle=40.0, start=8)
+
+    def elev(m):
+        return bone_elevation(codec.decode(m)["positions"], s, e)
+
+    before, after = elev(src), elev(edited)
+    torch.testing.assert_close(after[:, :8], before[:, :8], atol=1e-3, rtol=0)
+    raised = before[:, 8:] + 40.0
+    expected = torch.where(raised <= 180.0, raised, 360.0 - raised)  # past vertical the bone comes down again
+    torch.testing.assert_close(after[:, 8:], expected, atol=0.5, rtol=0)
+
+
+def test_prefix_completion_end_to_end(model, tmp_path):
+    g, codec, x = model
+    data = split_windows(x, 0.2, seed=0)
+    cfg = EncoderTrainConfig(iters=3, batch=4, eval_every=0, ckpt_every=0, prefix_frames=6)
+    EncoderTrainer((g, codec, None), data, tmp_path / "p.pt", cfg, progress=False).train()
+    bundle = load_encoder(tmp_path / "p.pt")
+    r = A.complete_prefix(bundle, data.test[:1], tmp_path / "out", ["m"])[0]
+    assert r["prefix_frames"] == 6 and (tmp_path / "out" / "m.gif").is_file()
+
+
+def test_apply_cli_on_bvh_inputs(trained, tmp_path, capsys):
+    from modi.cli import main
+    from modi.procedural import generate_clip
+
+    res, _, _ = trained
+    clips = []
+    for i, kind in enumerate(("walk", "jump")):
+        p = tmp_path / f"{kind}.bvh"
+        generate_clip(kind, 40, 30.0, np.random.default_rng(i)).save(p)
+        clips.append(str(p))
+    enc = str(res.checkpoint)
+    assert main(["apply", "fuse", enc, *clips, "--out", str(tmp_path / "f"), "--frame", "8", "--start", "4"]) == 0
+    out = json.loads((tmp_path / "f" / "results.json").read_text())
+    assert out[0]["t"] == 8 and (tmp_path / "f" / "walk+jump.gif").is_file()
+    assert main(["apply", "edit", enc, clips[0], "--out", str(tmp_path / "e"), "--angle", "60"]) == 0
+    assert main(["apply", "invert", enc, clips[0], "--out", str(tmp_path / "i"), "--start", "100"]) == 2
+    assert "need 116" in capsys.readouterr().err
+    assert main(["apply", "prefix", enc, clips[0], "--out", str(tmp_path / "p")]) == 2
