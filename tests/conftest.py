@@ -16,3 +16,7 @@ def shared_data() -> Path:
     if not (SHARED_DATA / "bvh").is_dir():
         pytest.skip(f"real data not found at {SHARED_DATA} (set MODI_SHARED_DATA or place ../shared beside the repo)")
     return SHARED_DATA
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "cuda: needs a CUDA GPU and the CUDA kernels (skipped otherwise)")

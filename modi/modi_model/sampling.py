@@ -34,7 +34,10 @@ def load_checkpoint(ckpt: str | os.PathLike | dict) -> dict[str, Any]:
         if not path.is_file():
             raise CheckpointError(f"{path}: is not a file")
         try:
-            st = torch.load(path, map_location="cpu", weights_only=True)
+            from torch.torch_version import TorchVersion  # a str subclass early drafts stored; harmless to allow
+
+            with torch.serialization.safe_globals([TorchVersion]):
+                st = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - truncated, corrupt, pickle-bearing or non-torch files
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise CheckpointError(f"{path}: not a readable MoDi checkpoint ({first[:200]})") from None
