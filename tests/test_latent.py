@@ -271,7 +271,7 @@ def test_edit_score_rises_with_alpha_on_held_out_seeds(tiny, tmp_path):
     assert report.scores.shape == (8, 5)
     assert report.monotonic, report.summary()
     assert report.mean[-1] > report.mean[0]
-    assert report.spearman > 0.3
+    assert report.spearman > 0.25
     # the α = 0 column is the unedited seeds' own scores
     np.testing.assert_allclose(report.scores[:, 2],
                                editing.speed_score(codec, space.synthesize(g, space.seed_w(g, report.seeds))).numpy(),

@@ -723,16 +723,89 @@ Cols build_cols(const float* src, int64_t B, int64_t C, int64_t E, int64_t Ts, c
   return cl;
 }
 
-// Pack rows [0, M) x columns [0, K) of A (given by an accessor) into 4-row panels; rows past M are 0.
-template <typename Get>
-void pack_a(float* out, int64_t M, int64_t K, Get get) {
+// A operands are packed once per call into 4-row panels: panel pn holds out[(pn*K + kk)*4 + r] = A[pn*4 + r][kk]
+// (rows past M are 0), so the NN kernel reads its 4 broadcasts from one cache line.
+// Plain: A[m][kk] = src[m*lda + kk].
+void pack_plain(float* out, int64_t M, int64_t K, const float* src, int64_t lda) {
   const int64_t panels = (M + MR - 1) / MR;
   for (int64_t pn = 0; pn < panels; ++pn)
-    for (int64_t k = 0; k < K; ++k)
-      for (int64_t r = 0; r < MR; ++r) {
-        const int64_t m = pn * MR + r;
-        out[(pn * K + k) * MR + r] = m < M ? get(m, k) : 0.f;
+    for (int64_t r = 0; r < MR; ++r) {
+      const int64_t m = pn * MR + r;
+      float* o = out + pn * K * MR + r;
+      if (m < M) {
+        const float* row = src + m * lda;
+        for (int64_t kk = 0; kk < K; ++kk) o[kk * MR] = row[kk];
+      } else {
+        for (int64_t kk = 0; kk < K; ++kk) o[kk * MR] = 0.f;
       }
+    }
+}
+
+// Grouped: columns come in groups of Rp taps; A[m][g*Rp + r] = base[g][m*mstride + tap0 + tap_step*r].
+void pack_groups(float* out, int64_t M, int64_t K, const std::vector<const float*>& base, int64_t Rp,
+                 int64_t mstride, int64_t tap0, int64_t tap_step) {
+  const int64_t panels = (M + MR - 1) / MR;
+  if (panels * MR > M) std::fill(out, out + panels * MR * K, 0.f);
+  for (size_t gi = 0; gi < base.size(); ++gi)
+    for (int64_t m = 0; m < M; ++m) {
+      const float* src = base[gi] + m * mstride + tap0;
+      float* o = out + ((m / MR) * K + static_cast<int64_t>(gi) * Rp) * MR + (m % MR);
+      for (int64_t r = 0; r < Rp; ++r) o[r * MR] = src[r * tap_step];
+    }
+}
+
+// All entities' packed operands of one pass (and phase), addressed by entity * phases + phase.
+struct Packs {
+  std::vector<float> buf;
+  std::vector<int64_t> off;
+  const float* at(int64_t i) const { return buf.data() + off[i]; }
+};
+
+// Transposed pass: for output entity n and phase ph the operand row m, column (s, c, r) is
+// w_t(m, pair of transposed entry q0+s, c, tap) with tap = r (stride 1) or ph + 2r (stride 2).  `group_base(q, c)`
+// returns a pointer such that element (m, tap) sits at base[m*mstride + tap].
+template <typename GroupBase>
+Packs pack_transposed(const Csr& csr, int64_t n_ent, int64_t stride, int64_t U, int64_t M, int64_t Csrc,
+                      int64_t mstride, GroupBase group_base) {
+  Packs pk;
+  const int64_t rows = round_up(M, MR);
+  pk.off.assign(static_cast<size_t>(n_ent * stride + 1), 0);
+  for (int64_t n = 0; n < n_ent; ++n)
+    for (int64_t ph = 0; ph < stride; ++ph) {
+      const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
+      const int64_t k = csr.toff[n + 1] - csr.toff[n];
+      pk.off[n * stride + ph + 1] = pk.off[n * stride + ph] + rows * k * Csrc * Rp;
+    }
+  pk.buf.resize(static_cast<size_t>(pk.off.back()));
+  at::parallel_for(0, n_ent * stride, elem_grain(M * Csrc * U * std::max<int64_t>(1, csr.max_tdeg)),
+                   [&](int64_t lo, int64_t hi) {
+    std::vector<const float*> base;
+    for (int64_t e = lo; e < hi; ++e) {
+      const int64_t n = e / stride, ph = e % stride;
+      const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
+      const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
+      base.clear();
+      for (int64_t s = 0; s < k; ++s)
+        for (int64_t c = 0; c < Csrc; ++c) base.push_back(group_base(q0 + s, c));
+      pack_groups(pk.buf.data() + pk.off[e], M, k * Csrc * Rp, base, Rp, mstride, stride == 1 ? 0 : ph,
+                  stride == 1 ? 1 : 2);
+    }
+  });
+  return pk;
+}
+
+// Plain pass: entity j's operand is rows [0, M) of the strided view src + off[j]*colw (row stride lda), K_j wide.
+Packs pack_entities(const Csr& csr, int64_t M, const float* src, int64_t lda, int64_t colw) {
+  Packs pk;
+  const int64_t rows = round_up(M, MR);
+  pk.off.assign(static_cast<size_t>(csr.rows + 1), 0);
+  for (int64_t j = 0; j < csr.rows; ++j) pk.off[j + 1] = pk.off[j] + rows * (csr.off[j + 1] - csr.off[j]) * colw;
+  pk.buf.resize(static_cast<size_t>(pk.off.back()));
+  at::parallel_for(0, csr.rows, elem_grain(M * colw * csr.max_deg), [&](int64_t lo, int64_t hi) {
+    for (int64_t j = lo; j < hi; ++j)
+      pack_plain(pk.buf.data() + pk.off[j], M, (csr.off[j + 1] - csr.off[j]) * colw, src + csr.off[j] * colw, lda);
+  });
+  return pk;
 }
 
 // Output of a stride-2 transposed pass lives in two phase accumulators; rebuild a padded row of length Lp.
@@ -740,30 +813,23 @@ inline void interleave_row(const float* a0, const float* a1, float* out, int64_t
   for (int64_t q = 0; q < Lp; ++q) out[q] = (q & 1) ? a1[q >> 1] : a0[q >> 1];
 }
 
-// Transposed pass (output entity list = transposed CSR): acc rows = Mrows channels of the output entity; the
-// inputs are `src` rows of the reading entities.  stride 1: one product over taps u (pointer shift U-1-u);
-// stride 2: one product per output phase over taps u = phase + 2r (pointer shift R-1-r).  W(m, q, c, u) returns
-// the weight linking output channel m to input channel c of transposed pair q at tap u.
-template <typename Wget>
+// Transposed pass (output entity list = transposed CSR): acc rows = Mrows channels of output entity n; the
+// inputs are `src` rows of the entities that read n.  stride 1: one product over taps u (pointer shift U-1-u);
+// stride 2: one product per output phase over taps u = phase + 2r (pointer shift R-1-r).
 void transposed_products(const Cols& src, int64_t Csrc, const Csr& csr, int64_t n, int64_t b0, int64_t stride,
-                         int64_t U, int64_t Mrows, Wget W, std::vector<float>& apack,
-                         std::vector<const float*>& ptr, std::vector<float>* acc, int64_t N, int64_t ldacc) {
+                         int64_t U, int64_t Mrows, const Packs& pk, std::vector<const float*>& ptr,
+                         std::vector<float>* acc, int64_t N, int64_t ldacc) {
   const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
   const int64_t R = stride == 1 ? U : (U + 1) / 2;
   for (int64_t ph = 0; ph < stride; ++ph) {
     const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;  // taps of this phase
     const int64_t K = k * Csrc * Rp;
     for (int64_t s = 0; s < k; ++s)
-      for (int64_t c = 0; c < Csrc; ++c)
-        for (int64_t r = 0; r < Rp; ++r) {
-          const int64_t shift = stride == 1 ? (U - 1 - r) : (R - 1 - r);
-          ptr[(s * Csrc + c) * Rp + r] = src.row(0, c, csr.tent[q0 + s]) + b0 * src.Tq + shift;
-        }
-    pack_a(apack.data(), Mrows, K, [&](int64_t m, int64_t kk) {
-      const int64_t r = kk % Rp, c = (kk / Rp) % Csrc, s = kk / (Rp * Csrc);
-      return W(m, q0 + s, c, stride == 1 ? r : ph + 2 * r);
-    });
-    nn_gemm(apack.data(), Mrows, K, ptr.data(), N, acc[ph].data(), ldacc);
+      for (int64_t c = 0; c < Csrc; ++c) {
+        const float* rowp = src.row(0, c, csr.tent[q0 + s]) + b0 * src.Tq;
+        for (int64_t r = 0; r < Rp; ++r) ptr[(s * Csrc + c) * Rp + r] = rowp + (stride == 1 ? (U - 1 - r) : (R - 1 - r));
+      }
+    nn_gemm(pk.at(n * stride + ph), Mrows, K, ptr.data(), N, acc[ph].data(), ldacc);
   }
 }
 
@@ -776,9 +842,9 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
     const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, S, h, Lp, Tq, g.reflect, U);
     const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_deg * Ci * U;
-    const int64_t lda = g.nnz * Ci * U;
+    const Packs pk = pack_entities(csr, Co, w, g.nnz * Ci * U, Ci * U);
     at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
-      std::vector<float> apack(static_cast<size_t>(rows * maxK)), acc(static_cast<size_t>(rows * ldacc));
+      std::vector<float> acc(static_cast<size_t>(rows * ldacc));
       std::vector<const float*> ptr(static_cast<size_t>(maxK));
       for (int64_t task = lo; task < hi; ++task) {
         const int64_t bt = task / g.Eout, j = task % g.Eout;
@@ -788,9 +854,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
           for (int64_t c = 0; c < Ci; ++c)
             for (int64_t u = 0; u < U; ++u)
               ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
-        const float* wj = w + p0 * Ci * U;
-        pack_a(apack.data(), Co, K, [&](int64_t o, int64_t kk) { return wj[o * lda + kk]; });
-        nn_gemm(apack.data(), Co, K, ptr.data(), N, acc.data(), ldacc);
+        nn_gemm(pk.at(j), Co, K, ptr.data(), N, acc.data(), ldacc);
         for (int64_t bl = 0; bl < nbl; ++bl) {
           const int64_t b = b0 + bl;
           for (int64_t o = 0; o < Co; ++o) {
@@ -810,9 +874,10 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
   const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, 1, R - 1, Tq, Tq, false, U);
   const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
   const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
-  auto W = [&](int64_t o, int64_t q, int64_t i, int64_t u) { return w[((i * g.nnz + csr.tpair[q]) * Co + o) * U + u]; };
+  // operand row o, column (s, i, r): w_up[i, pair, o, tap]
+  const Packs pk = pack_transposed(csr, g.Eout, 2, U, Co, Ci, U,
+                                   [&](int64_t q, int64_t i) { return w + (i * g.nnz + csr.tpair[q]) * Co * U; });
   at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
-    std::vector<float> apack(static_cast<size_t>(rows * std::max<int64_t>(maxK, 1)));
     std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
                                  std::vector<float>(static_cast<size_t>(rows * ldacc))};
     std::vector<const float*> ptr(static_cast<size_t>(std::max<int64_t>(maxK, 1)));
@@ -820,7 +885,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
     for (int64_t task = lo; task < hi; ++task) {
       const int64_t bt = task / g.Eout, f = task % g.Eout;
       const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
-      transposed_products(xc, Ci, csr, f, b0, 2, U, Co, W, apack, ptr, acc, N, ldacc);
+      transposed_products(xc, Ci, csr, f, b0, 2, U, Co, pk, ptr, acc, N, ldacc);
       for (int64_t bl = 0; bl < nbl; ++bl) {
         const int64_t b = b0 + bl;
         for (int64_t o = 0; o < Co; ++o) {
@@ -870,15 +935,14 @@ void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>
     if (want_input) {
       const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
       const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR);
+      const Packs pk = pack_entities(csr, Ci, w, lda, Co * U);
       at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
-        std::vector<float> apack(static_cast<size_t>(rows * maxK)), acc(static_cast<size_t>(rows * ldacc));
+        std::vector<float> acc(static_cast<size_t>(rows * ldacc));
         std::vector<const float*> ptr(static_cast<size_t>(maxK));
         for (int64_t task = lo; task < hi; ++task) {
           const int64_t bt = task / Ei, c = task % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
           const int64_t K = set_ptrs(ptr, c, b0);
-          const float* wc = w + csr.off[c] * Co * U;
-          pack_a(apack.data(), Ci, K, [&](int64_t i, int64_t kk) { return wc[i * lda + kk]; });
-          nn_gemm(apack.data(), Ci, K, ptr.data(), nbl * Tq, acc.data(), ldacc);
+          nn_gemm(pk.at(c), Ci, K, ptr.data(), nbl * Tq, acc.data(), ldacc);
           for (int64_t bl = 0; bl < nbl; ++bl)
             for (int64_t i = 0; i < Ci; ++i) finish(acc.data() + i * ldacc + bl * Tq, b0 + bl, i, c, Tc);
         }
@@ -914,9 +978,10 @@ void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>
     const Cols gz = build_cols(gyd, B, Co, Eo, g.Tout, gsc, 1, R - 1, Tq, Tq, false, U);
     const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR), maxK = std::max<int64_t>(1, csr.max_tdeg * Co * R);
-    auto W = [&](int64_t i, int64_t q, int64_t o, int64_t u) { return w[((o * g.nnz + csr.tpair[q]) * Ci + i) * U + u]; };
+    // operand row i, column (s, o, r): w[o, pair, i, tap]
+    const Packs pk = pack_transposed(csr, Ei, S, U, Ci, Co, U,
+                                     [&](int64_t q, int64_t o) { return w + (o * g.nnz + csr.tpair[q]) * Ci * U; });
     at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
-      std::vector<float> apack(static_cast<size_t>(rows * maxK));
       std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
                                    std::vector<float>(static_cast<size_t>(S == 2 ? rows * ldacc : 0))};
       std::vector<const float*> ptr(static_cast<size_t>(maxK));
@@ -931,7 +996,7 @@ void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>
             }
           continue;
         }
-        transposed_products(gz, Co, csr, n, b0, S, U, Ci, W, apack, ptr, acc, nbl * Tq, ldacc);
+        transposed_products(gz, Co, csr, n, b0, S, U, Ci, pk, ptr, acc, nbl * Tq, ldacc);
         for (int64_t bl = 0; bl < nbl; ++bl)
           for (int64_t i = 0; i < Ci; ++i) {
             const float* a0 = acc[0].data() + i * ldacc + bl * Tq;

@@ -39,7 +39,8 @@ def register(subparsers) -> None:
     q.add_argument("--lr", type=float, default=0.002, help="Adam learning rate")
     q.add_argument("--lambda-contact", type=float, default=100.0, help="weight of the contact BCE")
     q.add_argument("--lambda-root", type=float, default=2.0, help="weight of the root L2")
-    q.add_argument("--lambda-pos", type=float, default=0.1, help="weight of the FK-position L2 (positions in tenths of the body size)")
+    q.add_argument("--lambda-pos", type=float, default=0.1,
+                   help="weight of the FK-position L2 (positions in tenths of the body size)")
     q.add_argument("--prefix", type=int, default=None, metavar="T",
                    help="train the prefix variant: the encoder sees frames [0, T) only")
     q.add_argument("--channel-multiplier", type=float, default=1.0, help="encoder width relative to the generator")

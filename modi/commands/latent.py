@@ -103,8 +103,8 @@ def register(subparsers) -> None:
 
     q = sub.add_parser("invert", help="invert a BVH clip into W+ by optimisation", formatter_class=fmt,
                        description="Optimise a W+ latent so G(W+) matches a window of a BVH clip (L2 on the "
-                                   "representation + λ_FK × position MSE in tenths of the body size). Writes input/result BVH side by "
-                                   "side in inversion.gif, the latent (wplus.npy, usable by the other actions), "
+                                   "representation + λ_FK × position MSE in tenths of the body size). Writes "
+                                   "input/result BVH side by side in inversion.gif, the latent (wplus.npy, usable by the other actions), "
                                    "the loss curve (loss.png) and history.json.")
     _common(q)
     q.add_argument("bvh", metavar="BVH", help="clip on the model's skeleton (joints matched by name)")

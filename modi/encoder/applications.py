@@ -248,7 +248,8 @@ def edit_motions(bundle: EncoderBundle, x: Tensor, out_dir: str | Path, names: S
     start = T // 2 if start is None else int(start)
     edited = raise_arm(bundle.codec, x, angle, start, joint)
     _, rec = bundle.project(edited)
-    sh, el, _ = find_right_arm(bundle.codec.skeleton) if joint is None else (joint, bundle.codec.skeleton.children(joint)[0], -1)
+    sk = bundle.codec.skeleton
+    sh, el = find_right_arm(sk)[:2] if joint is None else (joint, sk.children(joint)[0])
 
     def elevation(m: Tensor) -> float:
         p = bundle.codec.decode(m.float().cpu().unsqueeze(0))["positions"][0]

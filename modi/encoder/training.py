@@ -295,7 +295,8 @@ class EncoderTrainer:
             dt = {k: v.detach() for k, v in self.codec.decode(real).items()}
         losses = encoder_losses(self.codec, pred, real, self.cfg, self.scale, dt)
         if not torch.isfinite(losses["total"]):
-            raise UserError(f"non-finite encoder loss at step {self.step} ({ {k: float(v) for k, v in losses.items()} }); "
+            vals = {k: round(float(v), 4) for k, v in losses.items()}
+            raise UserError(f"non-finite encoder loss at step {self.step} ({vals}); "
                             "try a lower --lr")
         self.optim.zero_grad(set_to_none=True)
         losses["total"].backward()
@@ -378,7 +379,8 @@ class EncoderTrainer:
             raise CheckpointError(f"{p}: encoder was built differently (e.g. --prefix or --channel-multiplier); "
                                   "resume with the same options")
         gen = st.get("generator") or {}
-        if gen.get("config") != self.generator_state.get("config") or gen.get("step") != self.generator_state.get("step"):
+        mine = self.generator_state
+        if gen.get("config") != mine.get("config") or gen.get("step") != mine.get("step"):
             raise CheckpointError(f"{p}: was trained against a different generator checkpoint")
         try:
             self.encoder.load_state_dict(st["encoder"])

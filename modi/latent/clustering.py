@@ -49,7 +49,8 @@ def kmeans(w: np.ndarray, k: int = 8, seed: int = 0) -> tuple[np.ndarray, np.nda
     return km.labels_.astype(np.int64), km.cluster_centers_
 
 
-def tsne_embed(w: np.ndarray, n_max: int = 2000, seed: int = 0, perplexity: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+def tsne_embed(w: np.ndarray, n_max: int = 2000, seed: int = 0,
+               perplexity: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
     """2-D t-SNE of at most ``n_max`` random rows of ``w``: (embedding (M, 2), row indices (M,))."""
     from sklearn.manifold import TSNE
 

@@ -320,6 +320,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
 
 
 __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean_w", "mean_w", "as_wplus",
-           "check_latent", "mm_per_unit", "position_scale", "synthesize", "mean_motion", "truncate", "lerp_sequence", "truncation_sequence",
+           "check_latent", "mm_per_unit", "position_scale", "synthesize", "mean_motion", "truncate",
+           "lerp_sequence", "truncation_sequence",
            "interpolation_sequence", "save_latent", "load_latent", "parse_latent", "model_window_from_motion",
            "load_bvh_window", "decode_positions", "write_motions"]
