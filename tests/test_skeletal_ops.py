@@ -226,7 +226,8 @@ def test_gradients_fp32_match_reference(monkeypatch, kind, cpu_kernel):
         torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
         g = torch.randn_like(yr)
         for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * float(b.abs().max()) + 1e-6)
+            # demodulation makes the style gradient a near-cancelling sum: judge errors on an O(1) scale
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
 
 
 @needs_ext

@@ -504,6 +504,7 @@ namespace fastk {
 
 constexpr int64_t MR = 4, NR = 24;  // NN tile: 4 output rows x 24 columns = 12 ymm accumulators
 constexpr int64_t TM = 4, TK = 3;   // NT tile: 4 x 3 dot products, 8 lanes each
+constexpr int64_t kMinFrames = 16;  // below this the padded columns waste more than the kernels gain
 
 inline bool wanted() {
 #if defined(__x86_64__)
@@ -1043,7 +1044,8 @@ template <typename T>
 void forward_dispatch(const Geo& g, const Csr& csr, const T* x, const T* w, const T* bias, const Scale<T>& sty,
                       const T* scale, T* y) {
   if constexpr (std::is_same_v<T, float>) {
-    if (fastk::wanted()) {
+    const int64_t frames = g.kind == kUp ? g.Tin : g.Tout;  // columns per batch element of the product
+    if (frames >= fastk::kMinFrames && fastk::wanted()) {
       fastk::forward(g, csr, x, w, bias, sty, scale, y);
       return;
     }
@@ -1135,15 +1137,19 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
       }
     });
   }
-  bool fast_done = false;
+  // The fp32 indirect kernels win on the input gradient when there are enough frames (little padding waste);
+  // the weight gradient stays on BLAS, whose packed NT product beats our dot-product kernel.
+  bool fast_input = false;
   if constexpr (std::is_same_v<T, float>) {
-    if (fastk::wanted()) {
+    if ((gx || gs) && fastk::wanted() && g.Tin >= fastk::kMinFrames) {
       fastk::backward(g, csr, g.kind == kUp ? gv.data() : gy, g.kind == kUp ? Scale<float>{} : dsc, x, w, style, gx,
-                      gw, gs ? gs_part.data() : nullptr, direct_gw, gw_acc.data(), wsize);
-      fast_done = true;
+                      nullptr, gs ? gs_part.data() : nullptr, direct_gw, nullptr, wsize);
+      fast_input = true;
     }
   }
-  if (fast_done) {
+  T* const gx_b = fast_input ? nullptr : gx;  // what is left for the BLAS passes
+  T* const gs_b = fast_input ? nullptr : gs;
+  if (!gx_b && !gs_b && !gw) {
   } else if (g.kind == kUp) {
     const int64_t Tc = g.Tin;
     const int64_t nb = batch_tile(Bq, Tc, Ei);
@@ -1161,14 +1167,14 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
         const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0, K = k * Co * U;
         gather_strided<T>(panel.data(), N, gv.data(), Co, Eo, g.Tout, csr.idx.data() + p0, k, b0, nbl, Tc, 2, U,
                           g.reflect, Scale<T>{});
-        if (gx || gs) {
+        if (gx_b || gs_b) {
           gemm<T>(false, false, Ci, N, K, T(1), w + p0 * Co * U, lda, panel.data(), N, T(0), acc.data(), N);
           for (int64_t bl = 0; bl < nbl; ++bl) {
             const int64_t b = b0 + bl;
             for (int64_t i = 0; i < Ci; ++i) {
               const int64_t xo = ((b * Ci + i) * Ei + c) * Tc;
               finish_input_row<T>(acc.data() + i * N + bl * Tc, x + xo, style ? style[b * Ci + i] : T(1),
-                                  gx ? gx + xo : nullptr, gs ? &gs_part[(c * Bq + b) * Ci + i] : nullptr, Tc);
+                                  gx_b ? gx_b + xo : nullptr, gs_b ? &gs_part[(c * Bq + b) * Ci + i] : nullptr, Tc);
             }
           }
         }
@@ -1182,7 +1188,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   } else {
     const int64_t stride = g.kind == kDown ? 2 : 1;
     // Input gradient: for input entity n, G (Ci x nb*Tp) = Wt_n * transposed panel of gy*d over its readers.
-    if (gx || gs) {
+    if (gx_b || gs_b) {
       const std::vector<T> wt = transpose_weight<T>(w, Co, g.nnz, Ci, U, csr.tpair);
       const int64_t Tp = g.Tin + 2 * h;
       const int64_t nb = batch_tile(Bq, Tp, Ei);
@@ -1200,8 +1206,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
           if (k == 0) {  // nobody reads this entity
             for (int64_t bl = 0; bl < nbl; ++bl)
               for (int64_t i = 0; i < Ci; ++i)
-                if (gx) {
-                  T* dst = gx + (((b0 + bl) * Ci + i) * Ei + n) * g.Tin;
+                if (gx_b) {
+                  T* dst = gx_b + (((b0 + bl) * Ci + i) * Ei + n) * g.Tin;
                   std::fill(dst, dst + g.Tin, T(0));
                 }
             continue;
@@ -1214,8 +1220,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
             for (int64_t i = 0; i < Ci; ++i) {
               fold_row<T>(acc.data() + i * N + bl * Tp, row.data(), g.Tin, h, g.reflect);
               const int64_t xo = ((b * Ci + i) * Ei + n) * g.Tin;
-              finish_input_row<T>(row.data(), x + xo, style ? style[b * Ci + i] : T(1), gx ? gx + xo : nullptr,
-                                  gs ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, g.Tin);
+              finish_input_row<T>(row.data(), x + xo, style ? style[b * Ci + i] : T(1), gx_b ? gx_b + xo : nullptr,
+                                  gs_b ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, g.Tin);
             }
           }
         }

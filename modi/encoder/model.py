@@ -114,7 +114,7 @@ class MotionEncoder(nn.Module):
             if mask is None:
                 mask = torch.ones_like(x[:, :1])
             x = torch.cat([x, mask.to(x).expand(-1, 1, -1, -1)], 1)
-        h = self.final_conv(self.blocks(self.from_motion(x)))
+        h = self.final_conv(self.blocks(self.from_motion(x.contiguous())))
         delta = self.head(self.fc(h.flatten(1)))
         return self.w_avg + delta.view(x.shape[0], self.cfg.n_latent, self.cfg.latent_dim)
 

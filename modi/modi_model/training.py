@@ -517,7 +517,7 @@ class Trainer:
                        desc="modi train")
         interrupted = False
         ckpt: Path | None = None
-        last_t = time.time()
+        last_t, last_step = time.time(), self.step  # mean time per step since the last logged step
         try:
             while self.step < target:
                 if self._stop_flag():
@@ -528,13 +528,13 @@ class Trainer:
                 self._latest_reg.update({k: v for k, v in losses.items() if k in ("r1", "path", "path_length")})
                 losses = {**self._latest_reg, **losses}
                 self.last_losses = losses
-                now = time.time()
-                losses["sec_per_iter"] = now - last_t
-                last_t = now
                 if bar is not None:
                     bar.update(1)
                     bar.set_postfix({k: f"{losses[k]:.3f}" for k in ("d", "g", "contact") if k in losses})
                 if self.rank == 0 and (self.step % tc.log_every == 0 or self.step == target):
+                    now = time.time()
+                    losses["sec_per_iter"] = (now - last_t) / max(1, self.step - last_step)
+                    last_t, last_step = now, self.step
                     self._log_scalars(losses)
                 if tc.sample_every and self.step % tc.sample_every == 0 and self.write_samples:
                     self.write_sample_grid()
