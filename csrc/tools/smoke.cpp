@@ -8,6 +8,8 @@
 #include <ATen/core/dispatch/Dispatcher.h>
 #include <torch/torch.h>
 
+#include "../skeletal.h"
+
 namespace {
 
 int failures = 0;
@@ -29,6 +31,10 @@ c10::OperatorHandle find(const char* name) {
 }  // namespace
 
 int main() {
+  // Reference one symbol of the operator library so the linker keeps it (its static initialisers register the
+  // operators); everything below goes through the dispatcher only.
+  volatile auto keep_library_linked = &modi_ext::skeletal_conv_cpu;
+  (void)keep_library_linked;
   torch::manual_seed(0);
   const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
   // neighbors of a 3-entity chain: [[0,1],[0,1,2],[1,2]]

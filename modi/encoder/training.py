@@ -52,6 +52,8 @@ class EncoderTrainConfig:
     lambda_pos: float = 0.1
     prefix_frames: int | None = None
     channel_multiplier: float = 1.0
+    generated: float = 0.0  # fraction of every batch replaced by generator samples (the authors' code's option)
+    lambda_latent: float = 0.0  # on those samples: MSE between I(G(w+)) and w+, in units of W's spread
     units: str = "auto"  # only for the mm metrics
     seed: int = 0
     log_every: int = 20
@@ -68,6 +70,10 @@ class EncoderTrainConfig:
                 raise UserError(f"{name} must be >= 0")
         if self.channel_multiplier <= 0:
             raise UserError("channel_multiplier must be positive")
+        if not 0.0 <= self.generated <= 1.0 or self.lambda_latent < 0:
+            raise UserError("generated must be in [0, 1] and lambda_latent >= 0")
+        if self.lambda_latent > 0 and self.generated == 0:
+            raise UserError("lambda_latent needs generated samples (generated > 0)")
         return self
 
 
@@ -278,6 +284,12 @@ class EncoderTrainer:
         self.optim = torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.lr, betas=(self.cfg.beta1, self.cfg.beta2))
         self.scale = position_scale(codec)
         self.rng = torch.Generator().manual_seed(self.cfg.seed * 7919 + 3)
+        self.gen_rng = torch.Generator().manual_seed(self.cfg.seed * 104729 + 11)
+        self.w_std = None
+        if self.cfg.generated > 0:
+            from modi.latent.space import random_w
+
+            self.w_std = random_w(g, 4096, seed=self.cfg.seed + 5).std(0).clamp_min(1e-3)
         self.step = 0
         self.last_losses: dict[str, float] = {}
         self.metrics: dict[str, Any] | None = None
@@ -287,13 +299,24 @@ class EncoderTrainer:
 
     # ------------------------------------------------------------------------------------------- steps
     def train_step(self) -> dict[str, float]:
-        idx = torch.randint(self.train_x.shape[0], (self.cfg.batch,), generator=self.rng)
+        n_gen = int(round(self.cfg.batch * self.cfg.generated))
+        idx = torch.randint(self.train_x.shape[0], (self.cfg.batch - n_gen,), generator=self.rng)
         real = self.train_x[idx.to(self.device)]
+        target_w = None
+        if n_gen:
+            target_w = self._generated_latents(n_gen)
+            with torch.no_grad():
+                fake = self.g.synthesis(target_w, noise_mode="const")
+            real = torch.cat([real, fake])
         wplus = encode(self.encoder, real)
         pred = self.g.synthesis(wplus, noise_mode="const")
         with torch.no_grad():
             dt = {k: v.detach() for k, v in self.codec.decode(real).items()}
         losses = encoder_losses(self.codec, pred, real, self.cfg, self.scale, dt)
+        if target_w is not None and self.cfg.lambda_latent > 0:
+            lat = ((wplus[-n_gen:] - target_w) / self.w_std).pow(2).mean()
+            losses["latent"] = lat
+            losses["total"] = losses["total"] + self.cfg.lambda_latent * lat
         if not torch.isfinite(losses["total"]):
             vals = {k: round(float(v), 4) for k, v in losses.items()}
             raise UserError(f"non-finite encoder loss at step {self.step} ({vals}); "
@@ -303,6 +326,18 @@ class EncoderTrainer:
         self.optim.step()
         self.step += 1
         return {k: float(v.detach()) for k, v in losses.items()}
+
+    def _generated_latents(self, n: int) -> Tensor:
+        """W+ of generator samples as in training: two mapped z, mixed at a random layer 90% of the time."""
+        d, L = self.g.latent_dim, self.g.n_latent
+        z = torch.randn(2, n, d, generator=self.gen_rng).to(self.device)
+        cut = torch.randint(1, L, (n,), generator=self.gen_rng)
+        mix = torch.rand(n, generator=self.gen_rng) < 0.9
+        with torch.no_grad():
+            w1, w2 = self.g.mapping(z[0]), self.g.mapping(z[1])
+        layer = torch.arange(L).view(1, L)
+        second = (mix.view(n, 1) & (layer >= cut.view(n, 1))).to(self.device).unsqueeze(-1)
+        return torch.where(second, w2.unsqueeze(1), w1.unsqueeze(1)).contiguous()
 
     def evaluate(self, split: str = "test") -> dict[str, Any]:
         from modi.encoder.metrics import evaluate_encoder
@@ -355,7 +390,8 @@ class EncoderTrainer:
             "encoder": {k: v.detach().cpu() for k, v in self.encoder.state_dict().items()},
             "optim": self.optim.state_dict(), "step": self.step,
             "train_config": asdict(self.cfg), "generator": self.generator_state,
-            "rng": {"data": self.rng.get_state(), "torch": torch.get_rng_state()},
+            "rng": {"data": self.rng.get_state(), "generated": self.gen_rng.get_state(),
+                    "torch": torch.get_rng_state()},
             "data_source": self.data.source, "data_info": self.data.info,
             "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": str(torch.__version__),
         }
@@ -389,6 +425,8 @@ class EncoderTrainer:
             raise CheckpointError(f"{p}: encoder state does not match ({exc})") from None
         self.step = int(st["step"])
         self.rng.set_state(st["rng"]["data"])
+        if "generated" in st["rng"]:
+            self.gen_rng.set_state(st["rng"]["generated"])
         torch.set_rng_state(st["rng"]["torch"])
         self.metrics = st.get("metrics")
         self.last_losses = dict(st.get("last_losses") or {})
