@@ -1,6 +1,7 @@
 """Time the dense reference against the C++ extension in one process and write the ratios as JSON.
 
     python benchmarks/compare.py --json benchmarks/results/cpu.json [--reps 15] [--threads N] [--only REGEX]
+                                 [--clock wall|cpu]
 
 Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
 the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.topology`` when importable, a
@@ -171,7 +172,8 @@ def fk_cases() -> dict[str, tuple[Callable, Callable]]:
         return {}
 
 
-def time_pair(ref: Callable, ext: Callable, reps: int, min_time: float) -> tuple[float, float, int]:
+def time_pair(ref: Callable, ext: Callable, reps: int, min_time: float,
+              clock: Callable[[], float] = time.perf_counter) -> tuple[float, float, int]:
     """Interleaved medians (ms) of ref and ext; at least `reps` runs each and `min_time` s in total."""
     for _ in range(2):
         ref()
@@ -179,11 +181,11 @@ def time_pair(ref: Callable, ext: Callable, reps: int, min_time: float) -> tuple
     rt, et = [], []
     start = time.perf_counter()
     while len(rt) < reps or (time.perf_counter() - start < min_time and len(rt) < 200):
-        t0 = time.perf_counter()
+        t0 = clock()
         ref()
-        t1 = time.perf_counter()
+        t1 = clock()
         ext()
-        t2 = time.perf_counter()
+        t2 = clock()
         rt.append(t1 - t0)
         et.append(t2 - t1)
     return statistics.median(rt) * 1e3, statistics.median(et) * 1e3, len(rt)
@@ -208,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-time", type=float, default=1.0, help="minimum seconds per case")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--only", default=None, help="regex: run matching cases only")
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="wall: elapsed time; cpu: process CPU time of all threads (robust on a loaded machine)")
     args = ap.parse_args(argv)
     if not HAS_EXT:
         print("compare: the modi_ext C++ extension is not built; nothing to compare", file=sys.stderr)
@@ -218,15 +222,17 @@ def main(argv: list[str] | None = None) -> int:
     cases.update(fk_cases())
     pattern = re.compile(args.only) if args.only else None
     desc = machine()
-    print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32")
+    clock = time.perf_counter if args.clock == "wall" else time.process_time
+    print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32; {args.clock} clock")
     print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
     results: dict[str, dict] = {}
     for name, (ref, ext) in cases.items():
         if pattern and not pattern.search(name):
             continue
-        ref_ms, ext_ms, n = time_pair(ref, ext, args.reps, args.min_time)
+        ref_ms, ext_ms, n = time_pair(ref, ext, args.reps, args.min_time, clock)
         results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
                          "speedup": round(ref_ms / ext_ms, 3), "runs": n, "threads": torch.get_num_threads(),
+                         "clock": args.clock,
                          "machine": desc, **info.get(name, {})}
         print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
     if args.json:
