@@ -109,8 +109,10 @@ def _check_tensors(local_quats: torch.Tensor, offsets: torch.Tensor, root_positi
             raise TypeError(f"fk: {name} must be a torch.Tensor, got {type(t).__name__}")
     if local_quats.dim() < 2 or local_quats.shape[-1] != 4:
         raise ValueError(f"fk: local_quats must have shape (..., J, 4), got {tuple(local_quats.shape)}")
-    if local_quats.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"fk: local_quats must be float32 or float64, got {local_quats.dtype}")
+    allowed = (torch.float32, torch.float64) + ((torch.float16, torch.bfloat16) if local_quats.is_cuda else ())
+    if local_quats.dtype not in allowed:
+        raise ValueError(f"fk: local_quats must be float32 or float64 (or float16/bfloat16 on CUDA), got "
+                         f"{local_quats.dtype} on {local_quats.device}")
     if local_quats.numel() == 0:
         raise ValueError(f"fk: local_quats is empty (shape {tuple(local_quats.shape)}): empty batch or zero frames")
     J = local_quats.shape[-2]

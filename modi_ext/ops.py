@@ -22,6 +22,11 @@ __all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_de
 
 _KIND_CONV, _KIND_DOWN, _KIND_UP = 0, 1, 2
 _FLOATS = (torch.float32, torch.float64)
+_CUDA_FLOATS = _FLOATS + (torch.float16, torch.bfloat16)  # the CUDA kernels accumulate half types in fp32
+
+
+def _allowed_floats(t: torch.Tensor) -> tuple:
+    return _CUDA_FLOATS if t.is_cuda else _FLOATS
 
 
 def _is_tracing() -> bool:
@@ -38,8 +43,8 @@ def _check(kind: int, x, weight, bias, index, offsets, n_out: int | None, style,
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
     if x.dim() != 4:
         raise ValueError(f"x must be 4-D (B, C, E, T), got shape {tuple(x.shape)}")
-    if x.dtype not in _FLOATS:
-        raise TypeError(f"x must be float32 or float64, got {x.dtype}")
+    if x.dtype not in _allowed_floats(x):
+        raise TypeError(f"x must be float32 or float64 (or float16/bfloat16 on CUDA), got {x.dtype} on {x.device}")
     if weight.dim() != 4:
         raise ValueError(f"weight must be 4-D compact (C0, nnz, C1, U), got shape {tuple(weight.shape)}")
     if weight.dtype != x.dtype:
