@@ -46,7 +46,7 @@ from modi_ext.topology_tensors import csr_from_lists  # noqa: E402
 
 BATCHES = (16, 256)
 FK_B, FK_T = 4096, 64
-DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 Fn = Callable[[], object]
 

@@ -2,6 +2,7 @@
 
     python benchmarks/compare.py --json benchmarks/results/cpu.json [--reps 15] [--threads N] [--only REGEX]
                                  [--clock wall|cpu]
+    python benchmarks/compare.py --device cuda --dtype fp32,bf16 --json benchmarks/results/cuda_h100.json
 
 Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
 the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.topology`` when importable, a
@@ -212,10 +213,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None, help="regex: run matching cases only")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="wall: elapsed time; cpu: process CPU time of all threads (robust on a loaded machine)")
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="cuda: the GPU cases of benchmarks/bench_cuda.py (batch 16 and 256, FK at B=4096)")
+    ap.add_argument("--dtype", default="fp32,bf16",
+                    help="with --device cuda: comma-separated dtypes among fp32, bf16, fp16 (default: fp32,bf16)")
     args = ap.parse_args(argv)
     if not HAS_EXT:
         print("compare: the modi_ext C++ extension is not built; nothing to compare", file=sys.stderr)
         return 2
+    if args.device == "cuda":
+        return _main_cuda(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     cases, info, source = skeletal_cases()
@@ -235,12 +242,49 @@ def main(argv: list[str] | None = None) -> int:
                          "clock": args.clock,
                          "machine": desc, **info.get(name, {})}
         print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
-        tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
-        tmp.replace(args.json)
-        print(f"wrote {args.json}")
+    _write_json(args.json, results)
+    return 0
+
+
+def _write_json(path: Path | None, results: dict) -> None:
+    if not path:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    tmp.replace(path)  # atomic: an interrupted run never leaves half a file
+    print(f"wrote {path}")
+
+
+def _main_cuda(args: argparse.Namespace) -> int:
+    """GPU comparison: every case of bench_cuda.py for each requested dtype, timed with CUDA events, one JSON."""
+    if not torch.cuda.is_available():
+        print("compare: --device cuda but torch sees no CUDA device", file=sys.stderr)
+        return 2
+    spec = importlib.util.spec_from_file_location("bench_cuda", Path(__file__).with_name("bench_cuda.py"))
+    bench_cuda = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_cuda)
+    names = [d.strip() for d in args.dtype.split(",") if d.strip()]
+    bad = [d for d in names if d not in bench_cuda.DTYPES]
+    if bad or not names:
+        print(f"compare: --dtype must list some of {sorted(bench_cuda.DTYPES)}, got {args.dtype!r}", file=sys.stderr)
+        return 2
+    pattern = re.compile(args.only) if args.only else None
+    desc = bench_cuda.device_description()
+    print(f"# {desc}")
+    print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
+    results: dict[str, dict] = {}
+    for name in names:
+        cases, info = bench_cuda._build(bench_cuda.DTYPES[name])
+        for case, (ref, ext) in cases.items():
+            if pattern and not pattern.search(case):
+                continue
+            ref_ms, ext_ms = bench_cuda.time_pair_cuda(ref, ext, max(args.reps, 5))
+            results[case] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
+                             "speedup": round(ref_ms / ext_ms, 3), "runs": max(args.reps, 5), "machine": desc,
+                             **info[case]}
+            print(f"{case:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+    _write_json(args.json, results)
     return 0
 
 
