@@ -44,6 +44,8 @@ def register(subparsers) -> None:
     q.add_argument("--prefix", type=int, default=None, metavar="T",
                    help="train the prefix variant: the encoder sees frames [0, T) only")
     q.add_argument("--channel-multiplier", type=float, default=1.0, help="encoder width relative to the generator")
+    q.add_argument("--hidden", type=int, default=None,
+                   help="width of the encoder's last hidden layer, before the W+ head (default: max(latent, channels))")
     q.add_argument("--units", default="auto", help="data length unit for the mm metrics (auto, mm, cm, m, in)")
     q.add_argument("--seed", type=int, default=0, help="seed")
     q.add_argument("--eval-every", type=int, default=500, help="steps between test-split evaluations (0: end only)")
@@ -142,7 +144,7 @@ def run_train(args: argparse.Namespace) -> int:
     g, codec, gcfg = load_model(st, device=args.device)
     cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, lr=args.lr, lambda_contact=args.lambda_contact,
                              lambda_root=args.lambda_root, lambda_pos=args.lambda_pos, prefix_frames=args.prefix,
-                             channel_multiplier=args.channel_multiplier, units=args.units, seed=args.seed,
+                             channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units, seed=args.seed,
                              eval_every=args.eval_every, ckpt_every=args.ckpt_every)
     _, _, t = g.output_shape
     if args.prefix is not None and not 0 < args.prefix < t:

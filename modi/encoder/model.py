@@ -33,13 +33,14 @@ class EncoderConfig:
     mask_channel: bool = False
     prefix_frames: int | None = None
     head_init: float = 0.1
+    hidden: int | None = None  # width of the layer before the W+ head; None: max(latent_dim, coarsest channels)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "EncoderConfig":
-        return cls(**d)
+        return cls(**{"hidden": None, **d})  # checkpoints older than ``hidden`` used the default width
 
 
 def _scaled_levels(levels: Sequence[LevelSpec], mult: float) -> list[LevelSpec]:
@@ -98,7 +99,7 @@ class MotionEncoder(nn.Module):
         else:
             final = _NoStyle(PseudoImageConv(lv0.channels, lv0.channels, model_cfg.kernel_size))
         self.final_conv = ConvAct(final, lv0.channels)
-        hidden = max(cfg.latent_dim, lv0.channels)
+        hidden = cfg.hidden if cfg.hidden else max(cfg.latent_dim, lv0.channels)
         self.fc = EqualLinear(lv0.channels * lv0.n_entities * lv0.n_frames, hidden, activate=True)
         self.head = EqualLinear(hidden, cfg.n_latent * cfg.latent_dim)
         with torch.no_grad():
@@ -120,7 +121,7 @@ class MotionEncoder(nn.Module):
 
 
 def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | None = None,
-                  mask_channel: bool | None = None) -> MotionEncoder:
+                  mask_channel: bool | None = None, hidden: int | None = None) -> MotionEncoder:
     """An encoder matching generator ``g`` (its levels, channels, style count and w̄)."""
     k, e, t = g.output_shape
     if prefix_frames is not None and not 0 < prefix_frames < t:
@@ -128,7 +129,7 @@ def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | 
     cfg = EncoderConfig(in_channels=k, n_latent=g.n_latent, latent_dim=g.latent_dim,
                         channel_multiplier=channel_multiplier,
                         mask_channel=(prefix_frames is not None) if mask_channel is None else bool(mask_channel),
-                        prefix_frames=prefix_frames)
+                        prefix_frames=prefix_frames, hidden=hidden)
     from modi.latent.space import mean_w
 
     return MotionEncoder(g.cfg, g.levels, cfg, w_avg=mean_w(g).cpu()).to(next(g.parameters()).device)

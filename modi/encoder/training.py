@@ -52,6 +52,7 @@ class EncoderTrainConfig:
     lambda_pos: float = 0.1
     prefix_frames: int | None = None
     channel_multiplier: float = 1.0
+    hidden: int | None = None  # encoder bottleneck width (None: the encoder's default)
     generated: float = 0.0  # fraction of every batch replaced by generator samples (the authors' code's option)
     lambda_latent: float = 0.0  # on those samples: MSE between I(G(w+)) and w+, in units of W's spread
     units: str = "auto"  # only for the mm metrics
@@ -70,6 +71,8 @@ class EncoderTrainConfig:
                 raise UserError(f"{name} must be >= 0")
         if self.channel_multiplier <= 0:
             raise UserError("channel_multiplier must be positive")
+        if self.hidden is not None and self.hidden < 1:
+            raise UserError(f"hidden must be a positive width, got {self.hidden}")
         if not 0.0 <= self.generated <= 1.0 or self.lambda_latent < 0:
             raise UserError("generated must be in [0, 1] and lambda_latent >= 0")
         if self.lambda_latent > 0 and self.generated == 0:
@@ -279,7 +282,8 @@ class EncoderTrainer:
         g.eval()
         self.generator_state = generator_state or generator_bundle(g, codec, gcfg)
         torch.manual_seed(self.cfg.seed)
-        self.encoder = build_encoder(g, self.cfg.channel_multiplier, self.cfg.prefix_frames)
+        self.encoder = build_encoder(g, self.cfg.channel_multiplier, self.cfg.prefix_frames,
+                                     hidden=self.cfg.hidden)
         self.encoder.train()
         self.optim = torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.lr, betas=(self.cfg.beta1, self.cfg.beta2))
         self.scale = position_scale(codec)
@@ -411,7 +415,7 @@ class EncoderTrainer:
             raise CheckpointError(f"{p}: unreadable encoder checkpoint ({str(exc).splitlines()[0][:200]})") from None
         if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
             raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
-        if st["encoder_config"] != self.encoder.cfg.to_dict():
+        if EncoderConfig.from_dict(st["encoder_config"]).to_dict() != self.encoder.cfg.to_dict():
             raise CheckpointError(f"{p}: encoder was built differently (e.g. --prefix or --channel-multiplier); "
                                   "resume with the same options")
         gen = st.get("generator") or {}
