@@ -60,7 +60,10 @@ def extension_modules():
     # The language standard is torch's choice (C++20 for torch 2.13 headers); our sources stay C++17-clean.
     cxx_flags = opt + ["-fopenmp", "-DAT_PARALLEL_OPENMP=1"]
     if not debug:
-        cxx_flags += ["-march=x86-64-v2", "-ffp-contract=fast"] if os.uname().machine == "x86_64" else []
+        # MODI_EXT_MARCH: the x86 instruction set the kernels may use. The default (x86-64-v2, SSE4.2) runs on any
+        # x86-64 machine of the last decade; "native" (AVX2/FMA where present) suits builds used where they are made.
+        march = os.environ.get("MODI_EXT_MARCH", "x86-64-v2").strip()
+        cxx_flags += [f"-march={march}", "-ffp-contract=fast"] if os.uname().machine == "x86_64" and march else []
     define_macros = [("MODI_EXT_WITH_CUDA", "1")] if use_cuda else []
     kwargs = dict(
         name="modi_ext._C",
