@@ -210,6 +210,29 @@ def test_gradients_fp64_match_reference_random_trees(kind):
 
 
 @needs_ext
+@pytest.mark.parametrize("threads", [1, 3, 4])
+@pytest.mark.parametrize("kind", KINDS)
+def test_gradients_independent_of_thread_count(kind, threads):
+    # The kernels change strategy with the thread count (direct vs thread-local weight gradients, cost-balanced
+    # entity order); every strategy must give the reference's gradients.
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        rng = random.Random(100 + threads)
+        for _ in range(8):
+            args, kw = make_case(kind, rng, B=rng.randint(1, 4))
+            leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
+            for t in leaves:
+                t.requires_grad_(True)
+            ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
+            g = torch.randn_like(yr)
+            for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
+                torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9 * float(b.abs().max()))
+    finally:
+        torch.set_num_threads(old)
+
+
+@needs_ext
 @pytest.mark.parametrize("cpu_kernel", ["auto", "blas"])
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradients_fp32_match_reference(monkeypatch, kind, cpu_kernel):

@@ -100,6 +100,33 @@ constexpr int64_t kSerialElems = 1 << 16;
 inline int64_t task_grain(int64_t n_tasks, double macs) { return macs < kSerialMacs ? std::max<int64_t>(n_tasks, 1) : 1; }
 inline int64_t elem_grain(int64_t elems_per_item) { return std::max<int64_t>(1, kSerialElems / std::max<int64_t>(1, elems_per_item)); }
 
+// A permutation of rows 0..n-1 (cost = neighbour count from CSR offsets) such that at::parallel_for's static split
+// of it into `parts` contiguous runs gives every run about the same total cost: greedy largest-first bin packing,
+// then the bins concatenated with their sizes padded to the even split parallel_for makes.
+inline std::vector<int64_t> balanced_order(const std::vector<int64_t>& off, int64_t n, int64_t parts) {
+  std::vector<int64_t> rows(static_cast<size_t>(n));
+  for (int64_t i = 0; i < n; ++i) rows[i] = i;
+  if (parts <= 1 || n <= parts) return rows;
+  auto cost = [&](int64_t r) { return off[r + 1] - off[r]; };
+  std::stable_sort(rows.begin(), rows.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
+  // parallel_for splits [0, n) into chunks of ceil(n / parts); give each bin exactly that many slots
+  const int64_t slots = (n + parts - 1) / parts;
+  std::vector<std::vector<int64_t>> bins(static_cast<size_t>(parts));
+  std::vector<int64_t> load(static_cast<size_t>(parts), 0);
+  for (int64_t r : rows) {
+    int64_t best = -1;
+    for (int64_t p = 0; p < parts; ++p)
+      if (static_cast<int64_t>(bins[p].size()) < slots && (best < 0 || load[p] < load[best])) best = p;
+    bins[best].push_back(r);
+    load[best] += cost(r);
+  }
+  std::stable_sort(bins.begin(), bins.end(), [](const auto& a, const auto& b) { return a.size() > b.size(); });
+  std::vector<int64_t> out;
+  out.reserve(static_cast<size_t>(n));
+  for (auto& b : bins) out.insert(out.end(), b.begin(), b.end());
+  return out;
+}
+
 // Optional per-(b, channel, entity) factor with arbitrary strides (style: entity stride 0; demod: full).
 template <typename T>
 struct Scale {
@@ -1236,12 +1263,15 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
       const int64_t maxK = csr.max_deg * Ci * U, cols = nb * g.Tout;
       const int64_t ldw = g.nnz * Ci * U;
       const int64_t n_tasks = direct_gw ? Eo : nbt * Eo;
+      // Entities differ in neighbour count (work), so a contiguous split of them leaves threads idle; with direct
+      // writes, tasks are visited in a cost-balanced order (bins of equal work, one contiguous run per thread).
+      const std::vector<int64_t> order = direct_gw ? balanced_order(csr.off, Eo, nthreads) : std::vector<int64_t>{};
       at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
         BlasSequential blas_guard;
         std::vector<T> panel(static_cast<size_t>(maxK * cols)), gz(static_cast<size_t>(Co * cols));
         T* my_gw = direct_gw ? gw : gw_acc.data() + at::get_thread_num() * wsize;
         for (int64_t task = lo; task < hi; ++task) {
-          const int64_t j = task % Eo;
+          const int64_t j = direct_gw ? order[task] : task % Eo;
           const int64_t bt_lo = direct_gw ? 0 : task / Eo, bt_hi = direct_gw ? nbt : bt_lo + 1;
           for (int64_t bt = bt_lo; bt < bt_hi; ++bt) {
             const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * g.Tout;
