@@ -144,8 +144,8 @@ def run_train(args: argparse.Namespace) -> int:
     g, codec, gcfg = load_model(st, device=args.device)
     cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, lr=args.lr, lambda_contact=args.lambda_contact,
                              lambda_root=args.lambda_root, lambda_pos=args.lambda_pos, prefix_frames=args.prefix,
-                             channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units, seed=args.seed,
-                             eval_every=args.eval_every, ckpt_every=args.ckpt_every)
+                             channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units,
+                             seed=args.seed, eval_every=args.eval_every, ckpt_every=args.ckpt_every)
     _, _, t = g.output_shape
     if args.prefix is not None and not 0 < args.prefix < t:
         raise UserError(f"--prefix must be in 1..{t - 1} (the model makes {t} frames), got {args.prefix}")
