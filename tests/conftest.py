@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MODI_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -16,6 +17,17 @@ def shared_data() -> Path:
     if not (SHARED_DATA / "bvh").is_dir():
         pytest.skip(f"real data not found at {SHARED_DATA} (set MODI_SHARED_DATA or place ../shared beside the repo)")
     return SHARED_DATA
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One intra-op thread for tests of tiny models and tensors: OpenMP hand-offs cost more than the work there, and
+    spinning workers make it far worse on a shared 2-core CI machine. Modules opt in with
+    ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 def pytest_configure(config: pytest.Config) -> None:

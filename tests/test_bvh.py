@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -49,13 +48,7 @@ L_ROOT, L_SPINE, L_SPINE_OFFSET, L_SPINE_CHANNELS, L_SPINE_CLOSE = 2, 6, 8, 9, 1
 L_LEG_CHANNELS, L_ROOT_CLOSE, L_MOTION, L_FRAMES, L_FTIME, L_F1, L_F2 = 18, 20, 21, 22, 23, 24, 25
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """FK here runs on small tensors, where OpenMP hand-offs cost more than the work (badly so on a busy CPU)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @lru_cache(maxsize=None)

@@ -51,15 +51,6 @@ def _config(**kw) -> FeatureConfig:
     return FeatureConfig(**base)
 
 
-@pytest.fixture
-def one_thread():
-    """Tiny convolutions run fastest single-threaded (and do not fight other processes for the cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _windows(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     labels = np.arange(n) % 2
@@ -108,7 +99,7 @@ def test_partitions_are_normalised_neighbourhoods():
     assert A[1, 1, 3] > 0 and A[2, 3, 1] > 0 and A[1, 3, 1] == 0  # spine -> arm is "from nearer the root"
 
 
-def test_extractor_learns_a_two_class_problem_and_survives_save_load(tmp_path: Path, one_thread):
+def test_extractor_learns_a_two_class_problem_and_survives_save_load(tmp_path: Path, one_torch_thread):
     torch.manual_seed(0)
     wtr, ltr = _windows(96, seed=1)
     wte, lte = _windows(40, seed=2)
@@ -175,7 +166,7 @@ def _labelled_folder(root: Path) -> None:
         (root / "data" / f"{kind}_{i}.json").write_text(json.dumps({"content": i % 2}))
 
 
-def test_cli_train_features_then_real_floor(tmp_path: Path, capsys, one_thread):
+def test_cli_train_features_then_real_floor(tmp_path: Path, capsys, one_torch_thread):
     from modi.cli import main
 
     data = tmp_path / "set"

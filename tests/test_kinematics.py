@@ -11,13 +11,7 @@ from modi.kinematics import bvh_global_quats, bvh_positions, forward_kinematics
 from modi.rotations import axis_angle_to_quat, euler_to_quat, quat_identity, quat_normalize
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Small tensors: OpenMP hand-offs cost more than the work, badly so on a busy CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_hand_computed_chain():

@@ -15,13 +15,7 @@ from modi.latent import clustering, crowd, editing, inversion, space
 T = 16
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """The tiny models are latency-bound; extra threads only contend on a shared CI machine."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def build_tiny(seed: int = 0, latent: int = 16):

@@ -20,14 +20,7 @@ from modi.topology import build_hierarchy
 K = 4
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: these tiny models are dominated by parallel-region overhead, which explodes when
-    the CPU is shared (OpenMP workers spin); one thread is both faster and stable here."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def tiny(levels: int, **kw) -> ModelConfig:

@@ -20,14 +20,7 @@ TINY = {"model.channels": (8, 8, 8, 6, 6), "model.latent_dim": 16, "model.n_mlp"
         "train.d_reg_every": 2, "train.g_reg_every": 2, "train.snapshot_every": 0}
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """One intra-op thread: these tiny models are dominated by parallel-region overhead, which explodes when
-    the CPU is shared (OpenMP workers spin); one thread is both faster and stable here."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def tiny_cfg(*ablations: str, **kw) -> MoDiConfig:

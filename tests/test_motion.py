@@ -21,13 +21,7 @@ EXACT_FILES = [JOE, "ganimator/Crabnew/Crab-dance-long.bvh", "ganimator/Xia/norm
                "ganimator/Joe/traj-example.bvh", "ganimator/Malcolm/Gangnam-Style.bvh"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Small tensors: OpenMP hand-offs cost more than the work, badly so on a busy CPU."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @lru_cache(maxsize=None)
