@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib.util
-import json
 import re
 import statistics
 import sys
@@ -256,31 +255,36 @@ def time_pair_cuda(ref: Fn, ext: Fn, reps: int = 20, warmup: int = 3) -> tuple[f
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Also ``benchmarks/compare.py --device cuda``, which forwards its options here."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dtype", choices=sorted(DTYPES), default="fp32", help="input dtype (default: fp32)")
+    ap.add_argument("--dtype", default="fp32,bf16",
+                    help=f"comma-separated input dtypes among {', '.join(DTYPES)} (default: fp32,bf16)")
     ap.add_argument("--json", type=Path, help="write {case: {ref_ms, ext_ms, speedup, ...}} here")
     ap.add_argument("--reps", type=int, default=20, help="timed runs per side (default: 20)")
     ap.add_argument("--only", default=None, help="regex: run matching cases only")
     args = ap.parse_args(argv)
-    cases, info = _build(DTYPES[args.dtype])
+    if not torch.cuda.is_available():
+        print("bench_cuda: torch sees no CUDA device", file=sys.stderr)
+        return 2
+    names = [d.strip() for d in args.dtype.split(",") if d.strip()]
+    if not names or any(d not in DTYPES for d in names):
+        print(f"bench_cuda: --dtype must list some of {', '.join(DTYPES)}, got {args.dtype!r}", file=sys.stderr)
+        return 2
     desc = device_description()
     pattern = re.compile(args.only) if args.only else None
     print(f"# {desc}")
     print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
     results: dict[str, dict] = {}
-    for name, (ref, ext) in cases.items():
-        if pattern and not pattern.search(name):
-            continue
-        ref_ms, ext_ms = time_pair_cuda(ref, ext, args.reps)
-        results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4), "speedup": round(ref_ms / ext_ms, 3),
-                         "runs": args.reps, "machine": desc, **info[name]}
-        print(f"{name:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_suffix(args.json.suffix + ".tmp")
-        tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
-        tmp.replace(args.json)
-        print(f"wrote {args.json}")
+    for name in names:
+        cases, info = _build(DTYPES[name])
+        for case, (ref, ext) in cases.items():
+            if pattern and not pattern.search(case):
+                continue
+            ref_ms, ext_ms = time_pair_cuda(ref, ext, args.reps)
+            results[case] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
+                             "speedup": round(ref_ms / ext_ms, 3), "runs": args.reps, "machine": desc, **info[case]}
+            print(f"{case:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+    _compare_module().write_json(args.json, results)
     return 0
 
 

@@ -21,6 +21,7 @@ the medians are reported.  ``fwd_bwd`` differentiates w.r.t. the input and every
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import json
 import os
@@ -91,17 +92,24 @@ def level_names(n: int) -> list[str]:
     return ["finest"] + [f"level{i}" for i in range(1, n - 1)] + ["coarsest"]
 
 
+@contextlib.contextmanager
+def forced_impl(impl: str):
+    """MODI_EXT_IMPL=impl for the ops called inside the block (the ops read it on every call)."""
+    old = os.environ.get("MODI_EXT_IMPL")
+    os.environ["MODI_EXT_IMPL"] = impl
+    try:
+        yield
+    finally:
+        if old is None:
+            del os.environ["MODI_EXT_IMPL"]
+        else:
+            os.environ["MODI_EXT_IMPL"] = old
+
+
 def _with_impl(impl: str, fn: Callable[[], object]) -> Callable[[], object]:
     def run():
-        old = os.environ.get("MODI_EXT_IMPL")
-        os.environ["MODI_EXT_IMPL"] = impl
-        try:
+        with forced_impl(impl):
             return fn()
-        finally:
-            if old is None:
-                del os.environ["MODI_EXT_IMPL"]
-            else:
-                os.environ["MODI_EXT_IMPL"] = old
     return run
 
 
@@ -242,11 +250,11 @@ def main(argv: list[str] | None = None) -> int:
                          "clock": args.clock,
                          "machine": desc, **info.get(name, {})}
         print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
-    _write_json(args.json, results)
+    write_json(args.json, results)
     return 0
 
 
-def _write_json(path: Path | None, results: dict) -> None:
+def write_json(path: Path | None, results: dict) -> None:
     if not path:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -257,35 +265,14 @@ def _write_json(path: Path | None, results: dict) -> None:
 
 
 def _main_cuda(args: argparse.Namespace) -> int:
-    """GPU comparison: every case of bench_cuda.py for each requested dtype, timed with CUDA events, one JSON."""
-    if not torch.cuda.is_available():
-        print("compare: --device cuda but torch sees no CUDA device", file=sys.stderr)
-        return 2
+    """GPU comparison: benchmarks/bench_cuda.py (timed with CUDA events), given this command's options."""
     spec = importlib.util.spec_from_file_location("bench_cuda", Path(__file__).with_name("bench_cuda.py"))
     bench_cuda = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench_cuda)
-    names = [d.strip() for d in args.dtype.split(",") if d.strip()]
-    bad = [d for d in names if d not in bench_cuda.DTYPES]
-    if bad or not names:
-        print(f"compare: --dtype must list some of {sorted(bench_cuda.DTYPES)}, got {args.dtype!r}", file=sys.stderr)
-        return 2
-    pattern = re.compile(args.only) if args.only else None
-    desc = bench_cuda.device_description()
-    print(f"# {desc}")
-    print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
-    results: dict[str, dict] = {}
-    for name in names:
-        cases, info = bench_cuda._build(bench_cuda.DTYPES[name])
-        for case, (ref, ext) in cases.items():
-            if pattern and not pattern.search(case):
-                continue
-            ref_ms, ext_ms = bench_cuda.time_pair_cuda(ref, ext, max(args.reps, 5))
-            results[case] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
-                             "speedup": round(ref_ms / ext_ms, 3), "runs": max(args.reps, 5), "machine": desc,
-                             **info[case]}
-            print(f"{case:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
-    _write_json(args.json, results)
-    return 0
+    argv = ["--dtype", args.dtype, "--reps", str(max(args.reps, 5))]
+    argv += ["--json", str(args.json)] if args.json else []
+    argv += ["--only", args.only] if args.only else []
+    return bench_cuda.main(argv)
 
 
 if __name__ == "__main__":

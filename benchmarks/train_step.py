@@ -14,9 +14,6 @@ motion tensor, at ``--gen-batch`` under ``no_grad``.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -27,44 +24,15 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from compare import forced_impl, machine, write_json  # noqa: E402  (benchmarks/compare.py)
 from modi_ext import HAS_EXT  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-class _Impl:
-    """Context manager forcing MODI_EXT_IMPL for the ops called inside it."""
-
-    def __init__(self, impl: str):
-        self.impl, self.old = impl, None
-
-    def __enter__(self):
-        self.old = os.environ.get("MODI_EXT_IMPL")
-        os.environ["MODI_EXT_IMPL"] = self.impl
-
-    def __exit__(self, *exc):
-        if self.old is None:
-            os.environ.pop("MODI_EXT_IMPL", None)
-        else:
-            os.environ["MODI_EXT_IMPL"] = self.old
-
-
-def machine_line(device: torch.device, threads: int) -> str:
-    if device.type == "cuda":
-        return (f"{torch.cuda.get_device_name(device)}, torch {torch.__version__}, CUDA {torch.version.cuda}")
-    cpu = platform.processor() or "cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} logical CPUs, torch {torch.__version__}, {threads} threads"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,19 +70,19 @@ def main(argv: list[str] | None = None) -> int:
     data = prepare_data(data_dir, cfg, work_dir=work)
     trainers = {}
     for impl in ("ref", "ext"):
-        with _Impl(impl):
+        with forced_impl(impl):
             trainers[impl] = Trainer(cfg, data, work / impl, device=device, progress=False, tensorboard=False,
                                      write_samples=False, log=lambda m: None)
 
     # warm-up: one full lazy-regularisation cycle each (allocator, oneDNN/cuDNN plans, kernel caches)
     for impl, tr in trainers.items():
-        with _Impl(impl):
+        with forced_impl(impl):
             for _ in range(min(args.chunk, 16)):
                 tr.train_step()
     step_times: dict[str, list[float]] = {"ref": [], "ext": []}
     for _ in range(args.reps):
         for impl, tr in trainers.items():
-            with _Impl(impl):
+            with forced_impl(impl):
                 _sync(device)
                 t = time.perf_counter()
                 for _ in range(args.chunk):
@@ -127,20 +95,24 @@ def main(argv: list[str] | None = None) -> int:
     z = torch.randn(args.gen_batch, g0.latent_dim, device=device)
     with torch.no_grad():
         for impl in ("ref", "ext"):
-            with _Impl(impl):
+            with forced_impl(impl):
                 trainers[impl].G_ema(z)  # warm-up
         for _ in range(args.gen_reps):
             for impl, tr in trainers.items():
-                with _Impl(impl):
+                with forced_impl(impl):
                     _sync(device)
                     t = time.perf_counter()
                     tr.G_ema(z)
                     _sync(device)
                     gen_times[impl].append(time.perf_counter() - t)
 
-    threads = torch.get_num_threads()
-    machine = machine_line(device, threads)
-    res = {"machine": machine, "date": time.strftime("%Y-%m-%d"), "device": str(device), "preset": args.preset,
+    if device.type == "cuda":
+        from bench_cuda import device_description
+
+        desc = device_description()
+    else:
+        desc = machine()
+    res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "preset": args.preset,
            "batch": args.batch, "data": str(data_dir), "windows": list(data.windows.shape),
            "hierarchy": [lv.n_entities for lv in trainers["ext"].levels]}
     ref_s, ext_s = statistics.median(step_times["ref"]), statistics.median(step_times["ext"])
@@ -149,14 +121,11 @@ def main(argv: list[str] | None = None) -> int:
     ref_g, ext_g = statistics.median(gen_times["ref"]), statistics.median(gen_times["ext"])
     res["generate"] = {"batch": args.gen_batch, "ref_motions_per_s": round(args.gen_batch / ref_g, 1),
                        "ext_motions_per_s": round(args.gen_batch / ext_g, 1), "speedup": round(ref_g / ext_g, 3)}
-    print(f"# {machine}; MoDi preset {args.preset}, batch {args.batch}, data {data_dir}")
+    print(f"# {desc}; MoDi preset {args.preset}, batch {args.batch}, data {data_dir}")
     print(f"train step   ref {ref_s:.3f} s/it   ext {ext_s:.3f} s/it   {ref_s / ext_s:.2f}x")
     print(f"generate     ref {args.gen_batch / ref_g:.1f} motions/s   ext {args.gen_batch / ext_g:.1f} motions/s   "
           f"{ref_g / ext_g:.2f}x  (batch {args.gen_batch})")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
-        print(f"wrote {args.json}")
+    write_json(Path(args.json) if args.json else None, res)
     return 0
 
 

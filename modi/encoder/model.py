@@ -40,7 +40,7 @@ class EncoderConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "EncoderConfig":
-        return cls(**{"hidden": None, **d})  # checkpoints older than ``hidden`` used the default width
+        return cls(**d)  # fields missing from older checkpoints (e.g. ``hidden``) take their defaults
 
 
 def _scaled_levels(levels: Sequence[LevelSpec], mult: float) -> list[LevelSpec]:
