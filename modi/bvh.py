@@ -1,7 +1,9 @@
 """BVH reader and writer (numpy; own code).
 
 ``load`` accepts any whitespace layout (tabs, spaces, CRLF or CR line ends), any channel subset and
-Euler order per joint, joint names with spaces, and any positive frame time. Every malformation —
+Euler order per joint, joint names with spaces, and any positive frame time. What other tools add is
+skipped: a trailing ``#`` comment on a header line, and tokens after ``End Site`` (MoDi's released files
+write ``End Site #name: Head``). Every malformation —
 missing sections, unbalanced braces, bad OFFSETs, unknown or repeated channels, duplicate joint
 names, zero/truncated/extra frames, a wrong value count on a frame line, non-numeric or non-finite
 values — raises one :class:`modi.errors.BvhError` carrying the 1-based line number.
@@ -165,8 +167,20 @@ class Bvh:
 # ====================================================================================== reading
 
 
+def _strip_comment(tokens: list[str]) -> list[str]:
+    """Drop a trailing ``#`` comment: a token that starts with ``#`` and everything after it.
+
+    Exporters annotate hierarchy lines this way (MoDi's released files write ``End Site #name: Head``); a ``#``
+    inside a token (a joint named ``Bone#2``) is part of the name.
+    """
+    for i, tok in enumerate(tokens):
+        if tok.startswith("#"):
+            return tokens[:i]
+    return tokens
+
+
 class _Tokens:
-    """Whitespace tokens of the header with their 1-based line numbers."""
+    """Whitespace tokens of the header (``#`` comments removed) with their 1-based line numbers."""
 
     def __init__(self, lines: list[str], path: str | None):
         self.lines = lines
@@ -180,7 +194,7 @@ class _Tokens:
         while self.pos >= len(self.buf):
             if self.row >= len(self.lines):
                 return False
-            self.buf = self.lines[self.row].split()
+            self.buf = _strip_comment(self.lines[self.row].split())
             self.buf_line = self.row + 1
             self.pos = 0
             self.row += 1
@@ -315,6 +329,10 @@ def _parse_hierarchy(tokens: _Tokens):
                 raise tokens.error(f"expected 'End Site', got 'End {site}'", sline)
             if j in end_sites:
                 raise tokens.error(f"second End Site in joint {names[j]!r}", line)
+            # some exporters name the end effector on this line (``End Site Head_end``): skip such tokens, up to
+            # a brace, so that a missing '{' is still reported below
+            while tokens.buf_line == sline and tokens.pos < len(tokens.buf) and tokens.buf[tokens.pos] not in ("{", "}"):
+                tokens.pos += 1
             b, bline = tokens.next("'{'")
             if b != "{":
                 raise tokens.error(f"expected '{{' after End Site, got {b!r}", bline)
@@ -340,7 +358,7 @@ def _parse_hierarchy(tokens: _Tokens):
     return names, parents, np.stack(offsets), channels, end_sites
 
 
-def _parse_motion_header(tokens: _Tokens) -> tuple[int, float, int]:
+def _parse_motion_header(tokens: _Tokens, check_frame_time: bool = True) -> tuple[int, float, int]:
     tok, line = tokens.next("MOTION")
     if tok.upper() == "ROOT":
         raise tokens.error("more than one ROOT (only a single skeleton per file is supported)", line)
@@ -373,7 +391,7 @@ def _parse_motion_header(tokens: _Tokens) -> tuple[int, float, int]:
         raise tokens.error(f"expected 'Frame Time:', got {tok!r}", line)
     keyword("Time")
     frame_time = _number(tokens, "Frame Time")
-    if frame_time <= 0:
+    if frame_time <= 0 and check_frame_time:
         raise tokens.error(f"Frame Time must be positive, got {frame_time}", tokens.buf_line)
     if tokens.pos < len(tokens.buf):
         raise tokens.error(f"unexpected {tokens.buf[tokens.pos]!r} after the frame time", tokens.buf_line)
@@ -445,23 +463,25 @@ def _read_text(source: str | os.PathLike | bytes) -> tuple[str, str | None]:
     return text, path
 
 
-def load(source: str | os.PathLike | bytes) -> Bvh:
+def load(source: str | os.PathLike | bytes, *, check_frame_time: bool = True) -> Bvh:
     """Read a BVH from a path, from bytes, or from text (a str that contains a line break or starts with HIERARCHY).
 
     Raises :class:`BvhError` (with ``.line``) for malformed content, ``FileNotFoundError`` for a missing path.
+    ``check_frame_time=False`` accepts any finite Frame Time (some tools write 0): for callers that are told the
+    true rate and replace ``frame_time`` themselves (``modi eval single --gen-fps``).
     """
     text, path = _read_text(source)
-    return _parse(text, path)
+    return _parse(text, path, check_frame_time)
 
 
-def loads(text: str) -> Bvh:
-    """Parse BVH text (never interpreted as a path)."""
+def loads(text: str, *, check_frame_time: bool = True) -> Bvh:
+    """Parse BVH text (never interpreted as a path); ``check_frame_time`` as in :func:`load`."""
     if not isinstance(text, str):
         raise TypeError(f"bvh.loads: expected str, got {type(text).__name__}")
-    return _parse(text, None)
+    return _parse(text, None, check_frame_time)
 
 
-def _parse(text: str, path: str | None) -> Bvh:
+def _parse(text: str, path: str | None, check_frame_time: bool = True) -> Bvh:
     if text.startswith("\ufeff"):
         text = text[1:]
     if "\r" in text:
@@ -472,7 +492,7 @@ def _parse(text: str, path: str | None) -> Bvh:
     tokens = _Tokens(lines, path)
     names, parents, offsets, channels, end_sites = _parse_hierarchy(tokens)
     n_channels = sum(len(c) for c in channels)
-    n_frames, frame_time, start = _parse_motion_header(tokens)
+    n_frames, frame_time, start = _parse_motion_header(tokens, check_frame_time)
     if n_channels == 0:
         raise BvhError("the hierarchy declares no channels", line=start, path=path)
     motion = _parse_values(lines, start, n_frames, n_channels, path)

@@ -115,6 +115,39 @@ def test_layout_variants_parse_identically(tmp_path):
         np.testing.assert_array_equal(B.load(src).motion, ref.motion)
 
 
+# what other exporters add to the header: MoDi's released files name end effectors after "End Site"
+ANNOTATED = {
+    "modi_end_site": SMALL.replace("    End Site\n", "    End Site #name: Head\n"),
+    "end_site_name": SMALL.replace("    End Site\n", "    End Site Spine_end\n"),
+    "end_site_name_brace": SMALL.replace("    End Site\n    {", "    End Site Spine_end {"),
+    "comments": SMALL.replace("ROOT Hips", "ROOT Hips # pelvis").replace("OFFSET 0 1 0", "OFFSET 0 1 0 #cm")
+    .replace("Yrotation\n  JOINT", "Yrotation  # root channels\n  JOINT").replace("  {\n    OFFSET 0.5", "  { # leg\n    OFFSET 0.5")
+    .replace("HIERARCHY\n", "HIERARCHY\n# exported by some tool\n").replace("Frame Time: 0.04", "Frame Time: 0.04 # 25 fps"),
+    "hash_inside_name": SMALL.replace("JOINT Left Leg", "JOINT Left#Leg"),
+}
+
+
+def test_exporter_annotations_parse_like_the_plain_file():
+    ref = B.loads(SMALL)
+    for name, text in ANNOTATED.items():
+        b = B.loads(text)
+        assert b.names == (["Hips", "Spine", "Left#Leg"] if name == "hash_inside_name" else ref.names), name
+        assert b.parents == ref.parents and b.channels == ref.channels, name
+        np.testing.assert_array_equal(b.offsets, ref.offsets, err_msg=name)
+        np.testing.assert_array_equal(b.end_sites[1], ref.end_sites[1], err_msg=name)
+        np.testing.assert_array_equal(b.motion, ref.motion, err_msg=name)
+        assert b.frame_time == ref.frame_time, name
+
+
+def test_frame_time_check_can_be_left_to_the_caller():
+    text = _set_line(SMALL, L_FTIME, "Frame Time: 0")
+    with pytest.raises(BvhError, match="positive"):
+        B.loads(text)
+    assert B.loads(text, check_frame_time=False).frame_time == 0.0
+    with pytest.raises(BvhError, match="expected a number"):  # it must still be a number
+        B.loads(_set_line(SMALL, L_FTIME, "Frame Time: x"), check_frame_time=False)
+
+
 def test_save_load_round_trip_small(tmp_path):
     b = B.loads(SMALL)
     b.motion = b.motion + np.array([0.1234567] * 11)
@@ -188,6 +221,14 @@ MALFORMED = {
     "second_root": (_set_line(SMALL, L_ROOT_CLOSE, "}\nROOT B"), L_ROOT_CLOSE + 1, "more than one ROOT"),
     "nameless_joint": (_set_line(SMALL, L_SPINE, "  JOINT"), L_SPINE, "without a name"),
     "bad_end_site": (_set_line(SMALL, 10, "    End Sight"), 10, "End Site"),
+    "end_site_name_no_brace": (_set_line(SMALL, 11, "OFFSET 0 1 0").replace("End Site\n", "End Site #name: Head\n"),
+                               11, "expected '{' after End Site"),
+    "end_site_closed_at_once": (_set_line(SMALL, 10, "    End Site Head }"), 10, "expected '{' after End Site, got '}'"),
+    "comment_eats_offset": (_set_line(SMALL, L_SPINE_OFFSET, "OFFSET 0 1 #0"), L_SPINE_OFFSET, "OFFSET of Spine"),
+    "comment_eats_channels": (_set_line(SMALL, L_SPINE_CHANNELS, "CHANNELS 3 Zrotation # Xrotation Yrotation"),
+                              L_SPINE_CHANNELS, "lists only 1"),
+    "comment_only_joint_name": (_set_line(SMALL, L_SPINE, "  JOINT # Spine"), L_SPINE, "without a name"),
+    "offset_trailing_junk": (_set_line(SMALL, L_SPINE_OFFSET, "OFFSET 0 1 0 cm"), L_SPINE_OFFSET, "unexpected 'cm'"),
     "empty": ("", 1, "empty"),
 }
 
@@ -223,7 +264,7 @@ def test_crlf_error_lines_match_lf():
 _GARBAGE = st.one_of(
     st.sampled_from(["nan", "inf", "-", "1e999", "{", "}", "x", "", "JOINT", "End", "Site", "MOTION", "CHANNELS",
                      "OFFSET", "0", "-1", "1.5", "Frames:", "Frame", "Time:", "99999999999", "Xrotation",
-                     "Wrotation", "\t", "ROOT", "HIERARCHY", "1_0", "0x10", "\x00", "é"]),
+                     "Wrotation", "\t", "ROOT", "HIERARCHY", "1_0", "0x10", "\x00", "é", "#", "#name:", "a#b"]),
     st.text(max_size=6),
 )
 _OPS = st.one_of(
@@ -297,6 +338,12 @@ def _check_load_never_crashes(text: str) -> None:
 @given(ops=st.lists(_OPS, min_size=1, max_size=4))
 def test_fuzz_synthetic_bvh_only_raises_bvh_error(ops):
     _check_load_never_crashes(_mutate(SMALL, ops))
+
+
+@settings(max_examples=200, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.sampled_from(sorted(ANNOTATED)), ops=st.lists(_OPS, min_size=1, max_size=4))
+def test_fuzz_annotated_bvh_only_raises_bvh_error(seed, ops):
+    _check_load_never_crashes(_mutate(ANNOTATED[seed], ops))
 
 
 @pytest.fixture(scope="module")
