@@ -180,7 +180,7 @@ def test_truncation_zero_gives_the_mean_motion():
 
 def test_noise_modes():
     _, h = hierarchy_of(humanoid, None)
-    cfg = tiny(h.n_levels)
+    cfg = tiny(h.n_levels, noise_injection=True)
     g = Generator(cfg, build_levels(h, cfg, 16), K).eval()
     for layer in g.styled_layers():
         layer.noise.weight.data.fill_(0.5)
@@ -282,3 +282,81 @@ def test_config_presets_roundtrip_and_errors():
         make_config("small", **{"model.scaler": "avg"})
     with pytest.raises(ValueError, match="unknown"):
         MoDiConfig.from_dict({**paper.to_dict(), "model": {**paper.to_dict()["model"], "extra": 1}})
+
+
+def test_no_noise_injection_by_default_as_released():
+    """Released MoDi (models/gan.py StyledConv): modulated conv + bias + leaky ReLU, no noise."""
+    assert ModelConfig().noise_injection is False
+    _, h = hierarchy_of(humanoid, None)
+    cfg = tiny(h.n_levels)
+    g = Generator(cfg, build_levels(h, cfg, 16), K).eval()
+    assert all(layer.noise is None for layer in g.styled_layers())
+    assert g.noise_shapes() == [] and not any("noise" in k for k in g.state_dict())
+    z = torch.randn(2, 16)
+    out = g(z)  # every noise mode gives the same motion: nothing random besides the latent
+    for mode in ("random", "const", "none"):
+        assert torch.equal(g(z, noise_mode=mode), out)
+    assert torch.equal(g(z, noise=[]), out)
+    with pytest.raises(ValueError, match="noise_mode"):
+        g(z, noise_mode="bogus")
+
+
+def test_sampling_draws_no_noise_when_off():
+    from modi.modi_model.sampling import latents_and_noise
+
+    _, h = hierarchy_of(humanoid, None)
+    on, off = tiny(h.n_levels, noise_injection=True), tiny(h.n_levels)
+    g_on = Generator(on, build_levels(h, on, 16), K).eval()
+    g_off = Generator(off, build_levels(h, off, 16), K).eval()
+    z_on, n_on = latents_and_noise(g_on, [0, 5], 3)
+    z_off, n_off = latents_and_noise(g_off, [0, 5], 3)
+    assert n_off == [] and len(n_on) == len(g_on.styled_layers())
+    assert torch.equal(z_on, z_off)  # the latent of a seed does not depend on the noise option
+
+
+def test_legacy_config_without_new_fields_keeps_old_behaviour():
+    d = make_config("small").to_dict()
+    del d["model"]["noise_injection"]
+    del d["train"]["contact_loss"]
+    old = MoDiConfig.from_dict(d)
+    assert old.model.noise_injection is True and old.train.contact_loss == "squared"
+    new = make_config("small")
+    assert new.model.noise_injection is False and new.train.contact_loss == "released"
+    pre = make_config("small", ["pre-release"])
+    assert pre.model.noise_injection is True and pre.train.contact_loss == "squared"
+    with pytest.raises(ValueError, match="contact_loss"):
+        make_config("small", **{"train.contact_loss": "cubed"})
+
+
+def test_released_contact_loss_is_speed_not_squared():
+    from modi.modi_model.losses import CONTACT_SHARPNESS, foot_contact_speed_loss
+
+    pos = torch.zeros(2, 5, 2, 3)
+    pos[:, :, 0, 0] = torch.arange(5.0) * 3.0  # foot 0 slides 3 units per frame along x; foot 1 still
+    pos[:, :, 1, 2] = torch.tensor([0.0, 0.0, 4.0, 4.0, 4.0])  # foot 1 jumps 4 units once
+    contact = torch.ones(2, 2, 5)  # label scale: on
+    s = torch.sigmoid(torch.tensor(CONTACT_SHARPNESS * 0.5))
+    expected = s * (4 * 3.0 + 4.0) / 8  # mean over feet x (T-1) frames of s(c) * per-frame speed
+    assert foot_contact_speed_loss(pos, contact).item() == pytest.approx(expected.item(), rel=1e-6)
+    contact[:, 0, 1:] = 0.0  # labelled in the air: the slide of foot 0 costs (almost) nothing
+    assert foot_contact_speed_loss(pos, contact).item() < 0.51 * expected.item()
+    # finite gradient where a foot does not move at all (speed 0), nonzero where it slides slowly
+    p = torch.zeros(1, 4, 1, 3, requires_grad=True)
+    with torch.no_grad():
+        p[0, 2:, 0, 0] = 1e-4
+    foot_contact_speed_loss(p, torch.ones(1, 1, 4)).backward()
+    assert torch.isfinite(p.grad).all() and p.grad.abs().max() > 0.1
+    with pytest.raises(ValueError):
+        foot_contact_speed_loss(pos, contact[:, :1])
+
+
+def test_codec_ankles_are_the_toe_parents():
+    from modi.modi_model.codec import MotionCodec
+    from modi.normalization import Normalizer
+    from modi.representation import modi_representation
+
+    sk = humanoid()
+    rep = modi_representation(sk)
+    codec = MotionCodec(rep, Normalizer(torch.zeros(rep.K, rep.n_entities), torch.ones(rep.K, rep.n_entities)), 30.0)
+    assert [sk.names[j] for j in codec.feet] == ["LeftToe", "RightToe"]
+    assert [sk.names[j] for j in codec.ankles] == ["LeftFoot", "RightFoot"]

@@ -223,6 +223,56 @@ def test_ablations_train(proc_dir, tmp_path, ablation):
         assert sample_motions(ckpt, 1)[0].n_frames == 16
 
 
+# --------------------------------------------------------------------------------------------- released vs ours
+@pytest.mark.parametrize("options", [[], ["noise"], ["squared-contact"], ["pre-release"]])
+def test_released_defaults_and_pre_release_options_train_and_resume(proc_data, tmp_path, options):
+    cfg = tiny_cfg(*options)
+    tr = make_trainer(proc_data, tmp_path, cfg=cfg)
+    tr.train(2)
+    assert np.isfinite(tr.last_losses["contact"])
+    ckpt = load_checkpoint(tr.save_checkpoint())
+    saved = MoDiConfig.from_dict(ckpt["config"])
+    assert saved.model.noise_injection == ("noise" in options or "pre-release" in options)
+    assert saved.train.contact_loss == ("squared" if set(options) & {"squared-contact", "pre-release"} else "released")
+    # a checkpoint predating the new fields loads with the behaviour it was trained with (noise on, squared)
+    if options == ["pre-release"]:
+        del ckpt["config"]["model"]["noise_injection"], ckpt["config"]["train"]["contact_loss"]
+        sample_motions(ckpt, 1)
+        make_trainer(proc_data, tmp_path / "old", cfg=MoDiConfig.from_dict(ckpt["config"]), resume=ckpt)
+    # without noise, generation is a function of the seed's latent only
+    a, b = sample_motions(tr.run_dir / "checkpoint.pt", 2, seed=4), sample_motions(tr.run_dir / "checkpoint.pt", 2, seed=4)
+    assert torch.equal(a[1].rotations, b[1].rotations)
+
+
+def test_released_contact_loss_measures_the_ankles_in_data_units(proc_data):
+    from modi.modi_model.losses import foot_contact_speed_loss
+
+    codec = proc_data.codec
+    x = proc_data.windows[:3]
+    pos, contact = codec.foot_terms(x, codec.ankles)
+    full = codec.decode(x)["positions"]
+    torch.testing.assert_close(pos, full[..., codec.ankles, :])
+    speed = (full[:, 1:, codec.ankles] - full[:, :-1, codec.ankles]).norm(dim=-1)  # data units per frame
+    ref = (speed.transpose(1, 2) * torch.sigmoid(12 * (contact[..., 1:] - 0.5))).mean()
+    torch.testing.assert_close(foot_contact_speed_loss(pos, contact), ref)
+
+
+def test_sampling_does_not_import_training():
+    """modi_model.sampling and modi_model.training used to import each other; sampling now needs only
+    codec/checkpoint/config/networks."""
+    import ast
+    import inspect
+
+    import modi.modi_model.sampling as sampling
+
+    tree = ast.parse(inspect.getsource(sampling))
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    assert "modi.modi_model.training" not in imported
+    for mod in ("codec", "checkpoint"):
+        src = inspect.getsource(__import__(f"modi.modi_model.{mod}", fromlist=["x"]))
+        assert "modi_model.training" not in src and "modi_model.sampling" not in src
+
+
 # --------------------------------------------------------------------------------------------- IK cleanup
 def test_ik_cleanup_pins_feet_within_1mm():
     from modi.modi_model.sampling import cleanup_feet
@@ -288,3 +338,21 @@ def test_cli_demo_runs_end_to_end(tmp_path):
     assert (out / "samples" / "samples.gif").is_file() and (out / "training_examples.gif").is_file()
     assert load_checkpoint(out / "run" / "checkpoint.pt")["step"] == 1
     assert main(["demo", "--out", str(out), "--iters", "1"]) == 2  # refuses to overwrite a finished demo
+
+
+def test_cli_released_options_reach_the_config():
+    import argparse
+
+    from modi.commands import modi_train
+
+    parser = argparse.ArgumentParser()
+    modi_train.register(parser.add_subparsers())
+    cfg = modi_train.build_config(parser.parse_args(["train", "procedural", "--out", "r", "--preset", "small"]))
+    assert cfg.model.noise_injection is False and cfg.train.contact_loss == "released"
+    args = parser.parse_args(["train", "procedural", "--out", "r", "--preset", "small", "--noise-injection",
+                              "--contact-loss", "squared"])
+    cfg = modi_train.build_config(args)
+    assert cfg.model.noise_injection is True and cfg.train.contact_loss == "squared"
+    args = parser.parse_args(["train", "procedural", "--out", "r", "--ablation", "pre-release"])
+    cfg = modi_train.build_config(args)
+    assert cfg.model.noise_injection is True and cfg.train.contact_loss == "squared"

@@ -40,6 +40,12 @@ def register(subparsers) -> None:
                    help="drop joints whose names match (default: fingers and face joints)")
     p.add_argument("--keep", nargs="+", metavar="JOINT", default=keep, help="joints never dropped (default: none)")
     p.add_argument("--seed", type=int, default=keep, help="training seed (default: 0)")
+    p.add_argument("--noise-injection", action="store_const", const=True, default=keep,
+                   help="add StyleGAN2 per-frame noise in every styled conv (default: off, as the released MoDi)")
+    p.add_argument("--contact-loss", choices=("released", "squared"), default=keep,
+                   help="contact consistency: 'released' = s(c) x ankle speed per frame in data units (the authors' "
+                        "code); 'squared' = s(c) x speed^2 in body heights/s on the contact joints (paper eq. 3) "
+                        "(default: released)")
     p.add_argument("--log-every", type=int, default=keep, help="steps between logged scalars (default: 10)")
     p.add_argument("--sample-every", type=int, default=keep,
                    help="steps between sample grids, 0 = never (default: paper 1000, small 500)")
@@ -82,7 +88,8 @@ def build_config(args: argparse.Namespace):
                       ("stride", "data.stride"), ("feet", "data.feet"), ("seed", "train.seed"),
                       ("drop", "data.drop_patterns"), ("keep", "data.keep_joints"),
                       ("log_every", "train.log_every"), ("sample_every", "train.sample_every"),
-                      ("ckpt_every", "train.ckpt_every")):
+                      ("ckpt_every", "train.ckpt_every"), ("noise_injection", "model.noise_injection"),
+                      ("contact_loss", "train.contact_loss")):
         value = getattr(args, flag, None)
         if value is not None:
             overrides[key] = value

@@ -175,7 +175,7 @@ def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainCo
 def generator_bundle(g: Any, codec: Any, gcfg: Any = None, step: int = 0) -> dict[str, Any]:
     """A MoDi-checkpoint-shaped dict holding just what generation needs (loadable by ``load_generator``)."""
     from modi.modi_model.config import DataConfig, MoDiConfig
-    from modi.modi_model.training import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+    from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 
     if gcfg is None:
         _, _, t = g.output_shape
@@ -401,7 +401,7 @@ class EncoderTrainer:
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
-        from modi.modi_model.training import atomic_torch_save
+        from modi.modi_model.checkpoint import atomic_torch_save
 
         return atomic_torch_save(self.state_dict(), Path(path) if path is not None else self.out)
 

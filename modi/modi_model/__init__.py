@@ -4,6 +4,8 @@
 * ``networks`` -- mapping network, synthesis network (conv scaler, skip outputs), discriminator
 * ``losses``   -- non-saturating, R1, path length, foot touch and contact consistency
 * ``training`` -- data preparation, the tensor <-> motion codec, ``Trainer`` (checkpoints, resume, DDP)
+* ``codec``    -- the normalised-tensor <-> motion codec
+* ``checkpoint`` -- checkpoint format, validated reading, atomic writing
 * ``sampling`` -- checkpoints -> motions (truncation, deterministic seeds, IK cleanup, BVH/GIF output)
 
 Submodules are imported lazily so ``import modi.modi_model`` stays cheap.
@@ -19,9 +21,9 @@ _EXPORTS = {
     "ABLATIONS": "config",
     "Generator": "networks", "Discriminator": "networks", "LevelSpec": "networks", "build_levels": "networks",
     "MappingNetwork": "networks",
-    "Trainer": "training", "TrainingData": "training", "MotionCodec": "training", "prepare_data": "training",
+    "Trainer": "training", "TrainingData": "training", "MotionCodec": "codec", "prepare_data": "training",
     "NonFiniteLossError": "training", "init_distributed_from_env": "training",
-    "load_checkpoint": "sampling", "load_generator": "sampling", "sample_motions": "sampling",
+    "load_checkpoint": "checkpoint", "load_generator": "sampling", "sample_motions": "sampling",
     "sample_positions": "sampling", "generate_tensors": "sampling", "write_outputs": "sampling",
 }
 

@@ -9,6 +9,13 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 PAPER_CHANNELS = (256, 128, 64, 64, 32)  # coarse -> fine, paper Table 3
+CONTACT_LOSSES = ("released", "squared")
+
+# Values a checkpoint's config takes for fields it predates: the behaviour it was trained with, not today's default.
+LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
+    "model": {"noise_injection": True},
+    "train": {"contact_loss": "squared"},
+}
 
 
 @dataclass
@@ -29,7 +36,7 @@ class ModelConfig:
     n_inplace_convs: int = 2  # ablation "remove one in-place conv per hierarchy" = 1
     scaler: str = "conv"  # "conv" (convolutional scaler, MoDi) | "pool" (skeletal pooling/unpooling ablation)
     skeleton_aware: bool = True  # False = the non-skeleton-aware pseudo-image ablation (dense 2D convs)
-    noise_injection: bool = True
+    noise_injection: bool = False  # released MoDi: none; True = StyleGAN2 per-frame noise in every styled conv
     mbstd_group: int = 4
 
     def validate(self) -> None:
@@ -87,6 +94,10 @@ class TrainConfig:
     mixing: float = 0.9
     touch_weight: float = 0.01
     contact_weight: float = 1.0
+    # contact consistency: "released" = mean of s(c) * ||ankle displacement per frame|| in the data's units (the
+    # authors' train.py / utils/foot.py); "squared" = s(c) * speed^2 in body heights per second on the contact
+    # (toe) joints (the paper's eq. 3; this package's form before the released one became the default)
+    contact_loss: str = "released"
     ema_kimg: float = 10.0  # EMA half-life in thousands of samples (StyleGAN2: 10)
     w_avg_beta: float = 0.995
     seed: int = 0
@@ -104,6 +115,8 @@ class TrainConfig:
                 raise ValueError(f"train.{name} must be >= 1")
         if not 0.0 <= self.mixing <= 1.0:
             raise ValueError(f"train.mixing must be in [0, 1], not {self.mixing}")
+        if self.contact_loss not in CONTACT_LOSSES:
+            raise ValueError(f"train.contact_loss must be one of {', '.join(CONTACT_LOSSES)}, not {self.contact_loss!r}")
 
 
 @dataclass
@@ -135,7 +148,7 @@ class MoDiConfig:
                 raise ValueError(f"unknown {sub_cls.__name__} fields: {sorted(unknown)}")
             return sub_cls(**values)
 
-        model = dict(d.get("model", {}))
+        model = {**LEGACY_DEFAULTS["model"], **dict(d.get("model", {}))}
         data = dict(d.get("data", {}))
         if "joints" in data:  # early drafts called keep_joints "joints"
             data.setdefault("keep_joints", data.pop("joints"))
@@ -144,7 +157,7 @@ class MoDiConfig:
         return cls(
             model=build(ModelConfig, model),
             data=build(DataConfig, data),
-            train=build(TrainConfig, dict(d.get("train", {}))),
+            train=build(TrainConfig, {**LEGACY_DEFAULTS["train"], **dict(d.get("train", {}))}),
             preset=str(d.get("preset", "custom")),
         ).validate()
 
@@ -171,6 +184,10 @@ ABLATIONS = {
     "pseudo-image": {"model.skeleton_aware": False},
     "positions": {"data.rotation": "positions"},
     "root-position": {"data.root": "position"},
+    # this package's choices before the released code's became the defaults (issue 13), one at a time or together
+    "noise": {"model.noise_injection": True},
+    "squared-contact": {"train.contact_loss": "squared"},
+    "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared"},
 }
 
 

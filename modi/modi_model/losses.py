@@ -1,4 +1,5 @@
-"""MoDi's losses: StyleGAN2's adversarial/R1/path-length terms and the two foot-contact terms (paper eqs. 2-3, 11-14).
+"""MoDi's losses: StyleGAN2's adversarial/R1/path-length terms and the foot-contact terms (paper eqs. 2-3, 11-14;
+the contact consistency in both the released code's form and the paper's squared form).
 
 The foot terms take *decoded* quantities (foot joint positions from the FK layer and the raw contact channel), so
 they stay independent of how the representation is normalised; ``training.py`` does the decoding.
@@ -73,6 +74,24 @@ def foot_contact_consistency_loss(foot_positions: torch.Tensor, contact: torch.T
     vel = (foot_positions[:, 1:] - foot_positions[:, :-1]) * (fps / height)  # (B, T-1, F, 3)
     speed2 = vel.pow(2).sum(-1).transpose(1, 2)  # (B, F, T-1)
     return (speed2 * contact_probability(contact[..., 1:])).mean()
+
+
+def foot_contact_speed_loss(foot_positions: torch.Tensor, contact: torch.Tensor) -> torch.Tensor:
+    """The released MoDi's contact consistency: E[ s(c_t) * ||p_t - p_{t-1}|| ] over batch, feet and frames.
+
+    The foot *speed* (not squared) per frame, in the data's own units -- the authors' ``g_foot_contact_loss_v2``
+    (``train.py``) on the velocity of ``utils/foot.get_foot_velo``, whose joints are the ankles (Mixamo's
+    ``LeftFoot``/``RightFoot``). Unlike the squared form its gradient does not vanish for slow slides.
+    ``foot_positions``: (B, T, F, 3) global positions; ``contact``: (B, F, T) raw contact channel.
+    """
+    if foot_positions.ndim != 4 or foot_positions.shape[-1] != 3:
+        raise ValueError(f"foot_positions must be (B, T, F, 3), got {tuple(foot_positions.shape)}")
+    b, t, f, _ = foot_positions.shape
+    if tuple(contact.shape) != (b, f, t):
+        raise ValueError(f"contact must be (B, F, T) = {(b, f, t)}, got {tuple(contact.shape)}")
+    # vector_norm's backward is 0 (not NaN) where a foot does not move at all
+    speed = torch.linalg.vector_norm(foot_positions[:, 1:] - foot_positions[:, :-1], dim=-1).transpose(1, 2)
+    return (speed * contact_probability(contact[..., 1:])).mean()
 
 
 def lazy_regularization_adam_params(lr: float, betas: tuple[float, float], reg_every: int) -> tuple[float, tuple]:

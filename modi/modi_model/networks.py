@@ -331,7 +331,10 @@ class _NoStyle(nn.Module):
 
 # --------------------------------------------------------------------------------------------- generator
 class StyledConv(nn.Module):
-    """Modulated conv -> noise injection -> fused bias + leaky ReLU (one StyleGAN2 layer)."""
+    """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
+
+    The released MoDi has no noise injection (modulated conv + bias + leaky ReLU); StyleGAN2's per-(entity, frame)
+    noise is the ``use_noise`` option."""
 
     def __init__(self, conv: nn.Module, out_ch: int, n_entities: int, n_frames: int, use_noise: bool):
         super().__init__()
@@ -413,17 +416,26 @@ class Generator(nn.Module):
             self.to_motions.append(ToMotion(cfg, lv.channels, out_channels, lv))
         self.n_latent = 2 + (len(self.levels) - 1) * (1 + n_inplace)
 
-        g = torch.Generator().manual_seed(0x5EED)
-        for i, layer in enumerate(self.styled_layers()):
-            e, t = layer.noise_shape
-            self.register_buffer(f"noise_const_{i}", torch.randn(1, 1, e, t, generator=g))
+        if cfg.noise_injection:  # fixed noise maps for noise_mode="const" (none exist when noise is off)
+            g = torch.Generator().manual_seed(0x5EED)
+            for i, layer in enumerate(self.styled_layers()):
+                e, t = layer.noise_shape
+                self.register_buffer(f"noise_const_{i}", torch.randn(1, 1, e, t, generator=g))
 
     # -- introspection
     def styled_layers(self) -> list[StyledConv]:
         return [self.conv1] + [c for block in self.blocks for c in block]
 
+    @property
+    def uses_noise(self) -> bool:
+        """Whether the styled convs add per-frame noise (``ModelConfig.noise_injection``; off in the released MoDi)."""
+        return bool(self.cfg.noise_injection)
+
     def noise_shapes(self) -> list[tuple[int, int]]:
-        """(entities, frames) of each noise input, in the order ``synthesis(noise=...)`` expects."""
+        """(entities, frames) of each noise input, in the order ``synthesis(noise=...)`` expects; empty when the
+        model has no noise injection (then nothing random enters the synthesis besides the latent)."""
+        if not self.uses_noise:
+            return []
         return [layer.noise_shape for layer in self.styled_layers()]
 
     @property
@@ -462,11 +474,18 @@ class Generator(nn.Module):
     # -- synthesis
     def synthesis(self, wplus: torch.Tensor, noise: Sequence[torch.Tensor | None] | None = None,
                   noise_mode: str = "random") -> torch.Tensor:
-        """W+ (B, n_latent, D) -> motion (B, K, E, T). ``noise_mode``: 'random' | 'const' | 'none'."""
+        """W+ (B, n_latent, D) -> motion (B, K, E, T). ``noise_mode``: 'random' | 'const' | 'none'.
+
+        Without noise injection (``cfg.noise_injection=False``) ``noise`` and ``noise_mode`` are ignored (an empty
+        ``noise`` list is what ``noise_shapes()`` describes) and the output depends on ``wplus`` alone."""
         if wplus.ndim != 3 or wplus.shape[1] != self.n_latent or wplus.shape[2] != self.latent_dim:
             raise ValueError(f"wplus must be (B, {self.n_latent}, {self.latent_dim}), got {tuple(wplus.shape)}")
         layers = self.styled_layers()
-        if noise is None:
+        if noise_mode not in ("random", "const", "none"):
+            raise ValueError(f"noise_mode must be 'random', 'const' or 'none', not {noise_mode!r}")
+        if not self.uses_noise:
+            noise = [None] * len(layers)
+        elif noise is None:
             if noise_mode == "random":
                 noise = [None] * len(layers)
             elif noise_mode == "const":

@@ -25,115 +25,18 @@ import torch
 from torch import Tensor, nn
 
 from modi.errors import CheckpointError, UserError
+from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint
+from modi.modi_model.codec import MotionCodec
 from modi.modi_model.config import MoDiConfig
-from modi.modi_model.losses import (d_logistic_loss, d_r1_penalty, foot_contact_consistency_loss, foot_touch_loss,
+from modi.modi_model.losses import (d_logistic_loss, d_r1_penalty, foot_contact_consistency_loss,
+                                    foot_contact_speed_loss, foot_touch_loss,
                                     g_nonsaturating_loss, lazy_regularization_adam_params, path_length_penalty)
 from modi.modi_model.networks import Discriminator, Generator, LevelSpec, build_levels
 
-CHECKPOINT_FORMAT = "modi-checkpoint"
-CHECKPOINT_VERSION = 1
 
 
 class NonFiniteLossError(RuntimeError):
     """A loss became NaN/inf: training stops before the optimiser step, and no checkpoint is written."""
-
-
-# =============================================================================================== codec
-class MotionCodec:
-    """Normalised model tensors ``(B, K, E, T)`` <-> motion quantities (rotations, root, contacts, positions).
-
-    Wraps the dataset's :class:`~modi.representation.MotionRepresentation` and normaliser. With
-    ``positions=True`` (the "joint positions instead of rotations" ablation) the edge entities hold each joint's
-    global position relative to the root's ground point (x, z) and its absolute height, zero-padded to K.
-    """
-
-    def __init__(self, representation: Any, normalizer: Any, fps: float, positions: bool = False):
-        self.rep = representation
-        self.normalizer = normalizer
-        self.fps = float(fps)
-        self.positions_mode = bool(positions)
-        sk = representation.skeleton
-        self.skeleton = sk
-        self.feet = list(representation.feet)
-        self.height = float(sk.height())
-        self._fk = None
-
-    # -- shape facts
-    @property
-    def n_channels(self) -> int:
-        return int(self.rep.K)
-
-    @property
-    def n_entities(self) -> int:
-        return int(self.rep.n_entities)
-
-    def _fk_module(self, device: torch.device) -> nn.Module:
-        if self._fk is None:
-            from modi_ext.layers import ForwardKinematics
-
-            self._fk = ForwardKinematics(list(self.skeleton.parents),
-                                         torch.as_tensor(self.skeleton.offsets, dtype=torch.float32))
-        return self._fk.to(device)
-
-    # -- decoding (differentiable)
-    def decode(self, x: Tensor) -> dict[str, Tensor]:
-        """Denormalise and decode: ``positions (B,T,J,3)``, ``root (B,T,3)``, ``contacts (B,T,F)`` (raw label
-        scale) and, for rotation models, ``rotations (B,T,J,4)``."""
-        raw = self.normalizer.denormalize(x)
-        quats, root, contacts = self.rep.decode_parts(raw)
-        if self.positions_mode:
-            J = self.skeleton.n_joints
-            rel = raw[..., :3, :J, :].permute(*range(raw.ndim - 3), -1, -2, -3)  # (..., T, J, 3)
-            ground = torch.stack([root[..., 0], torch.zeros_like(root[..., 1]), root[..., 2]], -1)
-            positions = rel + ground.unsqueeze(-2)
-            return {"positions": positions, "root": root, "contacts": contacts}
-        positions = self._fk_module(x.device)(quats.contiguous(), root.contiguous())
-        return {"rotations": quats, "positions": positions, "root": root, "contacts": contacts}
-
-    def foot_terms(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """(foot positions (B, T, F, 3), contact channel (B, F, T)) for the foot-contact losses."""
-        d = self.decode(x)
-        return d["positions"][..., self.feet, :], d["contacts"].transpose(-1, -2)
-
-    def to_motions(self, x: Tensor) -> list[Any]:
-        """Normalised ``(B, K, E, T)`` -> list of :class:`modi.motion.Motion` (rotation models only)."""
-        if self.positions_mode:
-            raise UserError("this model generates joint positions (the 'positions' ablation), not rotations; "
-                            "use sample_positions() instead of BVH output")
-        from modi.motion import Motion
-
-        d = self.decode(x.detach().float())
-        return [Motion(self.skeleton, d["rotations"][i].cpu(), d["root"][i].cpu(), self.fps)
-                for i in range(x.shape[0])]
-
-    # -- encoding the positions ablation's data
-    def positions_from_raw_quat(self, raw: Tensor, quat_rep: Any) -> Tensor:
-        """Raw quaternion tensors (N, K, E, T) of ``quat_rep`` -> raw positions-representation tensors."""
-        quats, root, _ = quat_rep.decode_parts(raw)
-        from modi.kinematics import forward_kinematics
-
-        offsets = torch.as_tensor(self.skeleton.offsets, dtype=raw.dtype)
-        pos = forward_kinematics(quats, offsets, list(self.skeleton.parents), root)[0]  # (N, T, J, 3)
-        ground = torch.stack([root[..., 0], torch.zeros_like(root[..., 1]), root[..., 2]], -1)
-        rel = (pos - ground.unsqueeze(-2)).permute(0, 3, 2, 1)  # (N, 3, J, T)
-        out = raw.clone()
-        J = self.skeleton.n_joints
-        out[:, :, :J, :] = 0
-        out[:, :3, :J, :] = rel
-        return out
-
-    # -- persistence
-    def state_dict(self) -> dict[str, Any]:
-        return {"representation": self.rep.to_dict(), "normalizer": self.normalizer.state_dict(),
-                "fps": self.fps, "positions": self.positions_mode}
-
-    @classmethod
-    def from_state_dict(cls, d: dict[str, Any]) -> "MotionCodec":
-        from modi.normalization import Normalizer
-        from modi.representation import MotionRepresentation
-
-        return cls(MotionRepresentation.from_dict(d["representation"]), Normalizer.from_state_dict(d["normalizer"]),
-                   float(d["fps"]), bool(d.get("positions", False)))
 
 
 # =============================================================================================== data
@@ -234,25 +137,6 @@ def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
         be.copy_(bm)
 
 
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temp file in the same folder, fsync, then ``os.replace``: readers never see half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(obj, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def _dist() -> tuple[bool, int, int]:
@@ -463,9 +347,13 @@ class Trainer:
         total = g_loss
         losses = {"g": g_loss}
         if tc.touch_weight > 0 or tc.contact_weight > 0:
-            foot_pos, contact = self.codec.foot_terms(fake)
+            if tc.contact_loss == "released":  # speed of the ankles, data units
+                foot_pos, contact = self.codec.foot_terms(fake, self.codec.ankles)
+                fcon = foot_contact_speed_loss(foot_pos, contact)
+            else:  # "squared": speed^2 of the contact joints in body heights per second
+                foot_pos, contact = self.codec.foot_terms(fake)
+                fcon = foot_contact_consistency_loss(foot_pos, contact, self.codec.fps, self.codec.height)
             touch = foot_touch_loss(contact)
-            fcon = foot_contact_consistency_loss(foot_pos, contact, self.codec.fps, self.codec.height)
             total = total + tc.touch_weight * touch + tc.contact_weight * fcon
             losses.update(touch=touch, contact=fcon)
         self._check_finite(losses)
@@ -664,10 +552,8 @@ class Trainer:
 
     def load_state(self, ckpt: str | os.PathLike | dict) -> None:
         """Restore models, optimisers, step and RNG states from a checkpoint of the same model and skeleton."""
-        from modi.modi_model.sampling import load_checkpoint
-
         st = load_checkpoint(ckpt) if not isinstance(ckpt, dict) else ckpt
-        if st["config"]["model"] != self.cfg.to_dict()["model"]:
+        if MoDiConfig.from_dict(st["config"]).to_dict()["model"] != self.cfg.to_dict()["model"]:
             raise CheckpointError("checkpoint was trained with a different model config; "
                                   "resume with the same preset and model options")
         if not self.codec.skeleton.same_as(_skeleton_from(st)):
