@@ -4,7 +4,9 @@ Conventions (shared by the whole package):
 
 * Quaternions are ``(w, x, y, z)``; every function broadcasts over leading dimensions.
 * Matrices rotate column vectors (``v' = R @ v``); ``quat_to_matrix(q) @ v == quat_apply(q, v)``.
-* 6D is the first two *columns* of the matrix, ``[c0, c1]`` (Zhou et al. 2019).
+* 6D is the first two *columns* of the matrix, ``[c0, c1]`` (Zhou et al. 2019); ``layout="rows"`` selects the
+  first two *rows* ``[r0, r1]`` instead (the GANimator authors' code). Both decode with the same Gram-Schmidt (a
+  rows vector is the columns vector of the transposed matrix), and both round-trip a rotation exactly.
 * Euler ``order`` is the BVH channel order and is *intrinsic*: ``"ZXY"`` means
   ``R = Rz(a[..., 0]) @ Rx(a[..., 1]) @ Ry(a[..., 2])`` — the same as scipy's uppercase
   ``Rotation.from_euler("ZXY", a)``.
@@ -20,6 +22,7 @@ from torch import Tensor
 
 __all__ = [
     "EULER_ORDERS",
+    "SIXD_LAYOUTS",
     "quat_normalize",
     "quat_canonical",
     "quat_mul",
@@ -232,29 +235,42 @@ def matrix_to_quat(m: Tensor) -> Tensor:
     return quat_canonical(quat_normalize(q))
 
 
-def matrix_to_6d(m: Tensor) -> Tensor:
-    """First two columns ``[c0, c1]`` -> ``(..., 6)``."""
+SIXD_LAYOUTS = ("columns", "rows")
+
+
+def _check_layout(layout: str) -> str:
+    if layout not in SIXD_LAYOUTS:
+        raise ValueError(f"6D layout must be 'columns' or 'rows', got {layout!r}")
+    return layout
+
+
+def matrix_to_6d(m: Tensor, *, layout: str = "columns") -> Tensor:
+    """First two columns ``[c0, c1]`` (or, with ``layout="rows"``, first two rows ``[r0, r1]``) -> ``(..., 6)``."""
     _check_matrix(m, "matrix_to_6d")
+    if _check_layout(layout) == "rows":
+        return torch.cat((m[..., 0, :], m[..., 1, :]), dim=-1)
     return torch.cat((m[..., :, 0], m[..., :, 1]), dim=-1)
 
 
-def sixd_to_matrix(d6: Tensor) -> Tensor:
-    """Gram-Schmidt on the two stored columns; any (non-degenerate) 6-vector maps to a rotation."""
+def sixd_to_matrix(d6: Tensor, *, layout: str = "columns") -> Tensor:
+    """Gram-Schmidt on the two stored columns (or rows); any (non-degenerate) 6-vector maps to a rotation."""
     _check_last(d6, 6, "sixd_to_matrix", "6D rotations")
+    _check_layout(layout)
     a1, a2 = d6[..., :3], d6[..., 3:]
     b1 = a1 / torch.linalg.vector_norm(a1, dim=-1, keepdim=True).clamp_min(1e-12)
     a2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
     b2 = a2 / torch.linalg.vector_norm(a2, dim=-1, keepdim=True).clamp_min(1e-12)
     b3 = _cross(b1, b2)
-    return torch.stack((b1, b2, b3), dim=-1)
+    # the third row of a rotation is the cross product of the first two, as its third column is of the first two
+    return torch.stack((b1, b2, b3), dim=-2 if layout == "rows" else -1)
 
 
-def quat_to_6d(q: Tensor) -> Tensor:
-    return matrix_to_6d(quat_to_matrix(q))
+def quat_to_6d(q: Tensor, *, layout: str = "columns") -> Tensor:
+    return matrix_to_6d(quat_to_matrix(q), layout=layout)
 
 
-def sixd_to_quat(d6: Tensor) -> Tensor:
-    return matrix_to_quat(sixd_to_matrix(d6))
+def sixd_to_quat(d6: Tensor, *, layout: str = "columns") -> Tensor:
+    return matrix_to_quat(sixd_to_matrix(d6, layout=layout))
 
 
 # ----------------------------------------------------------------------------------------- Euler

@@ -24,9 +24,24 @@ def register(subparsers) -> None:
     t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
     t.add_argument("--out", required=True, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
     t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
-                   help="paper: published schedule (15k iterations per block); fast: CPU schedule; tiny: smoke test")
+                   help="paper: published schedule (15k iterations per block); fast: CPU schedule (300 per block, "
+                        "900 on the coarsest); tiny: smoke test. All take 5 discriminator steps per generator step")
     t.add_argument("--iterations", type=int, default=None, help="iterations per block of levels (preset's if omitted)")
     t.add_argument("--d-steps", type=int, default=None, help="discriminator steps per iteration (preset's if omitted)")
+    t.add_argument("--block-iters", default=None,
+                   help="iterations per block of levels, coarsest first, e.g. 2000,800,800,800 (the last value "
+                        "repeats for further blocks); overrides --iterations and --coarse-multiplier")
+    t.add_argument("--coarse-multiplier", type=float, default=None,
+                   help="the coarsest block trains ITERATIONS x this (preset's if omitted: paper 1, fast 3, tiny 1)")
+    t.add_argument("--contact-rescale", action="store_true", default=None,
+                   help="contact consistency on per-source-frame velocities at every level (our earlier form; "
+                        "default: per level frame, as the authors' code)")
+    t.add_argument("--contact-first-frame", choices=["zero", "copy"], default=None,
+                   help="first frame's contact label: zero (authors' code, the default) or a copy of the second's")
+    t.add_argument("--bias-init", choices=["uniform", "zeros"], default=None,
+                   help="convolution biases: uniform +-1/sqrt(fan-in) (authors' code, the default) or zeros")
+    t.add_argument("--sixd", choices=["rows", "columns"], default=None,
+                   help="6D rotation: first two rows (authors' code, the default) or columns of the matrix")
     t.add_argument("--base-channels", type=int, default=None, help="total hidden width (preset's if omitted)")
     t.add_argument("--coarse-ratio", type=float, default=None, help="coarsest level / sequence length (0.2)")
     t.add_argument("--keep-joints", default=None, help="comma-separated joint names to keep (default: automatic)")
@@ -81,6 +96,19 @@ def _csv(s: str | None) -> list[str] | None:
     return [x.strip() for x in s.split(",") if x.strip()] if s else None
 
 
+def _int_csv(s: str | None, flag: str) -> list[int] | None:
+    items = _csv(s)
+    if items is None:
+        return None
+    try:
+        values = [int(x) for x in items]
+    except ValueError:
+        raise UserError(f"{flag}: expected comma-separated whole numbers, got {s!r}") from None
+    if any(v < 0 for v in values):
+        raise UserError(f"{flag}: iteration counts must be >= 0, got {s!r}")
+    return values
+
+
 def _train(args) -> int:
     import torch
 
@@ -92,7 +120,10 @@ def _train(args) -> int:
         torch.set_num_threads(args.threads)
     cfg = preset(args.preset, iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
                  coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
-                 fps=args.fps, device=args.device, seed=args.seed)
+                 fps=args.fps, device=args.device, seed=args.seed,
+                 block_iterations=_int_csv(args.block_iters, "--block-iters"),
+                 coarse_multiplier=args.coarse_multiplier, contact_rescale=args.contact_rescale,
+                 contact_first_frame=args.contact_first_frame, bias_init=args.bias_init, sixd=args.sixd)
     if args.no_joint_reduction:
         cfg = cfg.replace(joint_reduction=False)
     if args.no_contacts:
@@ -101,6 +132,9 @@ def _train(args) -> int:
     if args.conditional_from:
         cond_source = load_model(args.conditional_from, device=cfg.device)
         cfg = cfg.replace(conditional=True)
+        if cond_source.cfg.sixd != cfg.sixd:
+            raise UserError(f"--conditional-from: that run uses {cond_source.cfg.sixd} 6D; pass --sixd "
+                            f"{cond_source.cfg.sixd} to train a model that can read its trajectories")
     for b in args.bvh:
         if not Path(b).is_file():
             raise UserError(f"BVH file not found: {b}")
@@ -110,6 +144,12 @@ def _train(args) -> int:
     c = clips[0]
     print(f"{len(clips)} clip(s), {c.n_joints} joints, feet {[c.skeleton.names[f] for f in c.feet]}, "
           f"{', '.join(str(x.n_frames) for x in clips)} frames at {c.fps:.1f} fps")
+    from modi.ganimator.data import sequence_pyramid
+    from modi.ganimator.training import blocks_of
+
+    n_blocks = len(blocks_of(len(sequence_pyramid(clips, cfg)[0][0]), cfg.group_size))
+    print(f"{n_blocks} blocks of {cfg.group_size} levels, iterations {cfg.block_budgets(n_blocks)} "
+          f"({cfg.d_steps} D : {cfg.g_steps} G : 1 reconstruction steps each)")
     train(clips, cfg, args.out, progress=not args.quiet,
           max_seconds=args.max_minutes * 60 if args.max_minutes else None, cond_source=cond_source)
     print(f"checkpoint: {Path(args.out) / 'ganimator.ckpt'}")

@@ -9,10 +9,11 @@ per-character table is derived here from the file itself, and can be overridden:
 * **units** are metres when the rig looks centimetre-sized (the authors' 1/100 rule) and the clip is brought to
   ~30 fps by integer striding.
 
-Feature layout, ``(K=6, E, T)``: entities ``0..J-1`` hold each joint's local rotation as 6D; entity ``J`` is the
-root-motion "virtual joint" ``[dx, y, dz, 0, 0, 0]`` (per-frame horizontal displacement, absolute height);
-entities ``J+1..`` are contact virtual joints ``[label, 0, 0, 0, 0, 0]``. All time resampling uses one fixed-grid
-linear interpolator, so a level's frame ``i`` sits at the same instant whatever the total length — this is what
+Feature layout, ``(K=6, E, T)``: entities ``0..J-1`` hold each joint's local rotation as 6D (the first two rows
+of the matrix, as the authors' code, or columns: ``GanimatorConfig.sixd``, recorded in :attr:`Sequence.sixd`);
+entity ``J`` is the root-motion "virtual joint" ``[dx, y, dz, 0, 0, 0]`` (per-frame horizontal displacement,
+absolute height); entities ``J+1..`` are contact virtual joints ``[label, 0, 0, 0, 0, 0]`` (the first frame's label
+0 by default, as the authors'). All time resampling uses one fixed-grid linear interpolator, so a level's frame ``i`` sits at the same instant whatever the total length — this is what
 makes generation of any length and streaming exact.
 """
 from __future__ import annotations
@@ -110,25 +111,33 @@ def detect_feet(skeleton: Skeleton, positions: np.ndarray, rel_height: float = 0
     return feet
 
 
-def contact_labels(positions: np.ndarray, feet: Seq[int], threshold: float) -> np.ndarray:
-    """1 where the foot moves less than ``threshold`` per frame (first frame copies the second)."""
+def contact_labels(positions: np.ndarray, feet: Seq[int], threshold: float, first_frame: str = "zero") -> np.ndarray:
+    """1 where the foot moves less than ``threshold`` per frame. The first frame has no velocity: ``"zero"`` labels it
+    0 (the authors' ``foot_contact``), ``"copy"`` gives it the second frame's label."""
+    if first_frame not in ("zero", "copy"):
+        raise ValueError(f"first_frame must be 'zero' or 'copy', got {first_frame!r}")
     if not feet:
         return np.zeros((positions.shape[0], 0), dtype=np.float32)
     p = positions[:, list(feet)]
     speed = np.linalg.norm(p[1:] - p[:-1], axis=-1)
-    speed = np.concatenate([speed[:1], speed], axis=0)
-    return (speed < threshold).astype(np.float32)
+    labels = (speed < threshold).astype(np.float32)
+    first = labels[:1] if first_frame == "copy" else np.zeros_like(labels[:1])
+    if labels.shape[0] == 0:  # a single frame
+        first = np.zeros((1, len(feet)), dtype=np.float32)
+    return np.concatenate([first, labels], axis=0)
 
 
 # ------------------------------------------------------------------------------------------- features
 
 
-def motion_to_features(rotations: Tensor, root_positions: Tensor, contacts: Tensor | None = None) -> Tensor:
-    """``rotations (T,J,4)`` unit quats, ``root_positions (T,3)``, ``contacts (T,C)`` -> ``(6, J+1+C, T)``."""
+def motion_to_features(rotations: Tensor, root_positions: Tensor, contacts: Tensor | None = None,
+                       sixd: str = "rows") -> Tensor:
+    """``rotations (T,J,4)`` unit quats, ``root_positions (T,3)``, ``contacts (T,C)`` -> ``(6, J+1+C, T)``;
+    ``sixd``: 6D from the first two ``"rows"`` or ``"columns"`` of each rotation matrix."""
     from modi.rotations import quat_to_6d
 
     T, J = rotations.shape[:2]
-    rot6 = quat_to_6d(rotations.to(torch.float32))  # (T, J, 6)
+    rot6 = quat_to_6d(rotations.to(torch.float32), layout=sixd)  # (T, J, 6)
     root = root_positions.to(torch.float32)
     vel = torch.zeros(T, K)
     if T > 1:
@@ -156,15 +165,15 @@ def integrate_root(features: Tensor, n_joints: int, root_start: Tensor | None = 
     return torch.stack([sx, y, sz], dim=-1)
 
 
-def features_to_motion(features: Tensor, n_joints: int, root_start: Tensor | None = None
+def features_to_motion(features: Tensor, n_joints: int, root_start: Tensor | None = None, sixd: str = "rows"
                        ) -> tuple[Tensor, Tensor, Tensor]:
     """``(..., 6, E, T)`` -> local quats ``(..., T, J, 4)``, root positions ``(..., T, 3)``, contact logits
-    ``(..., T, C)`` (raw label channel)."""
+    ``(..., T, C)`` (raw label channel). ``sixd``: the features' 6D layout (``Sequence.sixd``)."""
     from modi.rotations import sixd_to_quat
 
     rot6 = features[..., :, :n_joints, :]  # (..., 6, J, T)
     rot6 = rot6.movedim(-3, -1).movedim(-3, -2)  # (..., T, J, 6)
-    quats = sixd_to_quat(rot6)
+    quats = sixd_to_quat(rot6, layout=sixd)
     root = integrate_root(features, n_joints, root_start)
     contacts = features[..., 0, n_joints + 1:, :].transpose(-1, -2)
     return quats, root, contacts
@@ -241,6 +250,7 @@ class Sequence:
     contact_threshold: float    # per-frame foot displacement counted as contact
     size: float                 # body size in working units (for scale-free comparisons)
     kept_joints: list[int] = field(default_factory=list)   # indices in the file's skeleton
+    sixd: str = "rows"          # 6D layout of ``features`` ("rows" or "columns" of the rotation matrix)
 
     @property
     def n_frames(self) -> int:
@@ -255,7 +265,7 @@ class Sequence:
         return int(self.features.shape[1])
 
     def rotations(self) -> Tensor:
-        return features_to_motion(self.features, self.n_joints)[0]
+        return features_to_motion(self.features, self.n_joints, sixd=self.sixd)[0]
 
 
 @dataclass
@@ -409,10 +419,11 @@ def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq
         if not cfg.contacts:
             foot_idx = []
         threshold = cfg.contact_velocity * size * (30.0 / fps)
-    labels = torch.from_numpy(contact_labels(pos_np, foot_idx, threshold))
-    features = motion_to_features(rot, root, labels if foot_idx else None)
+    labels = torch.from_numpy(contact_labels(pos_np, foot_idx, threshold, cfg.contact_first_frame))
+    sixd = like.sixd if like is not None else cfg.sixd
+    features = motion_to_features(rot, root, labels if foot_idx else None, sixd=sixd)
     return Sequence(name=name, skeleton=skel, feet=foot_idx, features=features, root_start=root[0].clone(),
-                    fps=fps, scale=scale, contact_threshold=threshold, size=size, kept_joints=kept)
+                    fps=fps, scale=scale, contact_threshold=threshold, size=size, kept_joints=kept, sixd=sixd)
 
 
 def _permute_clip(clip: RawClip, perm: list[int]) -> RawClip:

@@ -30,7 +30,7 @@ def decode(model: GanimatorModel, feats: Tensor, base: int = 0, root_start: Tens
     default where the training clip started), contact labels ``(T, C)`` in [0, 1]."""
     start = model.seqs[base].root_start if root_start is None else root_start
     quats, root, contacts = features_to_motion(feats.detach().cpu().to(torch.float32), model.n_joints,
-                                               start.detach().cpu().to(torch.float32))
+                                               start.detach().cpu().to(torch.float32), sixd=model.seqs[base].sixd)
     return quats, root, contacts.clamp(0.0, 1.0)
 
 

@@ -74,31 +74,48 @@ def _reset_scale(module: nn.Module) -> None:
 
 
 class EntityBias(nn.Module):
-    """One bias per (channel, entity), as a conv over the flattened entity x channel axis would have."""
+    """One bias per (channel, entity), as a conv over the flattened entity x channel axis would have.
 
-    def __init__(self, channels: int, n_entities: int) -> None:
+    ``fan_in``: per-entity fan-in of the convolution before it; given, the biases are drawn uniform in
+    ``+-1/sqrt(fan_in[j])`` (``nn.Conv1d``'s default, which the authors' skeleton-aware conv applies per joint);
+    otherwise they start at zero.
+    """
+
+    def __init__(self, channels: int, n_entities: int, fan_in: Sequence[int] | None = None) -> None:
         super().__init__()
         self.bias = nn.Parameter(torch.zeros(channels, n_entities, 1))
+        if fan_in is not None:
+            if len(fan_in) != n_entities:
+                raise ValueError(f"fan_in: expected {n_entities} entries, got {len(fan_in)}")
+            bound = torch.tensor([1.0 / math.sqrt(f) for f in fan_in]).view(1, n_entities, 1)
+            with torch.no_grad():
+                self.bias.uniform_(-1.0, 1.0).mul_(bound)
 
     def forward(self, x: Tensor) -> Tensor:
         return x + self.bias
 
 
 class SkeletalStack(nn.Module):
-    """``len(channels)-1`` skeleton-aware convolutions with LeakyReLU(0.2) between (none after the last)."""
+    """``len(channels)-1`` skeleton-aware convolutions with LeakyReLU(0.2) between (none after the last).
+
+    ``bias_init``: ``"uniform"`` (+-1/sqrt(fan-in) of each entity: neighbours x input channels x kernel) or
+    ``"zeros"``."""
 
     def __init__(self, channels: Sequence[int], neighbors: list[list[int]], kernel_size: int, padding_mode: str,
-                 last_activation: bool = False) -> None:
+                 last_activation: bool = False, bias_init: str = "uniform") -> None:
         super().__init__()
         from modi_ext.layers import SkeletalConv
 
+        if bias_init not in ("uniform", "zeros"):
+            raise ValueError(f"bias_init must be 'uniform' or 'zeros', got {bias_init!r}")
         E = len(neighbors)
         mode = "reflect" if padding_mode == "reflect" else "zeros"
         layers: list[nn.Module] = []
         for i in range(len(channels) - 1):
             conv = _standardise(SkeletalConv(channels[i], channels[i + 1], neighbors, kernel_size=kernel_size,
                                               padding_mode=mode, bias=False))
-            layers += [conv, EntityBias(channels[i + 1], E)]
+            fan_in = [len(n) * channels[i] * kernel_size for n in neighbors] if bias_init == "uniform" else None
+            layers += [conv, EntityBias(channels[i + 1], E, fan_in)]
             if i < len(channels) - 2 or last_activation:
                 layers.append(nn.LeakyReLU(0.2))
         self.net = nn.Sequential(*layers)
@@ -117,12 +134,12 @@ class LevelGenerator(nn.Module):
 
     def __init__(self, neighbors: list[list[int]], base_channels: int = 128, n_layers: int = 4,
                  kernel_size: int = 5, padding_mode: str = "reflect",
-                 cond_entities: Sequence[int] | None = None) -> None:
+                 cond_entities: Sequence[int] | None = None, bias_init: str = "uniform") -> None:
         super().__init__()
         E = len(neighbors)
         widths = [K] + [per_entity_channels(base_channels * 2 ** ((i + 1) // 2), E) for i in range(n_layers - 1)] + [K]
         self.widths = widths
-        self.body = SkeletalStack(widths, neighbors, kernel_size, padding_mode)
+        self.body = SkeletalStack(widths, neighbors, kernel_size, padding_mode, bias_init=bias_init)
         self.cond_entities = list(cond_entities) if cond_entities else []
         self.receptive_radius = self.body.receptive_radius
 
@@ -142,11 +159,12 @@ class PatchDiscriminator(nn.Module):
     """Skeleton-aware convolutions then one temporal conv over all entities: a score per frame (patch)."""
 
     def __init__(self, neighbors: list[list[int]], base_channels: int = 128, n_layers: int = 4,
-                 kernel_size: int = 5, padding_mode: str = "reflect") -> None:
+                 kernel_size: int = 5, padding_mode: str = "reflect", bias_init: str = "uniform") -> None:
         super().__init__()
         E = len(neighbors)
         widths = [K] + [per_entity_channels(base_channels * 2 ** ((i + 1) // 2), E) for i in range(n_layers - 1)]
-        self.body = SkeletalStack(widths, neighbors, kernel_size, padding_mode, last_activation=True)
+        self.body = SkeletalStack(widths, neighbors, kernel_size, padding_mode, last_activation=True,
+                                  bias_init=bias_init)
         pm = "reflect" if padding_mode == "reflect" else ("replicate" if padding_mode == "replicate" else "zeros")
         self.head = nn.Conv1d(widths[-1] * E, 1, kernel_size, padding=kernel_size // 2, padding_mode=pm)
 
@@ -220,6 +238,10 @@ class GanimatorModel(nn.Module):
         self.neighbors = ganimator_neighbors(ref.skeleton.parents, self.feet, cfg.neighbor_distance)
         if len(self.neighbors) != self.n_entities:
             raise ValueError("entity count of the features and of the topology disagree")
+        sixd = getattr(cfg, "sixd", "rows")
+        if any(s.sixd != sixd for s in self.seqs):
+            raise ValueError(f"the clips' 6D layout ({', '.join(sorted({s.sixd for s in self.seqs}))}) is not the "
+                             f"config's ({sixd}); load them with the same config")
         self.lengths = [list(map(int, l)) for l in lengths]
         self.rates = [[x / l[-1] for x in l] for l in self.lengths]
         self.amps = [[float(a) for a in row] for row in amps]
@@ -227,7 +249,7 @@ class GanimatorModel(nn.Module):
         self.z_stars = nn.ParameterList([nn.Parameter(z.clone(), requires_grad=False) for z in z_stars])
         self.cond_entities = [self.n_joints, 0] if cfg.conditional else []
         kw = dict(base_channels=cfg.base_channels, n_layers=cfg.n_layers, kernel_size=cfg.kernel_size,
-                  padding_mode=cfg.padding_mode)
+                  padding_mode=cfg.padding_mode, bias_init=getattr(cfg, "bias_init", "uniform"))
         self.gens = nn.ModuleList([LevelGenerator(self.neighbors, cond_entities=self.cond_entities, **kw)
                                    for _ in range(self.n_levels)])
         self.discs = nn.ModuleList([PatchDiscriminator(self.neighbors, **kw) for _ in range(self.n_levels)]) \

@@ -50,13 +50,14 @@ def clip_to_dict(c: Clip) -> dict:
     return {"name": c.name, "skeleton": skeleton_to_dict(c.skeleton), "feet": list(c.feet), "features": c.features,
             "root_start": c.root_start, "fps": float(c.fps), "scale": float(c.scale),
             "contact_threshold": float(c.contact_threshold), "size": float(c.size),
-            "kept_joints": list(c.kept_joints)}
+            "kept_joints": list(c.kept_joints), "sixd": c.sixd}
 
 
 def clip_from_dict(d: dict) -> Clip:
     return Clip(name=d["name"], skeleton=skeleton_from_dict(d["skeleton"]), feet=list(d["feet"]),
                 features=d["features"], root_start=d["root_start"], fps=d["fps"], scale=d["scale"],
-                contact_threshold=d["contact_threshold"], size=d["size"], kept_joints=list(d["kept_joints"]))
+                contact_threshold=d["contact_threshold"], size=d["size"], kept_joints=list(d["kept_joints"]),
+                sixd=d.get("sixd", "columns"))  # clips saved before the option were column 6D
 
 
 def model_payload(model: GanimatorModel) -> dict:
@@ -154,15 +155,21 @@ def gradient_penalty(disc: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
 
 
 class ContactConsistency(nn.Module):
-    """Either the foot is still or its contact label is off: mean(|foot velocity| * sigmoid(12 (c - 0.5)))."""
+    """Either the foot is still or its contact label is off: mean(|foot velocity| * sigmoid(12 (c - 0.5))).
 
-    def __init__(self, skeleton: Skeleton, feet: Sequence[int]) -> None:
+    ``rate`` (a level's length / the source's) converts the level's per-source-frame root displacement and its foot
+    displacement per level frame to per-source-frame units; ``rate=1`` measures everything per level frame, as the
+    released code does (``contact_rescale=False``), which makes the loss ~1/rate stronger at coarse levels.
+    """
+
+    def __init__(self, skeleton: Skeleton, feet: Sequence[int], sixd: str = "rows") -> None:
         super().__init__()
         from modi_ext.layers import ForwardKinematics
 
         self.fk = ForwardKinematics(skeleton.parents, torch.as_tensor(skeleton.offsets, dtype=torch.float32))
         self.feet = list(feet)
         self.J = skeleton.n_joints
+        self.sixd = sixd
 
     def forward(self, x: Tensor, rate: float = 1.0) -> Tensor:
         if not self.feet:
@@ -171,7 +178,7 @@ class ContactConsistency(nn.Module):
 
         J = self.J
         rot6 = x[:, :, :J].permute(0, 3, 2, 1)  # (B, T, J, 6)
-        quats = sixd_to_quat(rot6)
+        quats = sixd_to_quat(rot6, layout=self.sixd)
         rm = x[:, :, J]  # (B, 6, T): per-fine-frame displacement, so scale to this level's frame step
         dx, y, dz = rm[:, 0] / rate, rm[:, 1], rm[:, 2] / rate
         root = torch.stack([torch.cumsum(dx, -1), y, torch.cumsum(dz, -1)], dim=-1)  # (B, T, 3)
@@ -218,7 +225,7 @@ class Trainer:
         z_stars = [torch.randn(1, K, E, l[0]) for l in lengths]
         self.model = GanimatorModel(cfg, self.clips, lengths, amps, z_stars).to(self.device)
         self.cond_source = cond_source.to(self.device) if cond_source is not None else None
-        self.consistency = ContactConsistency(self.clips[0].skeleton, self.clips[0].feet).to(self.device)
+        self.consistency = ContactConsistency(self.clips[0].skeleton, self.clips[0].feet, cfg.sixd).to(self.device)
         self.blocks = blocks_of(self.model.n_levels, cfg.group_size)
         self.state = {"block": 0, "iteration": 0, "levels_done": 0, "block_seconds": [0.0] * len(self.blocks),
                       "history": []}
@@ -253,7 +260,7 @@ class Trainer:
             raise CheckpointError(f"{self.ckpt} holds a run on {', '.join(names)}; use another --out to start anew")
         saved_cfg = GanimatorConfig.from_dict(p["config"])
         # the schedule length (and where to run / how often to save) may change on resume; the model may not
-        free = {"iterations", "checkpoint_every", "device"}
+        free = {"iterations", "block_iterations", "coarse_multiplier", "checkpoint_every", "device"}
         diff = [k for k, v in saved_cfg.to_dict().items() if k not in free and self.cfg.to_dict().get(k) != v]
         if diff:
             raise CheckpointError(f"{self.ckpt} was trained with other settings ({', '.join(diff)}); "
@@ -353,20 +360,21 @@ class Trainer:
                 for p in model.gens[l].parameters():
                     p.requires_grad_(req)
             cached_prev: dict = {}
-            bar = tqdm(total=cfg.iterations, initial=self.state["iteration"], disable=not progress,
+            budget = cfg.block_budget(b)
+            bar = tqdm(total=budget, initial=self.state["iteration"], disable=not progress,
                        desc=f"levels {levels[0]}-{levels[-1]} / {model.n_levels}", leave=True, mininterval=2.0)
             t_block = time.time()
             t_save = time.time()
             losses: dict[str, float] = {}
-            while self.state["iteration"] < cfg.iterations:
+            while self.state["iteration"] < budget:
                 losses = self._iteration(levels, M, n_sub, cached_prev)
                 self.state["iteration"] += 1
                 it = self.state["iteration"]
                 bar.update(1)
-                if it % 50 == 0 or it == cfg.iterations:
+                if it % 50 == 0 or it == budget:
                     bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items() if k in ("D", "G", "rec", "con")})
                     if self.writer is not None:
-                        step = b * cfg.iterations + it
+                        step = sum(cfg.block_budgets(b)) + it
                         for k, v in losses.items():
                             self.writer.add_scalar(f"block{b}/{k}", v, step)
                 now = time.time()
@@ -383,7 +391,7 @@ class Trainer:
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
             self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
-                                          **({k: float(v) for k, v in losses.items()} if cfg.iterations else {})})
+                                          **({k: float(v) for k, v in losses.items()} if losses else {})})
             self.state["block"] += 1
             self.state["iteration"] = 0
             self.state["levels_done"] = levels[-1] + 1
@@ -432,7 +440,8 @@ class Trainer:
                         adv = -d(fake).mean()
                         for p in d.parameters():
                             p.requires_grad_(True)
-                        c = self.consistency(fake, model.rates[m][l]) if cfg.lambda_contact > 0 else fake.new_zeros(())
+                        rate = model.rates[m][l] if cfg.contact_rescale else 1.0
+                        c = self.consistency(fake, rate) if cfg.lambda_contact > 0 else fake.new_zeros(())
                         loss = loss + adv + cfg.lambda_contact * c
                         g_adv += float(adv.detach())
                         con += float(c.detach())
@@ -478,7 +487,7 @@ def run_summary(run: str | Path) -> dict:
     blocks = blocks_of(len(ck["model"]["lengths"][0]), cfg.group_size)
     return {"lengths": ck["model"]["lengths"], "blocks": blocks, "block_seconds": st["block_seconds"],
             "levels_done": st["levels_done"], "block": st["block"], "iteration": st["iteration"],
-            "history": st["history"], "config": cfg.to_dict()}
+            "history": st["history"], "block_iterations": cfg.block_budgets(len(blocks)), "config": cfg.to_dict()}
 
 
 __all__ = ["Trainer", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
