@@ -5,9 +5,9 @@ coefficients ``d[b,o,j]`` are computed here with small torch ops (a ``(B, Cin) x
 weights, never a per-sample weight tensor) and handed to the kernel, which applies the style on the input rows and
 ``d`` on the output rows while it packs/unpacks its GEMM operands.
 
-Autograd goes through ``torch.library.register_autograd``: first-order gradients use the C++ backward kernel;
-when a graph of the gradient is requested (``create_graph=True``: R1, path-length regularisation) the backward
-is recomputed differentiably through the dense reference, which is slower but exact to any order.
+Autograd goes through ``torch.library.register_autograd``: first-order gradients use the fused C++ backward kernel;
+when a graph of the gradient is requested (``create_graph=True``: R1, path length, WGAN-GP) the backward is built
+from ops that are themselves differentiable (``modi_ext.gradfix``), so every order stays on the sparse kernels.
 """
 from __future__ import annotations
 
@@ -186,21 +186,6 @@ def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
 # ----------------------------------------------------------------------------------------------------------------
 # Extension registration: fake kernels (for torch.compile / meta) and autograd.
 
-def _ref_scaled(kind, x, weight, bias, index, offsets, style, scale, padding_mode, n_out):
-    """Reference forward with an explicit output scale: ``scale * op(x * style) + bias`` (differentiable)."""
-    if kind == _KIND_UP:
-        y = reference.skeletal_up(x, weight, None, index, offsets, n_out, style, False, padding_mode)
-    elif kind == _KIND_DOWN:
-        y = reference.skeletal_down(x, weight, None, index, offsets, style, False, padding_mode)
-    else:
-        y = reference.skeletal_conv(x, weight, None, index, offsets, style, False, padding_mode)
-    if scale is not None:
-        y = y * scale.unsqueeze(-1)
-    if bias is not None:
-        y = y + bias.view(1, -1, 1, 1)
-    return y
-
-
 def _out_shape(kind, x, weight, offsets, n_out):
     b, _, _, t = x.shape
     if kind == _KIND_UP:
@@ -210,6 +195,8 @@ def _out_shape(kind, x, weight, offsets, n_out):
 
 
 def _register_ext() -> None:
+    from modi_ext import gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
+
     lib = torch.library
 
     def make_fake(kind):
@@ -254,15 +241,9 @@ def _register_ext() -> None:
                 need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[6], scale=nig[7])
             else:
                 need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[5], scale=nig[6])
-            if torch.is_grad_enabled():  # create_graph: differentiate again later -> use the reference
-                args = dict(x=x, weight=weight, bias=bias, style=style, scale=scale)
-                wanted = [k for k, v in need.items() if v and args[k] is not None]
-                res = dict.fromkeys(need)
-                if wanted:
-                    y = _ref_scaled(kind, x, weight, bias, index, offsets, style, scale, padding_mode, n_out)
-                    grads = torch.autograd.grad(y, [args[k] for k in wanted], grad, create_graph=True,
-                                                allow_unused=True)
-                    res.update(zip(wanted, grads))
+            if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
+                res = gradfix.graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
+                                             padding_mode, n_out, need)
                 gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
             else:
                 mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]

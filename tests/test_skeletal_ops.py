@@ -275,8 +275,8 @@ def test_gradcheck_fp64(kind, style, demod, padding):
 
 
 @needs_ext
-def test_gradgradcheck_conv_falls_back_correctly():
-    """Second order (R1 / path-length regularisation) goes through the reference and must be exact."""
+def test_gradgradcheck_modulated_conv():
+    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.gradfix; more in test_double_backward)."""
     rng = random.Random(5)
     args, kw = make_case("conv", rng, n_joints=3, distance=1, U=3, B=1, cin=2, cout=1, T=4, style=True,
                          demod=True)

@@ -1,0 +1,145 @@
+"""Differentiable backward of the skeletal ops: gradients of any order on the sparse kernels.
+
+R1, path length and WGAN-GP differentiate a gradient, so the backward of each op must itself be made of ops that
+have an autograd formula -- the design of StyleGAN2-ADA's ``conv2d_gradfix``.  Every skeletal op is bilinear in
+(input, weight): ``y = A_W x``.  Its two partial backwards are registered here as ops of their own:
+
+* ``skeletal_grad_input(g, W) = A_W^T g``  (the C++ input-gradient pass: a skeletal op over the transposed CSR);
+* ``skeletal_grad_weight(g, x) = d<g, A_W x>/dW``  (the C++ weight-gradient pass: a per-pair correlation).
+
+Both are again bilinear, and their gradients are the three ops themselves::
+
+    grad_input(g, W):   d/dg = A_W gg           (forward)       d/dW = grad_weight(g, gg)
+    grad_weight(g, x):  d/dg = A_gg x           (forward)       d/dx = grad_input(g, gg)
+
+so ``create_graph=True`` stays on the kernels to any order, on every device the C++ ops are registered for.
+Modulation and demodulation are elementwise scales around the unmodulated op (``graph_backward``), and the bias
+gradient is a sum.  The dense reference is not involved; it remains the oracle in the tests.
+"""
+from __future__ import annotations
+
+import torch
+
+KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2
+_NO_GRADS = [False, False, False, False]
+
+
+def plain_forward(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                  n_out: int, padding_mode: str) -> torch.Tensor:
+    """``A_W x`` without bias, style or scale, through the registered (autograd-aware) forward op."""
+    if kind == KIND_UP:
+        return torch.ops.modi_ext.skeletal_up(x, weight, None, index, offsets, n_out, None, None, padding_mode)
+    op = torch.ops.modi_ext.skeletal_conv if kind == KIND_CONV else torch.ops.modi_ext.skeletal_down
+    return op(x, weight, None, index, offsets, None, None, padding_mode)
+
+
+def _weight_shape(kind: int, grad: torch.Tensor, x: torch.Tensor, nnz: int, taps: int) -> list[int]:
+    c_out, c_in = grad.shape[1], x.shape[1]
+    return [c_in, nnz, c_out, taps] if kind == KIND_UP else [c_out, nnz, c_in, taps]
+
+
+@torch.library.custom_op("modi_ext::skeletal_grad_input", mutates_args=())
+def skeletal_grad_input(grad: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                        kind: int, n_out: int, n_in: int, t_in: int, padding_mode: str) -> torch.Tensor:
+    """``A_W^T grad``: the input gradient of an unmodulated skeletal op, shape ``(B, Cin, n_in, t_in)``."""
+    c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
+    x_like = grad.new_empty(grad.shape[0], c_in, n_in, t_in)  # shape only: the kernel reads no input values here
+    gx = torch.ops.modi_ext.skeletal_backward(grad.contiguous(), grad, x_like, weight, None, index, offsets, None,
+                                              None, padding_mode, kind, n_out, [True, False, False, False])[0]
+    return gx
+
+
+@skeletal_grad_input.register_fake
+def _(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode):
+    c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
+    return grad.new_empty(grad.shape[0], c_in, n_in, t_in)
+
+
+@torch.library.custom_op("modi_ext::skeletal_grad_weight", mutates_args=())
+def skeletal_grad_weight(grad: torch.Tensor, x: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                         kind: int, n_out: int, taps: int, padding_mode: str) -> torch.Tensor:
+    """``d<grad, A_W x>/dW`` in the compact layout of ``W`` (``taps`` = the kernel width U)."""
+    w_like = x.new_empty(_weight_shape(kind, grad, x, index.shape[0], taps))  # shape only
+    gw = torch.ops.modi_ext.skeletal_backward(grad.contiguous(), grad, x.contiguous(), w_like, None, index, offsets,
+                                              None, None, padding_mode, kind, n_out, [False, True, False, False])[1]
+    return gw
+
+
+@skeletal_grad_weight.register_fake
+def _(grad, x, index, offsets, kind, n_out, taps, padding_mode):
+    return x.new_empty(_weight_shape(kind, grad, x, index.shape[0], taps))
+
+
+def _grad_input_setup(ctx, inputs, output):
+    grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode = inputs
+    ctx.save_for_backward(grad, weight, index, offsets)
+    ctx.meta = (kind, n_out, padding_mode)
+
+
+def _grad_input_backward(ctx, gg):
+    grad, weight, index, offsets = ctx.saved_tensors
+    kind, n_out, padding_mode = ctx.meta
+    gg = gg.contiguous()
+    d_grad = plain_forward(kind, gg, weight, index, offsets, n_out, padding_mode) if ctx.needs_input_grad[0] else None
+    d_weight = (skeletal_grad_weight(grad, gg, index, offsets, kind, n_out, weight.shape[3], padding_mode)
+                if ctx.needs_input_grad[1] else None)
+    return d_grad, d_weight, None, None, None, None, None, None, None
+
+
+def _grad_weight_setup(ctx, inputs, output):
+    grad, x, index, offsets, kind, n_out, taps, padding_mode = inputs
+    ctx.save_for_backward(grad, x, index, offsets)
+    ctx.meta = (kind, n_out, padding_mode)
+
+
+def _grad_weight_backward(ctx, gg):
+    grad, x, index, offsets = ctx.saved_tensors
+    kind, n_out, padding_mode = ctx.meta
+    gg = gg.contiguous()
+    d_grad = plain_forward(kind, x.contiguous(), gg, index, offsets, n_out, padding_mode) \
+        if ctx.needs_input_grad[0] else None
+    d_x = (skeletal_grad_input(grad, gg, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
+           if ctx.needs_input_grad[1] else None)
+    return d_grad, d_x, None, None, None, None, None, None
+
+
+skeletal_grad_input.register_autograd(_grad_input_backward, setup_context=_grad_input_setup)
+skeletal_grad_weight.register_autograd(_grad_weight_backward, setup_context=_grad_weight_setup)
+
+
+def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Tensor, weight: torch.Tensor,
+                   bias: torch.Tensor | None, index: torch.Tensor, offsets: torch.Tensor,
+                   style: torch.Tensor | None, scale: torch.Tensor | None, padding_mode: str, n_out: int,
+                   need: dict[str, bool]) -> dict[str, torch.Tensor | None]:
+    """Gradients of ``y = scale * A_W (x * style) + bias`` as a differentiable graph (``create_graph=True``).
+
+    ``out`` is the saved ``y``: the scale gradient reads ``A_W (x * style) = (y - bias) / scale`` from it instead of
+    recomputing the op (``scale`` is a demodulation factor, ``rsqrt(...) > 0``).
+    """
+    res: dict[str, torch.Tensor | None] = dict.fromkeys(need)
+    if need["bias"] and bias is not None:
+        res["bias"] = grad.sum((0, 2, 3))
+    if need["scale"] and scale is not None:
+        core = out - bias.view(1, -1, 1, 1) if bias is not None else out
+        res["scale"] = (grad * core).sum(-1) / scale
+    gz = grad * scale.unsqueeze(-1) if scale is not None else grad
+    gz = gz.contiguous()
+    want_x = need["x"] or (need["style"] and style is not None)
+    if want_x:
+        gxs = skeletal_grad_input(gz, weight, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
+        if style is not None:
+            s = style.view(style.shape[0], style.shape[1], 1, 1)
+            if need["x"]:
+                res["x"] = gxs * s
+            if need["style"]:
+                res["style"] = (gxs * x).sum((2, 3))
+        elif need["x"]:
+            res["x"] = gxs
+    if need["weight"]:
+        xs = x * style.view(style.shape[0], style.shape[1], 1, 1) if style is not None else x
+        res["weight"] = skeletal_grad_weight(gz, xs.contiguous(), index, offsets, kind, n_out, weight.shape[3],
+                                             padding_mode)
+    return res
+
+
+__all__ = ["skeletal_grad_input", "skeletal_grad_weight", "graph_backward", "plain_forward"]
