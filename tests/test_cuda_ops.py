@@ -324,6 +324,20 @@ def test_gradcheck_float64(kind, padding, mod):
 
 
 @pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("padding", ["zeros", "reflect"])
+@pytest.mark.parametrize("mod", ["plain", "style_demod"])
+def test_gradgradcheck_float64(kind, padding, mod):
+    """Second order (R1, path length, WGAN-GP) through modi_ext.gradfix on the CUDA kernels."""
+    c = Case(kind, seed=5, U=3, padding=padding, mod=mod, B=2, T=6, cin=2, cout=2, n_ent=5)
+    x, w, b, s = c.leaves(DEV, torch.float64, requires_grad=True)
+    if s is None:
+        assert torch.autograd.gradgradcheck(lambda x_, w_, b_: c.run_ops(x_, w_, b_, None), (x, w, b))
+    else:
+        assert torch.autograd.gradgradcheck(lambda x_, w_, b_, s_: c.run_ops(x_, w_, b_, s_), (x, w, b, s),
+                                            fast_mode=True)
+
+
+@pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("requires_grad", [False, True])
 def test_opcheck(kind, requires_grad):
     c = Case(kind, seed=4, U=3, padding="reflect", mod="style_demod", B=2, T=6, cin=3, cout=4, n_ent=6)
