@@ -331,7 +331,8 @@ def _parse_hierarchy(tokens: _Tokens):
                 raise tokens.error(f"second End Site in joint {names[j]!r}", line)
             # some exporters name the end effector on this line (``End Site Head_end``): skip such tokens, up to
             # a brace, so that a missing '{' is still reported below
-            while tokens.buf_line == sline and tokens.pos < len(tokens.buf) and tokens.buf[tokens.pos] not in ("{", "}"):
+            rest = tokens.buf if tokens.buf_line == sline else []
+            while tokens.pos < len(rest) and rest[tokens.pos] not in ("{", "}"):
                 tokens.pos += 1
             b, bline = tokens.next("'{'")
             if b != "{":

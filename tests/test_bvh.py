@@ -121,8 +121,9 @@ ANNOTATED = {
     "end_site_name": SMALL.replace("    End Site\n", "    End Site Spine_end\n"),
     "end_site_name_brace": SMALL.replace("    End Site\n    {", "    End Site Spine_end {"),
     "comments": SMALL.replace("ROOT Hips", "ROOT Hips # pelvis").replace("OFFSET 0 1 0", "OFFSET 0 1 0 #cm")
-    .replace("Yrotation\n  JOINT", "Yrotation  # root channels\n  JOINT").replace("  {\n    OFFSET 0.5", "  { # leg\n    OFFSET 0.5")
-    .replace("HIERARCHY\n", "HIERARCHY\n# exported by some tool\n").replace("Frame Time: 0.04", "Frame Time: 0.04 # 25 fps"),
+    .replace("Yrotation\n  JOINT", "Yrotation  # root channels\n  JOINT")
+    .replace("  {\n    OFFSET 0.5", "  { # leg\n    OFFSET 0.5").replace("HIERARCHY\n", "HIERARCHY\n# by some tool\n")
+    .replace("Frame Time: 0.04", "Frame Time: 0.04 # 25 fps"),
     "hash_inside_name": SMALL.replace("JOINT Left Leg", "JOINT Left#Leg"),
 }
 
@@ -223,7 +224,7 @@ MALFORMED = {
     "bad_end_site": (_set_line(SMALL, 10, "    End Sight"), 10, "End Site"),
     "end_site_name_no_brace": (_set_line(SMALL, 11, "OFFSET 0 1 0").replace("End Site\n", "End Site #name: Head\n"),
                                11, "expected '{' after End Site"),
-    "end_site_closed_at_once": (_set_line(SMALL, 10, "    End Site Head }"), 10, "expected '{' after End Site, got '}'"),
+    "end_site_closed_at_once": (_set_line(SMALL, 10, "    End Site Head }"), 10, "got '}'"),
     "comment_eats_offset": (_set_line(SMALL, L_SPINE_OFFSET, "OFFSET 0 1 #0"), L_SPINE_OFFSET, "OFFSET of Spine"),
     "comment_eats_channels": (_set_line(SMALL, L_SPINE_CHANNELS, "CHANNELS 3 Zrotation # Xrotation Yrotation"),
                               L_SPINE_CHANNELS, "lists only 1"),

@@ -175,3 +175,175 @@ def test_cli_single_writes_means_and_per_file_values(tmp_path, capsys):
     short.save(tmp_path / "short.bvh")
     assert main(["eval", "single", "--source", str(tmp_path / "src.bvh"), str(tmp_path / "short.bvh")]) == 2
     assert "fewer than the 30-frame window" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------- files from other tools
+# A Mixamo-like rig with fingers and a head-top (dropped by GANimator's joint reduction) and a namespace prefix,
+# and copies of it as other tools write them: prefix dropped, siblings reordered, a wrong Frame Time.
+
+_RIG = [("Hips", -1), ("Spine", 0), ("Neck", 1), ("Head", 2), ("HeadTop_End", 3), ("LeftArm", 1), ("LeftHand", 5),
+        ("LeftHandIndex1", 6), ("LeftHandIndex2", 7), ("RightArm", 1), ("RightHand", 9), ("RightHandThumb1", 10),
+        ("LeftUpLeg", 0), ("LeftLeg", 12), ("LeftFoot", 13), ("RightUpLeg", 0), ("RightLeg", 15), ("RightFoot", 16)]
+_REDUCED = [n for n, _ in _RIG if n not in ("HeadTop_End", "LeftHandIndex1", "LeftHandIndex2", "RightHandThumb1")]
+
+
+def _rig_bvh(frames: int = 240, fps: float = 60.0, seed: int = 0):
+    """Smooth, non-periodic Euler curves on every joint (root also translates), namespaced 'mixamorig:'."""
+    from modi.bvh import Bvh
+
+    rng = np.random.default_rng(seed)
+    J = len(_RIG)
+    t = np.arange(frames)[:, None] / fps
+    freq, phase = rng.uniform(0.2, 1.5, size=(1, 3 * J)), rng.uniform(0, 2 * np.pi, size=(1, 3 * J))
+    rot = 40.0 * np.sin(2 * np.pi * freq * t + phase) + 15.0 * np.sin(2 * np.pi * 1.7 * freq * t + 2 * phase)
+    root = np.concatenate([np.cumsum(rng.normal(size=(frames, 1)), 0), 90 + 3 * np.sin(3 * t),
+                           np.cumsum(rng.normal(size=(frames, 1)), 0)], axis=1)
+    offsets = rng.uniform(-10, 10, size=(J, 3))
+    offsets[0] = [0, 90, 0]
+    channels = [["Xposition", "Yposition", "Zposition"] if j == 0 else [] for j in range(J)]
+    channels = [c + ["Zrotation", "Xrotation", "Yrotation"] for c in channels]
+    return Bvh([f"mixamorig:{n}" for n, _ in _RIG], [p for _, p in _RIG], offsets, channels, {},
+               1.0 / fps, np.concatenate([root, rot], axis=1))
+
+
+def _as_other_tool_writes_it(b, prefix: str = "", drop: tuple[str, ...] = ()):
+    """The same motion with the namespace prefix replaced, the legs listed before the spine (sibling order) and
+    the joints in ``drop`` (leaves) removed."""
+    from modi.bvh import Bvh
+    from modi.evaluation.single import bare_name
+
+    names = [bare_name(n) for n in b.names]
+    legs = [j for j, n in enumerate(names) if "Leg" in n or "Foot" in n]
+    order = [0] + legs + [j for j in range(1, len(names)) if j not in legs and names[j] not in drop]
+    starts = b.channel_starts
+    cols = [starts[j] + k for j in order for k in range(len(b.channels[j]))]
+    return Bvh([prefix + names[j] for j in order], [-1 if j == 0 else order.index(b.parents[j]) for j in order],
+               b.offsets[order], [b.channels[j] for j in order], {}, b.frame_time, b.motion[:, cols])
+
+
+def _run_single(capsys, *argv):
+    from modi.cli import main
+
+    rc = main(["eval", "single", *map(str, argv)])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_bare_name_drops_any_namespace_prefix():
+    from modi.evaluation.single import bare_name
+
+    assert bare_name("mixamorig:Hips") == bare_name("mixamorig7:Hips") == bare_name("Hips") == "Hips"
+
+
+_OPTIONS = [[], ["--joints", "all"], ["--fps", "60"], ["--fps", "24"], ["--representation", "matrix"],
+            ["--gen-fps", "60"], ["--joints", "all", "--fps", "60", "--representation", "matrix"]]
+
+
+@pytest.mark.parametrize("options", _OPTIONS, ids=lambda o: " ".join(o) or "defaults")
+def test_source_against_itself_under_every_option(tmp_path, capsys, options):
+    import json
+
+    from modi.bvh import save
+
+    save(_rig_bvh(), tmp_path / "src.bvh")
+    rc, out, err = _run_single(capsys, tmp_path / "src.bvh", "--source", tmp_path / "src.bvh",
+                               "--json", tmp_path / "r.json", *options)
+    assert rc == 0, err
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["coverage"] == 1.0
+    assert res["global_diversity"] == pytest.approx(0.0, abs=1e-6)
+    assert res["local_diversity"] == pytest.approx(0.0, abs=1e-6)
+    joints = [n for n, _ in _RIG] if "all" in options else _REDUCED
+    fps = float(options[options.index("--fps") + 1]) if "--fps" in options else 30.0
+    p = res["protocol"]
+    assert p["joint_names"] == joints and p["n_joints"] == len(joints)
+    assert p["joints"] == ("all" if "all" in options else "reduced") and p["fps"] == fps
+    assert p["n_samples"] == 1 and p["sample_frames"] == p["source_frames"] == int(239 * fps / 60) + 1
+    assert f"scoring {len(joints)} joints" in out and " ".join(joints) in out
+
+
+@pytest.mark.parametrize("prefix,drop", [("", ()), ("mixamorig7:", ()),
+                                         ("", ("HeadTop_End", "LeftHandIndex2", "LeftHandIndex1", "RightHandThumb1"))])
+@pytest.mark.parametrize("joints", ["reduced", "all"])
+def test_renamed_reordered_wrong_rate_copy_scores_exactly_like_the_source(tmp_path, capsys, prefix, drop, joints):
+    import json
+
+    from modi.bvh import dumps, save
+
+    src = _rig_bvh()
+    save(src, tmp_path / "src.bvh")
+    text = dumps(_as_other_tool_writes_it(src, prefix, drop))
+    (tmp_path / "copy.bvh").write_text(text.replace("Frame Time: 0.01666667", "Frame Time: 1.00000000"))
+    # a second, different generated file so the means are not trivially 1 / 0
+    other = _rig_bvh(seed=1)
+    other.names = src.names
+    save(other, tmp_path / "other.bvh")
+    results = {}
+    # a copy without fingers shares only the reduced joints, whatever --joints says: the reference is then the
+    # source scored on those
+    for gen, option in (("src", "reduced" if drop else joints), ("copy", joints)):
+        rc, out, err = _run_single(capsys, tmp_path / f"{gen}.bvh", tmp_path / "other.bvh", "--source",
+                                 tmp_path / "src.bvh", "--gen-fps", "60", "--joints", option,
+                                 "--json", tmp_path / f"{gen}.json")
+        assert rc == 0, err
+        results[gen] = json.loads((tmp_path / f"{gen}.json").read_text())
+    assert ("not scored: HeadTop_End LeftHandIndex1" in out) == (bool(drop) and joints == "all")
+    a, b = results["src"], results["copy"]
+    for key in ("coverage", "global_diversity", "local_diversity"):
+        assert a[key] == b[key]
+        assert a["per_file"][0][key] == b["per_file"][0][key]
+    assert a["per_file"][0]["coverage"] == 1.0
+    expected = _REDUCED if (joints == "reduced" or drop) else [n for n, _ in _RIG]
+    assert b["protocol"]["joint_names"] == expected
+
+
+@pytest.mark.parametrize("frame_time", ["1.00000000", "0.5", "0", "-0.03"])
+def test_implausible_frame_time_names_the_option(tmp_path, capsys, frame_time):
+    from modi.bvh import dumps, save
+
+    src = _rig_bvh(120)
+    save(src, tmp_path / "src.bvh")
+    text = dumps(_as_other_tool_writes_it(src)).replace("Frame Time: 0.01666667", f"Frame Time: {frame_time}")
+    (tmp_path / "gen.bvh").write_text(text)
+    rc, _, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh")
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("modi: error:") and "--gen-fps" in lines[0], err
+    assert "Traceback" not in err
+    assert _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh", "--gen-fps", "60")[0] == 0
+    for bad in ("0", "1", "nan", "inf"):
+        rc, _, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh", "--gen-fps", bad)
+        assert rc == 2 and "--gen-fps" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_different_rig_is_rejected_by_joint_parent(tmp_path, capsys):
+    from modi.bvh import save
+
+    src = _rig_bvh(120)
+    save(src, tmp_path / "src.bvh")
+    moved = _rig_bvh(120)
+    moved.parents[[n for n, _ in _RIG].index("LeftArm")] = 2  # under Neck, not Spine: same names, another rig
+    save(moved, tmp_path / "gen.bvh")
+    rc, _, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh")
+    assert rc == 2 and "'LeftArm' hangs from 'Neck'" in err and "Traceback" not in err
+
+
+def test_the_output_of_ganimator_generate_scores_against_its_source(tmp_path, capsys, shared_data):
+    """``modi ganimator generate`` writes the reduced, 30 fps rig without the ``mixamorig7:`` prefix: reproduce its
+    writer on the source itself, which must then cover the source with (almost) no diversity."""
+    import json
+
+    from modi.ganimator.config import GanimatorConfig
+    from modi.ganimator.data import features_to_motion, load_sequence
+    from modi.ganimator.generate import write_bvh
+
+    source = shared_data / "bvh" / "ganimator" / "Joe" / "Salsa-Dancing-6.bvh"
+    seq = load_sequence(source, GanimatorConfig())
+    quats, root, _ = features_to_motion(seq.features, seq.n_joints, seq.root_start, sixd=seq.sixd)
+    write_bvh(seq, quats, root, tmp_path / "gen.bvh")
+    assert not any(":" in n for n in seq.skeleton.names)
+    rc, out, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", source, "--json", tmp_path / "r.json")
+    assert rc == 0, err
+    assert "scoring 24 joints (reduced; of the source's 65) at 30 fps" in out
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["coverage"] == 1.0 and res["global_diversity"] < 1e-3, res

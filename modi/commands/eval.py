@@ -81,8 +81,11 @@ def register(subparsers: Any) -> None:
                        help="GANimator coverage and diversity of generated BVH against one source BVH",
                        description="Coverage (30-frame windows, threshold 2.0), global diversity (patched "
                                    "nearest neighbour, segments >= 30 frames) and local diversity (15-frame "
-                                   "windows) of generated BVH files against the source they were trained on.")
-    s.add_argument("generated", nargs="+", help="generated BVH files (the source's skeleton)")
+                                   "windows) of generated BVH files against the source they were trained on, "
+                                   "as the GANimator authors measure them: at 30 fps, on the reduced joints both "
+                                   "files share (matched by name, namespace prefix ignored).")
+    s.add_argument("generated", nargs="+", help="generated BVH files (the source's rig; joints are matched by name, "
+                                                "namespace prefix and sibling order ignored)")
     s.add_argument("--source", required=True, help="the training sequence (BVH)")
     s.add_argument("--json", default=None, help="write the results (means and per-file values) here")
     s.add_argument("--md", default=None, help="also write a Markdown summary here")
@@ -93,8 +96,15 @@ def register(subparsers: Any) -> None:
     s.add_argument("--representation", choices=["6d", "matrix"], default="6d",
                    help="pose vector: the first two rows of each local rotation matrix, as in the GANimator "
                         "authors' evaluation code (what threshold 2.0 and their tables use), or all 9 entries")
-    s.add_argument("--fps", type=float, default=None,
-                   help="resample source and generated clips to this rate first; unset: their rates must match")
+    s.add_argument("--fps", type=float, default=30.0,
+                   help="resample source and generated clips to this rate (the authors score at 30 fps; their "
+                        "loader halves 60 fps files)")
+    s.add_argument("--gen-fps", type=float, default=None,
+                   help="the generated files' true frame rate, when their header's Frame Time is wrong "
+                        "(unset: the header's)")
+    s.add_argument("--joints", choices=["reduced", "all"], default="reduced",
+                   help="score on GANimator's reduced joint set (no fingers or head-top: 24 joints of a Mixamo "
+                        "rig, as the published figures) or on every joint; either way on the joints both files have")
     s.set_defaults(func=cmd_single)
 
     q = sub.add_parser("plausibility", formatter_class=_FMT, help="foot skating, floating, jitter of BVH clips",
@@ -301,61 +311,77 @@ def cmd_gen(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _motion(path: str, fps: float | None) -> Any:
+def _motion(path: str, true_fps: float | None = None, remedy: str = "") -> Any:
+    """A BVH as a Motion; ``true_fps`` replaces the header's rate (``--gen-fps``), else the header must be
+    plausible: some tools write ``Frame Time: 0`` or ``1``, which would silently change every window."""
+    from modi import bvh as bvh_io
     from modi.motion import Motion
 
     p = Path(path)
     if not p.is_file():
-        raise UserError(f"no such BVH file: {p}")
-    m = Motion.from_bvh(p)
-    return m.resample(fps) if fps is not None else m
+        raise UserError(f"{p} is a folder, not a BVH file" if p.is_dir() else f"no such BVH file: {p}")
+    b = bvh_io.load(p, check_frame_time=False)  # checked here, to name the option that fixes it
+    if true_fps is not None:
+        b.frame_time = 1.0 / true_fps
+    elif not 0 < b.frame_time < 0.5:
+        raise UserError(f"{p}: implausible Frame Time {b.frame_time:g} s in the header (the rate must be above "
+                        f"2 fps){remedy}")
+    return Motion.from_bvh(b)
 
 
 def cmd_single(args: argparse.Namespace) -> int:
+    import math
     import warnings
 
     from modi.evaluation.report import to_markdown, write_reports
-    from modi.evaluation.single import rotation_features, single_sequence_metrics
+    from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
 
     for name in ("window", "min_segment", "local_window"):
         if getattr(args, name) < 1:
             raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+    for name in ("fps", "gen_fps"):
+        v = getattr(args, name)
+        if v is not None and not (math.isfinite(v) and v > 2.0):
+            raise UserError(f"--{name.replace('_', '-')} must be a frame rate above 2 fps, got {v:g}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
-        src = _motion(args.source, args.fps)
-        gens = [_motion(g, args.fps) for g in args.generated]
-    src_names = src.skeleton.names
-    feats = []
-    used_src = src
-    for path, m in zip(args.generated, gens):
-        names = m.skeleton.names
-        if names != src_names:
-            missing = [n for n in names if n not in src_names]
-            if missing:
-                raise UserError(f"{path}: joints {missing[:5]} are not in the source skeleton")
-            keep = [src_names.index(n) for n in names]
-            if keep != sorted(keep):
-                raise UserError(f"{path}: joint order differs from the source")
-            if used_src is src:
-                used_src = src.subset(keep)  # exact local rotations of the reduced skeleton
-            elif used_src.skeleton.names != names:
-                raise UserError(f"{path}: generated files use different joint sets")
-        if abs(m.fps - src.fps) > 1e-3 * src.fps:
-            raise UserError(f"{path}: {m.fps:g} fps but the source has {src.fps:g} fps (use --fps to resample both)")
-        feats.append(rotation_features(m.rotations, args.representation))
-    source = rotation_features(used_src.rotations, args.representation)
+        src = _motion(args.source)
+        gens = [_motion(g, args.gen_fps, "; give the generated files' true frame rate with --gen-fps")
+                for g in args.generated]
+    src, gens = src.resample(args.fps), [m.resample(args.fps) for m in gens]
+    try:
+        source, feats, joints = shared_pose_frames(src, gens, args.joints == "reduced", args.representation,
+                                                   labels=args.generated)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    print(f"scoring {len(joints)} joints ({args.joints}; of the source's {src.n_joints}) at {args.fps:g} fps: "
+          + " ".join(joints))
+    left_out = [n for n in shared_joints([src.skeleton], args.joints == "reduced") if n not in joints]
+    if left_out:
+        print(f"  not in every generated file, so not scored: {' '.join(left_out)}")
     t0 = time.perf_counter()
     try:
         res = single_sequence_metrics(feats, source, coverage_window=args.window, threshold=args.threshold,
                                       min_segment=args.min_segment, local_window=args.local_window)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    lengths = sorted({int(f.shape[0]) for f in feats})
     out = {
         "coverage": res["coverage"],
         "global_diversity": res["global_diversity"],
         "local_diversity": res["local_diversity"],
         "source": str(args.source),
-        "representation": args.representation,
+        "protocol": {
+            "joints": args.joints,
+            "n_joints": len(joints),
+            "joint_names": joints,
+            "fps": args.fps,
+            "gen_fps": args.gen_fps,
+            "n_samples": len(feats),
+            "sample_frames": lengths[0] if len(lengths) == 1 else lengths,
+            "source_frames": int(source.shape[0]),
+            "representation": args.representation,
+        },
         "settings": res["settings"],
         "seconds": time.perf_counter() - t0,
         "per_file": [dict(file=str(p), frames=int(f.shape[0]), **v)

@@ -12,6 +12,11 @@ the paper's wording reads; it puts the same poses about 1.26x further apart (mea
 so its coverage at 2.0 is lower. Windows: every window of the sequence (the paper); the released code
 skips the last one.
 
+Files from other tools (GenMM, the authors' code, our own ``modi ganimator generate``) name the same rig with or
+without a namespace prefix and list siblings in any order: :func:`shared_pose_frames` matches joints by bare name
+and builds both sides' pose vectors on the joints they share, after GANimator's joint reduction by default (the
+authors score a Mixamo character on its 24 reduced joints; fingers and head-top move the figures a lot).
+
 Speed: the frame-distance table ``C (L x N)`` is one batched GEMM; prefix sums along its diagonals (a
 fixed source-minus-generated offset) give every window sum in O(1). The PNN dynamic program then keeps, per diagonal, the running minimum of
 ``G[l] - S_d[l]`` over admissible segment starts, so each step is a vector op over diagonals and the
@@ -33,6 +38,9 @@ __all__ = [
     "local_diversity",
     "patched_nearest_neighbour",
     "single_sequence_metrics",
+    "bare_name",
+    "shared_joints",
+    "shared_pose_frames",
 ]
 
 
@@ -220,3 +228,77 @@ def single_sequence_metrics(
             for a, b, c in zip(cov, glob, loc)
         ],
     }
+
+
+# ---------------------------------------------------------------------------------------- matching skeletons
+
+
+def bare_name(name: str) -> str:
+    """``mixamorig7:Hips`` -> ``Hips``: exporters keep or drop the namespace prefix, the joint is the same."""
+    return name.rsplit(":", 1)[-1]
+
+
+def _bare_names(skeleton: Any, label: str) -> list[str]:
+    names = [bare_name(n) for n in skeleton.names]
+    if len(set(names)) != len(names):
+        dup = next(n for n in names if names.count(n) > 1)
+        raise ValueError(f"{label}: two joints are named {dup!r} once the namespace prefix is dropped")
+    return names
+
+
+def shared_joints(skeletons: Sequence[Any], reduce: bool = True, labels: Sequence[str] | None = None) -> list[str]:
+    """Bare names of the joints that every skeleton has, in the first skeleton's order.
+
+    ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.ganimator.data.reduce_joints`:
+    fingers and head-top dropped), so a full Mixamo source and a 24-joint output meet on the published joint set.
+    """
+    from modi.ganimator.data import reduce_joints
+
+    labels = list(labels) if labels is not None else [f"skeleton {i}" for i in range(len(skeletons))]
+    common: list[str] | None = None
+    for sk, label in zip(skeletons, labels):
+        names = _bare_names(sk, label)
+        kept = [names[j] for j in (reduce_joints(sk) if reduce else range(len(names)))]
+        common = kept if common is None else [n for n in common if n in kept]
+    return common or []
+
+
+def shared_pose_frames(
+    source: Any,
+    generated: Sequence[Any],
+    reduce: bool = True,
+    representation: str = "6d",
+    labels: Sequence[str] | None = None,
+) -> tuple[torch.Tensor, list[torch.Tensor], list[str]]:
+    """Pose vectors of the source and of each generated :class:`modi.motion.Motion` on their shared joints.
+
+    Returns ``(source (N, F), [generated (L_i, F)], joint names)``; the joints are :func:`shared_joints` of all
+    skeletons, in the source's order, so neither the namespace prefix nor sibling order matters. Joints outside
+    that set are removed with :meth:`Motion.subset`, which composes a removed inner joint's rotation into its kept
+    children, so a local rotation means the same thing on both sides. Raises ``ValueError`` when the source's root
+    is not shared or a shared joint hangs from a different parent (not the same rig).
+    """
+    labels = list(labels) if labels is not None else [f"generated[{i}]" for i in range(len(generated))]
+    motions = [source, *generated]
+    joints = shared_joints([m.skeleton for m in motions], reduce, ["source", *labels])
+    root = bare_name(source.skeleton.names[0])
+    if root not in joints:
+        raise ValueError(f"the generated files do not share the source's root joint {root!r}")
+    frames, src_parents = [], None
+    for m, label in zip(motions, ["source", *labels]):
+        names = _bare_names(m.skeleton, label)
+        keep = [names.index(n) for n in joints]
+        if sorted(keep) != list(range(len(names))):
+            m = m.subset(keep)
+            names = [bare_name(n) for n in m.skeleton.names]
+        order = [names.index(n) for n in joints]
+        parents = [None if m.skeleton.parents[j] < 0 else names[m.skeleton.parents[j]] for j in order]
+        if src_parents is None:
+            src_parents = parents
+        else:
+            for n, p, q in zip(joints, parents, src_parents):
+                if p != q:
+                    raise ValueError(f"{label}: joint {n!r} hangs from {p!r}, in the source from {q!r} "
+                                     "(not the same rig)")
+        frames.append(rotation_features(m.rotations[:, order], representation))
+    return frames[0], frames[1:], joints
