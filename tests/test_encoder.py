@@ -54,7 +54,7 @@ def decoder_generator(steps: int = 250):
     x = norm.normalize(raw)
     cfg = ModelConfig(latent_dim=16, n_mlp=2, channels=(8, 8, 8))
     g = Generator(cfg, build_levels(build_hierarchy(rep.skeleton, rep.feet), cfg, T), rep.K)
-    enc = build_encoder(g)
+    enc = build_encoder(g, head="bottleneck")
     opt = torch.optim.Adam(list(g.parameters()) + list(enc.parameters()), lr=0.005, betas=(0.9, 0.99))
     gen = torch.Generator().manual_seed(0)
     for _ in range(steps):
@@ -89,7 +89,7 @@ def trained(model, tmp_path_factory):
 # --------------------------------------------------------------------------------------------- model
 def test_encoder_shapes_and_untrained_output_is_the_mean(model):
     g, codec, x = model
-    enc = build_encoder(g)
+    enc = build_encoder(g, head="bottleneck")
     w = enc(x[:3])
     assert w.shape == (3, g.n_latent, g.latent_dim)
     torch.testing.assert_close(enc.w_avg, g.w_avg)  # predictions are offsets from the mean latent
@@ -115,7 +115,7 @@ def test_prefix_encoder_ignores_the_hidden_frames(model):
 
 def test_losses_are_zero_on_a_perfect_reconstruction_and_weighted(model):
     g, codec, x = model
-    cfg = EncoderTrainConfig()
+    cfg = EncoderTrainConfig(losses="ours")
     real = x[:4]
     same = encoder_losses(codec, real, real, cfg, space.position_scale(codec))
     assert float(same["rec"]) == 0 and float(same["root"]) == 0 and float(same["pos"]) == 0
@@ -284,3 +284,128 @@ def test_apply_cli_on_bvh_inputs(trained, tmp_path, capsys):
     assert main(["apply", "invert", enc, clips[0], "--out", str(tmp_path / "i"), "--start", "100"]) == 2
     assert "need 116" in capsys.readouterr().err
     assert main(["apply", "prefix", enc, clips[0], "--out", str(tmp_path / "p")]) == 2
+
+
+# --------------------------------------------------------------------------------------------- released vs ours
+def test_released_head_reads_one_level_before_the_coarsest(model):
+    """models/gan.py LatentPrediction at latent_rec_idx 4: level-1 features -> two linear layers of width
+    n_latent x latent_dim -> W+ (not an offset from w̄)."""
+    g, codec, x = model
+    enc = build_encoder(g)
+    assert enc.cfg.head == "released" and enc.final_conv is None
+    lv1 = enc.levels[1]
+    width = g.n_latent * g.latent_dim
+    assert enc.fc.weight.shape == (width, lv1.channels * lv1.n_entities * lv1.n_frames)
+    assert enc.head.weight.shape == (width, width)
+    assert len(enc.blocks) == len(enc.levels) - 2  # no block into the coarsest level
+    w = enc(x[:3])
+    assert w.shape == (3, g.n_latent, g.latent_dim)
+    feats = enc.blocks(enc.from_motion(x[:3]))
+    assert feats.shape[1:] == (lv1.channels, lv1.n_entities, lv1.n_frames)
+    torch.testing.assert_close(w, enc.head(enc.fc(feats.flatten(1))).view_as(w))
+    old = build_encoder(g, head="bottleneck")
+    assert old.final_conv is not None and len(old.blocks) == len(old.levels) - 1
+    with pytest.raises(ValueError, match="head"):
+        build_encoder(g, head="wide")
+
+
+def test_root_rotation_entity_skips_constant_placeholder_roots(model):
+    from modi.encoder.training import root_rotation_entity
+    from modi.modi_model.codec import MotionCodec
+    from modi.normalization import Normalizer
+    from modi.representation import modi_representation
+    from modi.skeleton import Skeleton
+
+    g, codec, x = model
+    assert root_rotation_entity(codec) == 0  # the built-in humanoid's root (hips) rotates
+    # a Bandai-like rig: a placeholder root above the hips whose rotation never changes
+    base = codec.skeleton
+    sk = Skeleton(["joint_Root"] + list(base.names), [-1] + [p + 1 for p in base.parents],
+                  np.concatenate([np.zeros((1, 3)), base.offsets]))
+    rep = modi_representation(sk, [f + 1 for f in base.detect_feet()])
+    std = torch.ones(rep.K, rep.n_entities)
+    std[:, 0] = 1e-3  # Normalizer.fit's floor: constant in the data
+    c2 = MotionCodec(rep, Normalizer(torch.zeros_like(std), std), 30.0)
+    assert root_rotation_entity(c2) == 1
+    std[1, 0] = 0.2  # a root that does rotate is the root
+    assert root_rotation_entity(MotionCodec(rep, Normalizer(torch.zeros_like(std), std), 30.0)) == 0
+
+
+def test_released_losses_weights_root_entity_and_local_positions(model):
+    g, codec, x = model
+    cfg = EncoderTrainConfig()
+    assert (cfg.losses, cfg.lambda_rec, cfg.lambda_contact, cfg.lambda_root, cfg.lambda_pos) == \
+        ("released", 10.0, 1000.0, 20.0, 1.0)
+    assert cfg.lr == pytest.approx(0.002 * 16 / 17) and cfg.beta1 == 0.0 and cfg.beta2 == pytest.approx(0.99 ** (16 / 17))
+    ours = EncoderTrainConfig(losses="ours", optimizer="ours")
+    assert (ours.lambda_rec, ours.lambda_contact, ours.lambda_root, ours.lambda_pos, ours.lr, ours.beta1) == \
+        (1.0, 100.0, 2.0, 0.1, 0.002, 0.9)
+    assert EncoderTrainConfig(lambda_contact=100.0).lambda_contact == 100.0  # explicit values win
+    real = x[:4]
+    J = codec.rep.n_joints
+    # moving the whole trajectory changes no local position: the released position term stays 0, ours does not
+    shifted = real.clone()
+    shifted[:, 0, J, 0] += 5.0 / codec.normalizer.std[0, J]
+    scale = space.position_scale(codec)
+    assert float(encoder_losses(codec, shifted, real, cfg, scale)["pos"]) == pytest.approx(0.0, abs=1e-6)
+    assert float(encoder_losses(codec, shifted, real, ours, scale)["pos"]) > 1e-2
+    # local positions in data units: turning the root changes them by known amounts
+    noisy = real + 0.1 * torch.randn_like(real)
+    out = encoder_losses(codec, noisy, real, cfg, scale, root_entity=3)
+    dp, dt = codec.decode(noisy), codec.decode(real)
+    local = ((dp["positions"] - dp["root"][..., None, :]) - (dt["positions"] - dt["root"][..., None, :])).pow(2).mean()
+    torch.testing.assert_close(out["pos"], local)
+    root = ((noisy[:, :, J] - real[:, :, J]) ** 2).mean() + ((noisy[:, :, 3] - real[:, :, 3]) ** 2).mean()
+    torch.testing.assert_close(out["root"], root)
+    torch.testing.assert_close(out["total"], 10 * out["rec"] + 1000 * out["contact"] + 20 * out["root"] + out["pos"])
+
+
+def test_released_optimizer_and_old_checkpoints_keep_their_head(model, tmp_path):
+    g, codec, x = model
+    data = split_windows(x[:40], 0.2, seed=1)
+    tr = EncoderTrainer((g, codec, None), data, tmp_path / "r.pt", EncoderTrainConfig(iters=1, batch=4, eval_every=0,
+                                                                                       ckpt_every=0), progress=False)
+    group = tr.optim.param_groups[0]
+    assert group["lr"] == pytest.approx(0.002 * 16 / 17) and group["betas"] == (0.0, pytest.approx(0.99 ** (16 / 17)))
+    cfg = EncoderTrainConfig(iters=1, batch=4, eval_every=0, ckpt_every=0, head="bottleneck", losses="ours",
+                             optimizer="ours")
+    EncoderTrainer((g, codec, None), data, tmp_path / "b.pt", cfg, progress=False).train()
+    st = torch.load(tmp_path / "b.pt", weights_only=True)
+    del st["encoder_config"]["head"]  # a checkpoint written before the option existed
+    torch.save(st, tmp_path / "old.pt")
+    bundle = load_encoder(tmp_path / "old.pt")
+    assert bundle.cfg.head == "bottleneck"
+    with pytest.raises(UserError, match="losses"):
+        EncoderTrainConfig(losses="paper").validate()
+
+
+def test_encoder_cli_options_reach_the_config(monkeypatch, tmp_path):
+    import argparse
+
+    from modi.commands import encoder as cmd
+    from modi.encoder import training as T_
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_trainer(model, data, out, cfg, **kw):
+        seen["cfg"] = cfg
+        raise Stop
+
+    parser = argparse.ArgumentParser()
+    cmd.register(parser.add_subparsers())
+    monkeypatch.setattr(T_, "EncoderTrainer", fake_trainer)
+    monkeypatch.setattr(T_, "load_encoder_data", lambda *a, **k: split_windows(torch.zeros(10, 4, 3, 16)))
+    monkeypatch.setattr("modi.modi_model.sampling.load_checkpoint", lambda p: {"step": 0})
+    monkeypatch.setattr("modi.latent.space.load_model", lambda st, device: (type("G", (), {
+        "output_shape": (4, 3, 16)})(), None, None))
+    for argv, want in ((["--quiet"], ("released", "released", "released", 10.0)),
+                       (["--quiet", "--losses", "ours", "--optimizer", "ours", "--head", "bottleneck",
+                         "--lambda-rec", "2"], ("ours", "ours", "bottleneck", 2.0))):
+        args = parser.parse_args(["encoder", "train", "g.pt", "procedural", "--out", str(tmp_path / "e.pt"), *argv])
+        with pytest.raises(Stop):
+            args.func(args)
+        c = seen["cfg"]
+        assert (c.losses, c.optimizer, c.head, c.lambda_rec) == want

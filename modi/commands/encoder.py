@@ -28,7 +28,8 @@ def register(subparsers) -> None:
     q = sub.add_parser("train", help="train an encoder for a frozen generator", formatter_class=fmt,
                        description="Train the encoder I (reverse synthesis hierarchy -> W+) on the 80% split of DATA "
                                    "(split by file like the generator's data) with the generator frozen; losses: "
-                                   "rec L2 + λ_contact BCE + λ_root root L2 + λ_pos FK-position L2. Writes ENC "
+                                   "λ_rec rec L2 + λ_contact BCE + λ_root root L2 + λ_pos FK-position L2 (the "
+                                   "released code's form and weights by default, --losses ours for ours). Writes ENC "
                                    "(one self-contained checkpoint with the generator inside) and ENC.log.jsonl, and "
                                    "prints the Table 5 metrics on the 20% test split.")
     q.add_argument("ckpt", metavar="CKPT", help="MoDi generator checkpoint")
@@ -36,16 +37,30 @@ def register(subparsers) -> None:
     q.add_argument("--out", required=True, metavar="ENC", help="encoder checkpoint to write (e.g. runs/enc.pt)")
     q.add_argument("--iters", type=int, default=5000, help="training steps")
     q.add_argument("--batch", type=int, default=16, help="batch size")
-    q.add_argument("--lr", type=float, default=0.002, help="Adam learning rate")
-    q.add_argument("--lambda-contact", type=float, default=100.0, help="weight of the contact BCE")
-    q.add_argument("--lambda-root", type=float, default=2.0, help="weight of the root L2")
-    q.add_argument("--lambda-pos", type=float, default=0.1,
-                   help="weight of the FK-position L2 (positions in tenths of the body size)")
+    q.add_argument("--losses", choices=("released", "ours"), default="released",
+                   help="loss form: 'released' = the authors' code (weights rec/contact/root/pos 10/1000/20/1, root "
+                        "L2 on the real root rotation, FK positions local, in data units); 'ours' = 1/100/2/0.1, "
+                        "root L2 on entity 0, global positions in tenths of the body size")
+    q.add_argument("--optimizer", choices=("released", "ours"), default="released",
+                   help="Adam defaults: 'released' lr 0.002*16/17, betas (0, 0.99^(16/17)); 'ours' lr 0.002, "
+                        "betas (0.9, 0.99)")
+    q.add_argument("--head", choices=("released", "bottleneck"), default="released",
+                   help="encoder head: 'released' = features one level before the coarsest through two linear "
+                        "layers of width n_latent x latent_dim -> W+; 'bottleneck' = the earlier head (coarsest "
+                        "level, one --hidden-wide layer, offset from the mean latent)")
+    q.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: from --optimizer)")
+    q.add_argument("--lambda-rec", type=float, default=None, help="weight of the representation L2 "
+                   "(default: from --losses)")
+    q.add_argument("--lambda-contact", type=float, default=None, help="weight of the contact BCE "
+                   "(default: from --losses)")
+    q.add_argument("--lambda-root", type=float, default=None, help="weight of the root L2 (default: from --losses)")
+    q.add_argument("--lambda-pos", type=float, default=None,
+                   help="weight of the FK-position L2 (default: from --losses)")
     q.add_argument("--prefix", type=int, default=None, metavar="T",
                    help="train the prefix variant: the encoder sees frames [0, T) only")
     q.add_argument("--channel-multiplier", type=float, default=1.0, help="encoder width relative to the generator")
     q.add_argument("--hidden", type=int, default=None,
-                   help="width of the encoder's last hidden layer, before the W+ head (default: max(latent, channels))")
+                   help="bottleneck head only: width of its hidden layer (default: max(latent, channels))")
     q.add_argument("--units", default="auto", help="data length unit for the mm metrics (auto, mm, cm, m, in)")
     q.add_argument("--seed", type=int, default=0, help="seed")
     q.add_argument("--eval-every", type=int, default=500, help="steps between test-split evaluations (0: end only)")
@@ -142,8 +157,10 @@ def run_train(args: argparse.Namespace) -> int:
     gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
                  if k in st}
     g, codec, gcfg = load_model(st, device=args.device)
-    cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, lr=args.lr, lambda_contact=args.lambda_contact,
-                             lambda_root=args.lambda_root, lambda_pos=args.lambda_pos, prefix_frames=args.prefix,
+    cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, lr=args.lr, lambda_rec=args.lambda_rec,
+                             lambda_contact=args.lambda_contact, lambda_root=args.lambda_root,
+                             lambda_pos=args.lambda_pos, losses=args.losses, optimizer=args.optimizer,
+                             head=args.head, prefix_frames=args.prefix,
                              channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units,
                              seed=args.seed, eval_every=args.eval_every, ckpt_every=args.ckpt_every)
     _, _, t = g.output_shape

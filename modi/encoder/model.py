@@ -1,10 +1,13 @@
 """The MoDi encoder I (paper 001 §3.4, Fig. 4): the synthesis hierarchy reversed, predicting a W+ latent.
 
 Like the discriminator, it reads a motion ``(B, K, E, T)`` with a per-entity input projection, then residual
-skeleton-aware blocks that halve the frames and merge entities level by level (fine -> coarse), a last in-place
-conv at the coarsest level and two linear layers. The head outputs one style per synthesis layer (W+), as an
-offset from the generator's mean latent w̄: an untrained encoder therefore already returns the mean motion, and
-training only has to learn departures from it.
+skeleton-aware blocks that halve the frames and merge entities level by level (fine -> coarse). Two heads:
+
+* ``released`` (default; the authors' code, ``models/gan.py`` ``LatentPrediction``): the features one level before
+  the coarsest, flattened, through two linear layers of width n_latent x latent_dim, predicting W+ directly;
+* ``bottleneck`` (this package's earlier head): every level, a last in-place conv at the coarsest level, one
+  ``hidden``-wide layer and a W+ output added to the generator's mean latent w̄ (an untrained encoder then
+  returns the mean motion).
 
 For prediction from a prefix (001 §4.2) the input may carry one extra channel, 1 on the frames the encoder may
 see and 0 on the zeroed ones, so "zero because unknown" is not confused with "zero because average".
@@ -20,6 +23,8 @@ from torch import Tensor, nn
 from modi.modi_model.config import ModelConfig
 from modi.modi_model.networks import ConvAct, EqualLinear, LevelSpec, PseudoImageConv, ResBlock
 
+ENCODER_HEADS = ("released", "bottleneck")
+
 
 @dataclass
 class EncoderConfig:
@@ -34,13 +39,24 @@ class EncoderConfig:
     prefix_frames: int | None = None
     head_init: float = 0.1
     hidden: int | None = None  # width of the layer before the W+ head; None: max(latent_dim, coarsest channels)
+    # "released": the authors' head (models/gan.py LatentPrediction at latent_rec_idx 4): the features one level
+    # before the coarsest, flattened, through two linear layers of width n_latent x latent_dim -> W+.
+    # "bottleneck": this package's earlier head: every level + a coarsest-level conv, one ``hidden``-wide layer,
+    # then W+ as an offset from w̄ (head scaled by ``head_init``).
+    head: str = "released"
+
+    def __post_init__(self) -> None:
+        if self.head not in ENCODER_HEADS:
+            raise ValueError(f"encoder head must be one of {', '.join(ENCODER_HEADS)}, not {self.head!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "EncoderConfig":
-        return cls(**d)  # fields missing from older checkpoints (e.g. ``hidden``) take their defaults
+        # fields missing from older checkpoints take their defaults (``hidden``), or the value those checkpoints
+        # were built with (``head``: they all have the bottleneck head)
+        return cls(**{"head": "bottleneck", **d})
 
 
 def _scaled_levels(levels: Sequence[LevelSpec], mult: float) -> list[LevelSpec]:
@@ -89,6 +105,19 @@ class MotionEncoder(nn.Module):
         fine = lv[-1]
         in_ch = cfg.in_channels + (1 if cfg.mask_channel else 0)
         self.from_motion = _EntityProjection(model_cfg, fine, in_ch)
+        if cfg.head == "released":
+            # blocks down to level 1 (one before the coarsest; the finest when there are only two levels)
+            read = min(1, len(lv) - 1)
+            self.blocks = nn.Sequential(*[ResBlock(model_cfg, lv[i], lv[i - 1])
+                                          for i in range(len(lv) - 1, read, -1)])
+            src = lv[read]
+            width = cfg.n_latent * cfg.latent_dim
+            self.fc = EqualLinear(src.channels * src.n_entities * src.n_frames, width, activate=True)
+            self.head = EqualLinear(width, width)
+            self.final_conv = None
+            self.register_buffer("w_avg", torch.zeros(cfg.latent_dim) if w_avg is None else w_avg.detach().clone())
+            self.input_shape = (cfg.in_channels, fine.n_entities, fine.n_frames)
+            return
         self.blocks = nn.Sequential(*[ResBlock(model_cfg, lv[i], lv[i - 1]) for i in range(len(lv) - 1, 0, -1)])
         lv0 = lv[0]
         if model_cfg.skeleton_aware:
@@ -115,21 +144,25 @@ class MotionEncoder(nn.Module):
             if mask is None:
                 mask = torch.ones_like(x[:, :1])
             x = torch.cat([x, mask.to(x).expand(-1, 1, -1, -1)], 1)
-        h = self.final_conv(self.blocks(self.from_motion(x.contiguous())))
-        delta = self.head(self.fc(h.flatten(1)))
+        h = self.blocks(self.from_motion(x.contiguous()))
+        if self.final_conv is None:  # released head: W+ itself
+            return self.head(self.fc(h.flatten(1))).view(x.shape[0], self.cfg.n_latent, self.cfg.latent_dim)
+        delta = self.head(self.fc(self.final_conv(h).flatten(1)))
         return self.w_avg + delta.view(x.shape[0], self.cfg.n_latent, self.cfg.latent_dim)
 
 
 def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | None = None,
-                  mask_channel: bool | None = None, hidden: int | None = None) -> MotionEncoder:
-    """An encoder matching generator ``g`` (its levels, channels, style count and w̄)."""
+                  mask_channel: bool | None = None, hidden: int | None = None,
+                  head: str = "released") -> MotionEncoder:
+    """An encoder matching generator ``g`` (its levels, channels, style count and w̄); ``head``: see
+    :class:`EncoderConfig` (``hidden`` applies to the bottleneck head only)."""
     k, e, t = g.output_shape
     if prefix_frames is not None and not 0 < prefix_frames < t:
         raise ValueError(f"prefix_frames must be in 1..{t - 1}, got {prefix_frames}")
     cfg = EncoderConfig(in_channels=k, n_latent=g.n_latent, latent_dim=g.latent_dim,
                         channel_multiplier=channel_multiplier,
                         mask_channel=(prefix_frames is not None) if mask_channel is None else bool(mask_channel),
-                        prefix_frames=prefix_frames, hidden=hidden)
+                        prefix_frames=prefix_frames, hidden=hidden, head=head)
     from modi.latent.space import mean_w
 
     return MotionEncoder(g.cfg, g.levels, cfg, w_avg=mean_w(g).cpu()).to(next(g.parameters()).device)
@@ -151,4 +184,4 @@ def encode(encoder: MotionEncoder, x: Tensor, prefix_frames: int | None = None) 
     return encoder(inp, mask)
 
 
-__all__ = ["EncoderConfig", "MotionEncoder", "build_encoder", "visible_input", "encode"]
+__all__ = ["ENCODER_HEADS", "EncoderConfig", "MotionEncoder", "build_encoder", "visible_input", "encode"]

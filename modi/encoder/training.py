@@ -1,14 +1,18 @@
 """Training the encoder (paper 001 §3.4, eqs. 4-8) with the generator frozen.
 
-``L = L_rec + λ_fcon L_fcon + λ_root L_root + λ_pos L_pos`` with the paper's weights 1 / 100 / 2 / 0.1:
+``L = λ_rec L_rec + λ_fcon L_fcon + λ_root L_root + λ_pos L_pos``. Two forms (``EncoderTrainConfig.losses``):
 
-* ``L_rec``  -- MSE between m and G(I(m)) on the normalised representation;
-* ``L_fcon`` -- BCE between the data's contact labels and s(contact channel of G(I(m))), s = the generator's
-  own contact sigmoid (``modi_model.losses.contact_probability``);
-* ``L_root`` -- MSE on the root entities only (root-motion entity and root rotation), which otherwise converge
-  slowest;
-* ``L_pos``  -- MSE of global joint positions (FK) in tenths of the body size (``latent.space.position_scale``,
-  about decimetres on a human), so λ_pos = 0.1 weighs the same on any rig and unit.
+* ``released`` (default; the authors' ``train_encoder.py`` defaults and ``models/encoder_mask.py``), weights
+  10 / 1000 / 20 / 1: ``L_root`` on the root-motion entity and the *real* root rotation (the first joint below
+  constant placeholder roots such as Bandai's ``joint_Root``, see ``root_rotation_entity``); ``L_pos`` the MSE of
+  FK positions with the root translation zeroed (local), in the data's units. Adam lr 0.002·16/17, betas
+  (0, 0.99^(16/17)) (``optimizer="released"``).
+* ``ours`` (this package's earlier form), weights 1 / 100 / 2 / 0.1: ``L_root`` on entity 0, ``L_pos`` on global
+  positions in tenths of the body size (``latent.space.position_scale``); Adam lr 0.002, betas (0.9, 0.99).
+
+In both: ``L_rec`` -- MSE between m and G(I(m)) on the normalised representation; ``L_fcon`` -- BCE between the
+data's contact labels and s(contact channel of G(I(m))), s = the generator's own contact sigmoid
+(``modi_model.losses.contact_probability``).
 
 Data: the windows of the generator's own dataset configuration, split 80/20 *by file* exactly as the generator's
 training split (``modi.dataset``), so the test split is unseen by the generator and the encoder alike. The
@@ -39,20 +43,36 @@ ENCODER_FORMAT = "modi-encoder"
 ENCODER_VERSION = 1
 
 
+# loss weights (rec, contact, root, pos) of the two loss forms; see the module docstring
+LOSS_WEIGHTS = {
+    "released": {"lambda_rec": 10.0, "lambda_contact": 1000.0, "lambda_root": 20.0, "lambda_pos": 1.0},
+    "ours": {"lambda_rec": 1.0, "lambda_contact": 100.0, "lambda_root": 2.0, "lambda_pos": 0.1},
+}
+# Adam (lr, beta1, beta2): the released train_encoder.py uses the discriminator's lazy-R1-corrected settings
+_C = 16 / 17
+OPTIMIZERS = {"released": (0.002 * _C, 0.0, 0.99 ** _C), "ours": (0.002, 0.9, 0.99)}
+
+
 @dataclass
 class EncoderTrainConfig:
+    """Encoder training options. ``None`` weights and Adam settings take the values of ``losses`` and
+    ``optimizer`` (``LOSS_WEIGHTS``, ``OPTIMIZERS``) on construction; explicit values override them."""
+
     iters: int = 5000
     batch: int = 16
-    lr: float = 0.002
-    beta1: float = 0.9
-    beta2: float = 0.99
-    lambda_rec: float = 1.0
-    lambda_contact: float = 100.0
-    lambda_root: float = 2.0
-    lambda_pos: float = 0.1
+    lr: float | None = None
+    beta1: float | None = None
+    beta2: float | None = None
+    lambda_rec: float | None = None
+    lambda_contact: float | None = None
+    lambda_root: float | None = None
+    lambda_pos: float | None = None
+    losses: str = "released"  # "released" | "ours" (root entity, position term and default weights)
+    optimizer: str = "released"  # "released" | "ours" (default lr and betas)
+    head: str = "released"  # encoder head: "released" | "bottleneck" (see modi.encoder.model)
     prefix_frames: int | None = None
     channel_multiplier: float = 1.0
-    hidden: int | None = None  # encoder bottleneck width (None: the encoder's default)
+    hidden: int | None = None  # bottleneck-head width (None: the encoder's default)
     generated: float = 0.0  # fraction of every batch replaced by generator samples (the authors' code's option)
     lambda_latent: float = 0.0  # on those samples: MSE between I(G(w+)) and w+, in units of W's spread
     units: str = "auto"  # only for the mm metrics
@@ -61,11 +81,27 @@ class EncoderTrainConfig:
     ckpt_every: int = 250
     eval_every: int = 500
 
+    def __post_init__(self) -> None:
+        for name, value in LOSS_WEIGHTS.get(self.losses, {}).items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        for name, value in zip(("lr", "beta1", "beta2"), OPTIMIZERS.get(self.optimizer, ())):
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+
     def validate(self) -> "EncoderTrainConfig":
+        from modi.encoder.model import ENCODER_HEADS
+
+        if self.losses not in LOSS_WEIGHTS:
+            raise UserError(f"losses must be one of {', '.join(LOSS_WEIGHTS)}, not {self.losses!r}")
+        if self.optimizer not in OPTIMIZERS:
+            raise UserError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, not {self.optimizer!r}")
+        if self.head not in ENCODER_HEADS:
+            raise UserError(f"head must be one of {', '.join(ENCODER_HEADS)}, not {self.head!r}")
         if self.iters < 0 or self.batch < 1:
             raise UserError(f"iters must be >= 0 and batch >= 1 (got {self.iters}, {self.batch})")
-        if self.lr <= 0:
-            raise UserError(f"lr must be positive, got {self.lr}")
+        if self.lr <= 0 or not (0.0 <= self.beta1 < 1.0 and 0.0 <= self.beta2 < 1.0):
+            raise UserError(f"lr must be positive and betas in [0, 1), got {self.lr}, ({self.beta1}, {self.beta2})")
         for name in ("lambda_rec", "lambda_contact", "lambda_root", "lambda_pos"):
             if getattr(self, name) < 0:
                 raise UserError(f"{name} must be >= 0")
@@ -143,14 +179,34 @@ def split_windows(x: Tensor, test_fraction: float = 0.2, seed: int = 0) -> Encod
 
 
 # =============================================================================================== losses
+def root_rotation_entity(codec: Any) -> int:
+    """The entity of the motion's real root rotation: the root joint, unless it is a placeholder -- a joint with one
+    child whose rotation never changes in the data (Bandai's ``joint_Root`` above ``Hips``) -- in which case its
+    child, and so on. Constancy is read from the normaliser (a std at its floor on every channel)."""
+    sk, std = codec.skeleton, codec.normalizer.std
+    j = 0
+    while len(sk.children(j)) == 1 and float(std[:, j].max()) <= _CONSTANT_STD:
+        j = int(sk.children(j)[0])
+    return j
+
+
+_CONSTANT_STD = 1e-3 * (1 + 1e-4)  # Normalizer.fit's floor (min_std 1e-3): a channel that never changes
+
+
 def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainConfig, scale: float,
-                   target_decoded: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
-    """The four terms and their weighted total (eq. 8); ``scale`` turns skeleton units into loss units."""
+                   target_decoded: dict[str, Tensor] | None = None, root_entity: int = 0) -> dict[str, Tensor]:
+    """The four terms and their weighted total (eq. 8).
+
+    ``cfg.losses == "released"`` (the authors' train_encoder.py / models/encoder_mask.py): the root term is the MSE
+    on the root-motion entity plus the real root rotation ``root_entity`` (``root_rotation_entity``), the position
+    term the MSE of FK positions with the root translation zeroed, in the data's units. ``"ours"``: root term on
+    entity 0, position term on global positions times ``scale`` (tenths of the body size)."""
     from modi.modi_model.losses import contact_probability
 
     J = codec.rep.n_joints
     rec = F.mse_loss(pred, target)
-    root = F.mse_loss(pred[:, :, J], target[:, :, J]) + F.mse_loss(pred[:, :, 0], target[:, :, 0])
+    r = root_entity if cfg.losses == "released" else 0
+    root = F.mse_loss(pred[:, :, J], target[:, :, J]) + F.mse_loss(pred[:, :, r], target[:, :, r])
     out = {"rec": rec, "root": root}
     need_decode = cfg.lambda_pos > 0 or cfg.lambda_contact > 0
     zero = pred.new_zeros(())
@@ -163,7 +219,13 @@ def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainCo
             out["contact"] = F.binary_cross_entropy(prob, labels)
         else:
             out["contact"] = zero
-        out["pos"] = F.mse_loss(dp["positions"] * scale, dt["positions"] * scale) if cfg.lambda_pos > 0 else zero
+        if cfg.lambda_pos <= 0:
+            out["pos"] = zero
+        elif cfg.losses == "released":  # local positions (root translation zeroed), data units
+            out["pos"] = F.mse_loss(dp["positions"] - dp["root"].unsqueeze(-2),
+                                    dt["positions"] - dt["root"].unsqueeze(-2))
+        else:
+            out["pos"] = F.mse_loss(dp["positions"] * scale, dt["positions"] * scale)
     else:
         out["contact"] = out["pos"] = zero
     out["total"] = (cfg.lambda_rec * rec + cfg.lambda_contact * out["contact"] + cfg.lambda_root * root
@@ -283,7 +345,8 @@ class EncoderTrainer:
         self.generator_state = generator_state or generator_bundle(g, codec, gcfg)
         torch.manual_seed(self.cfg.seed)
         self.encoder = build_encoder(g, self.cfg.channel_multiplier, self.cfg.prefix_frames,
-                                     hidden=self.cfg.hidden)
+                                     hidden=self.cfg.hidden, head=self.cfg.head)
+        self.root_entity = root_rotation_entity(codec)
         self.encoder.train()
         self.optim = torch.optim.Adam(self.encoder.parameters(), lr=self.cfg.lr, betas=(self.cfg.beta1, self.cfg.beta2))
         self.scale = position_scale(codec)
@@ -316,7 +379,7 @@ class EncoderTrainer:
         pred = self.g.synthesis(wplus, noise_mode="const")
         with torch.no_grad():
             dt = {k: v.detach() for k, v in self.codec.decode(real).items()}
-        losses = encoder_losses(self.codec, pred, real, self.cfg, self.scale, dt)
+        losses = encoder_losses(self.codec, pred, real, self.cfg, self.scale, dt, root_entity=self.root_entity)
         if target_w is not None and self.cfg.lambda_latent > 0:
             lat = ((wplus[-n_gen:] - target_w) / self.w_std).pow(2).mean()
             losses["latent"] = lat
@@ -436,6 +499,6 @@ class EncoderTrainer:
         self.last_losses = dict(st.get("last_losses") or {})
 
 
-__all__ = ["EncoderTrainConfig", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
+__all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
            "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
            "ENCODER_FORMAT", "ENCODER_VERSION"]
