@@ -146,6 +146,19 @@ def test_metrics_measure_known_displacements_in_mm(model):
     assert m["global_mm"] == pytest.approx(d * mm, rel=1e-3)
     assert m["local_mm"] == pytest.approx(0.0, abs=1e-3)
     assert m["l2"] == pytest.approx(float(((shifted - real) ** 2).mean()), rel=1e-5)
+    # the released definitions: mean squared coordinate error in data units (x moved by d, y and z not)
+    assert m["root_mse"] == pytest.approx(d * d / 3, rel=1e-3)
+    assert m["global_mse"] == pytest.approx(d * d / 3, rel=1e-3)
+    assert m["local_mse"] == pytest.approx(0.0, abs=1e-6)
+    assert m["global_mse_cm2"] == pytest.approx(m["global_mse"], rel=1e-6)  # the humanoid is in cm
+    # a rotation error changes local positions: MSE = mean over joints/frames/coords of the squared differences
+    turned = real.clone()
+    turned[:, 1, 0] += 0.3
+    m2 = reconstruction_metrics(codec, real, turned)
+    dr, dt = codec.decode(real), codec.decode(turned)
+    loc = lambda d_: d_["positions"] - d_["root"][..., None, :]  # noqa: E731 - FK with root translation zeroed
+    assert m2["local_mse"] == pytest.approx(float((loc(dr) - loc(dt)).pow(2).mean()), rel=1e-4)
+    assert m2["local_mse"] > 0
 
 
 def test_encoder_beats_the_trivial_baselines_on_the_test_split(trained, model):
@@ -162,6 +175,8 @@ def test_encoder_beats_the_trivial_baselines_on_the_test_split(trained, model):
     assert again["encoder"]["l2"] == pytest.approx(enc["l2"], rel=1e-4)
     table = format_table5(m)
     assert "mean motion" in table and f"{PAPER_TABLE5['global_mm']:.1f}" in table
+    assert "Local position (mm)" in table and "Local position (MSE)" in table  # both definitions
+    assert "Local position (MSE)" not in format_table5(m, definitions=("ours",))
 
 
 def test_checkpoint_is_self_contained_and_resume_is_exact(model, tmp_path):

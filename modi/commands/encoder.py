@@ -73,9 +73,11 @@ def register(subparsers) -> None:
 
     q = sub.add_parser("eval", help="Table 5 metrics of an encoder on a data split", formatter_class=fmt,
                        description="Reconstruction errors of G(I(m)) on the test (default) or train split: L2 and "
-                                   "L1 on the normalised representation, global root / local / global joint "
-                                   "position errors in mm (mean distance), beside the mean-motion and data-mean "
-                                   "baselines and the paper's Mixamo row.")
+                                   "L1 on the whole normalised representation, global root / local / global joint "
+                                   "position errors in two definitions -- ours (mean distance, mm) and the released "
+                                   "code's (mean squared coordinate error in data units, the figures the paper's "
+                                   "Table 5 reports) -- beside the mean-motion and data-mean baselines and the "
+                                   "paper's Mixamo row.")
     q.add_argument("enc", metavar="ENC", help="encoder checkpoint")
     q.add_argument("data", metavar="DATA", nargs="?", default=None,
                    help="BVH folder (default: the data the encoder was trained on)")
