@@ -245,3 +245,129 @@ def test_checkpoint_without_the_new_options_loads_with_the_forms_it_was_trained_
     assert torch.equal(model.sample(45, 2, generator=g1), old.sample(45, 2, generator=g2))
     assert torch.allclose(old.seqs[0].rotations(), model.seqs[0].rotations())
     assert run_summary(tmp_path / "old")["config"]["sixd"] == "columns"
+
+
+# ------------------------------------------------------------------------------------------- paper protocol
+
+
+def _rec_model(tmp_path, T=40, iterations=60):
+    """A model trained only to reconstruct its clip (no adversarial steps): quick, and its z* output is close."""
+    cfg = tiny_cfg(d_steps=0, g_steps=0, iterations=iterations, lr=3e-3, coarse_ratio=0.5, base_channels=16)
+    seq = clip_seq(PARENTS, T=T, seed=8, cfg=cfg)
+    return train([seq], cfg, tmp_path / "rec", progress=False, log=None), cfg
+
+
+def test_paper_pyramid_and_raw_features():
+    from modi.ganimator.data import pyramid_lengths
+    from modi.ganimator.evaluate_paper import paper_features, paper_pyramid
+
+    cfg = tiny_cfg(coarse_ratio=0.5, feet=["j3", "j6"])
+    seq = clip_seq(PARENTS, T=40, seed=9, cfg=cfg)
+    model = untrained_model([seq], cfg)
+    assert model.lengths[0] == [20, 26, 34, 40]
+    # rebuilt from the sample length by the training rule (not the training pyramid stretched)
+    assert paper_pyramid(model, 80) == pyramid_lengths(80, 0.5, 1 / 0.75) == [40, 53, 70, 80]
+    assert paper_pyramid(model, 200) == pyramid_lengths(200, 0.5, 1 / 0.75)[-4:]
+    with pytest.raises(UserError):
+        paper_pyramid(model, 3)
+    J, E = seq.n_joints, seq.n_entities
+    x = torch.randn(2, 6, E, 33)
+    f = paper_features(x, J)
+    assert f.shape == (2, 33, 6 * (E - 1)) and f.dtype == torch.float64
+    assert torch.allclose(f[1, 5, :6], x[1, :, 0, 5].double())                      # joint 0's raw 6 channels
+    assert torch.allclose(f[0, 7, 6 * J:6 * J + 6], x[0, :, J + 1, 7].double())     # then the first contact's
+    src = paper_features(seq.features, J)[0]
+    assert torch.equal(src[:, 6 * J + 1:6 * J + 6], torch.zeros(40, 5, dtype=torch.float64))  # label + 5 zeros
+
+
+def test_paper_protocol_scores_a_reconstruction_as_covered(tmp_path):
+    from modi.ganimator.evaluate_paper import evaluate_paper, paper_features, score_samples
+
+    model, cfg = _rec_model(tmp_path)
+    seq = model.seqs[0]
+    J = seq.n_joints
+    src = paper_features(seq.features, J)[0]
+    rec = paper_features(model.reconstruct(0).detach(), J)[0]
+    untrained = paper_features(untrained_model([seq], cfg).reconstruct(0).detach(), J)[0]
+    s = score_samples([src, rec, untrained], [src], ["clip"])["clip"]
+    assert s["coverage"][0] == 1.0 and s["global_diversity"][0] == pytest.approx(0.0, abs=1e-6)
+    assert s["coverage"][1] >= 0.9, s
+    assert s["coverage"][2] < s["coverage"][1] and s["global_diversity"][2] > s["global_diversity"][1]
+    # the whole protocol: samples of 2x the source length, sample count and length beside every figure
+    figs = evaluate_paper(model, n=3, seed=1, batch=2)
+    assert figs["samples"] == 3 and figs["frames"] == 80 and figs["levels"][-1] == 80
+    f = figs["per_sequence"][seq.name]
+    assert (f["samples"], f["frames"], f["source_frames"]) == (3, 80, 40)
+    assert 0.0 <= f["coverage"] <= 1.0 and math.isfinite(f["global_diversity"]) and f["local_diversity"] > 0
+    assert figs["released_running"][0]["coverage"] == f["coverage"]
+    assert figs["reconstruction"][seq.name]["l1"] < 0.5 * float((seq.features - 0).abs().mean())
+    # deterministic, and independent of the generation batch
+    again = evaluate_paper(model, n=3, seed=1, batch=3)
+    assert again["per_sequence"][seq.name]["coverage"] == f["coverage"]
+    assert again["per_sequence"][seq.name]["global_diversity"] == pytest.approx(f["global_diversity"], rel=1e-5)
+
+
+def test_released_running_average_pools_all_clips_scored_so_far(tmp_path):
+    from modi.ganimator.data import sequence_from_clip as from_clip
+    from modi.ganimator.evaluate_paper import evaluate_paper, summarise
+
+    scores = {"a": {"coverage": [1.0, 1.0], "global_diversity": [1.0, 3.0], "local_diversity": [0.5, 0.5]},
+              "b": {"coverage": [0.0, 0.0], "global_diversity": [5.0, 7.0], "local_diversity": [1.5, 1.5]}}
+    per, running = summarise(scores, 2, 100, {"a": 40, "b": 50})
+    assert per["b"]["coverage"] == 0.0 and per["b"]["global_diversity"] == 6.0 and per["b"]["source_frames"] == 50
+    assert running[0]["coverage"] == 1.0 and running[0]["pairs"] == 2
+    assert running[1]["coverage"] == 0.5 and running[1]["global_diversity"] == 4.0 and running[1]["pairs"] == 4
+    assert running[1]["sequences"] == ["a", "b"] and running[1]["samples"] == 2 and running[1]["frames"] == 100
+    # mixing: two clips of one character; samples are 2x the *total* length
+    cfg = tiny_cfg(coarse_ratio=0.5)
+    a = clip_seq(PARENTS, T=40, seed=10, cfg=cfg)
+    b = from_clip(synthetic_clip(PARENTS, 50, seed=11), "b", cfg, like=a)
+    model = untrained_model([a, b], cfg)
+    figs = evaluate_paper(model, n=2)
+    assert figs["frames"] == 2 * (40 + 50) and list(figs["per_sequence"]) == [a.name, "b"]
+    pa, pb = figs["per_sequence"][a.name], figs["per_sequence"][b.name]
+    last = figs["released_running"][-1]
+    assert last["pairs"] == 4
+    for k in ("coverage", "global_diversity", "local_diversity"):
+        assert last[k] == pytest.approx((pa[k] + pb[k]) / 2)
+        assert figs["released_running"][0][k] == pa[k]
+
+
+def test_cli_evaluate_both_protocols_report_samples_and_length(tmp_path, capsys):
+    from modi.cli import main
+
+    _rec_model(tmp_path, iterations=2)
+    run = str(tmp_path / "rec")
+    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "2", "--json",
+                 str(tmp_path / "p.json")]) == 0
+    out = capsys.readouterr().out
+    assert "protocol paper" in out and "(2 samples x 80 frames" in out
+    figs = json.loads((tmp_path / "p.json").read_text())
+    assert figs["protocol"] == "paper" and figs["samples"] == 2 and figs["frames"] == 80
+    assert all(f["samples"] == 2 and f["frames"] == 80 for f in figs["per_sequence"].values())
+    assert main(["ganimator", "evaluate", run, "--n", "2", "--json", "-"]) == 0
+    ours = json.loads(capsys.readouterr().out)
+    assert ours["protocol"] == "ours" and all(f["samples"] == 2 and f["frames"] == 40 for f in ours["metrics"].values())
+    assert ours["iterations_per_block"] == [2, 2]
+    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "0"]) == 2
+    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--frames", "10"]) == 2
+
+
+def test_paper_protocol_on_a_real_clip(shared_data):
+    from modi.ganimator.data import load_sequence
+    from modi.ganimator.evaluate_paper import paper_features, paper_pyramid, score_samples
+
+    cfg = gconfig.preset("fast")
+    salsa = load_sequence(shared_data / "bvh" / "ganimator" / "Joe" / "Salsa-Dancing-6.bvh", cfg)
+    assert salsa.sixd == "rows"
+    J = salsa.n_joints
+    labels = salsa.features[0, J + 1:]
+    assert torch.all(labels[:, 0] == 0) and labels[:, 1:].sum() > 0           # released foot_contact: frame 0 is 0
+    model = untrained_model([salsa], cfg)
+    # the released evaluate.py's pyramid for 2 x 648 frames (int(n / 5), then x 4/3, the last level the length)
+    assert paper_pyramid(model, 1296) == [259, 345, 460, 613, 817, 1089, 1296]
+    src = paper_features(salsa.features, J)[0]
+    assert src.shape == (648, 6 * (24 + 4))
+    s = score_samples([src[:120], src], [src], ["salsa"])["salsa"]
+    assert s["coverage"][1] == 1.0 and 0.0 < s["coverage"][0] < 1.0        # a part of the clip covers a part of it
+    assert s["global_diversity"][1] == pytest.approx(0.0, abs=1e-6)

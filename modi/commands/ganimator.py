@@ -83,12 +83,20 @@ def register(subparsers) -> None:
 
     e = sub.add_parser("evaluate", help="coverage and diversity of random samples of a run", formatter_class=_FMT,
                        description="Sample motions and report coverage (30-frame windows, threshold 2.0), global "
-                                   "(patched nearest neighbour) and local diversity against every training clip.")
+                                   "(patched nearest neighbour) and local diversity against every training clip. "
+                                   "--protocol ours (default): rotations decoded from the samples, as any BVH "
+                                   "output is scored. --protocol paper: the authors' released evaluate.py (200 "
+                                   "samples of 2x the total source length, the generator's raw 6D + contact "
+                                   "channels, per-clip figures and the script's running average over clips).")
     e.add_argument("run", help="run directory (or .ckpt file)")
-    e.add_argument("--n", type=int, default=10, help="number of samples")
-    e.add_argument("--frames", type=int, default=None, help="frames per sample (default: the training clip's)")
+    e.add_argument("--protocol", choices=["ours", "paper"], default="ours",
+                   help="ours: rotation-only features decoded as from BVH; paper: the released evaluate.py")
+    e.add_argument("--n", type=int, default=None, help="number of samples (default: ours 10, paper 200)")
+    e.add_argument("--frames", type=int, default=None,
+                   help="frames per sample (default: ours the first training clip's, paper 2x all clips' total)")
     e.add_argument("--seed", type=int, default=0, help="random seed")
-    e.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    e.add_argument("--json", default=None, help="also write the figures to this JSON file ('-': print the JSON "
+                                               "instead of the table)")
     e.set_defaults(func=_evaluate)
 
 
@@ -166,12 +174,20 @@ def _generate(args) -> int:
 
 
 def _evaluate(args) -> int:
+    from modi.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper, format_figures
     from modi.ganimator.generate import evaluate_run
 
-    figures = evaluate_run(args.run, n=args.n, n_frames=args.frames, seed=args.seed)
+    if args.n is not None and args.n < 1:
+        raise UserError("--n must be at least 1")
+    if args.frames is not None and args.frames < 30:
+        raise UserError("--frames must be at least 30 (the coverage window)")
+    if args.protocol == "paper":
+        figures = evaluate_paper(args.run, n=args.n or N_SAMPLES, n_frames=args.frames, seed=args.seed)
+    else:
+        figures = evaluate_run(args.run, n=args.n or 10, n_frames=args.frames, seed=args.seed)
     text = json.dumps(figures, indent=2)
-    print(text)
-    if args.json:
+    print(text if args.json == "-" else format_figures(figures))
+    if args.json and args.json != "-":
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(text + "\n")
     return 0

@@ -124,14 +124,17 @@ def evaluate_run(run: str | Path, n: int = 10, n_frames: int | None = None, seed
     gen = torch.Generator().manual_seed(seed)
     samples = [model.sample(T, 1, generator=gen)[0] for _ in range(n)]
     rec = [model.reconstruct(m)[0] for m in range(len(model.seqs))]
-    figures = {"samples": n, "frames": T, "metrics": metrics_against_sources(model, samples)}
+    metrics = metrics_against_sources(model, samples)
+    for f in metrics.values():  # the number of samples and their length beside every figure
+        f.update(samples=n, frames=T)
+    figures = {"protocol": "ours", "samples": n, "frames": T, "metrics": metrics}
     figures["reconstruction_l1"] = {s.name: float((r - s.features).abs().mean()) for s, r in zip(model.seqs, rec)}
     summary = run_summary(run)
     figures["levels"] = summary["lengths"]
     figures["blocks"] = [{"levels": b, "seconds": round(s, 1)} for b, s in zip(summary["blocks"],
                                                                                summary["block_seconds"])]
     figures["preset"] = summary["config"]["preset"]
-    figures["iterations_per_block"] = summary["config"]["iterations"]
+    figures["iterations_per_block"] = summary["block_iterations"]
     return figures
 
 
