@@ -245,6 +245,15 @@ def test_checkpoint_without_the_new_options_loads_with_the_forms_it_was_trained_
     assert torch.equal(model.sample(45, 2, generator=g1), old.sample(45, 2, generator=g2))
     assert torch.allclose(old.seqs[0].rotations(), model.seqs[0].rotations())
     assert run_summary(tmp_path / "old")["config"]["sixd"] == "columns"
+    # resuming it needs its settings: the released defaults are refused with the differences named
+    from modi.errors import CheckpointError
+
+    new_cfg = tiny_cfg(iterations=1, max_levels=2, coarse_ratio=0.5)
+    with pytest.raises(CheckpointError, match="sixd: 'columns' there, 'rows' now"):
+        Trainer([clip_seq(PARENTS, T=40, seed=7, cfg=new_cfg)], new_cfg, tmp_path / "old").run(progress=False,
+                                                                                              log=None)
+    Trainer([seq], cfg.replace(iterations=2), tmp_path / "old").run(progress=False, log=None)
+    assert [h["iterations"] for h in read_checkpoint(tmp_path / "old")["state"]["history"]] == [1]
 
 
 # ------------------------------------------------------------------------------------------- paper protocol

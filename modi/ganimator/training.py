@@ -263,8 +263,10 @@ class Trainer:
         free = {"iterations", "block_iterations", "coarse_multiplier", "checkpoint_every", "device"}
         diff = [k for k, v in saved_cfg.to_dict().items() if k not in free and self.cfg.to_dict().get(k) != v]
         if diff:
-            raise CheckpointError(f"{self.ckpt} was trained with other settings ({', '.join(diff)}); "
-                                  "use another --out to start anew")
+            saved, now = saved_cfg.to_dict(), self.cfg.to_dict()
+            detail = ", ".join(f"{k}: {saved[k]!r} there, {now.get(k)!r} now" for k in diff)
+            raise CheckpointError(f"{self.ckpt} was trained with other settings ({detail}); "
+                                  "pass the same settings to resume it, or use another --out to start anew")
         m = self.model
         for z, zs in zip(m.z_stars, p["z_stars"]):
             z.data.copy_(zs)
