@@ -355,3 +355,56 @@ def test_cli_mean_interpolate_and_errors(tiny_ckpt, tmp_path, capsys):
     assert main(["latent", "truncate", str(tiny_ckpt), "--out", str(tmp_path / "t"), "--steps", "0"]) == 2
     assert main(["latent", "crowd", str(tiny_ckpt), "--out", str(tmp_path / "c"), "--latent", "nope.npy"]) == 2
     assert "no such latent file" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------- released gral
+def test_released_gral_uses_arm_and_clavicle_rotation_angles(tiny):
+    """latent_space_edit.py r_hand_lift_up_score: 360 - ((rotation angle + rest angle) mod 360) of RightArm and
+    RightShoulder, rises counted over windows of 8 every 4, divided by the number of windows."""
+    _, codec = tiny
+    sk = codec.skeleton
+    elev = np.linspace(160, 90, T)  # the arm comes down to level: its rotation angle |e - 90| falls 70 -> 0
+    x = _arm_motion(codec, elev)
+    rot = codec.decode(x)["rotations"]
+    arm_a, clav_a = editing.released_arm_angles(codec, rot)
+    arm, fore, clav = sk.index("RightArm"), sk.index("RightForeArm"), sk.index("RightShoulder")
+    off = np.asarray(sk.offsets, dtype=np.float64)
+
+    def rest(c, e):
+        a, b = -off[c], off[e]
+        return np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+    np.testing.assert_allclose(arm_a[0].numpy(), 360 - np.mod(np.abs(elev - 90) + rest(arm, fore), 360), atol=0.05)
+    np.testing.assert_allclose(clav_a[0].numpy(), 360 - np.mod(rest(clav, arm), 360) * np.ones(T), atol=0.05)
+    n_windows = (T - 8) // 4 + 1
+    # the reversed arm angle rises in every window, the clavicle never moves
+    assert float(editing.gral_released_score(codec, x)[0]) == pytest.approx(0.5 * (n_windows - 1) / n_windows)
+    assert float(editing.gral_released_score(codec, _arm_motion(codec, elev[::-1].copy()))[0]) == 0.0
+    a = torch.tensor([[0.0] * 8 + [1.0] * 8 + [0.5] * 8])  # 5 windows, 2 rises -> 2/5 (ours: 2/4)
+    assert float(editing.released_rising_score(a)[0]) == pytest.approx(0.4)
+    assert "gral_released" in editing.ATTRIBUTES
+
+
+def test_released_svm_is_a_linear_kernel_svc_on_70_percent():
+    rng = np.random.default_rng(1)
+    w = rng.normal(size=(600, 12))
+    u = rng.normal(size=12)
+    u /= np.linalg.norm(u)
+    scores = w @ u + 0.05 * rng.normal(size=600)
+    b = editing.fit_boundary(w, scores, ratio=0.2, method="released")
+    assert float(b.normal @ u) > 0.95 and b.accuracy > 0.9 and b.extra["svm"] == "released"
+    assert editing.fit_boundary(w, scores, ratio=0.2).extra["svm"] == "ours"
+    with pytest.raises(ValueError, match="method"):
+        editing.fit_boundary(w, scores, method="rbf")
+
+
+def test_cli_edit_with_the_released_gral_and_svm(tiny_ckpt, tmp_path):
+    import json
+
+    from modi.cli import main
+
+    out = tmp_path / "e"
+    assert main(["latent", "edit", str(tiny_ckpt), "--out", str(out), "--attribute", "gral_released", "--svm",
+                 "released", "--n", "60", "--held-out", "2", "--render", "0", "--alphas", "-1", "0", "1"]) == 0
+    b = json.loads((out / "boundary.json").read_text())
+    assert b["attribute"] == "gral_released" and b["extra"]["svm"] == "released"

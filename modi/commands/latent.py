@@ -74,8 +74,12 @@ def register(subparsers) -> None:
                                    "std of w·n). Writes boundary.json, report.json (scores, monotonicity), "
                                    "score_vs_alpha.png and, for the first --render seeds, edit_SEED.gif + BVH.")
     _common(q)
-    q.add_argument("--attribute", default="gral", choices=("gral", "verticality", "speed"),
-                   help="gral = gradual right-arm lifting (App. C.2)")
+    q.add_argument("--attribute", default="gral", choices=("gral", "gral_released", "verticality", "speed"),
+                   help="gral = gradual right-arm lifting (App. C.2); gral_released = the authors' code's score "
+                        "(rotation angles of the right arm and clavicle)")
+    q.add_argument("--svm", choices=("ours", "released"), default="ours",
+                   help="boundary fit: 'ours' = LinearSVC refitted on all extremes; 'released' = SVC with a linear "
+                        "kernel on 70%% of them (the authors' InterFaceGAN code; they sample --n 10000)")
     q.add_argument("--n", type=int, default=2000, help="sampled motions for the boundary")
     q.add_argument("--ratio", type=float, default=0.2, help="fraction at each extreme used as SVM classes")
     q.add_argument("--boundary", default=None, metavar="JSON", help="reuse a saved boundary instead of fitting")
@@ -219,7 +223,8 @@ def run_edit(args: argparse.Namespace) -> int:
     else:
         if args.n < 10:
             raise UserError(f"--n must be >= 10, got {args.n}")
-        boundary, _, scores = sample_boundary(g, codec, args.attribute, n=args.n, seed=args.seed, ratio=args.ratio)
+        boundary, _, scores = sample_boundary(g, codec, args.attribute, n=args.n, seed=args.seed, ratio=args.ratio,
+                                              method=args.svm)
         boundary.extra["score_mean"] = float(np.mean(scores))
         boundary.extra["score_std"] = float(np.std(scores))
         boundary.save(out / "boundary.json")

@@ -13,6 +13,12 @@ Attributes (all computed from decoded motions, so any rig works):
   rest pose is a T- or A-pose (a hanging arm is already rotated 80 degrees), so by default the angle is the
   bone's *elevation* -- 0 hanging down, 90 horizontal, 180 straight up -- of the upper arm (shoulder) and the
   forearm (elbow). ``angle="rotation"`` uses the paper's literal joint rotation angles.
+* ``gral_released`` -- gral as the authors' ``latent_space_edit.py`` (``r_hand_lift_up_score``) computes it: for
+  the right upper arm (``RightArm``) and the right clavicle (``RightShoulder``), the joint's local rotation angle
+  (|w| convention, 0..180) plus the rest-pose angle between the bone to its parent and the bone to its child,
+  taken mod 360 and reversed (360 - angle); windows of 8 frames every 4; the count of windows whose average exceeds
+  the previous one divided by the number of *windows*; the mean of the two joints. Its boundary is fitted with
+  ``fit_boundary(method="released")`` (SVC with a linear kernel, as InterFaceGAN) on 10k samples in the paper.
 * ``verticality`` -- (head height - lowest ankle height) / (head-to-ankle bone length): ~1 standing, 0 lying,
   -1 upside down (paper 000 §4.4's definition).
 * ``speed`` -- mean horizontal root speed in body heights per second.
@@ -130,6 +136,39 @@ def gral_score(codec: Any, x: Tensor, angle: str = "elevation", window: int = 8,
     return 0.5 * (rising_fraction(a_s, window, stride) + rising_fraction(a_e, window, stride))
 
 
+def released_arm_angles(codec: Any, rotations: Tensor) -> tuple[Tensor, Tensor]:
+    """The released gral's two angle sequences (degrees, (..., T) each): right upper arm and right clavicle, each
+    ``360 - ((rotation angle + rest-pose angle parent-bone/child-bone) mod 360)``."""
+    sk = codec.skeleton
+    upper, elbow, _ = find_right_arm(sk)
+    clavicle = int(sk.parents[upper])
+    if clavicle < 0:
+        raise UserError(f"the right upper arm {sk.names[upper]!r} needs a parent (the clavicle/shoulder joint)")
+    offsets = torch.as_tensor(np.asarray(sk.offsets, dtype=np.float64))
+    out = []
+    for center, end in ((upper, elbow), (clavicle, upper)):
+        to_parent, to_child = -offsets[center], offsets[end]
+        cos = (to_parent @ to_child) / ((to_parent.norm() + 1e-20) * (to_child.norm() + 1e-20))
+        rest = float(torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))))
+        angle = rotation_angle(rotations.double(), center) + rest
+        out.append((360.0 - torch.remainder(angle, 360.0)).to(rotations.dtype))
+    return out[0], out[1]
+
+
+def released_rising_score(angles: Tensor, window: int = 8, stride: int = 4) -> Tensor:
+    """The released ``get_monotonous_up_score``: rises between consecutive window averages / number of windows."""
+    avg = window_means(angles, window, stride)
+    return (avg[..., 1:] > avg[..., :-1]).to(angles.dtype).sum(-1) / avg.shape[-1]
+
+
+def gral_released_score(codec: Any, x: Tensor, window: int = 8, stride: int = 4) -> Tensor:
+    """Gradual right-arm lifting as the authors' released code scores it (see the module docstring)."""
+    with torch.no_grad():
+        rot = codec.decode(x.detach().float())["rotations"]
+    arm, clavicle = released_arm_angles(codec, rot)
+    return 0.5 * (released_rising_score(arm, window, stride) + released_rising_score(clavicle, window, stride))
+
+
 def verticality_score(codec: Any, x: Tensor) -> Tensor:
     """(head height - lowest ankle height) / head-to-ankle bone length, mean over frames: ~1 upright, -1 inverted."""
     sk = codec.skeleton
@@ -154,6 +193,7 @@ def speed_score(codec: Any, x: Tensor) -> Tensor:
 
 ATTRIBUTES: dict[str, Callable[[Any, Tensor], Tensor]] = {
     "gral": gral_score,
+    "gral_released": gral_released_score,
     "verticality": verticality_score,
     "speed": speed_score,
 }
@@ -222,12 +262,21 @@ class Boundary:
             raise UserError(f"{path}: not a boundary file ({exc})") from None
 
 
+SVM_METHODS = ("ours", "released")
+
+
 def fit_boundary(w: np.ndarray | Tensor, scores: np.ndarray | Tensor, ratio: float = 0.2, C: float = 1.0,
-                 seed: int = 0, attribute: str = "custom") -> Boundary:
+                 seed: int = 0, attribute: str = "custom", method: str = "ours") -> Boundary:
     """Linear SVM between the top and bottom ``ratio`` of samples by score (InterFaceGAN); unit normal toward high.
 
+    ``method="ours"``: liblinear ``LinearSVC``, accuracy on a held-out 30% of the extremes, then refitted on all of
+    them. ``method="released"`` (the authors' ``train_boundary``, from InterFaceGAN): ``SVC(kernel="linear")``
+    trained on 70% of each class, accuracy on the other 30%, no refit.
     Raises ``UserError`` when the scores do not separate (all equal)."""
-    from sklearn.svm import LinearSVC
+    from sklearn.svm import SVC, LinearSVC
+
+    if method not in SVM_METHODS:
+        raise ValueError(f"method must be one of {', '.join(SVM_METHODS)}, not {method!r}")
 
     w = np.asarray(w.detach().cpu() if isinstance(w, Tensor) else w, dtype=np.float64)
     s = np.asarray(scores.detach().cpu() if isinstance(scores, Tensor) else scores, dtype=np.float64).reshape(-1)
@@ -249,13 +298,26 @@ def fit_boundary(w: np.ndarray | Tensor, scores: np.ndarray | Tensor, ratio: flo
     x = np.concatenate([w[low], w[high]])
     y = np.concatenate([np.zeros(len(low)), np.ones(len(high))])
     rng = np.random.default_rng(seed)
-    perm = rng.permutation(len(y))
-    n_val = max(1, int(0.3 * len(y)))
-    val, trn = perm[:n_val], perm[n_val:]
-    svm = LinearSVC(C=C, max_iter=20_000, dual="auto")
-    svm.fit(x[trn], y[trn])
-    acc = float((svm.predict(x[val]) == y[val]).mean())
-    svm.fit(x, y)  # the final boundary uses every extreme sample
+    if method == "released":  # per class: 70% train, 30% validation; the boundary is the training fit
+        trn_parts, val_parts, start = [], [], 0
+        for size in (len(low), len(high)):
+            idx = start + rng.permutation(size)
+            n_trn = max(1, int(size * 0.7))
+            trn_parts.append(idx[:n_trn])
+            val_parts.append(idx[n_trn:])
+            start += size
+        trn, val = np.concatenate(trn_parts), np.concatenate(val_parts)
+        svm = SVC(kernel="linear", C=C)
+        svm.fit(x[trn], y[trn])
+        acc = float((svm.predict(x[val]) == y[val]).mean()) if len(val) else float("nan")
+    else:
+        perm = rng.permutation(len(y))
+        n_val = max(1, int(0.3 * len(y)))
+        val, trn = perm[:n_val], perm[n_val:]
+        svm = LinearSVC(C=C, max_iter=20_000, dual="auto")
+        svm.fit(x[trn], y[trn])
+        acc = float((svm.predict(x[val]) == y[val]).mean())
+        svm.fit(x, y)  # the final boundary uses every extreme sample
     coef = svm.coef_.reshape(-1)
     norm = float(np.linalg.norm(coef))
     if norm == 0:
@@ -264,16 +326,17 @@ def fit_boundary(w: np.ndarray | Tensor, scores: np.ndarray | Tensor, ratio: flo
     proj = w @ normal
     return Boundary(attribute=attribute, normal=normal, offset=float(svm.intercept_[0]) / norm,
                     sigma=float(proj.std()), accuracy=acc, n_samples=n, ratio=ratio,
-                    score_low=float(s[low].mean()), score_high=float(s[high].mean()))
+                    score_low=float(s[low].mean()), score_high=float(s[high].mean()), extra={"svm": method})
 
 
 def sample_boundary(g: Any, codec: Any, attribute: str | ScoreFn, n: int = 2000, seed: int = 0, ratio: float = 0.2,
-                    name: str | None = None) -> tuple[Boundary, np.ndarray, np.ndarray]:
-    """Sample ``n`` latents (one seeded stream, disjoint from the per-seed latents), score and fit a boundary."""
+                    name: str | None = None, method: str = "ours") -> tuple[Boundary, np.ndarray, np.ndarray]:
+    """Sample ``n`` latents (one seeded stream, disjoint from the per-seed latents), score and fit a boundary
+    (``method``: see ``fit_boundary``)."""
     w = random_w(g, n, seed)
     s = score_latents(g, codec, w, attribute)
     label = name or (attribute if isinstance(attribute, str) else getattr(attribute, "__name__", "custom"))
-    b = fit_boundary(w, s, ratio=ratio, seed=seed, attribute=label)
+    b = fit_boundary(w, s, ratio=ratio, seed=seed, attribute=label, method=method)
     return b, w.cpu().numpy(), s.numpy()
 
 
@@ -366,6 +429,7 @@ def plot_report(report: EditReport, path: str | Path) -> Path:
 
 
 __all__ = ["find_right_arm", "find_head", "bone_elevation", "rotation_angle", "window_means", "rising_fraction",
-           "gral_score", "verticality_score", "speed_score", "ATTRIBUTES", "score_function", "score_latents",
+           "gral_score", "gral_released_score", "released_arm_angles", "released_rising_score", "SVM_METHODS",
+           "verticality_score", "speed_score", "ATTRIBUTES", "score_function", "score_latents",
            "Boundary", "fit_boundary", "sample_boundary", "edit_latents", "EditReport", "edit_report",
            "plot_report"]
