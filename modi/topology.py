@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 ROOT_MOTION_NAME = "<root_motion>"
+POOLINGS = ("merge", "released")
 CONTACT_PREFIX = "<contact>"
 
 
@@ -334,6 +335,22 @@ def _pool_edges_once(parents: list[int]) -> list[list[int]]:
     return groups
 
 
+def _pool_edges_keep_root(parents: list[int]) -> list[list[int]]:
+    """One released-style pooling step: the root edge (0) stays alone; the rest of the tree (a forest under the
+    root) pools by ``_pool_edges_once``'s rule; when that merges nothing, the root's subtrees merge into one
+    entity. Progresses whenever there are >= 3 entities."""
+    n = len(parents)
+    if n <= 2:
+        return [[j] for j in range(n)]
+    sub_parents = [-1 if parents[j] == 0 else parents[j] - 1 for j in range(1, n)]
+    sub_groups = _pool_edges_once(sub_parents)
+    groups = [[0]] + [[m + 1 for m in g] for g in sub_groups]
+    if len(groups) == n:  # nothing merged below the root: fold everything under it into one entity
+        groups = [[0], list(range(1, n))]
+    groups.sort(key=lambda g: g[0])
+    return groups
+
+
 def _group_name(names: Sequence[str]) -> str:
     if len(names) == 1:
         return names[0]
@@ -349,12 +366,21 @@ def build_hierarchy(
     neighbor_distance: int = 1,
     contacts_to_root_motion: bool = False,
     siblings: bool = True,
+    pooling: str = "merge",
 ) -> PoolingHierarchy:
-    """Automatic skeletal pooling hierarchy for any tree, down to one entity (see the module docstring).
+    """Automatic skeletal pooling hierarchy for any tree (see the module docstring).
 
     ``skeleton`` is a ``Skeleton`` (or anything with ``parents`` and ``names``); ``feet`` lists the joints that
-    get contact entities (``None``: ``skeleton.detect_feet()``; ``[]``: no contacts).
+    get contact entities (``None``: ``skeleton.detect_feet()``; ``[]``: no contacts). ``siblings=False`` makes
+    neighbours self + parent + children (the released MoDi's ``Edge`` neighbourhoods) instead of every edge sharing
+    a joint. ``pooling``: ``"merge"`` (default) pools down to one entity, the specials merging in the last step;
+    ``"released"`` is the released MoDi's style -- the root edge is never merged with another edge, pooling stops
+    at <= 2 edge entities, and the root-motion and contact entities stay separate down to the coarsest level (the
+    released code's own loop does not terminate on every skeleton, so the steps here are ours:
+    ``_pool_edges_keep_root``).
     """
+    if pooling not in POOLINGS:
+        raise ValueError(f"pooling must be one of {', '.join(POOLINGS)}, not {pooling!r}")
     parents = _check_parents(skeleton.parents)
     joint_names = list(getattr(skeleton, "names", [f"joint{j}" for j in range(len(parents))]))
     if feet is None:
@@ -370,11 +396,12 @@ def build_hierarchy(
     edge_levels_groups = [[[e] for e in range(len(parents))]]  # in finest edges
     edge_levels_names = [joint_names]
     edge_pooling: list[list[list[int]]] = []
-    while len(edge_levels_parents[-1]) > 1:
+    stop_at = 2 if pooling == "released" else 1
+    while len(edge_levels_parents[-1]) > stop_at:
         cur_parents = edge_levels_parents[-1]
         cur_groups = edge_levels_groups[-1]
         cur_names = edge_levels_names[-1]
-        groups = _pool_edges_once(cur_parents)
+        groups = _pool_edges_keep_root(cur_parents) if pooling == "released" else _pool_edges_once(cur_parents)
         owner = {m: k for k, g in enumerate(groups) for m in g}
         new_parents = [-1 if cur_parents[g[0]] < 0 else owner[cur_parents[g[0]]] for g in groups]
         edge_pooling.append(groups)
@@ -384,10 +411,14 @@ def build_hierarchy(
 
     special_names = [ROOT_MOTION_NAME] + [f"{CONTACT_PREFIX}{joint_names[f]}" for f in feet]
     levels: list[Level] = []
-    pooling: list[list[list[int]]] = []
+    pooling_maps: list[list[list[int]]] = []
     n_edge_levels = len(edge_levels_parents)
-    # Specials ride along on every edge level but the coarsest; there everything is one entity.
-    n_full = n_edge_levels - 1 if n_edge_levels > 1 else 1
+    # Specials ride along on every edge level but the coarsest; there everything is one entity ("merge"). With
+    # "released" pooling they ride along on every level and there is no merged level.
+    if pooling == "released":
+        n_full = n_edge_levels
+    else:
+        n_full = n_edge_levels - 1 if n_edge_levels > 1 else 1
     for i in range(n_full):
         groups = edge_levels_groups[i]
         ng = len(groups)
@@ -409,7 +440,9 @@ def build_hierarchy(
         )
         if i + 1 < n_full:
             nxt = edge_pooling[i]
-            pooling.append([list(g) for g in nxt] + [[ng + s] for s in range(n_special)])
+            pooling_maps.append([list(g) for g in nxt] + [[ng + s] for s in range(n_special)])
+    if pooling == "released":
+        return PoolingHierarchy(levels=levels, pooling=pooling_maps, neighbor_distance=int(neighbor_distance))
     last = levels[-1]
     levels.append(
         Level(
@@ -423,5 +456,5 @@ def build_hierarchy(
             contacts=[],
         )
     )
-    pooling.append([list(range(last.n_entities))])
-    return PoolingHierarchy(levels=levels, pooling=pooling, neighbor_distance=int(neighbor_distance))
+    pooling_maps.append([list(range(last.n_entities))])
+    return PoolingHierarchy(levels=levels, pooling=pooling_maps, neighbor_distance=int(neighbor_distance))

@@ -244,6 +244,25 @@ def test_released_defaults_and_pre_release_options_train_and_resume(proc_data, t
     assert torch.equal(a[1].rotations, b[1].rotations)
 
 
+@pytest.mark.parametrize("options", [["tree-neighbors"], ["released-pooling"], ["tree-neighbors", "released-pooling"]])
+def test_released_topology_options_train_and_sample(proc_dir, tmp_path, options):
+    cfg = tiny_cfg(*options)
+    data = prepare_data(proc_dir, cfg, cache=False)
+    h = data.hierarchy
+    if "released-pooling" in options:
+        assert h.levels[-1].root_motion is not None and h.edge_counts[-1] <= 2  # specials reach the coarsest level
+    if "tree-neighbors" in options:
+        sk = data.skeleton
+        for j in range(sk.n_joints):  # edges: self + parent + children only
+            kin = {j, *sk.children(j)} | ({int(sk.parents[j])} if sk.parents[j] >= 0 else set())
+            assert set(h.levels[0].neighbors[j]) - {h.levels[0].root_motion, *h.levels[0].contacts} == kin
+    tr = make_trainer(data, tmp_path, cfg=cfg)
+    tr.train(2)
+    assert all(np.isfinite(v) for v in tr.last_losses.values())
+    ckpt = tr.save_checkpoint()
+    assert sample_motions(ckpt, 1)[0].n_frames == 16
+
+
 def test_released_contact_loss_measures_the_ankles_in_data_units(proc_data):
     from modi.modi_model.losses import foot_contact_speed_loss
 
@@ -356,3 +375,7 @@ def test_cli_released_options_reach_the_config():
     args = parser.parse_args(["train", "procedural", "--out", "r", "--ablation", "pre-release"])
     cfg = modi_train.build_config(args)
     assert cfg.model.noise_injection is True and cfg.train.contact_loss == "squared"
+    assert (cfg.model.neighbors, cfg.model.pooling) == ("siblings", "merge")
+    args = parser.parse_args(["train", "procedural", "--out", "r", "--neighbors", "tree", "--pooling", "released"])
+    cfg = modi_train.build_config(args)
+    assert (cfg.model.neighbors, cfg.model.pooling) == ("tree", "released")

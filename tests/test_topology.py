@@ -277,3 +277,43 @@ def test_non_humanoids(shared_data, rel, n_joints, n_feet, foot_word):
     assert all(not sk.children(f) for f in feet)
     h = build_hierarchy(sk, feet)
     _check_hierarchy(h, n_joints, n_feet)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the released MoDi's topology as options: self + parent + children neighbours, root-preserving pooling
+@settings(max_examples=150, deadline=None)
+@given(trees())
+def test_released_pooling_keeps_root_and_specials_and_stops_at_two_edges(case):
+    parents, feet, dist = case
+    n = len(parents)
+    h = build_hierarchy(_tree(parents), feet=feet, neighbor_distance=dist, pooling="released")
+    assert h.edge_counts[-1] <= 2 and (n <= 2 or h.edge_counts[-2] > 2)
+    assert all(c > d for c, d in zip(h.edge_counts, h.edge_counts[1:]))  # every step pools something
+    for i, lv in enumerate(h.levels):
+        assert lv.groups[0] == [0]  # the root edge is never merged with another edge
+        assert lv.root_motion == lv.n_edge_entities and len(lv.contacts) == len(feet)  # specials on every level
+        assert lv.neighbors == neighbors_from_adjacency(lv.adjacency, dist)
+        if i:
+            fine = h.levels[i - 1]
+            assert sorted(e for g in h.pooling[i - 1] for e in g) == list(range(fine.n_entities))
+            assert len(h.pooling[i - 1]) == lv.n_entities
+            specials = [[fine.root_motion]] + [[c] for c in fine.contacts]
+            assert h.pooling[i - 1][lv.n_edge_entities:] == specials
+
+
+def test_tree_neighbours_are_self_parent_children():
+    parents = [-1, 0, 1, 1, 0]  # 0 -> 1 -> {2, 3}; 0 -> 4
+    h = build_hierarchy(_tree(parents), feet=[], siblings=False)
+    edges = h.levels[0].neighbors[:5]
+    assert edges == [[0, 1, 4, 5], [0, 1, 2, 3, 5], [1, 2], [1, 3], [0, 4, 5]]  # 5 = root motion (root's wiring)
+    with_siblings = build_hierarchy(_tree(parents), feet=[]).levels[0].neighbors
+    assert with_siblings[2] == [1, 2, 3] and with_siblings[1] == [0, 1, 2, 3, 4, 5]
+    with pytest.raises(ValueError, match="pooling"):
+        build_hierarchy(_tree(parents), feet=[], pooling="mean")
+
+
+def test_bandai_released_pooling(shared_data):
+    sk = _real(shared_data, BANDAI)
+    h = build_hierarchy(sk, sk.detect_feet(), pooling="released")
+    assert h.levels[1].names[0] == "joint_Root" and h.edge_counts[-1] <= 2
+    assert h.entity_counts[-1] == h.edge_counts[-1] + 3  # root motion and both contacts survive

@@ -6,6 +6,7 @@ import json
 import os
 from pathlib import Path
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -21,40 +22,48 @@ def register(subparsers) -> None:
                     "Multi-process: torchrun --nproc_per_node N -m modi train ... (gloo on CPU, NCCL on GPU).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("data", metavar="DATA_DIR", help="folder of BVH files, or 'procedural'")
-    p.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (created if missing)")
+    p.add_argument("--out", required=True, metavar="RUN_DIR", type=ct.output_dir, help="run folder (created if missing)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="paper",
                    help="model/optimiser preset: 'paper' (channels 256..32, batch 16, 80k iters) or 'small' (CPU)")
     p.add_argument("--ablation", action="append", choices=sorted(ABLATIONS), default=[],
                    help="paper ablation to apply (repeatable)")
     keep = argparse.SUPPRESS  # unset options keep the preset's value
-    p.add_argument("--iters", type=int, default=keep, help="total iterations (default: paper 80000, small 5000)")
-    p.add_argument("--batch", type=int, default=keep,
+    p.add_argument("--iters", type=ct.iters_int, default=keep, help="total iterations (default: paper 80000, small 5000)")
+    p.add_argument("--batch", type=ct.batch_int, default=keep,
                    help="total batch over all processes (default: paper 16, small 8)")
-    p.add_argument("--lr", type=float, default=keep, help="Adam learning rate for G and D (default: 0.002)")
-    p.add_argument("--mixing", type=float, default=keep, help="style-mixing probability (default: 0.9)")
-    p.add_argument("--frames", type=int, default=keep, help="frames per training window (default: 64)")
-    p.add_argument("--fps", type=float, default=keep, help="resample clips to this rate (default: 30)")
-    p.add_argument("--stride", type=int, default=keep, help="frames between training windows (default: 8)")
+    p.add_argument("--lr", type=ct.lr_float, default=keep, help="Adam learning rate for G and D (default: 0.002)")
+    p.add_argument("--mixing", type=ct.probability, default=keep, help="style-mixing probability (default: 0.9)")
+    p.add_argument("--frames", type=ct.multiple_of(16, 16, 4096), default=keep,
+                   help="frames per training window, a multiple of 16 (default: 64)")
+    p.add_argument("--fps", type=ct.fps_float, default=keep, help="resample clips to this rate (default: 30)")
+    p.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=keep, help="frames between training windows (default: 8)")
     p.add_argument("--feet", nargs="+", metavar="JOINT", default=keep, help="contact joints (default: detected)")
     p.add_argument("--drop", nargs="+", metavar="REGEX", default=keep,
                    help="drop joints whose names match (default: fingers and face joints)")
     p.add_argument("--keep", nargs="+", metavar="JOINT", default=keep, help="joints never dropped (default: none)")
-    p.add_argument("--seed", type=int, default=keep, help="training seed (default: 0)")
+    p.add_argument("--seed", type=ct.seed_int, default=keep, help="training seed (default: 0)")
     p.add_argument("--noise-injection", action="store_const", const=True, default=keep,
                    help="add StyleGAN2 per-frame noise in every styled conv (default: off, as the released MoDi)")
     p.add_argument("--contact-loss", choices=("released", "squared"), default=keep,
                    help="contact consistency: 'released' = s(c) x ankle speed per frame in data units (the authors' "
                         "code); 'squared' = s(c) x speed^2 in body heights/s on the contact joints (paper eq. 3) "
                         "(default: released)")
-    p.add_argument("--log-every", type=int, default=keep, help="steps between logged scalars (default: 10)")
-    p.add_argument("--sample-every", type=int, default=keep,
+    p.add_argument("--neighbors", choices=("siblings", "tree"), default=keep,
+                   help="skeletal-conv neighbours: 'siblings' = edges sharing a joint; 'tree' = self + parent + "
+                        "children, as the released MoDi (default: siblings)")
+    p.add_argument("--pooling", choices=("merge", "released"), default=keep,
+                   help="pooling hierarchy: 'merge' = down to one entity; 'released' = root edge never pooled, "
+                        "root-motion and contact entities kept to the coarsest level, stop at <= 2 edges "
+                        "(default: merge)")
+    p.add_argument("--log-every", type=ct.positive_int, default=keep, help="steps between logged scalars (default: 10)")
+    p.add_argument("--sample-every", type=ct.nonneg_int, default=keep,
                    help="steps between sample grids, 0 = never (default: paper 1000, small 500)")
-    p.add_argument("--ckpt-every", type=int, default=keep,
+    p.add_argument("--ckpt-every", type=ct.nonneg_int, default=keep,
                    help="steps between checkpoint writes (default: paper 500, small 250)")
     p.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CKPT",
                    help="continue from CKPT (default RUN_DIR/checkpoint.pt); config comes from the checkpoint")
-    p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
-    p.add_argument("--threads", type=int, default=argparse.SUPPRESS,
+    p.add_argument("--device", default="auto", type=ct.device_or_auto, help="cpu, cuda, cuda:N or auto")
+    p.add_argument("--threads", type=ct.threads_int, default=argparse.SUPPRESS,
                    help="torch CPU threads (default: torch's choice; 1 is fastest on a busy machine)")
     p.add_argument("--no-tensorboard", action="store_true", help="do not write TensorBoard event files")
     p.add_argument("--no-cache", action="store_true", help="rebuild the dataset instead of using the cache")
@@ -82,6 +91,7 @@ def _device(name: str):
 def build_config(args: argparse.Namespace):
     from modi.modi_model.config import make_config
 
+    ct.unique_names("--feet", getattr(args, "feet", None))
     overrides = {}
     for flag, key in (("iters", "train.iters"), ("batch", "train.batch"), ("lr", "train.lr"),
                       ("mixing", "train.mixing"), ("frames", "data.n_frames"), ("fps", "data.fps"),
@@ -89,7 +99,8 @@ def build_config(args: argparse.Namespace):
                       ("drop", "data.drop_patterns"), ("keep", "data.keep_joints"),
                       ("log_every", "train.log_every"), ("sample_every", "train.sample_every"),
                       ("ckpt_every", "train.ckpt_every"), ("noise_injection", "model.noise_injection"),
-                      ("contact_loss", "train.contact_loss")):
+                      ("contact_loss", "train.contact_loss"), ("neighbors", "model.neighbors"),
+                      ("pooling", "model.pooling")):
         value = getattr(args, flag, None)
         if value is not None:
             overrides[key] = value

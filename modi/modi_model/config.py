@@ -37,6 +37,11 @@ class ModelConfig:
     scaler: str = "conv"  # "conv" (convolutional scaler, MoDi) | "pool" (skeletal pooling/unpooling ablation)
     skeleton_aware: bool = True  # False = the non-skeleton-aware pseudo-image ablation (dense 2D convs)
     noise_injection: bool = False  # released MoDi: none; True = StyleGAN2 per-frame noise in every styled conv
+    # skeleton topology (modi.topology.build_hierarchy): "siblings" = edges sharing a joint are neighbours (ours),
+    # "tree" = self + parent + children (the released code); "merge" pooling goes down to one entity (ours),
+    # "released" keeps the root edge unpooled and the root-motion/contact entities to the coarsest level (<= 2 edges)
+    neighbors: str = "siblings"
+    pooling: str = "merge"
     mbstd_group: int = 4
 
     def validate(self) -> None:
@@ -50,6 +55,10 @@ class ModelConfig:
             raise ValueError(f"model.kernel_size must be odd and positive, not {self.kernel_size}")
         if self.latent_dim < 1 or self.n_mlp < 1:
             raise ValueError("model.latent_dim and model.n_mlp must be positive")
+        if self.neighbors not in ("siblings", "tree"):
+            raise ValueError(f"model.neighbors must be 'siblings' or 'tree', not {self.neighbors!r}")
+        if self.pooling not in ("merge", "released"):
+            raise ValueError(f"model.pooling must be 'merge' or 'released', not {self.pooling!r}")
 
 
 @dataclass
@@ -188,6 +197,9 @@ ABLATIONS = {
     "noise": {"model.noise_injection": True},
     "squared-contact": {"train.contact_loss": "squared"},
     "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared"},
+    # the released code's skeleton topology (not the default: not yet measured on our data)
+    "tree-neighbors": {"model.neighbors": "tree"},
+    "released-pooling": {"model.pooling": "released"},
 }
 
 

@@ -116,7 +116,8 @@ def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | 
 def build_hierarchy_for(codec: MotionCodec, cfg: MoDiConfig) -> Any:
     from modi.topology import build_hierarchy
 
-    return build_hierarchy(codec.skeleton, codec.feet, neighbor_distance=cfg.model.neighbor_distance)
+    return build_hierarchy(codec.skeleton, codec.feet, neighbor_distance=cfg.model.neighbor_distance,
+                           siblings=cfg.model.neighbors == "siblings", pooling=cfg.model.pooling)
 
 
 def build_models(cfg: MoDiConfig, levels: list[LevelSpec], n_channels: int) -> tuple[Generator, Discriminator]:
