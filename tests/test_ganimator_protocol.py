@@ -6,14 +6,13 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 
 from modi.errors import UserError
 from modi.ganimator import config as gconfig
 from modi.ganimator.data import features_to_motion, read_clip, sequence_from_clip
-from modi.ganimator.networks import EntityBias, GanimatorModel
+from modi.ganimator.networks import EntityBias
 from modi.ganimator.training import Trainer, atomic_save, load_model, read_checkpoint, run_summary, train
 
 from test_ganimator import clip_seq, synthetic_clip, tiny_cfg, untrained_model
@@ -21,6 +20,16 @@ from test_ganimator import clip_seq, synthetic_clip, tiny_cfg, untrained_model
 pytestmark = [pytest.mark.filterwarnings("ignore::RuntimeWarning"), pytest.mark.usefixtures("one_torch_thread")]
 
 PARENTS = [-1, 0, 1, 2, 0, 4, 5]   # a root with two 3-joint legs
+
+
+def _exit_code(argv) -> int:
+    """``modi`` exit code, whether the mistake is caught while parsing (SystemExit) or while running."""
+    from modi.cli import main
+
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return int(exc.code)
 
 
 # ------------------------------------------------------------------------------------------- schedule
@@ -104,7 +113,7 @@ def test_cli_train_selects_budgets_and_loss_options(tmp_path, capsys):
     cfg2 = gconfig.GanimatorConfig.from_dict(read_checkpoint(tmp_path / "run2")["model"]["config"])
     got = (cfg2.contact_rescale, cfg2.contact_first_frame, cfg2.bias_init, cfg2.sixd)
     assert got == (False, "zero", "uniform", "rows")
-    assert main(args[:2] + [str(bvh), "--out", str(tmp_path / "r3"), "--block-iters", "2,x"]) == 2
+    assert _exit_code(args[:2] + [str(bvh), "--out", str(tmp_path / "r3"), "--block-iters", "2,x"]) == 2
 
 
 # ------------------------------------------------------------------------------------------- loss-level options
@@ -358,8 +367,8 @@ def test_cli_evaluate_both_protocols_report_samples_and_length(tmp_path, capsys)
     ours = json.loads(capsys.readouterr().out)
     assert ours["protocol"] == "ours" and all(f["samples"] == 2 and f["frames"] == 40 for f in ours["metrics"].values())
     assert ours["iterations_per_block"] == [2, 2]
-    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "0"]) == 2
-    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--frames", "10"]) == 2
+    assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "0"]) == 2
+    assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--frames", "10"]) == 2
 
 
 def test_paper_protocol_on_a_real_clip(shared_data):
