@@ -233,6 +233,32 @@ def test_gradients_independent_of_thread_count(kind, threads):
 
 
 @needs_ext
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("kind", KINDS)
+def test_narrow_layers_fp32_match_reference(kind, threads):
+    """GANimator's shapes (1-9 channels, kernel 5, reflect, batch 1-2, enough frames for the AVX2 kernels): the
+    narrow-layer weight gradient and the partial-panel rows, with direct and thread-local accumulation."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        rng = random.Random(200 + threads)
+        for _ in range(6):
+            args, kw = make_case(kind, rng, dtype=torch.float32, n_joints=rng.randint(2, 30), distance=2, U=5,
+                                 B=rng.randint(1, 2), cin=rng.randint(1, 9), cout=rng.randint(1, 9),
+                                 T=rng.randint(17, 48), padding="reflect")
+            leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
+            for t in leaves:
+                t.requires_grad_(True)
+            ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
+            torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
+            g = torch.randn_like(yr)
+            for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
+                torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+    finally:
+        torch.set_num_threads(old)
+
+
+@needs_ext
 @pytest.mark.parametrize("cpu_kernel", ["auto", "blas"])
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradients_fp32_match_reference(monkeypatch, kind, cpu_kernel):

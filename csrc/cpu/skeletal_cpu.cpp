@@ -513,9 +513,11 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
 // Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
 template <typename T>
 inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_acc, int64_t L) {
-  T dot = T(0);
-  for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
-  if (gs_acc) *gs_acc += dot;
+  if (gs_acc) {
+    T dot = T(0);
+    for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
+    *gs_acc += dot;
+  }
   if (gx_row)
     for (int64_t t = 0; t < L; ++t) gx_row[t] = gxp[t] * s;
 }
@@ -532,6 +534,8 @@ namespace fastk {
 constexpr int64_t MR = 4, NR = 24;  // NN tile: 4 output rows x 24 columns = 12 ymm accumulators
 constexpr int64_t TM = 4, TK = 3;   // NT tile: 4 x 3 dot products, 8 lanes each
 constexpr int64_t kMinFrames = 16;  // below this the padded columns waste more than the kernels gain
+constexpr int64_t kNarrowRows = 10; // weight-gradient rows up to which the indirect NT kernel beats BLAS (measured:
+                                    // 9 rows 1.2x faster at MoDi's batch 16, 12 rows 1.4x slower; GANimator 3-9)
 
 inline bool wanted() {
 #if defined(__x86_64__)
@@ -588,6 +592,31 @@ __attribute__((target("avx2,fma"))) void nn_kernel(int64_t K, const float* a, co
   _mm256_storeu_ps(c, c30);
   _mm256_storeu_ps(c + 8, c31);
   _mm256_storeu_ps(c + 16, c32);
+}
+
+// The last panel's live rows only (M % 4 of them): narrow layers (GANimator's 5-9 channels) would otherwise spend up
+// to 3/4 of that panel's multiply-adds on padding rows.
+template <int R>
+__attribute__((target("avx2,fma"))) void nn_rows(int64_t K, const float* a, const float* const* ptr, int64_t col,
+                                                  float* c, int64_t ldc) {
+  __m256 acc[R][3];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm256_setzero_ps();
+  for (int64_t k = 0; k < K; ++k) {
+    const float* p = ptr[k] + col;
+    const __m256 b0 = _mm256_loadu_ps(p), b1 = _mm256_loadu_ps(p + 8), b2 = _mm256_loadu_ps(p + 16);
+    for (int r = 0; r < R; ++r) {
+      const __m256 av = _mm256_broadcast_ss(a + r);
+      acc[r][0] = _mm256_fmadd_ps(av, b0, acc[r][0]);
+      acc[r][1] = _mm256_fmadd_ps(av, b1, acc[r][1]);
+      acc[r][2] = _mm256_fmadd_ps(av, b2, acc[r][2]);
+    }
+    a += 4;
+  }
+  for (int r = 0; r < R; ++r) {
+    _mm256_storeu_ps(c + r * ldc, acc[r][0]);
+    _mm256_storeu_ps(c + r * ldc + 8, acc[r][1]);
+    _mm256_storeu_ps(c + r * ldc + 16, acc[r][2]);
+  }
 }
 
 __attribute__((target("avx2,fma"))) inline float hsum(__m256 v) {
@@ -647,20 +676,54 @@ __attribute__((target("avx2,fma"))) void nt_kernel(const float* const* l, const 
 }
 #else
 void nn_kernel(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
+template <int R>
+void nn_rows(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
 void nt_kernel(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t) {}
 #endif
 
-// Edge tiles of the NT product (fewer than 4 rows or 3 pointer rows): plain loops.
+// Edge tiles of the NT product (fewer than 4 rows or 3 pointer rows), vectorised like the full tile.  GANimator's
+// layers have 3-9 output channels, so an edge row is a large share of the weight gradient there.
+#if defined(__x86_64__)
+template <int MT, int KT>
+__attribute__((target("avx2,fma"))) void nt_tile(const float* const* l, const float* const* p, int64_t c0, int64_t n,
+                                                  float* C, int64_t ldc) {
+  __m256 a[MT][KT];
+  for (int i = 0; i < MT; ++i)
+    for (int j = 0; j < KT; ++j) a[i][j] = _mm256_setzero_ps();
+  int64_t c = c0;
+  const int64_t end = c0 + n;
+  for (; c + 8 <= end; c += 8) {
+    __m256 X[MT], Y[KT];
+    for (int i = 0; i < MT; ++i) X[i] = _mm256_loadu_ps(l[i] + c);
+    for (int j = 0; j < KT; ++j) Y[j] = _mm256_loadu_ps(p[j] + c);
+    for (int i = 0; i < MT; ++i)
+      for (int j = 0; j < KT; ++j) a[i][j] = _mm256_fmadd_ps(X[i], Y[j], a[i][j]);
+  }
+  if (c < end) {
+    const __m256i m = _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(end - c)),
+                                         _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+    __m256 X[MT], Y[KT];
+    for (int i = 0; i < MT; ++i) X[i] = _mm256_maskload_ps(l[i] + c, m);
+    for (int j = 0; j < KT; ++j) Y[j] = _mm256_maskload_ps(p[j] + c, m);
+    for (int i = 0; i < MT; ++i)
+      for (int j = 0; j < KT; ++j) a[i][j] = _mm256_fmadd_ps(X[i], Y[j], a[i][j]);
+  }
+  for (int i = 0; i < MT; ++i)
+    for (int j = 0; j < KT; ++j) C[i * ldc + j] += hsum(a[i][j]);
+}
+
 void nt_edge(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n, float* C,
              int64_t ldc) {
-  for (int64_t i = 0; i < mr; ++i)
-    for (int64_t j = 0; j < kr; ++j) {
-      float acc = 0.f;
-      const float *a = l[i] + c0, *b = p[j] + c0;
-      for (int64_t t = 0; t < n; ++t) acc += a[t] * b[t];
-      C[i * ldc + j] += acc;
-    }
+  using Fn = void (*)(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t);
+  static constexpr Fn table[TM][TK] = {{nt_tile<1, 1>, nt_tile<1, 2>, nt_tile<1, 3>},
+                                       {nt_tile<2, 1>, nt_tile<2, 2>, nt_tile<2, 3>},
+                                       {nt_tile<3, 1>, nt_tile<3, 2>, nt_tile<3, 3>},
+                                       {nt_tile<4, 1>, nt_tile<4, 2>, nt_tile<4, 3>}};
+  table[mr - 1][kr - 1](l, p, c0, n, C, ldc);
 }
+#else
+void nt_edge(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
+#endif
 
 // acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
 // columns past N and rows past M are computed and ignored).  Column chunks keep the pointed-to data in L2.
@@ -674,8 +737,17 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
   const int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
   for (int64_t t0 = 0; t0 < tiles; t0 += chunk) {
     const int64_t t1 = std::min(tiles, t0 + chunk);
-    for (int64_t pn = 0; pn < panels; ++pn)
-      for (int64_t t = t0; t < t1; ++t) nn_kernel(K, apack + pn * K * MR, ptr, t * NR, acc + pn * MR * ldacc + t * NR, ldacc);
+    for (int64_t pn = 0; pn < panels; ++pn) {
+      const int64_t live = std::min<int64_t>(MR, M - pn * MR);
+      const float* ap = apack + pn * K * MR;
+      float* cp = acc + pn * MR * ldacc;
+      for (int64_t t = t0; t < t1; ++t) {
+        if (live == 4) nn_kernel(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+        else if (live == 3) nn_rows<3>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+        else if (live == 2) nn_rows<2>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+        else nn_rows<1>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+      }
+    }
   }
 }
 
@@ -1164,19 +1236,26 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
       }
     });
   }
-  // The fp32 indirect kernels win on the input gradient when there are enough frames (little padding waste);
-  // the weight gradient stays on BLAS, whose packed NT product beats our dot-product kernel.
-  bool fast_input = false;
+  // The fp32 indirect kernels win on the input gradient when there are enough frames (little padding waste).
+  // The weight gradient stays on BLAS, whose packed NT product beats our dot-product kernel -- except for narrow
+  // layers (GANimator: 3-9 channels per entity), where BLAS gets a 3-9-row product after gathering a panel as
+  // large as the product itself, and the indirect kernel, which reads the inputs in place, wins.
+  bool fast_input = false, fast_weight = false;
   if constexpr (std::is_same_v<T, float>) {
-    if ((gx || gs) && fastk::wanted() && g.Tin >= fastk::kMinFrames) {
-      fastk::backward(g, csr, g.kind == kUp ? gv.data() : gy, g.kind == kUp ? Scale<float>{} : dsc, x, w, style, gx,
-                      nullptr, gs ? gs_part.data() : nullptr, direct_gw, nullptr, wsize);
-      fast_input = true;
+    const bool fast_ok = fastk::wanted() && g.Tin >= fastk::kMinFrames;
+    fast_weight = gw && fast_ok && (g.kind == kUp ? Ci : Co) <= fastk::kNarrowRows;
+    if (((gx || gs) && fast_ok) || fast_weight) {
+      const bool fin = (gx || gs) && fast_ok;
+      fastk::backward(g, csr, g.kind == kUp ? gv.data() : gy, g.kind == kUp ? Scale<float>{} : dsc, x, w, style,
+                      fin ? gx : nullptr, fast_weight ? gw : nullptr, fin && gs ? gs_part.data() : nullptr,
+                      g.kind != kUp && direct_gw, gw_acc.empty() ? nullptr : gw_acc.data(), wsize);
+      fast_input = fin;
     }
   }
   T* const gx_b = fast_input ? nullptr : gx;  // what is left for the BLAS passes
   T* const gs_b = fast_input ? nullptr : gs;
-  if (!gx_b && !gs_b && !gw) {
+  T* const gw_b = fast_weight ? nullptr : gw;
+  if (!gx_b && !gs_b && !gw_b) {
   } else if (g.kind == kUp) {
     const int64_t Tc = g.Tin;
     const int64_t nb = batch_tile(Bq, Tc, Ei);
@@ -1186,8 +1265,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, 2 * g.macs), [&](int64_t lo, int64_t hi) {
       BlasSequential blas_guard;
       std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
-      std::vector<T> xs(static_cast<size_t>(gw ? Ci * cols : 0));
-      T* my_gw = gw ? gw_acc.data() + at::get_thread_num() * wsize : nullptr;
+      std::vector<T> xs(static_cast<size_t>(gw_b ? Ci * cols : 0));
+      T* my_gw = gw_b ? gw_acc.data() + at::get_thread_num() * wsize : nullptr;
       for (int64_t task = lo; task < hi; ++task) {
         const int64_t bt = task / Ei, c = task % Ei;
         const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * Tc;
@@ -1205,7 +1284,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
             }
           }
         }
-        if (gw) {
+        if (gw_b) {
           const int64_t one = c;
           gather_strided<T>(xs.data(), N, x, Ci, Ei, Tc, &one, 1, b0, nbl, Tc, 1, 1, false, sty);
           gemm<T>(false, true, Ci, K, N, T(1), xs.data(), N, panel.data(), N, T(1), my_gw + p0 * Co * U, lda);
@@ -1257,7 +1336,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     // Weight gradient: for row entity j, gW_j += (gy*d)_j (Co x N) * X_j^T (N x K).  With enough entities each
     // task owns one entity and writes its pairs directly; otherwise tasks split the batch too and accumulate
     // into thread-local copies.
-    if (gw) {
+    if (gw_b) {
       const int64_t nb = batch_tile(Bq, g.Tout, direct_gw ? Bq : Eo);
       const int64_t nbt = (Bq + nb - 1) / nb;
       const int64_t maxK = csr.max_deg * Ci * U, cols = nb * g.Tout;
@@ -1269,7 +1348,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
       at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
         BlasSequential blas_guard;
         std::vector<T> panel(static_cast<size_t>(maxK * cols)), gz(static_cast<size_t>(Co * cols));
-        T* my_gw = direct_gw ? gw : gw_acc.data() + at::get_thread_num() * wsize;
+        T* my_gw = direct_gw ? gw_b : gw_acc.data() + at::get_thread_num() * wsize;
         for (int64_t task = lo; task < hi; ++task) {
           const int64_t j = direct_gw ? order[task] : task % Eo;
           const int64_t bt_lo = direct_gw ? 0 : task / Eo, bt_hi = direct_gw ? nbt : bt_lo + 1;
