@@ -367,6 +367,10 @@ def test_cli_evaluate_both_protocols_report_samples_and_length(tmp_path, capsys)
     ours = json.loads(capsys.readouterr().out)
     assert ours["protocol"] == "ours" and all(f["samples"] == 2 and f["frames"] == 40 for f in ours["metrics"].values())
     assert ours["iterations_per_block"] == [2, 2]
+    assert main(["ganimator", "generate", run, "--n", "2", "--frames", "45", "--out", str(tmp_path / "g"),
+                 "--no-gif", "--evaluate"]) == 0
+    out = capsys.readouterr().out
+    assert '"samples": 2' in out and '"frames": 45' in out
     assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "0"]) == 2
     assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--frames", "10"]) == 2
 

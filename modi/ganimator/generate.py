@@ -428,6 +428,9 @@ def generate_command(args) -> dict:
     result = {"written": written, **extra}
     if args.evaluate:
         result["metrics"] = metrics_against_sources(model, samples)
+        lengths = sorted({int(s.shape[-1]) for s in samples})
+        for f in result["metrics"].values():  # the number of samples and their length beside every figure
+            f.update(samples=len(samples), frames=lengths[0] if len(lengths) == 1 else lengths)
     print(f"{extra['mode']}: wrote {len(written)} BVH to {out}" + (f" and {extra['gif']}" if "gif" in extra else ""))
     return result
 
