@@ -320,6 +320,12 @@ def test_released_head_reads_one_level_before_the_coarsest(model):
     torch.testing.assert_close(w, enc.head(enc.fc(feats.flatten(1))).view_as(w))
     old = build_encoder(g, head="bottleneck")
     assert old.final_conv is not None and len(old.blocks) == len(old.levels) - 1
+    # the released encoder has one in-place conv per residual block (its Discriminator's default), ours the
+    # generator's count
+    assert enc.cfg.inplace_convs == 1 and all(len(b.convs) == 1 + 1 for b in enc.blocks)
+    n = g.cfg.n_inplace_convs
+    assert old.cfg.inplace_convs is None and all(len(b.convs) == n + 1 for b in old.blocks)
+    assert len(build_encoder(g, inplace_convs=None).blocks[0].convs) == n + 1
     with pytest.raises(ValueError, match="head"):
         build_encoder(g, head="wide")
 
@@ -386,10 +392,10 @@ def test_released_optimizer_and_old_checkpoints_keep_their_head(model, tmp_path)
                              optimizer="ours")
     EncoderTrainer((g, codec, None), data, tmp_path / "b.pt", cfg, progress=False).train()
     st = torch.load(tmp_path / "b.pt", weights_only=True)
-    del st["encoder_config"]["head"]  # a checkpoint written before the option existed
+    del st["encoder_config"]["head"], st["encoder_config"]["inplace_convs"]  # written before the options existed
     torch.save(st, tmp_path / "old.pt")
     bundle = load_encoder(tmp_path / "old.pt")
-    assert bundle.cfg.head == "bottleneck"
+    assert bundle.cfg.head == "bottleneck" and bundle.cfg.inplace_convs is None
     with pytest.raises(UserError, match="losses"):
         EncoderTrainConfig(losses="paper").validate()
 

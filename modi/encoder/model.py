@@ -14,7 +14,7 @@ see and 0 on the zeroed ones, so "zero because unknown" is not confused with "ze
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Sequence
 
 import torch
@@ -44,10 +44,16 @@ class EncoderConfig:
     # "bottleneck": this package's earlier head: every level + a coarsest-level conv, one ``hidden``-wide layer,
     # then W+ as an offset from w̄ (head scaled by ``head_init``).
     head: str = "released"
+    # in-place convs per residual block; None: the generator's count. The released encoder is the released
+    # Discriminator class built without n_inplace_conv, i.e. 1 (train_encoder.py); build_encoder picks that for
+    # the released head and the generator's count for the bottleneck head.
+    inplace_convs: int | None = 1
 
     def __post_init__(self) -> None:
         if self.head not in ENCODER_HEADS:
             raise ValueError(f"encoder head must be one of {', '.join(ENCODER_HEADS)}, not {self.head!r}")
+        if self.inplace_convs is not None and self.inplace_convs < 1:
+            raise ValueError(f"inplace_convs must be >= 1 or None, not {self.inplace_convs}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -56,7 +62,7 @@ class EncoderConfig:
     def from_dict(cls, d: dict[str, Any]) -> "EncoderConfig":
         # fields missing from older checkpoints take their defaults (``hidden``), or the value those checkpoints
         # were built with (``head``: they all have the bottleneck head)
-        return cls(**{"head": "bottleneck", **d})
+        return cls(**{"head": "bottleneck", "inplace_convs": None, **d})
 
 
 def _scaled_levels(levels: Sequence[LevelSpec], mult: float) -> list[LevelSpec]:
@@ -105,10 +111,11 @@ class MotionEncoder(nn.Module):
         fine = lv[-1]
         in_ch = cfg.in_channels + (1 if cfg.mask_channel else 0)
         self.from_motion = _EntityProjection(model_cfg, fine, in_ch)
+        block_cfg = model_cfg if cfg.inplace_convs is None else replace(model_cfg, n_inplace_convs=cfg.inplace_convs)
         if cfg.head == "released":
             # blocks down to level 1 (one before the coarsest; the finest when there are only two levels)
             read = min(1, len(lv) - 1)
-            self.blocks = nn.Sequential(*[ResBlock(model_cfg, lv[i], lv[i - 1])
+            self.blocks = nn.Sequential(*[ResBlock(block_cfg, lv[i], lv[i - 1])
                                           for i in range(len(lv) - 1, read, -1)])
             src = lv[read]
             width = cfg.n_latent * cfg.latent_dim
@@ -118,7 +125,7 @@ class MotionEncoder(nn.Module):
             self.register_buffer("w_avg", torch.zeros(cfg.latent_dim) if w_avg is None else w_avg.detach().clone())
             self.input_shape = (cfg.in_channels, fine.n_entities, fine.n_frames)
             return
-        self.blocks = nn.Sequential(*[ResBlock(model_cfg, lv[i], lv[i - 1]) for i in range(len(lv) - 1, 0, -1)])
+        self.blocks = nn.Sequential(*[ResBlock(block_cfg, lv[i], lv[i - 1]) for i in range(len(lv) - 1, 0, -1)])
         lv0 = lv[0]
         if model_cfg.skeleton_aware:
             from modi_ext.layers import SkeletalConv
@@ -153,16 +160,19 @@ class MotionEncoder(nn.Module):
 
 def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | None = None,
                   mask_channel: bool | None = None, hidden: int | None = None,
-                  head: str = "released") -> MotionEncoder:
+                  head: str = "released", inplace_convs: int | None | str = "auto") -> MotionEncoder:
     """An encoder matching generator ``g`` (its levels, channels, style count and w̄); ``head``: see
-    :class:`EncoderConfig` (``hidden`` applies to the bottleneck head only)."""
+    :class:`EncoderConfig` (``hidden`` applies to the bottleneck head only). ``inplace_convs="auto"``: 1 with the
+    released head (as the released encoder), the generator's count (None) with the bottleneck head."""
+    if inplace_convs == "auto":
+        inplace_convs = 1 if head == "released" else None
     k, e, t = g.output_shape
     if prefix_frames is not None and not 0 < prefix_frames < t:
         raise ValueError(f"prefix_frames must be in 1..{t - 1}, got {prefix_frames}")
     cfg = EncoderConfig(in_channels=k, n_latent=g.n_latent, latent_dim=g.latent_dim,
                         channel_multiplier=channel_multiplier,
                         mask_channel=(prefix_frames is not None) if mask_channel is None else bool(mask_channel),
-                        prefix_frames=prefix_frames, hidden=hidden, head=head)
+                        prefix_frames=prefix_frames, hidden=hidden, head=head, inplace_convs=inplace_convs)
     from modi.latent.space import mean_w
 
     return MotionEncoder(g.cfg, g.levels, cfg, w_avg=mean_w(g).cpu()).to(next(g.parameters()).device)
