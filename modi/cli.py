@@ -2,25 +2,43 @@
 
 Subcommands live one module per family in ``modi.commands``; each module exposes
 ``register(subparsers)`` that adds its parsers and sets ``func`` on them. ``main``
-turns user mistakes (``UserError`` and friends) into one line on stderr and exit code 2.
+turns user mistakes (``UserError`` and friends) into one line on stderr and exit code 2:
+
+* bad arguments are refused by the argparse types of ``modi.cli_types`` while parsing, naming the option, in one
+  line (``ModiArgumentParser.error`` prints no usage block; ``--help`` has it);
+* ``UserError`` and OS errors about files (missing, a folder, not a folder, no permission, disk full) are one line;
+* Ctrl-C at any moment -- while torch is imported, while parsing, while running -- prints ``modi: interrupted`` and
+  exits 130 (long-running commands catch it earlier and save a checkpoint);
+* anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
 from __future__ import annotations
 
 import argparse
-import importlib
-import pkgutil
+import os
 import sys
 
 from modi.errors import UserError
 
+TRACEBACK_ENV = "MODI_TRACEBACK"
+
+
+class ModiArgumentParser(argparse.ArgumentParser):
+    """argparse with a one-line error: ``modi CMD: error: argument --x: why (see 'modi CMD --help')``."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    import importlib
+    import pkgutil
+
+    parser = ModiArgumentParser(
         prog="modi",
         description="MoDi and GANimator motion synthesis: data tools, training, generation, evaluation.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=ModiArgumentParser)
     import modi.commands as commands
 
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
@@ -31,25 +49,51 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def _say(message: str) -> None:
+    print(f"modi: error: {message}", file=sys.stderr, flush=True)
+
+
+def _run(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)
     if func is None:
         parser.print_help()
         return 2
+    return int(func(args) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
     try:
-        result = func(args)
+        return _run(argv)
     except UserError as exc:
-        print(f"modi: error: {exc}", file=sys.stderr)
-        return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"modi: error: {exc.strerror or exc}: {exc.filename}", file=sys.stderr)
+        _say(str(exc))
         return 2
     except KeyboardInterrupt:
-        print("modi: interrupted", file=sys.stderr)
+        print("\nmodi: interrupted", file=sys.stderr, flush=True)
         return 130
-    return int(result or 0)
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError, PermissionError) as exc:
+        what = {FileNotFoundError: "no such file or folder", IsADirectoryError: "is a folder, expected a file",
+                NotADirectoryError: "a part of the path is a file, not a folder",
+                FileExistsError: "already exists", PermissionError: "permission denied"}.get(type(exc))
+        _say(f"{exc.filename}: {what or exc.strerror}" if exc.filename else str(exc))
+        return 2
+    except MemoryError:
+        _say("out of memory: ask for fewer or shorter motions, or a smaller --batch")
+        return 2
+    except OSError as exc:  # disk full, read-only file system, ...: the environment, not a bug
+        _say(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
+        return 2
+    except Exception as exc:  # noqa: BLE001 - last resort: a bug
+        if type(exc).__name__ == "OutOfMemoryError":  # torch's (CUDA) allocator
+            _say("out of device memory: ask for fewer or shorter motions, or a smaller --batch")
+            return 2
+        if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
+            raise
+        text = str(exc).strip().splitlines()
+        print(f"modi: internal error (a bug): {type(exc).__name__}: {text[0][:300] if text else ''} "
+              f"-- run again with {TRACEBACK_ENV}=1 for the traceback", file=sys.stderr, flush=True)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

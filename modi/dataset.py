@@ -34,7 +34,7 @@ from modi.representation import MotionRepresentation
 from modi.skeleton import Skeleton
 from modi.topology import EntityLayout, PoolingHierarchy, build_hierarchy
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: skeleton offsets from the clip nearest the median, not the first file
 
 
 def default_cache_dir() -> Path:
@@ -361,46 +361,70 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
 
         iterator = tqdm(list(iterator), desc="loading BVH", unit="clip")
 
-    source_skeleton: Skeleton | None = None
-    skeleton: Skeleton | None = None
-    kept: list[int] = []
-    feet: list[int] = []
-    rep: MotionRepresentation | None = None
-    height = 1.0
-    clips: list[ClipInfo] = []
-    chunks: dict[str, list[Tensor]] = {"train": [], "test": []}
-    clip_idx: dict[str, list[Tensor]] = {"train": [], "test": []}
-    starts_all: dict[str, list[Tensor]] = {"train": [], "test": []}
-    for ci, (path, rel, sha, split) in enumerate(iterator):
+    # Pass 1: every clip on the reduced skeleton at the dataset rate. Joint reduction depends only on names and
+    # hierarchy, which every file must share, so the first file may decide it.
+    kept: list[int] | None = None
+    first: Skeleton | None = None
+    loaded: list[tuple[str, str, str, float, int, Skeleton, Any]] = []
+    for path, rel, sha, split in iterator:
         try:
             b = bvh_io.load(path)
         except UserError as exc:
             raise UserError(f"{rel}: {exc}") from None
         motion = motion_from_bvh(b, rel)
-        if source_skeleton is None:
-            source_skeleton = motion.skeleton
+        if first is None:
+            first = motion.skeleton
             if config.keep_all_joints:
-                skeleton, kept = source_skeleton, list(range(source_skeleton.n_joints))
+                kept = list(range(first.n_joints))
             else:
                 try:
-                    skeleton, kept = source_skeleton.reduce(config.drop_patterns, config.keep_joints)
+                    _, kept = first.reduce(config.drop_patterns, config.keep_joints)
                 except (KeyError, ValueError) as exc:
                     raise UserError(f"joint reduction: {exc}") from None
-            try:
-                feet = skeleton.detect_feet(config.feet) if config.feet is not None else skeleton.detect_feet()
-            except KeyError as exc:
-                raise UserError(f"feet: {exc}") from None
-            height = skeleton.height()
-            rep = MotionRepresentation(skeleton, feet, rotation=config.rotation, root=config.root,
-                                       velocity_factor=config.velocity_factor, height_factor=config.height_factor)
-        else:
-            _check_same_skeleton(source_skeleton, motion.skeleton, rel, height)
-        assert skeleton is not None and rep is not None
+        elif motion.skeleton.names != first.names or motion.skeleton.parents != first.parents:
+            raise UserError(f"{rel}: skeleton differs from the first file's ({motion.skeleton.n_joints} vs "
+                            f"{first.n_joints} joints or different names/hierarchy); a dataset needs one skeleton")
+        assert kept is not None
+        source = motion.skeleton
         if kept != list(range(motion.skeleton.n_joints)):
             motion = motion.subset(kept)
         source_fps, source_frames = float(motion.fps), motion.n_frames
         if abs(source_fps - config.fps) > 1e-3 * config.fps:
             motion = motion.resample(config.fps)
+        loaded.append((rel, sha, split, source_fps, source_frames, source, motion))
+
+    # The dataset's skeleton is the clip whose bone offsets are closest to the per-joint median over all clips
+    # (its file's rest definition, end sites included). Offsets then depend neither on file order nor on one
+    # odd clip: a 1-frame bind pose whose root OFFSET is a world position, or a clip with stretched bones, is
+    # outvoted by the others instead of setting the bones of every generated motion.
+    offs = np.stack([m.skeleton.offsets for *_, m in loaded])  # (N, J, 3)
+    median = np.median(offs, axis=0)
+    far = np.abs(offs - median[None]).max(axis=(1, 2))
+    pick = int(np.lexsort((np.arange(len(loaded)), far))[0])  # nearest the median; ties: the first sorted path
+    skeleton = loaded[pick][-1].skeleton
+    source_skeleton = loaded[pick][5]
+    height = skeleton.height()
+    try:
+        feet = skeleton.detect_feet(config.feet) if config.feet is not None else skeleton.detect_feet()
+    except KeyError as exc:
+        raise UserError(f"feet: {exc}") from None
+    if len(set(feet)) != len(feet):
+        dup = sorted({skeleton.names[f] for f in feet if feet.count(f) > 1})
+        raise UserError(f"--feet: joint {', '.join(dup)} is given twice")
+    if 0 in feet:
+        raise UserError(f"--feet: the root joint {skeleton.names[0]} cannot be a foot (contacts are measured on "
+                        "the feet relative to the ground while the root carries the trajectory)")
+    rep = MotionRepresentation(skeleton, feet, rotation=config.rotation, root=config.root,
+                               velocity_factor=config.velocity_factor, height_factor=config.height_factor)
+
+    # Pass 2: contacts and windows on that one skeleton.
+    clips: list[ClipInfo] = []
+    chunks: dict[str, list[Tensor]] = {"train": [], "test": []}
+    clip_idx: dict[str, list[Tensor]] = {"train": [], "test": []}
+    starts_all: dict[str, list[Tensor]] = {"train": [], "test": []}
+    for ci, (rel, sha, split, source_fps, source_frames, _, motion) in enumerate(loaded):
+        if ci != pick:
+            _check_same_skeleton(skeleton, motion.skeleton, rel, height)
         rot = motion.rotations.to(torch.float64)
         rootp = motion.root_positions.to(torch.float64)
         T = rot.shape[0]
@@ -419,8 +443,8 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
         chunks[split].append(win.to(dtype))
         clip_idx[split].append(torch.full((len(starts),), ci, dtype=torch.int64))
         starts_all[split].append(torch.tensor(starts, dtype=torch.int64))
+    del loaded
 
-    assert rep is not None and skeleton is not None and source_skeleton is not None
     K, E, W = rep.K, rep.n_entities, config.window
 
     def cat(split: str) -> tuple[Tensor, Tensor, Tensor]:
@@ -456,8 +480,8 @@ def _check_same_skeleton(ref: Skeleton, sk: Skeleton, rel: str, height: float) -
                         "or different names/hierarchy); a dataset needs one skeleton")
     diff = np.abs(sk.offsets[1:] - ref.offsets[1:]).max() if sk.n_joints > 1 else 0.0
     if diff > 0.01 * height:
-        warnings.warn(f"{rel}: bone offsets differ from the first file's by up to {diff:.3g}; "
-                      "using the first file's", stacklevel=3)
+        warnings.warn(f"{rel}: bone offsets differ from the dataset's (the clip nearest the median of all clips) "
+                      f"by up to {diff:.3g}; using the dataset's", stacklevel=3)
 
 
 # ================================================================================================= cache

@@ -5,6 +5,7 @@ import argparse
 import time
 from typing import Any
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -13,11 +14,11 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     from modi.dataset import DatasetConfig
 
     d = DatasetConfig()
-    p.add_argument("--fps", type=float, default=d.fps, help="resample every clip to this frame rate")
-    p.add_argument("--window", type=int, default=d.window, help="frames per training window")
-    p.add_argument("--stride", type=int, default=d.stride, help="frames between consecutive window starts")
-    p.add_argument("--test-fraction", type=float, default=d.test_fraction, help="fraction of FILES held out")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of the train/test file split")
+    p.add_argument("--fps", type=ct.fps_float, default=d.fps, help="resample every clip to this frame rate")
+    p.add_argument("--window", type=ct.int_range(1, ct.MAX_FRAMES), default=d.window, help="frames per training window")
+    p.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=d.stride, help="frames between consecutive window starts")
+    p.add_argument("--test-fraction", type=ct.float_range(0.0, 1.0, hi_inclusive=False), default=d.test_fraction, help="fraction of FILES held out")
+    p.add_argument("--seed", type=ct.seed_int, default=d.seed, help="seed of the train/test file split")
     p.add_argument("--drop", nargs="+", metavar="REGEX", default=None,
                    help="drop joints whose names match any of these regexes; none given = fingers and face joints")
     p.add_argument("--keep", nargs="+", metavar="JOINT", default=None, help="joints never dropped")
@@ -27,12 +28,13 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--root", choices=["velocity", "position"], default=d.root, help="root-motion entity encoding")
     p.add_argument("--rotation", choices=["quat", "6d"], default=d.rotation, help="rotation features (K=4 or 6)")
     p.add_argument("--no-cache", action="store_true", help="rebuild instead of reading/writing the cache")
-    p.add_argument("--cache-dir", default=None, help="cache folder (default: $MODI_CACHE or ~/.cache/modi)")
+    p.add_argument("--cache-dir", default=None, type=ct.output_dir, help="cache folder (default: $MODI_CACHE or ~/.cache/modi)")
 
 
 def config_from_args(args: argparse.Namespace) -> Any:
     from modi.dataset import DatasetConfig
 
+    ct.unique_names("--feet", args.feet)
     return DatasetConfig(
         fps=args.fps, window=args.window, stride=args.stride, test_fraction=args.test_fraction, seed=args.seed,
         drop_patterns=args.drop, keep_joints=args.keep, keep_all_joints=args.keep_all_joints, feet=args.feet,

@@ -5,6 +5,7 @@ import argparse
 import time
 from pathlib import Path
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 DEFAULT_ITERS = 300  # ~0.65 s of CPU per iteration (small preset, 1 thread, modi_ext kernels): ~3.5 min in all
@@ -18,12 +19,12 @@ def register(subparsers) -> None:
                     "(OUT/samples: BVH, contact labels, samples.gif) next to a GIF of real training windows "
                     "(OUT/training_examples.gif).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--out", default="demo_out", metavar="DIR", help="output folder")
-    p.add_argument("--iters", type=int, default=DEFAULT_ITERS, help="training iterations")
-    p.add_argument("--clips", type=int, default=48, help="procedural clips to write")
-    p.add_argument("--n", type=int, default=8, help="motions to sample")
-    p.add_argument("--seed", type=int, default=0, help="seed for data, training and sampling")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--out", default="demo_out", type=ct.output_dir, metavar="DIR", help="output folder")
+    p.add_argument("--iters", type=ct.iters_int, default=DEFAULT_ITERS, help="training iterations")
+    p.add_argument("--clips", type=ct.int_range(2, 10_000), default=48, help="procedural clips to write")
+    p.add_argument("--n", type=ct.int_range(1, 1000), default=8, help="motions to sample")
+    p.add_argument("--seed", type=ct.seed_int, default=0, help="seed for data, training and sampling")
+    p.add_argument("--threads", type=ct.threads_int, default=1,
                    help="torch CPU threads; 1 is the robust choice for this small model (OpenMP workers spin and "
                         "slow down badly when the CPU is shared)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

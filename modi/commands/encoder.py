@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
 def _runtime(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
+    p.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
 
 
 def register(subparsers) -> None:
@@ -34,9 +36,9 @@ def register(subparsers) -> None:
                                    "prints the Table 5 metrics on the 20% test split.")
     q.add_argument("ckpt", metavar="CKPT", help="MoDi generator checkpoint")
     q.add_argument("data", metavar="DATA", help="BVH folder the generator was trained on, or 'procedural'")
-    q.add_argument("--out", required=True, metavar="ENC", help="encoder checkpoint to write (e.g. runs/enc.pt)")
-    q.add_argument("--iters", type=int, default=5000, help="training steps")
-    q.add_argument("--batch", type=int, default=16, help="batch size")
+    q.add_argument("--out", required=True, metavar="ENC", type=ct.output_file, help="encoder checkpoint to write (e.g. runs/enc.pt)")
+    q.add_argument("--iters", type=ct.iters_int, default=5000, help="training steps")
+    q.add_argument("--batch", type=ct.batch_int, default=16, help="batch size")
     q.add_argument("--losses", choices=("released", "ours"), default="released",
                    help="loss form: 'released' = the authors' code (weights rec/contact/root/pos 10/1000/20/1, root "
                         "L2 on the real root rotation, FK positions local, in data units); 'ours' = 1/100/2/0.1, "
@@ -48,23 +50,23 @@ def register(subparsers) -> None:
                    help="encoder head: 'released' = features one level before the coarsest through two linear "
                         "layers of width n_latent x latent_dim -> W+; 'bottleneck' = the earlier head (coarsest "
                         "level, one --hidden-wide layer, offset from the mean latent)")
-    q.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: from --optimizer)")
+    q.add_argument("--lr", type=ct.lr_float, default=None, help="Adam learning rate (default: from --optimizer)")
     q.add_argument("--lambda-rec", type=float, default=None, help="weight of the representation L2 "
                    "(default: from --losses)")
-    q.add_argument("--lambda-contact", type=float, default=None, help="weight of the contact BCE "
+    q.add_argument("--lambda-contact", type=ct.float_range(0.0, 1e6), default=None, help="weight of the contact BCE "
                    "(default: from --losses)")
-    q.add_argument("--lambda-root", type=float, default=None, help="weight of the root L2 (default: from --losses)")
-    q.add_argument("--lambda-pos", type=float, default=None,
+    q.add_argument("--lambda-root", type=ct.float_range(0.0, 1e6), default=None, help="weight of the root L2 (default: from --losses)")
+    q.add_argument("--lambda-pos", type=ct.float_range(0.0, 1e6), default=None,
                    help="weight of the FK-position L2 (default: from --losses)")
-    q.add_argument("--prefix", type=int, default=None, metavar="T",
+    q.add_argument("--prefix", type=ct.positive_int, default=None, metavar="T",
                    help="train the prefix variant: the encoder sees frames [0, T) only")
-    q.add_argument("--channel-multiplier", type=float, default=1.0, help="encoder width relative to the generator")
-    q.add_argument("--hidden", type=int, default=None,
+    q.add_argument("--channel-multiplier", type=ct.float_range(0.0, 64.0, lo_inclusive=False), default=1.0, help="encoder width relative to the generator")
+    q.add_argument("--hidden", type=ct.int_range(1, 8192), default=None,
                    help="bottleneck head only: width of its hidden layer (default: max(latent, channels))")
     q.add_argument("--units", default="auto", help="data length unit for the mm metrics (auto, mm, cm, m, in)")
-    q.add_argument("--seed", type=int, default=0, help="seed")
-    q.add_argument("--eval-every", type=int, default=500, help="steps between test-split evaluations (0: end only)")
-    q.add_argument("--ckpt-every", type=int, default=250, help="steps between checkpoint writes")
+    q.add_argument("--seed", type=ct.seed_int, default=0, help="seed")
+    q.add_argument("--eval-every", type=ct.nonneg_int, default=500, help="steps between test-split evaluations (0: end only)")
+    q.add_argument("--ckpt-every", type=ct.nonneg_int, default=250, help="steps between checkpoint writes")
     q.add_argument("--resume", action="store_true", help="continue ENC (same options) instead of starting anew")
     q.add_argument("--no-cache", action="store_true", help="rebuild the dataset instead of using the cache")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -83,7 +85,7 @@ def register(subparsers) -> None:
                    help="BVH folder (default: the data the encoder was trained on)")
     q.add_argument("--split", choices=("test", "train"), default="test", help="which split to score")
     q.add_argument("--units", default="auto", help="data length unit (auto, mm, cm, m, in)")
-    q.add_argument("--json", default=None, metavar="FILE", help="also write the metrics as JSON")
+    q.add_argument("--json", default=None, metavar="FILE", type=ct.output_file, help="also write the metrics as JSON")
     _runtime(q)
     q.set_defaults(func=run_eval)
 
@@ -98,15 +100,15 @@ def register(subparsers) -> None:
                             formatter_class=fmt)
         t.add_argument("enc", metavar="ENC", help="encoder checkpoint ('modi encoder train')")
         t.add_argument("inputs", metavar="INPUT", nargs=n_inputs, help="BVH file or test:I")
-        t.add_argument("--out", required=True, metavar="DIR", help="output folder")
-        t.add_argument("--start", type=int, default=0, help="first frame of the window cut from BVH inputs")
+        t.add_argument("--out", required=True, metavar="DIR", type=ct.output_dir, help="output folder")
+        t.add_argument("--start", type=ct.int_range(0, ct.MAX_FRAMES), default=0, help="first frame of the window cut from BVH inputs")
         t.add_argument("--data", default=None, help="data folder for test:I inputs (default: the encoder's)")
         _runtime(t)
         return t
 
     t = task("invert", "project unseen motions with the encoder (vs optimisation)",
              "Invert motions into W+ with one encoder pass; the naive column is optimisation-based inversion.")
-    t.add_argument("--optim-steps", type=int, default=200, help="steps of the optimisation baseline (0: mean motion)")
+    t.add_argument("--optim-steps", type=ct.int_range(0, 1_000_000), default=200, help="steps of the optimisation baseline (0: mean motion)")
     t.set_defaults(func=run_apply, task="invert")
     t = task("prefix", "complete motions from their first frames",
              "Predict a whole motion from its prefix with an encoder trained with --prefix; the naive column "
@@ -114,19 +116,19 @@ def register(subparsers) -> None:
     t.set_defaults(func=run_apply, task="prefix")
     t = task("fuse", "fuse two clips at a frame", "Frames before --frame from the first input and from the "
              "second after it: the naive column is the hard cut, the encoder smooths the seam.", n_inputs=2)
-    t.add_argument("--frame", type=int, default=None, help="cut frame t (default: the middle)")
+    t.add_argument("--frame", type=ct.int_range(0, ct.MAX_FRAMES), default=None, help="cut frame t (default: the middle)")
     t.set_defaults(func=run_apply, task="fuse")
     t = task("denoise", "remove noise from motions", "Add Gaussian noise to the joint rotations (normalised "
              "units), then compare temporal smoothing with G(I(noisy)). --given-noisy skips adding noise.")
-    t.add_argument("--sigma", type=float, default=0.5, help="noise std in normalised units")
-    t.add_argument("--smooth", type=float, default=2.0, help="std of the smoothing kernel in frames")
+    t.add_argument("--sigma", type=ct.float_range(0.0, 100.0), default=0.5, help="noise std in normalised units")
+    t.add_argument("--smooth", type=ct.float_range(0.0, 1000.0), default=2.0, help="std of the smoothing kernel in frames")
     t.add_argument("--given-noisy", action="store_true", help="inputs are already noisy: add nothing")
-    t.add_argument("--seed", type=int, default=0, help="noise seed")
+    t.add_argument("--seed", type=ct.seed_int, default=0, help="noise seed")
     t.set_defaults(func=run_apply, task="denoise")
     t = task("edit", "turn a crude spatial edit into a natural motion", "Raise the right upper arm by --angle "
              "degrees from --from-frame on (a crude keyframe edit, the naive column) and project it with G∘I.")
-    t.add_argument("--angle", type=float, default=90.0, help="degrees the arm is turned toward the sky")
-    t.add_argument("--from-frame", type=int, default=None, help="first edited frame (default: the middle)")
+    t.add_argument("--angle", type=ct.angle_float, default=90.0, help="degrees the arm is turned toward the sky")
+    t.add_argument("--from-frame", type=ct.int_range(0, ct.MAX_FRAMES), default=None, help="first edited frame (default: the middle)")
     t.add_argument("--joint", default=None, help="joint to turn (default: the right shoulder found by name)")
     t.set_defaults(func=run_apply, task="edit")
 
@@ -145,7 +147,8 @@ def _threads(args: argparse.Namespace) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     from modi.encoder.metrics import format_table5
-    from modi.encoder.training import EncoderTrainConfig, EncoderTrainer, load_encoder_data
+    from modi.encoder.training import (EncoderTrainConfig, EncoderTrainer, EncoderTrainingInterrupted,
+                                       load_encoder_data)
     from modi.latent.space import load_model
     from modi.modi_model.sampling import load_checkpoint
 
@@ -173,7 +176,12 @@ def run_train(args: argparse.Namespace) -> int:
           f"{tuple(data.train.shape[1:])}; generator step {st['step']}; {cfg.iters} steps", flush=True)
     trainer = EncoderTrainer((g, codec, gcfg), data, out, cfg, generator_state=gen_state,
                              resume=out if args.resume else None, progress=not args.quiet)
-    res = trainer.train()
+    try:
+        res = trainer.train()
+    except EncoderTrainingInterrupted as exc:
+        print(f"modi encoder train: interrupted at step {trainer.step}; checkpoint saved to {exc.checkpoint} "
+              "(add --resume to the same command to continue)", file=sys.stderr)
+        return 130
     print(f"modi encoder train: step {res.step} in {res.seconds:.0f} s; checkpoint {res.checkpoint}")
     print(f"Table 5 metrics on the {res.metrics['n_windows']} test windows:")
     print(format_table5(res.metrics))

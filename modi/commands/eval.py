@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
@@ -35,21 +36,21 @@ def register(subparsers: Any) -> None:
                                    "precision/recall/diversity use. Labels come from a JSON beside each BVH "
                                    "(Bandai-Namco layout); the split is by file, stratified by class.")
     t.add_argument("data", help="folder with BVH files and a JSON label file beside each")
-    t.add_argument("--out", required=True, help="where to write the extractor (one .pt file)")
+    t.add_argument("--out", required=True, type=ct.output_file, help="where to write the extractor (one .pt file)")
     t.add_argument("--label-key", default="content", help="JSON key holding the integer class label")
-    t.add_argument("--window", type=int, default=64, help="window length in frames")
-    t.add_argument("--fps", type=float, default=30.0, help="frame rate the clips are resampled to")
-    t.add_argument("--stride", type=int, default=4, help="stride between training windows (frames)")
-    t.add_argument("--eval-stride", type=int, default=16, help="stride between held-out windows (frames)")
-    t.add_argument("--holdout", type=float, default=0.2, help="fraction of each class's files held out")
-    t.add_argument("--epochs", type=int, default=12, help="training epochs (one pass over the windows each)")
-    t.add_argument("--batch-size", type=int, default=64, help="batch size")
-    t.add_argument("--lr", type=float, default=2e-3, help="peak learning rate (one-cycle schedule)")
-    t.add_argument("--max-minutes", type=float, default=None, help="stop training after this many minutes")
+    t.add_argument("--window", type=ct.int_range(8, 4096), default=64, help="window length in frames")
+    t.add_argument("--fps", type=ct.fps_float, default=30.0, help="frame rate the clips are resampled to")
+    t.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=4, help="stride between training windows (frames)")
+    t.add_argument("--eval-stride", type=ct.int_range(1, ct.MAX_FRAMES), default=16, help="stride between held-out windows (frames)")
+    t.add_argument("--holdout", type=ct.float_range(0.0, 1.0, False, False), default=0.2, help="fraction of each class's files held out")
+    t.add_argument("--epochs", type=ct.int_range(1, 100_000), default=12, help="training epochs (one pass over the windows each)")
+    t.add_argument("--batch-size", type=ct.batch_int, default=64, help="batch size")
+    t.add_argument("--lr", type=ct.lr_float, default=2e-3, help="peak learning rate (one-cycle schedule)")
+    t.add_argument("--max-minutes", type=ct.minutes_float, default=None, help="stop training after this many minutes")
     t.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis of the data")
-    t.add_argument("--seed", type=int, default=0, help="random seed (split, init, batches)")
-    t.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
-    t.add_argument("--json", default=None, help="also write the training summary here")
+    t.add_argument("--seed", type=ct.seed_int, default=0, help="random seed (split, init, batches)")
+    t.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
+    t.add_argument("--json", default=None, type=ct.output_file, help="also write the training summary here")
     t.set_defaults(func=cmd_train_features)
 
     r = sub.add_parser("real", formatter_class=_FMT,
@@ -59,7 +60,7 @@ def register(subparsers: Any) -> None:
                                    "held-out clips: the floor a generator is judged against.")
     r.add_argument("data", help="the labelled folder the extractor was trained on")
     r.add_argument("--features", required=True, help="feature extractor file from train-features")
-    r.add_argument("--stride", type=int, default=32, help="stride between windows of both sets (frames)")
+    r.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=32, help="stride between windows of both sets (frames)")
     _metric_args(r)
     r.set_defaults(func=cmd_real)
 
@@ -70,10 +71,10 @@ def register(subparsers: Any) -> None:
     g.add_argument("--ckpt", required=True, help="MoDi checkpoint")
     g.add_argument("--features", required=True, help="feature extractor file from train-features")
     g.add_argument("--data", required=True, help="folder of real BVH clips (same skeleton)")
-    g.add_argument("--n", type=int, default=2000, help="number of generated motions")
-    g.add_argument("--psi", type=float, default=1.0, help="truncation psi (1 = none)")
+    g.add_argument("--n", type=ct.int_range(4, ct.MAX_SAMPLES), default=2000, help="number of generated motions")
+    g.add_argument("--psi", type=ct.float_range(-2.0, 2.0), default=1.0, help="truncation psi in [-2, 2] (1 = none)")
     g.add_argument("--ik", action="store_true", help="apply the IK foot-contact cleanup to the samples")
-    g.add_argument("--stride", type=int, default=32, help="stride between windows of real clips (frames)")
+    g.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=32, help="stride between windows of real clips (frames)")
     _metric_args(g)
     g.set_defaults(func=cmd_gen)
 
@@ -90,7 +91,7 @@ def register(subparsers: Any) -> None:
     s.add_argument("--json", default=None, help="write the results (means and per-file values) here")
     s.add_argument("--md", default=None, help="also write a Markdown summary here")
     s.add_argument("--window", type=int, default=30, help="coverage window (frames)")
-    s.add_argument("--threshold", type=float, default=2.0, help="coverage distance threshold")
+    s.add_argument("--threshold", type=ct.positive_finite_float, default=2.0, help="coverage distance threshold")
     s.add_argument("--min-segment", type=int, default=30, help="PNN minimum segment length (frames)")
     s.add_argument("--local-window", type=int, default=15, help="local-diversity window (frames)")
     s.add_argument("--representation", choices=["6d", "matrix"], default="6d",
@@ -112,18 +113,20 @@ def register(subparsers: Any) -> None:
                                    "relative to the ground and jitter (mean jerk), in the file's units.")
     q.add_argument("clips", nargs="+", help="BVH files")
     q.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis")
-    q.add_argument("--ground", type=float, default=0.0, help="ground height along the up axis")
-    q.add_argument("--json", default=None, help="write per-file and mean values here")
+    q.add_argument("--feet", nargs="+", metavar="JOINT", default=None,
+                   help="foot joints by name (default: joints named foot/toe/ankle/heel)")
+    q.add_argument("--ground", type=ct.finite_float, default=0.0, help="ground height along the up axis")
+    q.add_argument("--json", default=None, type=ct.output_file, help="write per-file and mean values here")
     q.set_defaults(func=cmd_plausibility)
 
 
 def _metric_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--k", type=int, default=3, help="k of the k-NN manifolds for precision/recall")
-    p.add_argument("--kid-blocks", type=int, default=10, help="disjoint blocks for KID's standard error")
-    p.add_argument("--diversity-pairs", type=int, default=200, help="random pairs for diversity")
-    p.add_argument("--seed", type=int, default=0, help="random seed (sampling, blocks, pairs)")
-    p.add_argument("--json", default=None, help="write the full report (JSON) here")
-    p.add_argument("--md", default=None, help="write a Markdown summary here")
+    p.add_argument("--k", type=ct.int_range(1, 1000), default=3, help="k of the k-NN manifolds for precision/recall")
+    p.add_argument("--kid-blocks", type=ct.int_range(1, 1000), default=10, help="disjoint blocks for KID's standard error")
+    p.add_argument("--diversity-pairs", type=ct.int_range(1, 10_000_000), default=200, help="random pairs for diversity")
+    p.add_argument("--seed", type=ct.seed_int, default=0, help="random seed (sampling, blocks, pairs)")
+    p.add_argument("--json", default=None, type=ct.output_file, help="write the full report (JSON) here")
+    p.add_argument("--md", default=None, type=ct.output_file, help="write a Markdown summary here")
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -395,8 +398,27 @@ def cmd_single(args: argparse.Namespace) -> int:
     return 0
 
 
+def _plausibility_feet(path: Path, names: list[str], given: list[str] | None) -> list[int]:
+    from modi.evaluation.plausibility import guess_feet
+
+    if given is None:
+        try:
+            return guess_feet(names)
+        except ValueError:
+            raise UserError(f"{path}: no foot joints found by name (foot/toe/ankle/heel); name them with "
+                            f"--feet JOINT ... (joints: {', '.join(names[:12])}{', ...' if len(names) > 12 else ''})"
+                            ) from None
+    ct.unique_names("--feet", given)
+    missing = [n for n in given if n not in names]
+    if missing:
+        raise UserError(f"{path}: --feet: no joint named {', '.join(missing)}")
+    if names[0] in given:
+        raise UserError(f"--feet: the root joint {names[0]} cannot be a foot")
+    return [names.index(n) for n in given]
+
+
 def cmd_plausibility(args: argparse.Namespace) -> int:
-    from modi.evaluation.plausibility import aggregate, guess_feet, plausibility_metrics
+    from modi.evaluation.plausibility import aggregate, plausibility_metrics
     from modi.evaluation.report import write_json
 
     axis = _AXES[args.up_axis]
@@ -406,8 +428,9 @@ def cmd_plausibility(args: argparse.Namespace) -> int:
         if not p.is_file():
             raise UserError(f"no such BVH file: {p}")
         pos, names, fps = _load_bvh_positions(p)
+        feet = _plausibility_feet(p, names, args.feet)
         try:
-            m = plausibility_metrics(pos, fps, guess_feet(names), up_axis=axis, ground=args.ground)
+            m = plausibility_metrics(pos, fps, feet, up_axis=axis, ground=args.ground)
         except ValueError as exc:
             raise UserError(f"{p}: {exc}") from None
         per.append(dict(file=str(p), **m))

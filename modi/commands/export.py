@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import os
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -17,8 +18,8 @@ def register(subparsers) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("input", metavar="IN.bvh", help="input BVH file")
-    p.add_argument("output", metavar="OUT.npy", help="output .npy file (written as named)")
-    p.add_argument("--names", metavar="FILE", default=None,
+    p.add_argument("output", metavar="OUT.npy", type=ct.output_file, help="output .npy file (written as named)")
+    p.add_argument("--names", metavar="FILE", default=None, type=ct.output_file,
                    help="also write the joint names, one per line, to this text file")
     p.set_defaults(func=run)
 
@@ -36,6 +37,11 @@ def run(args: argparse.Namespace) -> int:
     out_dir = os.path.dirname(os.path.abspath(args.output))
     if not os.path.isdir(out_dir):
         raise UserError(f"{args.output}: folder {out_dir} does not exist")
+    ct.refuse_overwrite(args.output, [args.input])
+    if args.names:
+        ct.refuse_overwrite(args.names, [args.input], "--names")
+        if os.path.abspath(args.names) == os.path.abspath(args.output):
+            raise UserError(f"--names {args.names} is the output array's file; choose another name")
     b = bvh.load(args.input)
     pos = bvh_positions(b).astype(np.float32)
     tmp = f"{args.output}.tmp{os.getpid()}"

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
@@ -22,12 +24,12 @@ def register(subparsers) -> None:
                        description="Train a GANimator pyramid on one BVH, or several of one character (mixing). "
                                    "Re-running on the same --out resumes from its checkpoint.")
     t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
-    t.add_argument("--out", required=True, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
+    t.add_argument("--out", required=True, type=ct.output_dir, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
     t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
                    help="paper: published schedule (15k iterations per block); fast: CPU schedule (300 per block, "
                         "900 on the coarsest); tiny: smoke test. All take 5 discriminator steps per generator step")
-    t.add_argument("--iterations", type=int, default=None, help="iterations per block of levels (preset's if omitted)")
-    t.add_argument("--d-steps", type=int, default=None, help="discriminator steps per iteration (preset's if omitted)")
+    t.add_argument("--iterations", type=ct.iters_int, default=None, help="iterations per block of levels (preset's if omitted)")
+    t.add_argument("--d-steps", type=ct.int_range(0, 100), default=None, help="discriminator steps per iteration (preset's if omitted)")
     t.add_argument("--block-iters", default=None,
                    help="iterations per block of levels, coarsest first, e.g. 2000,800,800,800 (the last value "
                         "repeats for further blocks); overrides --iterations and --coarse-multiplier")
@@ -42,19 +44,19 @@ def register(subparsers) -> None:
                    help="convolution biases: uniform +-1/sqrt(fan-in) (authors' code, the default) or zeros")
     t.add_argument("--sixd", choices=["rows", "columns"], default=None,
                    help="6D rotation: first two rows (authors' code, the default) or columns of the matrix")
-    t.add_argument("--base-channels", type=int, default=None, help="total hidden width (preset's if omitted)")
-    t.add_argument("--coarse-ratio", type=float, default=None, help="coarsest level / sequence length (0.2)")
+    t.add_argument("--base-channels", type=ct.int_range(1, 8192), default=None, help="total hidden width (preset's if omitted)")
+    t.add_argument("--coarse-ratio", type=ct.float_range(0.0, 1.0, lo_inclusive=False), default=None, help="coarsest level / sequence length (0.2)")
     t.add_argument("--keep-joints", default=None, help="comma-separated joint names to keep (default: automatic)")
     t.add_argument("--no-joint-reduction", action="store_true", help="keep every joint of the file")
     t.add_argument("--feet", default=None, help="comma-separated contact joints (default: detected)")
     t.add_argument("--no-contacts", action="store_true", help="no contact labels / consistency loss")
-    t.add_argument("--fps", type=float, default=None, help="target frame rate by integer striding (30)")
+    t.add_argument("--fps", type=ct.fps_float, default=None, help="target frame rate by integer striding (30)")
     t.add_argument("--conditional-from", default=None,
                    help="train a trajectory-conditioned model; trajectories are sampled from this trained run")
-    t.add_argument("--device", default=None, help="torch device (cpu, cuda)")
-    t.add_argument("--seed", type=int, default=None, help="random seed")
-    t.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
-    t.add_argument("--max-minutes", type=float, default=None,
+    t.add_argument("--device", default=None, type=ct.device, help="torch device (cpu, cuda)")
+    t.add_argument("--seed", type=ct.seed_int, default=None, help="random seed")
+    t.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
+    t.add_argument("--max-minutes", type=ct.minutes_float, default=None,
                    help="stop (checkpointed) after this many minutes; run again to continue")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.set_defaults(func=_train)
@@ -64,19 +66,19 @@ def register(subparsers) -> None:
                                    "length, style transfer (--content), key-frame editing (--keyframes), "
                                    "trajectory control (--trajectory).")
     g.add_argument("run", help="run directory (or .ckpt file)")
-    g.add_argument("--frames", type=int, default=None, help="frames per motion (default: the training clip's)")
-    g.add_argument("--n", type=int, default=1, help="number of motions (a crowd when > 1)")
-    g.add_argument("--out", required=True, help="output directory")
-    g.add_argument("--seed", type=int, default=0, help="random seed")
+    g.add_argument("--frames", type=ct.frames_int, default=None, help="frames per motion (default: the training clip's)")
+    g.add_argument("--n", type=ct.int_range(1, 1000), default=1, help="number of motions (a crowd when > 1)")
+    g.add_argument("--out", required=True, type=ct.output_dir, help="output directory")
+    g.add_argument("--seed", type=ct.seed_int, default=0, help="random seed")
     g.add_argument("--content", default=None, help="style transfer: BVH whose coarse motion replaces level 0")
     g.add_argument("--keyframes", default=None, help="key-frame editing: BVH of coarse-level poses")
     g.add_argument("--trajectory", default=None,
                    help="root trajectory BVH (conditional runs); without it a conditional run samples one")
-    g.add_argument("--stream", type=int, default=0,
+    g.add_argument("--stream", type=ct.int_range(0, ct.MAX_FRAMES), default=0,
                    help="with --trajectory: feed the trajectory in segments of this many frames (streaming API)")
     g.add_argument("--ik", action="store_true", help="fix foot sliding with IK where contacts are predicted")
     g.add_argument("--fine-noise", action="store_true", help="random noise at every level (default: coarsest only)")
-    g.add_argument("--crowd-spacing", type=float, default=None, help="grid spacing of a crowd (default: 1.5 x body size)")
+    g.add_argument("--crowd-spacing", type=ct.positive_finite_float, default=None, help="grid spacing of a crowd (default: 1.5 x body size)")
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
     g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
     g.set_defaults(func=_generate)
@@ -91,17 +93,82 @@ def register(subparsers) -> None:
     e.add_argument("run", help="run directory (or .ckpt file)")
     e.add_argument("--protocol", choices=["ours", "paper"], default="ours",
                    help="ours: rotation-only features decoded as from BVH; paper: the released evaluate.py")
-    e.add_argument("--n", type=int, default=None, help="number of samples (default: ours 10, paper 200)")
-    e.add_argument("--frames", type=int, default=None,
+    e.add_argument("--n", type=ct.int_range(1, 1000), default=None, help="number of samples (default: ours 10, paper 200)")
+    e.add_argument("--frames", type=ct.frames_int, default=None,
                    help="frames per sample (default: ours the first training clip's, paper 2x all clips' total)")
-    e.add_argument("--seed", type=int, default=0, help="random seed")
-    e.add_argument("--json", default=None, help="also write the figures to this JSON file ('-': print the JSON "
+    e.add_argument("--seed", type=ct.seed_int, default=0, help="random seed")
+    e.add_argument("--json", default=None, type=ct.output_file, help="also write the figures to this JSON file ('-': print the JSON "
                                                "instead of the table)")
     e.set_defaults(func=_evaluate)
 
 
 def _csv(s: str | None) -> list[str] | None:
     return [x.strip() for x in s.split(",") if x.strip()] if s else None
+
+
+def _coarsest_needed(cfg) -> int:
+    """Frames the coarsest pyramid level needs: its convolutions reflect-pad ``kernel_size // 2`` frames on each
+    side, and reflect padding of p frames needs more than p frames."""
+    return cfg.kernel_size // 2 + 1 if cfg.padding_mode == "reflect" else 1
+
+
+def _min_training_frames(cfg) -> int:
+    from modi.ganimator.data import pyramid_lengths
+
+    need = _coarsest_needed(cfg)
+    for n in range(2, ct.MAX_FRAMES):
+        if pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0] >= need:
+            return n
+    return ct.MAX_FRAMES
+
+
+def _check_training_length(clips, cfg) -> None:
+    need = _coarsest_needed(cfg)
+    n_min = _min_training_frames(cfg)
+    for c in clips:
+        if c.n_frames < n_min:
+            raise UserError(
+                f"{c.name}: {c.n_frames} frames at {c.fps:g} fps (after resampling) is too short for GANimator: "
+                f"it needs at least {n_min} frames, because the coarsest pyramid level (--coarse-ratio "
+                f"{cfg.coarse_ratio:g} of the clip) must have {need} frames or more for the {cfg.kernel_size}-frame "
+                f"convolutions' reflect padding of {need - 1} frames")
+
+
+def _min_output_frames(model) -> int:
+    """Shortest output length whose coarsest level is long enough for the model's convolutions."""
+    need = _coarsest_needed(model.cfg)
+    for n in range(2, ct.MAX_FRAMES):
+        if model.level_lengths(n)[0] >= need:
+            return n
+    return ct.MAX_FRAMES
+
+
+def _check_generation_length(args) -> None:
+    """Refuse --frames / --content / --keyframes too short for the run's pyramid, before anything is written."""
+    from modi.ganimator.data import load_sequence
+    from modi.ganimator.training import load_model
+
+    if not Path(args.run).exists():
+        raise UserError(f"{args.run}: no such GANimator run folder or checkpoint file")
+    model = load_model(args.run)
+    need, n_min = _coarsest_needed(model.cfg), _min_output_frames(model)
+    why = (f"the coarsest pyramid level ({model.rates[0][0]:.3g} of the length) must have {need} frames or more for "
+           f"the convolutions' reflect padding of {need - 1} frames")
+    if args.frames is not None and args.frames < n_min:
+        raise UserError(f"--frames {args.frames} is too short for this run: at least {n_min} frames, because {why}")
+    for opt, path in (("--content", args.content), ("--keyframes", args.keyframes), ("--trajectory", args.trajectory)):
+        if path is None:
+            continue
+        if not Path(path).is_file():
+            raise UserError(f"{opt} {path}: no such BVH file")
+        clip = load_sequence(path, model.cfg, like=model.seqs[0])
+        if opt == "--keyframes":
+            if clip.n_frames < 2:
+                raise UserError(f"--keyframes {path}: {clip.n_frames} frame at {clip.fps:g} fps (after resampling); "
+                                "key-frame editing needs at least 2 key-frames (the root motion is their difference)")
+        elif clip.n_frames < n_min:
+            raise UserError(f"{opt} {path}: {clip.n_frames} frames at {clip.fps:g} fps (after resampling) is too short "
+                            f"for this run: at least {n_min} frames, because {why}")
 
 
 def _int_csv(s: str | None, flag: str) -> list[int] | None:
@@ -122,10 +189,11 @@ def _train(args) -> int:
 
     from modi.ganimator.config import preset
     from modi.ganimator.data import load_sequences
-    from modi.ganimator.training import load_model, train
+    from modi.ganimator.training import TrainingInterrupted, load_model, train
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    ct.unique_names("--feet", _csv(args.feet))
     cfg = preset(args.preset, iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
                  coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
                  fps=args.fps, device=args.device, seed=args.seed,
@@ -149,7 +217,11 @@ def _train(args) -> int:
     clips = load_sequences(args.bvh, cfg)
     if cond_source is not None and [c.name for c in cond_source.seqs] != [c.name for c in clips]:
         raise UserError("--conditional-from must be a run trained on the same BVH file(s)")
+    _check_training_length(clips, cfg)
     c = clips[0]
+    if 0 in c.feet:
+        raise UserError(f"--feet: the root joint {c.skeleton.names[0]} cannot be a foot (contacts pin feet relative "
+                        "to the root)")
     print(f"{len(clips)} clip(s), {c.n_joints} joints, feet {[c.skeleton.names[f] for f in c.feet]}, "
           f"{', '.join(str(x.n_frames) for x in clips)} frames at {c.fps:.1f} fps")
     from modi.ganimator.data import sequence_pyramid
@@ -158,8 +230,13 @@ def _train(args) -> int:
     n_blocks = len(blocks_of(len(sequence_pyramid(clips, cfg)[0][0]), cfg.group_size))
     print(f"{n_blocks} blocks of {cfg.group_size} levels, iterations {cfg.block_budgets(n_blocks)} "
           f"({cfg.d_steps} D : {cfg.g_steps} G : 1 reconstruction steps each)")
-    train(clips, cfg, args.out, progress=not args.quiet,
-          max_seconds=args.max_minutes * 60 if args.max_minutes else None, cond_source=cond_source)
+    try:
+        train(clips, cfg, args.out, progress=not args.quiet,
+              max_seconds=args.max_minutes * 60 if args.max_minutes else None, cond_source=cond_source)
+    except TrainingInterrupted as exc:
+        print(f"modi ganimator train: interrupted; checkpoint saved to {exc.checkpoint} "
+              "(run the same command again to continue)", file=sys.stderr)
+        return 130
     print(f"checkpoint: {Path(args.out) / 'ganimator.ckpt'}")
     return 0
 
@@ -167,6 +244,7 @@ def _train(args) -> int:
 def _generate(args) -> int:
     from modi.ganimator.generate import generate_command
 
+    _check_generation_length(args)
     result = generate_command(args)
     if args.evaluate and result.get("metrics"):
         print(json.dumps(result["metrics"], indent=2))

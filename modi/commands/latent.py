@@ -10,6 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 _LATENT_HELP = "a seed (integer or seed:N), 'mean', or a .npy W/W+ latent file"
@@ -18,9 +19,9 @@ _LATENT_HELP = "a seed (integer or seed:N), 'mean', or a .npy W/W+ latent file"
 def _common(p: argparse.ArgumentParser, out: bool = True) -> None:
     p.add_argument("ckpt", metavar="CKPT", help="MoDi checkpoint written by 'modi train'")
     if out:
-        p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+        p.add_argument("--out", required=True, metavar="DIR", type=ct.output_dir, help="output folder (created if missing)")
+    p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
+    p.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
 
 
@@ -42,7 +43,7 @@ def register(subparsers) -> None:
                                    "mean motion; all side by side in truncation.gif. W+ latents move every layer.")
     _common(q)
     q.add_argument("--latent", default="0", help=_LATENT_HELP)
-    q.add_argument("--steps", type=int, default=4, help="C: number of interpolation steps")
+    q.add_argument("--steps", type=ct.int_range(1, 1000), default=4, help="C: number of interpolation steps")
     q.set_defaults(func=run_truncate)
 
     q = sub.add_parser("interpolate", help="interpolation sequence between two latents", formatter_class=fmt,
@@ -51,7 +52,7 @@ def register(subparsers) -> None:
     _common(q)
     q.add_argument("--from", dest="a", default="0", help="start latent: " + _LATENT_HELP)
     q.add_argument("--to", dest="b", default="1", help="end latent: " + _LATENT_HELP)
-    q.add_argument("--steps", type=int, default=4, help="C: number of interpolation steps")
+    q.add_argument("--steps", type=ct.int_range(1, 1000), default=4, help="C: number of interpolation steps")
     q.set_defaults(func=run_interpolate)
 
     q = sub.add_parser("cluster", help="K-means on W, t-SNE plot, members of each cluster", formatter_class=fmt,
@@ -59,13 +60,13 @@ def register(subparsers) -> None:
                                    "coloured by cluster (tsne.png) and render members of every cluster side by side "
                                    "(cluster_C.gif + BVH in cluster_C/); clusters.json has sizes and members.")
     _common(q)
-    q.add_argument("--n", type=int, default=10_000, help="sampled motions")
-    q.add_argument("--k", type=int, default=8, help="clusters")
-    q.add_argument("--per-cluster", type=int, default=4, help="members rendered per cluster")
+    q.add_argument("--n", type=ct.int_range(2, ct.MAX_SAMPLES), default=10_000, help="sampled motions")
+    q.add_argument("--k", type=ct.int_range(1, 1000), default=8, help="clusters")
+    q.add_argument("--per-cluster", type=ct.int_range(0, 100), default=4, help="members rendered per cluster")
     q.add_argument("--pick", choices=("random", "nearest"), default="random",
                    help="which members to render: random ones, or those nearest the cluster centre")
-    q.add_argument("--tsne-max", type=int, default=2000, help="samples in the t-SNE plot (0: no plot)")
-    q.add_argument("--seed", type=int, default=0, help="sampling / clustering seed")
+    q.add_argument("--tsne-max", type=ct.int_range(0, ct.MAX_SAMPLES), default=2000, help="samples in the t-SNE plot (0: no plot)")
+    q.add_argument("--seed", type=ct.seed_int, default=0, help="sampling / clustering seed")
     q.set_defaults(func=run_cluster)
 
     q = sub.add_parser("edit", help="semantic editing along an SVM boundary in W", formatter_class=fmt,
@@ -80,15 +81,15 @@ def register(subparsers) -> None:
     q.add_argument("--svm", choices=("ours", "released"), default="ours",
                    help="boundary fit: 'ours' = LinearSVC refitted on all extremes; 'released' = SVC with a linear "
                         "kernel on 70%% of them (the authors' InterFaceGAN code; they sample --n 10000)")
-    q.add_argument("--n", type=int, default=2000, help="sampled motions for the boundary")
-    q.add_argument("--ratio", type=float, default=0.2, help="fraction at each extreme used as SVM classes")
+    q.add_argument("--n", type=ct.int_range(10, ct.MAX_SAMPLES), default=2000, help="sampled motions for the boundary")
+    q.add_argument("--ratio", type=ct.float_range(0.0, 0.5, lo_inclusive=False), default=0.2, help="fraction at each extreme used as SVM classes")
     q.add_argument("--boundary", default=None, metavar="JSON", help="reuse a saved boundary instead of fitting")
-    q.add_argument("--held-out", type=int, default=16, help="held-out seeds scored along the edit")
-    q.add_argument("--first-seed", type=int, default=100_000, help="held-out seeds are FIRST..FIRST+held-out-1")
-    q.add_argument("--alphas", type=float, nargs="+", default=[-3, -2, -1, 0, 1, 2, 3],
+    q.add_argument("--held-out", type=ct.int_range(1, 10_000), default=16, help="held-out seeds scored along the edit")
+    q.add_argument("--first-seed", type=ct.int_range(0, ct.MAX_SEED - 10_000), default=100_000, help="held-out seeds are FIRST..FIRST+held-out-1")
+    q.add_argument("--alphas", type=ct.float_range(-100.0, 100.0), nargs="+", default=[-3, -2, -1, 0, 1, 2, 3],
                    help="edit strengths in units of the std of w·n (increasing)")
-    q.add_argument("--render", type=int, default=2, help="held-out seeds rendered as α sequences")
-    q.add_argument("--seed", type=int, default=0, help="sampling seed for the boundary")
+    q.add_argument("--render", type=ct.int_range(0, 1000), default=2, help="held-out seeds rendered as α sequences")
+    q.add_argument("--seed", type=ct.seed_int, default=0, help="sampling seed for the boundary")
     q.set_defaults(func=run_edit)
 
     q = sub.add_parser("crowd", help="crowd: variations around one latent in one scene", formatter_class=fmt,
@@ -97,10 +98,10 @@ def register(subparsers) -> None:
                                    "character in one scene. The paper uses σ between 0.1 and 0.8.")
     _common(q)
     q.add_argument("--latent", default="0", help=_LATENT_HELP)
-    q.add_argument("--k", type=int, default=8, help="variations")
-    q.add_argument("--sigma", type=float, default=0.4, help="std of the Gaussian around w")
-    q.add_argument("--seed", type=int, default=0, help="seed of the perturbations")
-    q.add_argument("--spacing", type=float, default=None,
+    q.add_argument("--k", type=ct.int_range(1, 1000), default=8, help="variations")
+    q.add_argument("--sigma", type=ct.float_range(0.0, 100.0), default=0.4, help="std of the Gaussian around w")
+    q.add_argument("--seed", type=ct.seed_int, default=0, help="seed of the perturbations")
+    q.add_argument("--spacing", type=ct.positive_finite_float, default=None,
                    help="distance between characters in skeleton units (default 0.9 body heights)")
     q.add_argument("--no-source", action="store_true", help="leave the original motion out of the crowd")
     q.set_defaults(func=run_crowd)
@@ -112,10 +113,10 @@ def register(subparsers) -> None:
                                    "the loss curve (loss.png) and history.json.")
     _common(q)
     q.add_argument("bvh", metavar="BVH", help="clip on the model's skeleton (joints matched by name)")
-    q.add_argument("--start", type=int, default=0, help="first frame of the window (after resampling)")
-    q.add_argument("--steps", type=int, default=300, help="optimisation steps")
-    q.add_argument("--lr", type=float, default=0.02, help="Adam learning rate")
-    q.add_argument("--lambda-fk", type=float, default=1.0,
+    q.add_argument("--start", type=ct.int_range(0, ct.MAX_FRAMES), default=0, help="first frame of the window (after resampling)")
+    q.add_argument("--steps", type=ct.int_range(0, 1_000_000), default=300, help="optimisation steps")
+    q.add_argument("--lr", type=ct.lr_float, default=0.02, help="Adam learning rate")
+    q.add_argument("--lambda-fk", type=ct.float_range(0.0, 1e6), default=1.0,
                    help="weight of the FK-position term (positions in tenths of the body size)")
     q.add_argument("--init", choices=("mean", "random"), default="mean", help="starting latent")
     q.set_defaults(func=run_invert)
@@ -134,6 +135,28 @@ def _setup(args: argparse.Namespace):
     if str(args.device).startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")
     return load_model(args.ckpt, device=args.device, ema=not args.raw_weights)
+
+
+def _latent(g, spec: str, option: str):
+    """``parse_latent`` plus checks: a seed in range, a latent file of finite numbers."""
+    import torch
+
+    from modi.latent.space import parse_latent
+
+    s = str(spec).strip()
+    s = s[5:] if s.startswith("seed:") else s
+    try:
+        seed = int(s)
+    except ValueError:
+        seed = None
+    if seed is not None and not 0 <= seed <= ct.MAX_SEED:
+        raise UserError(f"{option}: a seed must be between 0 and {ct.MAX_SEED}, got {seed}")
+    if seed is None and s != "mean" and not Path(s).is_file():
+        raise UserError(f"{option}: {spec!r} is not a seed, 'mean' or an existing .npy latent file")
+    w, label = parse_latent(g, spec)
+    if not bool(torch.isfinite(w).all()):
+        raise UserError(f"{option}: the latent {spec} holds NaN or infinite values")
+    return w, label
 
 
 def _steps(n: int) -> int:
@@ -166,10 +189,10 @@ def run_mean(args: argparse.Namespace) -> int:
 
 
 def run_truncate(args: argparse.Namespace) -> int:
-    from modi.latent.space import mean_w, parse_latent, truncation_sequence
+    from modi.latent.space import mean_w, truncation_sequence
 
     g, codec, _ = _setup(args)
-    w, label = parse_latent(g, args.latent)
+    w, label = _latent(g, args.latent, "--latent")
     seq = truncation_sequence(w, _steps(args.steps), mean_w(g))
     paths = _write_sequence(codec, g, seq, Path(args.out), "truncation.gif", "to mean")
     print(f"modi latent truncate: {len(paths)} motions from {label} to the mean in {args.out} (truncation.gif)")
@@ -177,11 +200,11 @@ def run_truncate(args: argparse.Namespace) -> int:
 
 
 def run_interpolate(args: argparse.Namespace) -> int:
-    from modi.latent.space import interpolation_sequence, parse_latent
+    from modi.latent.space import interpolation_sequence
 
     g, codec, _ = _setup(args)
-    a, la = parse_latent(g, args.a)
-    b, lb = parse_latent(g, args.b)
+    a, la = _latent(g, args.a, "--from")
+    b, lb = _latent(g, args.b, "--to")
     seq = interpolation_sequence(a, b, _steps(args.steps))
     space = "W+" if seq.ndim == 3 else "W"
     paths = _write_sequence(codec, g, seq, Path(args.out), "interpolation.gif", "")
@@ -211,6 +234,8 @@ def run_edit(args: argparse.Namespace) -> int:
     from modi.latent.editing import Boundary, edit_latents, edit_report, plot_report, sample_boundary
     from modi.latent.space import seed_w, synthesize, write_motions
 
+    if any(b <= a for a, b in zip(args.alphas, args.alphas[1:])):
+        raise UserError(f"--alphas must be increasing, got {' '.join(f'{a:g}' for a in args.alphas)}")
     g, codec, _ = _setup(args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -244,13 +269,12 @@ def run_edit(args: argparse.Namespace) -> int:
 
 def run_crowd(args: argparse.Namespace) -> int:
     from modi.latent.crowd import SIGMA_RANGE, simulate_crowd
-    from modi.latent.space import parse_latent
 
     g, codec, _ = _setup(args)
     if not SIGMA_RANGE[0] <= args.sigma <= SIGMA_RANGE[1]:
         print(f"modi latent crowd: note: σ={args.sigma:g} is outside the paper's range "
               f"{SIGMA_RANGE[0]}-{SIGMA_RANGE[1]}")
-    w, label = parse_latent(g, args.latent)
+    w, label = _latent(g, args.latent, "--latent")
     crowd = simulate_crowd(g, codec, w, args.out, k=args.k, sigma=args.sigma, seed=args.seed,
                            include_source=not args.no_source, spacing=args.spacing)
     print(f"modi latent crowd: {len(crowd.files['bvh'])} characters around {label} (σ={args.sigma:g}) in "

@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -15,15 +16,16 @@ def register(subparsers) -> None:
                     "((T, F) 0/1 in the order of the contact joints) and DIR/samples.gif (the first --gif-max).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("ckpt", metavar="CKPT", help="checkpoint written by 'modi train'")
-    p.add_argument("--n", type=int, default=16, help="number of motions")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
-    p.add_argument("--psi", type=float, default=1.0, help="truncation: 1 = none, 0 = the mean motion")
-    p.add_argument("--seed", type=int, default=0, help="seed; motion i of a seed is fixed")
+    p.add_argument("--n", type=ct.samples_int, default=16, help="number of motions")
+    p.add_argument("--out", required=True, metavar="DIR", type=ct.output_dir, help="output folder (created if missing)")
+    p.add_argument("--psi", type=ct.float_range(-2.0, 2.0), default=1.0,
+                   help="truncation in [-2, 2]: 1 = none, 0 = the mean motion")
+    p.add_argument("--seed", type=ct.seed_int, default=0, help="seed; motion i of a seed is fixed")
     p.add_argument("--ik", action="store_true", help="pin feet with IK while their contact label is on")
-    p.add_argument("--batch", type=int, default=256, help="motions per forward pass")
-    p.add_argument("--gif-max", type=int, default=16, help="motions in the GIF grid (0: no GIF)")
+    p.add_argument("--batch", type=ct.int_range(1, 4096), default=256, help="motions per forward pass")
+    p.add_argument("--gif-max", type=ct.int_range(0, 256), default=16, help="motions in the GIF grid (0: no GIF)")
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
     p.set_defaults(func=run)
 
 

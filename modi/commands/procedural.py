@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -15,11 +16,11 @@ def register(subparsers) -> None:
         description="Write N procedural clips on the built-in 22-joint humanoid as BVH files plus labels.json "
                     "({file: kind}). Clip i depends only on (seed, i), so the same seed gives the same files.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("out_dir", metavar="OUT_DIR", help="folder to write (created if missing)")
-    p.add_argument("--n", type=int, default=32, help="number of clips")
-    p.add_argument("--frames", type=int, default=128, help="frames per clip")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("out_dir", metavar="OUT_DIR", type=ct.output_dir, help="folder to write (created if missing)")
+    p.add_argument("--n", type=ct.int_range(1, ct.MAX_SAMPLES), default=32, help="number of clips")
+    p.add_argument("--frames", type=ct.frames_int, default=128, help="frames per clip")
+    p.add_argument("--fps", type=ct.fps_float, default=30.0, help="frame rate")
+    p.add_argument("--seed", type=ct.seed_int, default=0, help="random seed")
     p.add_argument("--kinds", default=",".join(KINDS), help="comma-separated clip kinds, used in turn")
     p.set_defaults(func=run)
 

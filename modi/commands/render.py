@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 
+from modi import cli_types as ct
 from modi.errors import UserError
 
 
@@ -24,15 +25,15 @@ def register(subparsers) -> None:
                     "(--layout grid) or together in one scene (--layout scene).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("files", nargs="+", metavar="FILE", help="input .bvh files followed by the output .gif/.mp4")
-    p.add_argument("--fps", type=float, default=30.0, help="output frame rate (clips are played in real time)")
+    p.add_argument("--fps", type=ct.fps_float, default=30.0, help="output frame rate (clips are played in real time)")
     p.add_argument("--size", type=_size, default="320x320", help="WxH pixels per panel (whole image for scene)")
     p.add_argument("--layout", choices=("grid", "scene"), default="grid",
                    help="grid: one panel per file; scene: all characters in one panel")
     p.add_argument("--contacts", action="store_true", help="highlight feet touching the ground")
     p.add_argument("--up", choices=("y", "z"), default="y", help="the files' up axis")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after this many output frames")
-    p.add_argument("--azimuth", type=float, default=35.0, help="camera azimuth in degrees (0 = looking along -Z)")
-    p.add_argument("--elevation", type=float, default=18.0, help="camera elevation in degrees")
+    p.add_argument("--max-frames", type=ct.int_range(1, ct.MAX_FRAMES), default=None, help="stop after this many output frames")
+    p.add_argument("--azimuth", type=ct.angle_float, default=35.0, help="camera azimuth in degrees (0 = looking along -Z)")
+    p.add_argument("--elevation", type=ct.float_range(-90.0, 90.0), default=18.0, help="camera elevation in degrees")
     p.set_defaults(func=run)
 
 
@@ -44,6 +45,11 @@ def run(args: argparse.Namespace) -> int:
     *inputs, out = args.files
     if not out.lower().endswith((".gif", ".mp4")):
         raise UserError(f"{out}: the last argument is the output and must end in .gif or .mp4")
+    try:
+        ct.output_file(out)
+    except argparse.ArgumentTypeError as exc:
+        raise UserError(f"output {exc}") from None
+    ct.refuse_overwrite(out, inputs)
     path = render_bvh(inputs, out, fps=args.fps, size=args.size, layout=args.layout, contacts=args.contacts,
                       up=args.up, max_frames=args.max_frames, azimuth=args.azimuth, elevation=args.elevation)
     print(path)

@@ -310,6 +310,14 @@ def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "c
 
 
 # =============================================================================================== trainer
+class EncoderTrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during ``EncoderTrainer.train``: the checkpoint was saved at a step boundary (resumable)."""
+
+    def __init__(self, checkpoint: Path) -> None:
+        super().__init__(f"checkpoint saved to {checkpoint}")
+        self.checkpoint = checkpoint
+
+
 @dataclass
 class EncoderTrainResult:
     step: int
@@ -413,6 +421,11 @@ class EncoderTrainer:
         return evaluate_encoder(self.encoder, self.g, self.codec, x, units=self.cfg.units)
 
     def train(self, iters: int | None = None) -> EncoderTrainResult:
+        """Train to ``iters`` steps (default ``cfg.iters``). Ctrl-C finishes the step, saves the checkpoint and
+        raises ``EncoderTrainingInterrupted`` (``--resume`` continues); a second Ctrl-C aborts."""
+        import signal
+        import threading
+
         target = self.cfg.iters if iters is None else int(iters)
         t0 = time.time()
         bar = None
@@ -420,8 +433,21 @@ class EncoderTrainer:
             from tqdm import tqdm
 
             bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
+        stop: list = []
+
+        def on_sigint(signum, frame):  # noqa: ARG001
+            if stop:
+                raise KeyboardInterrupt
+            stop.append(True)
+            print("\nmodi: stopping after this step and saving a checkpoint (Ctrl-C again to abort)", flush=True)
+
+        old_handler = None
+        if threading.current_thread() is threading.main_thread():
+            old_handler = signal.signal(signal.SIGINT, on_sigint)
         try:
             while self.step < target:
+                if stop:
+                    raise EncoderTrainingInterrupted(self.save_checkpoint())
                 losses = self.train_step()
                 self.last_losses = losses
                 if bar is not None:
@@ -436,6 +462,8 @@ class EncoderTrainer:
                 if self.cfg.ckpt_every and self.step % self.cfg.ckpt_every == 0:
                     self.save_checkpoint()
         finally:
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
             if bar is not None:
                 bar.close()
         self.metrics = self.evaluate()
@@ -501,4 +529,5 @@ class EncoderTrainer:
 
 __all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
            "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
+           "EncoderTrainingInterrupted",
            "ENCODER_FORMAT", "ENCODER_VERSION"]

@@ -90,7 +90,15 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 def checkpoint_path(run: str | Path) -> Path:
     run = Path(run)
-    return run if run.suffix == ".ckpt" else run / CHECKPOINT_NAME
+    return run if run.suffix == ".ckpt" or run.is_file() else run / CHECKPOINT_NAME
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during ``Trainer.run``: the run was checkpointed at an iteration boundary and can be resumed."""
+
+    def __init__(self, checkpoint: Path) -> None:
+        super().__init__(f"checkpoint saved to {checkpoint}")
+        self.checkpoint = checkpoint
 
 
 def read_checkpoint(run: str | Path) -> dict:
@@ -334,15 +342,41 @@ class Trainer:
     def run(self, progress: bool = True, log: Callable[[str], None] | None = print,
             max_seconds: float | None = None) -> GanimatorModel:
         """Train (or resume) to the end of the schedule; returns the model. ``max_seconds`` stops early
-        (checkpointed) — a budgeted run that a later call continues."""
+        (checkpointed) — a budgeted run that a later call continues. Ctrl-C finishes the iteration, saves and
+        raises ``TrainingInterrupted``; running again resumes."""
+        if self.ckpt.is_file():
+            self.restore(read_checkpoint(self.ckpt))
+            if log and self.state["block"] >= len(self.blocks):
+                log(f"{self.ckpt} is already fully trained ({len(self.blocks)} blocks of levels); nothing to do "
+                    "(choose another --out to train anew)")
+            elif log:
+                log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
+                    f"iteration {self.state['iteration']}")
+        import signal
+        import threading
+
+        stop = []  # Ctrl-C: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
+
+        def on_sigint(signum, frame):  # noqa: ARG001
+            if stop:
+                raise KeyboardInterrupt
+            stop.append(True)
+            print("\nmodi: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort)", flush=True)
+
+        old_handler = None
+        if threading.current_thread() is threading.main_thread():
+            old_handler = signal.signal(signal.SIGINT, on_sigint)
+        try:
+            return self._run_blocks(progress, log, max_seconds, stop)
+        finally:
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
+
+    def _run_blocks(self, progress: bool, log: Callable[[str], None] | None, max_seconds: float | None,
+                    stop: list) -> GanimatorModel:
         from tqdm import tqdm
 
         cfg, model = self.cfg, self.model
-        if self.ckpt.is_file():
-            self.restore(read_checkpoint(self.ckpt))
-            if log:
-                log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
-                    f"iteration {self.state['iteration']}")
         try:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -390,6 +424,13 @@ class Trainer:
                     bar.close()
                     self.save()
                     return model
+                if stop:
+                    self.state["block_seconds"][b] += now - t_block
+                    bar.close()
+                    self.save()
+                    if self.writer is not None:
+                        self.writer.close()
+                    raise TrainingInterrupted(self.ckpt)
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
             self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
@@ -492,6 +533,6 @@ def run_summary(run: str | Path) -> dict:
             "history": st["history"], "block_iterations": cfg.block_budgets(len(blocks)), "config": cfg.to_dict()}
 
 
-__all__ = ["Trainer", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
+__all__ = ["Trainer", "TrainingInterrupted", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
            "gradient_penalty", "ContactConsistency", "model_payload", "model_from_payload", "atomic_save",
            "blocks_of"]

@@ -1,0 +1,223 @@
+"""argparse ``type=`` callables and output-path checks shared by every ``modi`` command.
+
+Bad numbers, devices and output paths are refused while the command line is parsed, so the error names the
+option (argparse prints ``modi CMD: error: argument --lr: must be a finite number > 0, got nan``) and nothing has
+been loaded, trained or written yet. Each factory returns a plain function whose ``__name__`` reads well in
+argparse's messages; the bounds on sizes (``--batch``, ``--n``, ``--frames``, ``--fps``) are there so a typo such
+as ``--n 100000000`` fails at once instead of running for minutes or being killed for memory.
+
+This module imports only the standard library at import time (torch is imported lazily for device names), so
+building the parser stays cheap.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+from typing import Callable, Iterable
+
+from modi.errors import UserError
+
+# Upper bounds of the sizes a user can ask for. They are far above anything the models are used with and far below
+# what would exhaust memory or run for hours by mistake.
+MAX_FPS = 1000.0          # mocap is captured at <= 480 fps; resampling up to 1e6 fps allocates gigabytes per clip
+MAX_BATCH = 1024          # MoDi's paper batch is 16
+MAX_SAMPLES = 100_000     # motions generated / sampled in one command
+MAX_FRAMES = 100_000      # ~55 minutes at 30 fps
+MAX_THREADS = 1024
+MAX_ITERS = 100_000_000
+MAX_SEED = 2**32 - 1      # numpy's seed range
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text, 10)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def _named(fn: Callable, name: str) -> Callable:
+    fn.__name__ = name
+    return fn
+
+
+# ------------------------------------------------------------------------------------------------ integers
+def int_range(lo: int | None = None, hi: int | None = None, what: str = "") -> Callable[[str], int]:
+    """An integer in ``[lo, hi]`` (either bound may be None). ``what`` is appended to the message (a reason)."""
+    def parse(text: str) -> int:
+        v = _int(text)
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            if lo is not None and hi is not None:
+                rng = f"between {lo} and {hi}"
+            elif lo is not None:
+                rng = f">= {lo}"
+            else:
+                rng = f"<= {hi}"
+            raise argparse.ArgumentTypeError(f"must be an integer {rng}{what}, got {text}")
+        return v
+    return _named(parse, "int")
+
+
+positive_int = int_range(1)
+nonneg_int = int_range(0)
+seed_int = int_range(0, MAX_SEED)
+threads_int = int_range(1, MAX_THREADS)
+iters_int = int_range(0, MAX_ITERS)
+batch_int = int_range(1, MAX_BATCH, " (a larger batch does not fit in memory)")
+samples_int = int_range(1, MAX_SAMPLES)
+frames_int = int_range(2, MAX_FRAMES)
+
+
+def multiple_of(m: int, lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """A positive integer multiple of ``m`` (e.g. MoDi's window length, halved at every level of the hierarchy)."""
+    base = int_range(lo if lo is not None else m, hi)
+
+    def parse(text: str) -> int:
+        v = base(text)
+        if v % m:
+            raise argparse.ArgumentTypeError(f"must be a multiple of {m}, got {v} (e.g. {max(m, v // m * m)})")
+        return v
+    return _named(parse, "int")
+
+
+# ------------------------------------------------------------------------------------------------ floats
+def float_range(lo: float | None = None, hi: float | None = None, lo_inclusive: bool = True,
+                hi_inclusive: bool = True) -> Callable[[str], float]:
+    """A finite float in the interval given by ``lo``/``hi`` (None = unbounded) and the inclusive flags."""
+    def parse(text: str) -> float:
+        v = _float(text)
+        bad_lo = lo is not None and (v < lo if lo_inclusive else v <= lo)
+        bad_hi = hi is not None and (v > hi if hi_inclusive else v >= hi)
+        if bad_lo or bad_hi:
+            if lo is not None and hi is not None:
+                rng = f"in {'[' if lo_inclusive else '('}{lo:g}, {hi:g}{']' if hi_inclusive else ')'}"
+            elif lo is not None:
+                rng = f"{'>=' if lo_inclusive else '>'} {lo:g}"
+            else:
+                rng = f"{'<=' if hi_inclusive else '<'} {hi:g}"
+            raise argparse.ArgumentTypeError(f"must be a finite number {rng}, got {text}")
+        return v
+    return _named(parse, "float")
+
+
+finite_float = _named(lambda text: _float(text), "float")
+positive_finite_float = float_range(0.0, None, lo_inclusive=False)
+nonneg_finite_float = float_range(0.0, None)
+fps_float = float_range(0.0, MAX_FPS, lo_inclusive=False)
+lr_float = float_range(0.0, 10.0, lo_inclusive=False)
+probability = float_range(0.0, 1.0)
+minutes_float = float_range(0.0, None, lo_inclusive=False)
+angle_float = float_range(-36000.0, 36000.0)
+
+
+# ------------------------------------------------------------------------------------------------ devices
+def available_devices() -> list[str]:
+    """The torch device names that exist here: ``cpu`` and ``cuda:N`` for every visible GPU."""
+    import torch
+
+    devs = ["cpu"]
+    if torch.cuda.is_available():
+        n = torch.cuda.device_count()
+        devs += ["cuda"] + [f"cuda:{i}" for i in range(n)]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        devs.append("mps")
+    return devs
+
+
+def device_type(allow_auto: bool = False) -> Callable[[str], str]:
+    """A device name checked against what exists (``auto`` too when ``allow_auto``); returns the name."""
+    def parse(text: str) -> str:
+        name = text.strip().lower()
+        if allow_auto and name == "auto":
+            return name
+        devs = available_devices()
+        if name in devs:
+            return name
+        exist = ", ".join(devs) + (", auto" if allow_auto else "")
+        if name.startswith("cuda") and "cuda" not in devs:
+            raise argparse.ArgumentTypeError(f"{text!r}: this torch has no CUDA device; devices here: {exist}")
+        raise argparse.ArgumentTypeError(f"unknown device {text!r}; devices here: {exist}")
+    return _named(parse, "device")
+
+
+device = device_type()
+device_or_auto = device_type(allow_auto=True)
+
+
+# ------------------------------------------------------------------------------------------------ paths
+def _file_above(path: Path) -> Path | None:
+    """The first existing ancestor of ``path`` that is not a folder (a file in the way), if any."""
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None
+
+
+def output_dir(text: str) -> str:
+    """An output folder: may exist as a folder or not at all; not a file, nor under a file."""
+    p = Path(text)
+    if p.exists() and not p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, expected a folder (choose another name)")
+    blocker = _file_above(p)
+    if blocker is not None:
+        raise argparse.ArgumentTypeError(f"{text} lies under {blocker}, which is a file, not a folder")
+    return text
+
+
+def output_file(text: str) -> str:
+    """An output file: not an existing folder, not under a file (an existing file is replaced)."""
+    p = Path(text)
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, expected a file name")
+    blocker = _file_above(p)
+    if blocker is not None:
+        raise argparse.ArgumentTypeError(f"{text} lies under {blocker}, which is a file, not a folder")
+    return text
+
+
+_named(output_dir, "folder")
+_named(output_file, "file")
+
+
+def refuse_overwrite(output: str | os.PathLike, inputs: Iterable[str | os.PathLike], what: str = "output") -> None:
+    """``UserError`` when ``output`` is (or links to) one of the ``inputs``: never write over what we read."""
+    out = Path(output)
+    if not out.exists():
+        return
+    for inp in inputs:
+        try:
+            same = Path(inp).exists() and os.path.samefile(out, inp)
+        except OSError:
+            same = False
+        if same:
+            raise UserError(f"{what} {output} is the input file {inp}; refusing to write over an input")
+
+
+def unique_names(option: str, names: Iterable[str] | None) -> None:
+    """``UserError`` for a joint given twice in ``option`` (e.g. ``--feet LeftToe LeftToe``)."""
+    if not names:
+        return
+    seen: set[str] = set()
+    for n in names:
+        if n in seen:
+            raise UserError(f"{option}: joint {n!r} is given twice")
+        seen.add(n)
+
+
+__all__ = ["int_range", "positive_int", "nonneg_int", "seed_int", "threads_int", "iters_int", "batch_int",
+           "samples_int", "frames_int", "multiple_of", "float_range", "finite_float", "positive_finite_float",
+           "nonneg_finite_float", "fps_float", "lr_float", "probability", "minutes_float", "angle_float",
+           "available_devices", "device_type", "device", "device_or_auto", "output_dir", "output_file",
+           "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLES", "MAX_FRAMES"]
