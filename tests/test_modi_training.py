@@ -379,3 +379,23 @@ def test_cli_released_options_reach_the_config():
     args = parser.parse_args(["train", "procedural", "--out", "r", "--neighbors", "tree", "--pooling", "released"])
     cfg = modi_train.build_config(args)
     assert (cfg.model.neighbors, cfg.model.pooling) == ("tree", "released")
+
+
+def test_bandai_released_loss_joints(shared_data, tmp_path):
+    """On Bandai the contact labels sit on the toes, the released loss measures the ankles (Foot_L/R), and the
+    encoder's root term must skip the constant joint_Root placeholder for Hips."""
+    from modi.encoder.training import root_rotation_entity
+
+    src = shared_data / "bvh" / "bandai-namco-1"
+    files = sorted(src.rglob("*.bvh"))[:3]
+    if len(files) < 3:
+        pytest.skip(f"fewer than 3 BVH files under {src}")
+    sub = tmp_path / "bandai"
+    sub.mkdir()
+    for f in files:
+        (sub / f.name).symlink_to(f)
+    codec = prepare_data(sub, tiny_cfg(), cache=False).codec
+    names = codec.skeleton.names
+    assert [names[j] for j in codec.feet] == ["Toes_L", "Toes_R"]
+    assert [names[j] for j in codec.ankles] == ["Foot_L", "Foot_R"]
+    assert names[0] == "joint_Root" and names[root_rotation_entity(codec)] == "Hips"
