@@ -289,7 +289,7 @@ def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "c
         try:
             st = torch.load(p, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{p}: not a readable encoder checkpoint ({str(exc).splitlines()[0][:200]})") \
+            raise CheckpointError(f"{p}: not a readable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") \
                 from None
     if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
         hint = " (this is a generator checkpoint; train an encoder with 'modi encoder train')" \
@@ -503,7 +503,7 @@ class EncoderTrainer:
         try:
             st = torch.load(p, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{p}: unreadable encoder checkpoint ({str(exc).splitlines()[0][:200]})") from None
+            raise CheckpointError(f"{p}: unreadable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") from None
         if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
             raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
         if EncoderConfig.from_dict(st["encoder_config"]).to_dict() != self.encoder.cfg.to_dict():
