@@ -13,6 +13,12 @@ built-in fallback otherwise), batch 16, fp32:
   scaler_up.<level>.{fwd,fwd_bwd}         SkeletalUpsample from the next coarser level into <level>
   scaler_down.<level>.{fwd,fwd_bwd}       SkeletalDownsample from <level> into the next coarser one
   modulated_up.<level>.{fwd,fwd_bwd}      ModulatedSkeletalConv, mode "up", demodulated
+  <op>.finest.double                      forward, input gradient with create_graph=True, a scalar of it
+                                          (its squared norm, as R1), backward to the input and every parameter
+  ganimator_conv.<clip>.{fwd,fwd_bwd,double}  GANimator's finest level (batch 1, kernel 5, reflect, distance-2
+                                          neighbours of the real skeleton; ../shared/data needed): Salsa (29
+                                          entities, 648 frames, 9 channels) and Crab (63 entities, 384 frames,
+                                          5 channels); fwd_bwd also reports backward / forward time of each path
   fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
 
 Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
@@ -133,6 +139,62 @@ def _case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bwd: bool):
     return _with_impl("ref", body), _with_impl("ext", body)
 
 
+def _double_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...]):
+    """(ref_fn, ext_fn): forward, grad w.r.t. the input with create_graph, ||grad||^2, backward to input + params."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    x = inputs[0].detach().clone().requires_grad_(True)
+    rest = inputs[1:]
+    grad = None
+
+    def body():
+        nonlocal grad
+        y = module(x, *rest)
+        if grad is None:
+            grad = torch.randn_like(y)
+        (gx,) = torch.autograd.grad(y, x, grad, create_graph=True)
+        return torch.autograd.grad(gx.pow(2).sum(), [x] + params, allow_unused=True)
+
+    return _with_impl("ref", body), _with_impl("ext", body)
+
+
+GANIMATOR_SHAPES = {  # clip -> (BVH under ../shared/data/bvh/ganimator, channels per entity at the finest level)
+    "salsa": ("Joe/Salsa-Dancing-6.bvh", 9),
+    "crab": ("Crabnew/Crab-dance-long.bvh", 5),
+}
+
+
+def ganimator_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, dict]]:
+    """GANimator's finest-level skeletal conv on the real skeletons (skipped when ../shared/data is absent)."""
+    data = ROOT.parent / "shared" / "data" / "bvh" / "ganimator"
+    cases: dict[str, tuple[Callable, Callable]] = {}
+    info: dict[str, dict] = {}
+    try:
+        from modi.ganimator import config as gconfig
+        from modi.ganimator.data import load_sequence, sequence_pyramid
+        from modi.ganimator.networks import ganimator_neighbors
+    except Exception as exc:  # noqa: BLE001
+        print(f"compare: GANimator cases skipped ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return cases, info
+    cfg = gconfig.preset("fast")
+    for clip, (rel, ch) in GANIMATOR_SHAPES.items():
+        if not (data / rel).is_file():
+            print(f"compare: {data / rel} not found; ganimator_conv.{clip} cases skipped", file=sys.stderr)
+            continue
+        seq = load_sequence(data / rel, cfg)
+        lengths, _ = sequence_pyramid([seq], cfg)
+        nb = ganimator_neighbors(list(seq.skeleton.parents), list(seq.feet), cfg.neighbor_distance)
+        e, t = len(nb), lengths[0][-1]
+        torch.manual_seed(0)
+        conv = SkeletalConv(ch, ch, nb, 5, padding_mode="reflect")
+        x = torch.randn(1, ch, e, t)
+        for kind in ("fwd", "fwd_bwd", "double"):
+            key = f"ganimator_conv.{clip}.{kind}"
+            cases[key] = _double_case(conv, (x,)) if kind == "double" else _case(conv, (x,), kind == "fwd_bwd")
+            info[key] = {"input_shape": [1, ch, e, t], "kernel": 5, "padding": "reflect",
+                         "pairs": int(sum(len(r) for r in nb))}
+    return cases, info
+
+
 def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, dict], str]:
     torch.manual_seed(0)
     neigh, pools, source = bandai_hierarchy()
@@ -157,9 +219,10 @@ def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, di
                 ("modulated_up", ModulatedSkeletalConv(c2, c, STYLE_DIM, pools[lv], 3, mode="up"), (xc, w)),
             ]
         for op, module, inputs in defs:
-            for bwd in (False, True):
-                key = f"{op}.{name}.{'fwd_bwd' if bwd else 'fwd'}"
-                cases[key] = _case(module, inputs, bwd)
+            for kind in ("fwd", "fwd_bwd") + (("double",) if lv == 0 else ()):
+                key = f"{op}.{name}.{kind}"
+                cases[key] = _double_case(module, inputs) if kind == "double" else \
+                    _case(module, inputs, kind == "fwd_bwd")
                 info[key] = {"input_shape": list(inputs[0].shape), "entities_out": e, "channels_out": c,
                              "pairs": int(sum(len(r) for r in (nb if op in ("skeletal_conv", "modulated_conv")
                                                            else pools[lv])))}
@@ -234,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     cases, info, source = skeletal_cases()
+    more, more_info = ganimator_cases()
+    cases.update(more)
+    info.update(more_info)
     cases.update(fk_cases())
     pattern = re.compile(args.only) if args.only else None
     desc = machine()
@@ -250,8 +316,21 @@ def main(argv: list[str] | None = None) -> int:
                          "clock": args.clock,
                          "machine": desc, **info.get(name, {})}
         print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+    _backward_over_forward(results)
     write_json(args.json, results)
     return 0
+
+
+def _backward_over_forward(results: dict) -> None:
+    """For each ``X.fwd_bwd`` with a matching ``X.fwd``: (fwd_bwd - fwd) / fwd on each path, stored and printed."""
+    for name, r in results.items():
+        if not name.endswith(".fwd_bwd") or name[:-len("fwd_bwd")] + "fwd" not in results:
+            continue
+        f = results[name[:-len("fwd_bwd")] + "fwd"]
+        r["ref_bwd_over_fwd"] = round((r["ref_ms"] - f["ref_ms"]) / f["ref_ms"], 3)
+        r["ext_bwd_over_fwd"] = round((r["ext_ms"] - f["ext_ms"]) / f["ext_ms"], 3)
+        if name.startswith("ganimator_conv."):
+            print(f"{name}: backward / forward  ref {r['ref_bwd_over_fwd']:.2f}  ext {r['ext_bwd_over_fwd']:.2f}")
 
 
 def write_json(path: Path | None, results: dict) -> None:

@@ -1,19 +1,32 @@
-"""Seconds per MoDi training iteration and generated motions per second, dense reference vs modi_ext, in one process.
+"""Seconds per training step, split by kind (plain / R1 / path length), on several kernel paths, in one process.
 
-    python benchmarks/train_step.py --json benchmarks/results/train_step_cpu.json            # paper size, batch 16
-    python benchmarks/train_step.py --preset small --iters 6 --gen-batch 256 --threads 1
+    python benchmarks/train_step.py --preset paper --threads 2 --json benchmarks/results/train_step_paper.json
+    python benchmarks/train_step.py --preset small --sides ref,ext_refgrad,ext --json ...
+    python benchmarks/train_step.py --model ganimator --threads 1 --json benchmarks/results/train_step_ganimator.json
     python benchmarks/train_step.py --device cuda --json benchmarks/results/train_step_cuda.json
 
-Two trainers with identical weights and seeds are built on the same data (Bandai-Namco-1 from ../shared/data when
-present, else the built-in procedural clips); they advance in interleaved chunks (ref, ext, ref, ext, ...) so machine
-load hits both alike, and the median seconds per iteration of each side is reported. A chunk is ``--chunk`` full
-iterations (G step, D step, and the lazy R1 / path-length regularisers at their paper intervals, so a chunk of 16
-contains one R1 step and four path-length steps). Generation times the EMA generator's forward pass, z -> normalised
-motion tensor, at ``--gen-batch`` under ``no_grad``.
+Sides (``--sides``, comma separated):
+
+* ``ref``          the dense pure-torch reference everywhere (``MODI_EXT_IMPL=ref``);
+* ``ext_refgrad``  the C++ kernels for forward and first-order backward, but the graph of a gradient (R1, path
+                   length, WGAN-GP) built through the dense reference (``MODI_EXT_DOUBLE=ref``: how the extension
+                   worked before ``modi_ext.gradfix``);
+* ``ext``          the kernels for every order.
+
+MoDi: one trainer per side, identical weights and seeds, on Bandai-Namco-1 (../shared/data) or the procedural clips.
+The sides advance in interleaved chunks of one lazy-regularisation cycle (16 iterations: one R1 step, four path-length
+steps) so machine load hits them alike; every iteration is timed and filed by what it ran (``plain``, ``path`` =
+plain + path length, ``r1+path`` = plain + R1 + path length). Reported: the median of each kind, the mean over a
+cycle (what a run pays per iteration), and the path-length / plain ratio. Generation times the EMA generator.
+
+GANimator: one trainer per side on one clip (default Joe/Salsa-Dancing-6, fast preset: 5 D steps with the WGAN-GP,
+1 G step, 1 reconstruction step per iteration) inside one block (default the finest); median seconds per iteration.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import statistics
 import sys
 import tempfile
@@ -26,8 +39,27 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from compare import forced_impl, machine, write_json  # noqa: E402  (benchmarks/compare.py)
+from compare import machine, write_json  # noqa: E402  (benchmarks/compare.py)
 from modi_ext import HAS_EXT  # noqa: E402
+
+SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
+         "ext_refgrad": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ref"},
+         "ext": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext"}}
+
+
+@contextlib.contextmanager
+def side_env(side: str):
+    """The environment of one side for the code run inside the block (the ops read it on every call)."""
+    old = {k: os.environ.get(k) for k in SIDES[side]}
+    os.environ.update(SIDES[side])
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def _sync(device: torch.device) -> None:
@@ -35,29 +67,13 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default=None, help="BVH folder (default: ../shared/data/bvh/bandai-namco-1, "
-                    "else 'procedural')")
-    ap.add_argument("--preset", default="paper", choices=["paper", "small"])
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--chunk", type=int, default=16, help="iterations per timed chunk (16 = one full lazy-reg cycle)")
-    ap.add_argument("--reps", type=int, default=3, help="timed chunks per side")
-    ap.add_argument("--gen-batch", type=int, default=256)
-    ap.add_argument("--gen-reps", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=None)
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--json", default=None)
-    args = ap.parse_args(argv)
+def _kind(step: int, tc) -> str:
+    r1 = tc.r1_gamma > 0 and step % tc.d_reg_every == 0
+    path = tc.path_weight > 0 and step % tc.g_reg_every == 0
+    return "r1+path" if r1 and path else ("path" if path else ("r1" if r1 else "plain"))
 
-    if not HAS_EXT:
-        print("modi_ext is not built: nothing to compare (python setup.py build_ext --inplace)", file=sys.stderr)
-        return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
 
+def bench_modi(args, sides: list[str], device: torch.device) -> dict:
     from modi.modi_model.config import make_config
     from modi.modi_model.training import Trainer, prepare_data
 
@@ -66,65 +82,180 @@ def main(argv: list[str] | None = None) -> int:
         bandai = ROOT.parent / "shared" / "data" / "bvh" / "bandai-namco-1"
         data_dir = str(bandai) if bandai.is_dir() else "procedural"
     cfg = make_config(args.preset, **{"train.batch": args.batch})
+    tc = cfg.train
+    cycle = max(tc.d_reg_every, tc.g_reg_every)
     work = Path(tempfile.mkdtemp(prefix="modi_bench_"))
     data = prepare_data(data_dir, cfg, work_dir=work)
     trainers = {}
-    for impl in ("ref", "ext"):
-        with forced_impl(impl):
-            trainers[impl] = Trainer(cfg, data, work / impl, device=device, progress=False, tensorboard=False,
+    for side in sides:
+        with side_env(side):
+            torch.manual_seed(0)
+            trainers[side] = Trainer(cfg, data, work / side, device=device, progress=False, tensorboard=False,
                                      write_samples=False, log=lambda m: None)
-
-    # warm-up: one full lazy-regularisation cycle each (allocator, oneDNN/cuDNN plans, kernel caches)
-    for impl, tr in trainers.items():
-        with forced_impl(impl):
-            for _ in range(min(args.chunk, 16)):
+    for side, tr in trainers.items():  # warm-up: one full cycle each (allocator, oneDNN plans, kernel caches)
+        with side_env(side):
+            for _ in range(cycle):
                 tr.train_step()
-    step_times: dict[str, list[float]] = {"ref": [], "ext": []}
+    per_kind: dict[str, dict[str, list[float]]] = {s: {} for s in sides}
+    cycle_means: dict[str, list[float]] = {s: [] for s in sides}
     for _ in range(args.reps):
-        for impl, tr in trainers.items():
-            with forced_impl(impl):
-                _sync(device)
-                t = time.perf_counter()
-                for _ in range(args.chunk):
-                    tr.train_step()
-                _sync(device)
-                step_times[impl].append((time.perf_counter() - t) / args.chunk)
-
-    gen_times: dict[str, list[float]] = {"ref": [], "ext": []}
-    g0 = trainers["ext"].G_ema
-    z = torch.randn(args.gen_batch, g0.latent_dim, device=device)
-    with torch.no_grad():
-        for impl in ("ref", "ext"):
-            with forced_impl(impl):
-                trainers[impl].G_ema(z)  # warm-up
-        for _ in range(args.gen_reps):
-            for impl, tr in trainers.items():
-                with forced_impl(impl):
+        for side, tr in trainers.items():
+            with side_env(side):
+                total = 0.0
+                for _ in range(cycle):
+                    kind = _kind(tr.step, tc)
                     _sync(device)
                     t = time.perf_counter()
-                    tr.G_ema(z)
+                    tr.train_step()
                     _sync(device)
-                    gen_times[impl].append(time.perf_counter() - t)
+                    dt = time.perf_counter() - t
+                    total += dt
+                    per_kind[side].setdefault(kind, []).append(dt)
+                cycle_means[side].append(total / cycle)
+    res: dict = {"preset": args.preset, "batch": args.batch, "data": str(data_dir),
+                 "windows": list(data.windows.shape), "cycle_iterations": cycle, "cycles": args.reps,
+                 "hierarchy": [lv.n_entities for lv in trainers[sides[0]].levels], "sides": {}}
+    print(f"# MoDi preset {args.preset}, batch {args.batch}, data {data_dir}; median s per step of each kind")
+    print(f"{'side':12s} {'plain':>8s} {'path':>8s} {'r1+path':>8s} {'cycle mean':>11s} {'path/plain':>11s}")
+    for side in sides:
+        med = {k: statistics.median(v) for k, v in per_kind[side].items()}
+        mean = statistics.median(cycle_means[side])
+        ratio = med.get("path", float("nan")) / med["plain"]
+        res["sides"][side] = {"s_per_step": {k: round(v, 4) for k, v in med.items()}, "cycle_mean_s": round(mean, 4),
+                              "path_over_plain": round(ratio, 3),
+                              "r1_extra_s": round(med.get("r1+path", float("nan")) - med.get("path", float("nan")), 4)}
+        print(f"{side:12s} {med['plain']:8.3f} {med.get('path', float('nan')):8.3f} "
+              f"{med.get('r1+path', float('nan')):8.3f} {mean:11.3f} {ratio:11.2f}")
+    for a, b in (("ext_refgrad", "ext"), ("ref", "ext")):
+        if a in sides and b in sides:
+            sp = res["sides"][a]["cycle_mean_s"] / res["sides"][b]["cycle_mean_s"]
+            res[f"cycle_speedup_{b}_vs_{a}"] = round(sp, 3)
+            print(f"cycle mean: {b} is {sp:.2f}x faster than {a}")
 
+    gen_sides = [s for s in ("ref", "ext") if s in sides]
+    if args.gen_batch > 0 and gen_sides:
+        z = torch.randn(args.gen_batch, trainers[gen_sides[0]].G_ema.latent_dim, device=device)
+        times: dict[str, list[float]] = {s: [] for s in gen_sides}
+        with torch.no_grad():
+            for s in gen_sides:
+                with side_env(s):
+                    trainers[s].G_ema(z)
+            for _ in range(args.gen_reps):
+                for s in gen_sides:
+                    with side_env(s):
+                        _sync(device)
+                        t = time.perf_counter()
+                        trainers[s].G_ema(z)
+                        _sync(device)
+                        times[s].append(time.perf_counter() - t)
+        res["generate"] = {"batch": args.gen_batch,
+                           **{f"{s}_motions_per_s": round(args.gen_batch / statistics.median(times[s]), 1)
+                              for s in gen_sides}}
+        print("generate     " + "   ".join(f"{s} {res['generate'][f'{s}_motions_per_s']:.1f} motions/s"
+                                           for s in gen_sides) + f"  (batch {args.gen_batch})")
+    return res
+
+
+def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
+    from modi.ganimator import config as gconfig
+    from modi.ganimator.data import load_sequence
+    from modi.ganimator.training import Trainer
+
+    clip = Path(args.clip or ROOT.parent / "shared" / "data" / "bvh" / "ganimator" / "Joe" / "Salsa-Dancing-6.bvh")
+    if not clip.is_file():
+        raise SystemExit(f"train_step: GANimator clip {clip} not found (--clip)")
+    cfg = gconfig.preset(args.ganimator_preset, device=str(device), seed=0, checkpoint_every=1e9)
+    seq = load_sequence(clip, cfg)
+    work = Path(tempfile.mkdtemp(prefix="ganimator_bench_"))
+    trainers = {}
+    for side in sides:
+        with side_env(side):
+            torch.manual_seed(0)
+            tr = Trainer([seq], cfg, work / side)
+            b = args.block if args.block >= 0 else len(tr.blocks) + args.block
+            levels = tr.blocks[b]
+            for l in levels:
+                tr._make_opts(l)
+            for l in range(tr.model.n_levels):
+                for p in tr.model.gens[l].parameters():
+                    p.requires_grad_(l in levels)
+            trainers[side] = (tr, levels, {})
+    n_sub = cfg.d_steps + cfg.g_steps + 1
+    times: dict[str, list[float]] = {s: [] for s in sides}
+    for side, (tr, levels, cache) in trainers.items():  # warm-up
+        with side_env(side):
+            tr._iteration(levels, 1, n_sub, cache)
+    for _ in range(args.reps):
+        for side, (tr, levels, cache) in trainers.items():
+            with side_env(side):
+                _sync(device)
+                t = time.perf_counter()
+                for _ in range(args.iters):
+                    tr._iteration(levels, 1, n_sub, cache)
+                _sync(device)
+                times[side].append((time.perf_counter() - t) / args.iters)
+    tr0, levels0, _ = trainers[sides[0]]
+    lengths = tr0.model.level_lengths(seq.n_frames) if hasattr(tr0.model, "level_lengths") else None
+    res = {"clip": str(clip), "preset": args.ganimator_preset, "d_steps": cfg.d_steps, "g_steps": cfg.g_steps,
+           "block_levels": levels0, "level_frames": lengths, "entities": seq.n_entities,
+           "iters_per_chunk": args.iters, "chunks": args.reps, "sides": {}}
+    print(f"# GANimator {clip.name}, preset {args.ganimator_preset} (d_steps {cfg.d_steps}, WGAN-GP on every D step),"
+          f" block levels {levels0}; median s per iteration")
+    for side in sides:
+        med = statistics.median(times[side])
+        res["sides"][side] = {"s_per_iter": round(med, 4)}
+        print(f"{side:12s} {med:8.3f} s/it")
+    for a in ("ref", "ext_refgrad"):
+        if a in sides and "ext" in sides:
+            sp = res["sides"][a]["s_per_iter"] / res["sides"]["ext"]["s_per_iter"]
+            res[f"speedup_ext_vs_{a}"] = round(sp, 3)
+            print(f"ext is {sp:.2f}x faster than {a}")
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", default="modi", choices=["modi", "ganimator"])
+    ap.add_argument("--sides", default=None,
+                    help="comma-separated among ref, ext_refgrad, ext (default: MoDi ext_refgrad,ext; "
+                         "GANimator ref,ext_refgrad,ext)")
+    ap.add_argument("--data", default=None, help="MoDi BVH folder (default: ../shared/data/bvh/bandai-namco-1, "
+                    "else 'procedural')")
+    ap.add_argument("--preset", default="paper", choices=["paper", "small"], help="MoDi preset")
+    ap.add_argument("--batch", type=int, default=16, help="MoDi batch")
+    ap.add_argument("--reps", type=int, default=3, help="timed chunks per side (MoDi: 16-iteration cycles)")
+    ap.add_argument("--gen-batch", type=int, default=256, help="MoDi generation batch (0: skip)")
+    ap.add_argument("--gen-reps", type=int, default=5)
+    ap.add_argument("--clip", default=None, help="GANimator BVH (default: Joe/Salsa-Dancing-6 from ../shared/data)")
+    ap.add_argument("--ganimator-preset", default="fast")
+    ap.add_argument("--block", type=int, default=-1, help="GANimator block to time (negative: from the end)")
+    ap.add_argument("--iters", type=int, default=8, help="GANimator iterations per timed chunk")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+
+    if not HAS_EXT:
+        print("modi_ext is not built: nothing to compare (python setup.py build_ext --inplace)", file=sys.stderr)
+        return 2
+    default = "ext_refgrad,ext" if args.model == "modi" else "ref,ext_refgrad,ext"
+    sides = [s.strip() for s in (args.sides or default).split(",") if s.strip()]
+    bad = [s for s in sides if s not in SIDES]
+    if bad or not sides:
+        ap.error(f"--sides: unknown {bad}; choose among {', '.join(SIDES)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
     if device.type == "cuda":
         from bench_cuda import device_description
 
         desc = device_description()
     else:
         desc = machine()
-    res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "preset": args.preset,
-           "batch": args.batch, "data": str(data_dir), "windows": list(data.windows.shape),
-           "hierarchy": [lv.n_entities for lv in trainers["ext"].levels]}
-    ref_s, ext_s = statistics.median(step_times["ref"]), statistics.median(step_times["ext"])
-    res["train_step"] = {"ref_s_per_iter": round(ref_s, 4), "ext_s_per_iter": round(ext_s, 4),
-                         "speedup": round(ref_s / ext_s, 3), "chunks": args.reps, "iters_per_chunk": args.chunk}
-    ref_g, ext_g = statistics.median(gen_times["ref"]), statistics.median(gen_times["ext"])
-    res["generate"] = {"batch": args.gen_batch, "ref_motions_per_s": round(args.gen_batch / ref_g, 1),
-                       "ext_motions_per_s": round(args.gen_batch / ext_g, 1), "speedup": round(ref_g / ext_g, 3)}
-    print(f"# {desc}; MoDi preset {args.preset}, batch {args.batch}, data {data_dir}")
-    print(f"train step   ref {ref_s:.3f} s/it   ext {ext_s:.3f} s/it   {ref_s / ext_s:.2f}x")
-    print(f"generate     ref {args.gen_batch / ref_g:.1f} motions/s   ext {args.gen_batch / ext_g:.1f} motions/s   "
-          f"{ref_g / ext_g:.2f}x  (batch {args.gen_batch})")
+    print(f"# {desc}")
+    body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)
+    res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "model": args.model, **body}
     write_json(Path(args.json) if args.json else None, res)
     return 0
 

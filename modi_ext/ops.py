@@ -8,8 +8,11 @@ weights, never a per-sample weight tensor) and handed to the kernel, which appli
 Autograd goes through ``torch.library.register_autograd``: first-order gradients use the fused C++ backward kernel;
 when a graph of the gradient is requested (``create_graph=True``: R1, path length, WGAN-GP) the backward is built
 from ops that are themselves differentiable (``modi_ext.gradfix``), so every order stays on the sparse kernels.
+``MODI_EXT_DOUBLE=ref`` routes that graph through the dense reference instead (the old behaviour, for comparison).
 """
 from __future__ import annotations
+
+import os
 
 import torch
 
@@ -186,6 +189,34 @@ def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
 # ----------------------------------------------------------------------------------------------------------------
 # Extension registration: fake kernels (for torch.compile / meta) and autograd.
 
+def _double_backward_on_reference() -> bool:
+    """``MODI_EXT_DOUBLE=ref``: build the graph of a gradient through the dense reference instead of
+    ``modi_ext.gradfix`` (the behaviour before gradfix existed; a debugging and benchmarking switch)."""
+    return os.environ.get("MODI_EXT_DOUBLE", "ext").strip().lower() == "ref"
+
+
+def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode, n_out, need):
+    """Gradients as a differentiable graph by re-running the op on the dense reference (slow, exact)."""
+    args = dict(x=x, weight=weight, bias=bias, style=style, scale=scale)
+    wanted = [k for k, v in need.items() if v and args[k] is not None]
+    res = dict.fromkeys(need)
+    if not wanted:
+        return res
+    if kind == _KIND_UP:
+        y = reference.skeletal_up(x, weight, None, index, offsets, n_out, style, False, padding_mode)
+    elif kind == _KIND_DOWN:
+        y = reference.skeletal_down(x, weight, None, index, offsets, style, False, padding_mode)
+    else:
+        y = reference.skeletal_conv(x, weight, None, index, offsets, style, False, padding_mode)
+    if scale is not None:
+        y = y * scale.unsqueeze(-1)
+    if bias is not None:
+        y = y + bias.view(1, -1, 1, 1)
+    grads = torch.autograd.grad(y, [args[k] for k in wanted], grad, create_graph=True, allow_unused=True)
+    res.update(zip(wanted, grads))
+    return res
+
+
 def _out_shape(kind, x, weight, offsets, n_out):
     b, _, _, t = x.shape
     if kind == _KIND_UP:
@@ -242,8 +273,12 @@ def _register_ext() -> None:
             else:
                 need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[5], scale=nig[6])
             if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
-                res = gradfix.graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
-                                             padding_mode, n_out, need)
+                if _double_backward_on_reference():
+                    res = _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale,
+                                                    padding_mode, n_out, need)
+                else:
+                    res = gradfix.graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
+                                                 padding_mode, n_out, need)
                 gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
             else:
                 mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]

@@ -224,3 +224,21 @@ def test_ganimator_wgan_gp_gradients_match_reference(monkeypatch):
         assert (a is None) == (r is None)
         if a is not None:
             torch.testing.assert_close(a, r, rtol=1e-8, atol=1e-10)
+
+
+def test_double_backward_reference_switch(monkeypatch):
+    """MODI_EXT_DOUBLE=ref (the pre-gradfix path, kept for comparison) really uses the reference, same answer."""
+    seed = 4
+
+    def inputs():
+        return _inputs("conv", random.Random(seed), True, True, "reflect", n_joints=6, U=3, B=2, cin=2, cout=3, T=8)
+
+    fast = _second_order("conv", "ext", monkeypatch, inputs, seed)
+    calls = []
+    real = R.skeletal_conv
+    monkeypatch.setattr(R, "skeletal_conv", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setenv("MODI_EXT_DOUBLE", "ref")
+    slow = _second_order("conv", "ext", monkeypatch, inputs, seed)
+    assert calls
+    for a, r in zip(fast, slow):
+        torch.testing.assert_close(a, r, rtol=1e-9, atol=1e-9)
