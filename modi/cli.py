@@ -22,11 +22,15 @@ from modi.errors import UserError
 TRACEBACK_ENV = "MODI_TRACEBACK"
 
 
+class BadArguments(Exception):
+    """A command line argparse refused; ``main`` prints it as one line and returns 2 (no ``SystemExit``)."""
+
+
 class ModiArgumentParser(argparse.ArgumentParser):
     """argparse with a one-line error: ``modi CMD: error: argument --x: why (see 'modi CMD --help')``."""
 
     def error(self, message: str):  # type: ignore[override]
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+        raise BadArguments(f"{self.prog}: error: {message} (see '{self.prog} --help')")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,6 +70,9 @@ def _run(argv: list[str] | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     try:
         return _run(argv)
+    except BadArguments as exc:
+        print(exc, file=sys.stderr, flush=True)
+        return 2
     except UserError as exc:
         _say(str(exc))
         return 2

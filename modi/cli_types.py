@@ -191,6 +191,17 @@ _named(output_dir, "folder")
 _named(output_file, "file")
 
 
+def input_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:
+    """``UserError`` unless ``path`` is an existing file: says whether it is missing or a folder."""
+    p = Path(path)
+    pre = f"{option} " if option else ""
+    if p.is_dir():
+        raise UserError(f"{pre}{path}: is a folder, expected a {what}")
+    if not p.is_file():
+        raise UserError(f"{pre}{path}: no such {what}")
+    return p
+
+
 def refuse_overwrite(output: str | os.PathLike, inputs: Iterable[str | os.PathLike], what: str = "output") -> None:
     """``UserError`` when ``output`` is (or links to) one of the ``inputs``: never write over what we read."""
     out = Path(output)
@@ -220,4 +231,4 @@ __all__ = ["int_range", "positive_int", "nonneg_int", "seed_int", "threads_int",
            "samples_int", "frames_int", "multiple_of", "float_range", "finite_float", "positive_finite_float",
            "nonneg_finite_float", "fps_float", "lr_float", "probability", "minutes_float", "angle_float",
            "available_devices", "device_type", "device", "device_or_auto", "output_dir", "output_file",
-           "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLES", "MAX_FRAMES"]
+           "input_file", "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLES", "MAX_FRAMES"]

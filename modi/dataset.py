@@ -408,6 +408,8 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
         feet = skeleton.detect_feet(config.feet) if config.feet is not None else skeleton.detect_feet()
     except KeyError as exc:
         raise UserError(f"feet: {exc}") from None
+    if config.feet is None:
+        feet = [f for f in feet if f != 0]  # a single-joint rig's only leaf is its root: it has no feet
     if len(set(feet)) != len(feet):
         dup = sorted({skeleton.names[f] for f in feet if feet.count(f) > 1})
         raise UserError(f"--feet: joint {', '.join(dup)} is given twice")

@@ -234,6 +234,7 @@ def _inputs(args: argparse.Namespace, bundle) -> tuple:
             xs.append(test[i])
             names.append(f"test{i:04d}")
         else:
+            ct.input_file(spec, option="INPUT")
             xs.append(load_bvh_window(bundle.codec, spec, t, args.start))
             names.append(Path(spec).stem)
     return torch.stack(xs), names

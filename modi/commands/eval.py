@@ -424,9 +424,7 @@ def cmd_plausibility(args: argparse.Namespace) -> int:
     axis = _AXES[args.up_axis]
     per = []
     for f in args.clips:
-        p = Path(f)
-        if not p.is_file():
-            raise UserError(f"no such BVH file: {p}")
+        p = ct.input_file(f)
         pos, names, fps = _load_bvh_positions(p)
         feet = _plausibility_feet(p, names, args.feet)
         try:

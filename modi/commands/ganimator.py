@@ -212,8 +212,7 @@ def _train(args) -> int:
             raise UserError(f"--conditional-from: that run uses {cond_source.cfg.sixd} 6D; pass --sixd "
                             f"{cond_source.cfg.sixd} to train a model that can read its trajectories")
     for b in args.bvh:
-        if not Path(b).is_file():
-            raise UserError(f"BVH file not found: {b}")
+        ct.input_file(b)
     clips = load_sequences(args.bvh, cfg)
     if cond_source is not None and [c.name for c in cond_source.seqs] != [c.name for c in clips]:
         raise UserError("--conditional-from must be a run trained on the same BVH file(s)")

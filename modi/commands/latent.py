@@ -294,6 +294,7 @@ def run_invert(args: argparse.Namespace) -> int:
         raise UserError(f"--steps must be >= 0, got {args.steps}")
     if args.lr <= 0 or args.lambda_fk < 0:
         raise UserError("--lr must be positive and --lambda-fk >= 0")
+    ct.input_file(args.bvh)
     _, _, t = g.output_shape
     target = load_bvh_window(codec, args.bvh, t, args.start).unsqueeze(0)
     res = invert(g, codec, target, steps=args.steps, lr=args.lr, lambda_fk=args.lambda_fk,

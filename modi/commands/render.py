@@ -43,6 +43,8 @@ def run(args: argparse.Namespace) -> int:
     if len(args.files) < 2:
         raise UserError("render needs at least one input .bvh and an output .gif/.mp4")
     *inputs, out = args.files
+    for f in inputs:
+        ct.input_file(f)
     if not out.lower().endswith((".gif", ".mp4")):
         raise UserError(f"{out}: the last argument is the output and must end in .gif or .mp4")
     try:
