@@ -152,7 +152,7 @@ def _latent(g, spec: str, option: str):
     if seed is not None and not 0 <= seed <= ct.MAX_SEED:
         raise UserError(f"{option}: a seed must be between 0 and {ct.MAX_SEED}, got {seed}")
     if seed is None and s != "mean" and not Path(s).is_file():
-        raise UserError(f"{option}: {spec!r} is not a seed, 'mean' or an existing .npy latent file")
+        raise UserError(f"{option}: {spec}: no such latent file (give a seed, 'mean' or a .npy latent)")
     w, label = parse_latent(g, spec)
     if not bool(torch.isfinite(w).all()):
         raise UserError(f"{option}: the latent {spec} holds NaN or infinite values")
