@@ -92,13 +92,15 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: a bug
-        if type(exc).__name__ == "OutOfMemoryError":  # torch's (CUDA) allocator
-            _say("out of device memory: ask for fewer or shorter motions, or a smaller --batch")
+        text = str(exc)
+        if type(exc).__name__ == "OutOfMemoryError" or (isinstance(exc, RuntimeError) and (
+                "can't allocate memory" in text or "out of memory" in text.lower())):  # torch's allocators
+            _say("out of memory: ask for fewer or shorter motions, a lower --fps or a smaller --batch")
             return 2
         if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
             raise
-        text = str(exc).strip().splitlines()
-        print(f"modi: internal error (a bug): {type(exc).__name__}: {text[0][:300] if text else ''} "
+        lines = text.strip().splitlines()
+        print(f"modi: internal error (a bug): {type(exc).__name__}: {lines[0][:300] if lines else ''} "
               f"-- run again with {TRACEBACK_ENV}=1 for the traceback", file=sys.stderr, flush=True)
         return 1
 
