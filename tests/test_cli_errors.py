@@ -209,6 +209,7 @@ CASES: list[tuple[str, str]] = [
     ("ganimator generate {tiny} --out {out}", "not a GANimator checkpoint"),
     ("ganimator generate {empty} --out {out}", "cannot read checkpoint"),
     ("ganimator generate {root}/X.pt --out {out}", "no such GANimator run folder or checkpoint file"),
+    ("ganimator train {clip} --out {out} --conditional-from {root}/nope", "--conditional-from"),
     # --- misleading messages, now saying what is wrong
     ("render {d} {out}.gif", "is a folder, expected a BVH file"),
     ("eval plausibility {d}", "is a folder, expected a BVH file"),
@@ -262,6 +263,18 @@ def test_single_joint_rig_has_no_feet_and_works(work, tmp_path, monkeypatch, cap
     (d / "one.bvh").write_text(Path(work["one"]).read_text())
     assert main(["data", "info", str(d), "--window", "16"]) == 0
     assert "feet:        (none)" in capsys.readouterr().out
+
+
+def test_rerunning_a_finished_ganimator_run_says_so(work, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(work["gan"], run)
+    capsys.readouterr()
+    assert main(["ganimator", "train", work["clip"], "--out", str(run), "--preset", "tiny", "--iterations", "1",
+                 "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "already fully trained" in out and "resuming" not in out
 
 
 def test_last_resort_handler(monkeypatch, capsys):

@@ -206,6 +206,8 @@ def _train(args) -> int:
         cfg = cfg.replace(contacts=False)
     cond_source = None
     if args.conditional_from:
+        if not Path(args.conditional_from).exists():
+            raise UserError(f"--conditional-from {args.conditional_from}: no such GANimator run folder or checkpoint file")
         cond_source = load_model(args.conditional_from, device=cfg.device)
         cfg = cfg.replace(conditional=True)
         if cond_source.cfg.sixd != cfg.sixd:
