@@ -196,7 +196,7 @@ def input_file(path: str | os.PathLike, what: str = "BVH file", option: str = ""
     p = Path(path)
     pre = f"{option} " if option else ""
     if p.is_dir():
-        raise UserError(f"{pre}{path}: is a folder, expected a {what}")
+        raise UserError(f"{pre}{path}: is a folder, expected {'an' if what[:1] in 'aeiou' else 'a'} {what}")
     if not p.is_file():
         raise UserError(f"{pre}{path}: no such {what}")
     return p

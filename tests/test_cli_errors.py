@@ -216,6 +216,9 @@ CASES: list[tuple[str, str]] = [
     ("ganimator train {d} --out {out}", "is a folder, expected a BVH file"),
     ("export-positions {d} {out}.npy", "is a folder, expected a .bvh file"),
     ("latent invert {tiny} {d} --out {out}", "is a folder, expected a BVH file"),
+    ("generate {gan} --out {out}", "is a folder, expected a MoDi checkpoint file"),
+    ("encoder eval {gan}", "is a folder, expected an encoder checkpoint file"),
+    ("train {d} --out {out} --resume {gan}", "--resume"),
     ("train {d} --out {out} --preset nope", "argument --preset: invalid choice"),
 ]
 

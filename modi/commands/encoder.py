@@ -158,6 +158,7 @@ def run_train(args: argparse.Namespace) -> int:
         raise UserError(f"{out} exists: pass --resume to continue it, or choose another --out")
     if args.resume and not out.exists():
         raise UserError(f"--resume: {out} does not exist")
+    ct.input_file(args.ckpt, "MoDi checkpoint file")
     st = load_checkpoint(args.ckpt)
     gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
                  if k in st}
@@ -193,6 +194,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from modi.encoder.training import load_encoder, load_encoder_data
 
     _threads(args)
+    ct.input_file(args.enc, "encoder checkpoint file")
     b = load_encoder(args.enc, device=args.device)
     source = args.data or b.meta.get("data_source")
     if not source or source == "tensor":
@@ -245,6 +247,7 @@ def run_apply(args: argparse.Namespace) -> int:
     from modi.encoder.training import load_encoder
 
     _threads(args)
+    ct.input_file(args.enc, "encoder checkpoint file")
     b = load_encoder(args.enc, device=args.device)
     x, names = _inputs(args, b)
     out = Path(args.out)

@@ -134,6 +134,7 @@ def _setup(args: argparse.Namespace):
         torch.set_num_threads(args.threads)
     if str(args.device).startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")
+    ct.input_file(args.ckpt, "MoDi checkpoint file")
     return load_model(args.ckpt, device=args.device, ema=not args.raw_weights)
 
 

@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--gif-max must be >= 0, got {args.gif_max}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")
+    ct.input_file(args.ckpt, "MoDi checkpoint file")
     t0 = time.perf_counter()
     model = load_generator(args.ckpt, ema=not args.raw_weights, device=args.device)
     t1 = time.perf_counter()

@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     resume_state = None
     if args.resume is not None:
         ckpt_path = run_dir / "checkpoint.pt" if args.resume == "auto" else Path(args.resume)
+        ct.input_file(ckpt_path, "checkpoint to resume", "--resume")
         resume_state = load_checkpoint(ckpt_path)
         cfg = MoDiConfig.from_dict(resume_state["config"])
         for flag, section, attr in (("iters", "train", "iters"), ("log_every", "train", "log_every"),
