@@ -142,6 +142,8 @@ CASES: list[tuple[str, str]] = [
     ("ganimator train {clip} --out {out} --base-channels -4", "argument --base-channels"),
     ("ganimator train {clip} --out {out} --max-minutes 0", "argument --max-minutes"),
     ("ganimator train {clip} --out {out} --coarse-ratio 0", "argument --coarse-ratio"),
+    ("ganimator train {clip} --out {out} --coarse-multiplier inf", "argument --coarse-multiplier"),
+    ("encoder train {tiny} {d} --out {out}.pt --lambda-rec -1", "argument --lambda-rec"),
     ("ganimator generate {gan} --out {out} --crowd-spacing nan", "argument --crowd-spacing"),
     ("ganimator generate {gan} --out {out} --n 0", "argument --n"),
     ("eval plausibility {clip} --ground nan", "argument --ground"),

@@ -51,7 +51,7 @@ def register(subparsers) -> None:
                         "layers of width n_latent x latent_dim -> W+; 'bottleneck' = the earlier head (coarsest "
                         "level, one --hidden-wide layer, offset from the mean latent)")
     q.add_argument("--lr", type=ct.lr_float, default=None, help="Adam learning rate (default: from --optimizer)")
-    q.add_argument("--lambda-rec", type=float, default=None, help="weight of the representation L2 "
+    q.add_argument("--lambda-rec", type=ct.float_range(0.0, 1e6), default=None, help="weight of the representation L2 "
                    "(default: from --losses)")
     q.add_argument("--lambda-contact", type=ct.float_range(0.0, 1e6), default=None, help="weight of the contact BCE "
                    "(default: from --losses)")

@@ -33,7 +33,7 @@ def register(subparsers) -> None:
     t.add_argument("--block-iters", default=None,
                    help="iterations per block of levels, coarsest first, e.g. 2000,800,800,800 (the last value "
                         "repeats for further blocks); overrides --iterations and --coarse-multiplier")
-    t.add_argument("--coarse-multiplier", type=float, default=None,
+    t.add_argument("--coarse-multiplier", type=ct.float_range(0.0, 1000.0, lo_inclusive=False), default=None,
                    help="the coarsest block trains ITERATIONS x this (preset's if omitted: paper 1, fast 3, tiny 1)")
     t.add_argument("--contact-rescale", action="store_true", default=None,
                    help="contact consistency on per-source-frame velocities at every level (our earlier form; "
