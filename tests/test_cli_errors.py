@@ -179,6 +179,10 @@ CASES: list[tuple[str, str]] = [
     ("ganimator generate {gan} --out {clip}", "is a file, expected a folder"),
     ("encoder train {tiny} {d} --out {d}", "is a folder, expected a file"),
     ("eval plausibility {clip} --json {d}", "is a folder, expected a file"),
+    ("eval plausibility {clip} --json {clip}", "refusing to write over an input"),
+    ("encoder eval {tiny} --json {tiny}", "refusing to write over an input"),
+    ("ganimator evaluate {gan} --json {gan}/ganimator.ckpt", "refusing to write over an input"),
+    ("eval train-features {d} --out {out}.pt --json {out}.pt", "is also --out"),
     # --- devices: say which exist
     ("train {d} --out {out} --device gpu7", "devices here: cpu"),
     ("generate {tiny} --out {out} --device cuda:99", "devices here: cpu"),

@@ -195,6 +195,8 @@ def run_eval(args: argparse.Namespace) -> int:
 
     _threads(args)
     ct.input_file(args.enc, "encoder checkpoint file")
+    if args.json:
+        ct.refuse_overwrite(args.json, [args.enc], "--json")
     b = load_encoder(args.enc, device=args.device)
     source = args.data or b.meta.get("data_source")
     if not source or source == "tensor":

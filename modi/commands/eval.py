@@ -150,6 +150,8 @@ def _dump(results: dict[str, Any], args: argparse.Namespace, title: str) -> None
 def cmd_train_features(args: argparse.Namespace) -> int:
     from modi.evaluation import features as F
 
+    if args.json and Path(args.json).absolute() == Path(args.out).absolute():
+        raise UserError(f"--json {args.json} is also --out, the extractor file; choose another name")
     _threads(args.threads)
     if args.window < 8:
         raise UserError(f"--window must be at least 8 frames, got {args.window}")
@@ -241,6 +243,9 @@ def _metrics(real: np.ndarray, fake: np.ndarray, args: argparse.Namespace) -> di
 def cmd_real(args: argparse.Namespace) -> int:
     from modi.evaluation.features import load_extractor
 
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.features], f"--{opt}")
     ext = load_extractor(args.features)
     root = Path(args.data)
     if not root.is_dir():
@@ -284,6 +289,9 @@ def cmd_gen(args: argparse.Namespace) -> int:
 
     if args.n < 4:
         raise UserError(f"--n must be at least 4, got {args.n}")
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.ckpt, args.features], f"--{opt}")
     ext = load_extractor(args.features)
     sample_motions = _sampler()
     root = Path(args.data)
@@ -421,6 +429,8 @@ def cmd_plausibility(args: argparse.Namespace) -> int:
     from modi.evaluation.plausibility import aggregate, plausibility_metrics
     from modi.evaluation.report import write_json
 
+    if args.json:
+        ct.refuse_overwrite(args.json, args.clips, "--json")
     axis = _AXES[args.up_axis]
     per = []
     for f in args.clips:

@@ -260,6 +260,10 @@ def _evaluate(args) -> int:
         raise UserError("--n must be at least 1")
     if args.frames is not None and args.frames < 30:
         raise UserError("--frames must be at least 30 (the coverage window)")
+    if args.json and args.json != "-":
+        from modi.ganimator.training import checkpoint_path
+
+        ct.refuse_overwrite(args.json, [checkpoint_path(args.run)], "--json")
     if args.protocol == "paper":
         figures = evaluate_paper(args.run, n=args.n or N_SAMPLES, n_frames=args.frames, seed=args.seed)
     else:
