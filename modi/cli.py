@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
+from pathlib import Path
 
 from modi.errors import UserError
 
@@ -57,6 +59,34 @@ def _say(message: str) -> None:
     print(f"modi: error: {message}", file=sys.stderr, flush=True)
 
 
+_OUTPUT_DESTS = ("out", "out_dir")  # argument names of output folders (or files) across the commands
+
+
+def _new_output_roots(args: argparse.Namespace) -> list[Path]:
+    """For each output path of the command, the top-most part of it that does not exist yet (what it creates)."""
+    roots = []
+    for dest in _OUTPUT_DESTS:
+        value = getattr(args, dest, None)
+        if not isinstance(value, str) or not value:
+            continue
+        p = Path(value).absolute()
+        if p.exists():
+            continue
+        while not p.parent.exists() and p.parent != p:
+            p = p.parent
+        roots.append(p)
+    return roots
+
+
+def _remove_if_empty(root: Path) -> None:
+    """Remove a folder tree that holds no file (what a command that failed early leaves behind)."""
+    try:
+        if root.is_dir() and not any(q.is_file() or q.is_symlink() for q in root.rglob("*")):
+            shutil.rmtree(root)
+    except OSError:
+        pass
+
+
 def _run(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -64,7 +94,13 @@ def _run(argv: list[str] | None) -> int:
     if func is None:
         parser.print_help()
         return 2
-    return int(func(args) or 0)
+    created = _new_output_roots(args)
+    try:
+        return int(func(args) or 0)
+    except BaseException:
+        for root in created:  # a user error found after the output folder was made: leave nothing behind
+            _remove_if_empty(root)
+        raise
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,6 +10,7 @@ handler never passes a case. Separate tests cover Ctrl-C (before any command run
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -92,10 +93,14 @@ def work(tmp_path_factory) -> dict[str, str]:
     rc = main(["ganimator", "train", str(clip), "--out", str(gan), "--preset", "tiny", "--iterations", "1",
                "--quiet"])
     assert rc == 0
+    rc = main(["encoder", "train", str(w / "tiny.pt"), str(d), "--out", str(w / "enc.pt"), "--iters", "1",
+               "--batch", "2", "--eval-every", "0", "--quiet", "--no-cache"])
+    assert rc == 0
     return {"d": str(d), "clip": str(clip), "clip2": str(d / "0001_run.bvh"), "file": str(d / "labels.json"),
             "short1": str(w / "short1.bvh"), "short2": str(w / "short2.bvh"), "clip10": str(w / "clip10.bvh"),
             "one": str(w / "one.bvh"), "tiny": str(w / "tiny.pt"), "empty": str(w / "empty.pt"),
-            "dict": str(w / "dict.pt"), "nan": str(w / "nan.npy"), "gan": str(gan), "root": str(w)}
+            "dict": str(w / "dict.pt"), "nan": str(w / "nan.npy"), "gan": str(gan), "enc": str(w / "enc.pt"),
+            "root": str(w)}
 
 
 NO_CUDA = not torch.cuda.is_available()
@@ -216,6 +221,15 @@ CASES: list[tuple[str, str]] = [
     ("ganimator generate {empty} --out {out}", "cannot read checkpoint"),
     ("ganimator generate {root}/X.pt --out {out}", "no such GANimator run folder or checkpoint file"),
     ("ganimator train {clip} --out {out} --conditional-from {root}/nope", "--conditional-from"),
+    # --- found only after the output folder was made: it is removed again
+    ("apply fuse {enc} {clip} {clip2} --out {out}/x --frame 1000", "fusion frame must be in"),
+    ("apply edit {enc} {clip} --out {out} --from-frame 1000", "edit start frame"),
+    ("apply prefix {enc} {clip} --out {out}", "--prefix"),
+    ("apply invert {enc} test:999 --out {out}", "the test split has windows"),
+    ("train {d} --out {out} --preset small", "no training windows"),
+    ("ganimator generate {gan} --out {out} --trajectory {clip}", "needs a trajectory-conditioned run"),
+    ("latent edit {tiny} --out {out} --boundary {file}", "not a boundary file"),
+    ("encoder train {tiny} {d} --out {out}.pt --units furlongs", "argument --units"),
     # --- misleading messages, now saying what is wrong
     ("render {d} {out}.gif", "is a folder, expected a BVH file"),
     ("eval plausibility {d}", "is a folder, expected a BVH file"),
@@ -227,6 +241,9 @@ CASES: list[tuple[str, str]] = [
     ("train {d} --out {out} --resume {gan}", "--resume"),
     ("train {d} --out {out} --preset nope", "argument --preset: invalid choice"),
 ]
+
+
+_PROGRESS = re.compile(r"\d+%\|")  # a tqdm progress bar while data loads
 
 
 def _snapshot(root: Path) -> dict[str, tuple[int, int]]:
@@ -244,7 +261,7 @@ def test_bad_input_is_one_line_exit_2(line, expected, work, tmp_path, capsys, mo
     capsys.readouterr()
     rc = main(argv)
     captured = capsys.readouterr()
-    err_lines = [line for line in captured.err.splitlines() if line.strip()]
+    err_lines = [line for line in captured.err.splitlines() if line.strip() and not _PROGRESS.search(line)]
     assert rc == 2, (argv, rc, captured.err[-2000:])
     assert len(err_lines) == 1, err_lines
     assert "error:" in err_lines[0] and expected in err_lines[0], err_lines[0]

@@ -15,6 +15,15 @@ from modi import cli_types as ct
 from modi.errors import UserError
 
 
+def _units(text: str) -> str:
+    """A length unit of the mm metrics, checked while parsing (not after hours of training)."""
+    from modi.latent.space import _UNITS_MM
+
+    if text != "auto" and text not in _UNITS_MM:
+        raise argparse.ArgumentTypeError(f"unknown unit {text!r}; choose from auto, {', '.join(_UNITS_MM)}")
+    return text
+
+
 def _runtime(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
     p.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
@@ -63,7 +72,7 @@ def register(subparsers) -> None:
     q.add_argument("--channel-multiplier", type=ct.float_range(0.0, 64.0, lo_inclusive=False), default=1.0, help="encoder width relative to the generator")
     q.add_argument("--hidden", type=ct.int_range(1, 8192), default=None,
                    help="bottleneck head only: width of its hidden layer (default: max(latent, channels))")
-    q.add_argument("--units", default="auto", help="data length unit for the mm metrics (auto, mm, cm, m, in)")
+    q.add_argument("--units", default="auto", type=_units, help="data length unit for the mm metrics (auto, mm, cm, m, in)")
     q.add_argument("--seed", type=ct.seed_int, default=0, help="seed")
     q.add_argument("--eval-every", type=ct.nonneg_int, default=500, help="steps between test-split evaluations (0: end only)")
     q.add_argument("--ckpt-every", type=ct.nonneg_int, default=250, help="steps between checkpoint writes")
@@ -84,7 +93,7 @@ def register(subparsers) -> None:
     q.add_argument("data", metavar="DATA", nargs="?", default=None,
                    help="BVH folder (default: the data the encoder was trained on)")
     q.add_argument("--split", choices=("test", "train"), default="test", help="which split to score")
-    q.add_argument("--units", default="auto", help="data length unit (auto, mm, cm, m, in)")
+    q.add_argument("--units", default="auto", type=_units, help="data length unit (auto, mm, cm, m, in)")
     q.add_argument("--json", default=None, metavar="FILE", type=ct.output_file, help="also write the metrics as JSON")
     _runtime(q)
     q.set_defaults(func=run_eval)
