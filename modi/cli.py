@@ -7,6 +7,7 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
 * bad arguments are refused by the argparse types of ``modi.cli_types`` while parsing, naming the option, in one
   line (``ModiArgumentParser.error`` prints no usage block; ``--help`` has it);
 * ``UserError`` and OS errors about files (missing, a folder, not a folder, no permission, disk full) are one line;
+  an output folder the command created and left empty when it failed is removed again;
 * Ctrl-C at any moment -- while torch is imported, while parsing, while running -- prints ``modi: interrupted`` and
   exits 130 (long-running commands catch it earlier and save a checkpoint);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
