@@ -404,3 +404,20 @@ def test_dataset_offsets_do_not_come_from_one_odd_clip(work, tmp_path):
     np.testing.assert_array_equal(offsets[0], offsets[1])
     ref = build_dataset(work["d"], DatasetConfig(window=16, stride=8), cache=False).skeleton
     np.testing.assert_array_equal(offsets[0], ref.offsets)
+
+
+def test_argument_types():
+    import argparse
+
+    from modi import cli_types as ct
+
+    assert ct.positive_int("3") == 3 and ct.nonneg_int("0") == 0 and ct.multiple_of(16)("64") == 64
+    assert ct.float_range(0, 1, lo_inclusive=False)("1") == 1.0 and ct.finite_float("-2.5") == -2.5
+    bad = [(ct.positive_int, "0"), (ct.positive_int, "1.5"), (ct.multiple_of(16), "65"), (ct.multiple_of(16), "0"),
+           (ct.float_range(0, 1, lo_inclusive=False), "0"), (ct.float_range(0, 1, hi_inclusive=False), "1"),
+           (ct.finite_float, "nan"), (ct.finite_float, "-inf"), (ct.finite_float, "x"), (ct.fps_float, "1e6"),
+           (ct.seed_int, "-1"), (ct.batch_int, "100000"), (ct.device, "gpu7")]
+    for parse, text in bad:
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse(text)
+    assert ct.device("cpu") == "cpu" and ct.device_or_auto("auto") == "auto"
