@@ -167,7 +167,6 @@ def run_train(args: argparse.Namespace) -> int:
         raise UserError(f"{out} exists: pass --resume to continue it, or choose another --out")
     if args.resume and not out.exists():
         raise UserError(f"--resume: {out} does not exist")
-    ct.input_file(args.ckpt, "MoDi checkpoint file")
     st = load_checkpoint(args.ckpt)
     gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
                  if k in st}
