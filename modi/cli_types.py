@@ -23,7 +23,7 @@ from modi.errors import UserError
 # what would exhaust memory or run for hours by mistake.
 MAX_FPS = 1000.0          # mocap is captured at <= 480 fps; resampling up to 1e6 fps allocates gigabytes per clip
 MAX_BATCH = 1024          # MoDi's paper batch is 16
-MAX_SAMPLES = 100_000     # motions generated / sampled in one command
+MAX_SAMPLES = 20_000      # motions generated / sampled in one command (~0.5 GB of MoDi output at 64 frames)
 MAX_FRAMES = 100_000      # ~55 minutes at 30 fps
 MAX_THREADS = 1024
 MAX_ITERS = 100_000_000
