@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -159,8 +160,14 @@ def load_encoder_data(codec: Any, gcfg: Any, source: str | os.PathLike, *, cache
                              feet=dc.feet, keep_joints=getattr(dc, "keep_joints", None))
     ds = build_dataset(root, dcfg, cache=cache, progress=progress)
     if not ds.skeleton.same_as(codec.skeleton):
-        raise UserError(f"{src}: its skeleton differs from the generator's ({ds.skeleton.n_joints} vs "
-                        f"{codec.skeleton.n_joints} joints or different bones)")
+        a, b = ds.skeleton, codec.skeleton
+        if a.names != b.names or a.parents != b.parents:
+            why = f"{a.n_joints} vs {b.n_joints} joints, or other names or hierarchy"
+        else:
+            j = int(np.abs(a.offsets - b.offsets).max(axis=1).argmax())
+            why = (f"same joints, but bone offsets differ, most at {a.names[j]}: {np.round(a.offsets[j], 3).tolist()} "
+                   f"vs {np.round(b.offsets[j], 3).tolist()}")
+        raise UserError(f"{src}: its skeleton differs from the generator's ({why})")
     if ds.test.shape[0] == 0:
         raise UserError(f"{src}: the 20% test split has no windows (too few or too short clips)")
     norm = codec.normalizer
