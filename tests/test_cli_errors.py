@@ -85,6 +85,11 @@ def work(tmp_path_factory) -> dict[str, str]:
     _cut_frames(clip, w / "short2.bvh", 2)
     _cut_frames(clip, w / "clip10.bvh", 10)
     _single_joint_bvh(w / "one.bvh")
+    big = w / "big"  # the same rig with every bone 10% longer
+    big.mkdir()
+    for f in sorted(d.glob("*.bvh")):
+        (big / f.name).write_text(re.sub(r"OFFSET ([-\d. ]+)", lambda m: "OFFSET " + " ".join(
+            f"{1.1 * float(v):.4f}" for v in m.group(1).split()), f.read_text()))
     _tiny_generator_checkpoint(w / "tiny.pt")
     (w / "empty.pt").write_bytes(b"")
     torch.save({"a": 1}, w / "dict.pt")
@@ -100,7 +105,7 @@ def work(tmp_path_factory) -> dict[str, str]:
             "short1": str(w / "short1.bvh"), "short2": str(w / "short2.bvh"), "clip10": str(w / "clip10.bvh"),
             "one": str(w / "one.bvh"), "tiny": str(w / "tiny.pt"), "empty": str(w / "empty.pt"),
             "dict": str(w / "dict.pt"), "nan": str(w / "nan.npy"), "gan": str(gan), "enc": str(w / "enc.pt"),
-            "root": str(w)}
+            "big": str(big), "root": str(w)}
 
 
 NO_CUDA = not torch.cuda.is_available()
@@ -216,6 +221,7 @@ CASES: list[tuple[str, str]] = [
     ("generate {dict} --out {out}", "not a MoDi checkpoint"),
     ("latent mean {empty} --out {out}", "not a readable MoDi checkpoint"),
     ("encoder train {dict} {d} --out {out}.pt", "not a MoDi checkpoint"),
+    ("encoder train {tiny} {big} --out {out}.pt", "same joints, but bone offsets differ"),
     ("train {d} --out {out} --resume {empty}", "not a readable MoDi checkpoint"),
     ("ganimator generate {tiny} --out {out}", "not a GANimator checkpoint"),
     ("ganimator generate {empty} --out {out}", "cannot read checkpoint"),
