@@ -331,11 +331,18 @@ def _ctrl_c_env() -> dict[str, str]:
 
 
 def test_ctrl_c_at_start_is_not_a_traceback(tmp_path):
-    """SIGINT while modi is still importing torch and building the parser: one line, exit 130."""
+    """SIGINT while modi is still importing torch and building the parser: one line, exit 130.
+
+    The child says when the interpreter's own start-up (``site``) is over, and the signal is sent ``delay`` later:
+    a signal during the interpreter's start-up is CPython's to report, not modi's (on a loaded machine start-up can
+    take longer than the delay)."""
+    launcher = ("import runpy, sys; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
+                "sys.argv = ['modi'] + sys.argv[1:]; runpy.run_module('modi', run_name='__main__', alter_sys=True)")
     for delay in (0.05, 0.4):
-        p = subprocess.Popen([sys.executable, "-m", "modi", "synth", str(tmp_path / f"s{delay}")],
+        p = subprocess.Popen([sys.executable, "-c", launcher, "synth", str(tmp_path / f"s{delay}")],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_ctrl_c_env(),
                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        assert p.stderr.readline().strip() == "ready"
         try:
             p.wait(timeout=delay)
         except subprocess.TimeoutExpired:
