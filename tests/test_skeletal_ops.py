@@ -244,8 +244,10 @@ def test_narrow_layers_fp32_match_reference(kind, threads):
         rng = random.Random(200 + threads)
         for _ in range(6):
             args, kw = make_case(kind, rng, dtype=torch.float32, n_joints=rng.randint(2, 30), distance=2, U=5,
-                                 B=rng.randint(1, 2), cin=rng.randint(1, 9), cout=rng.randint(1, 9),
+                                 B=rng.randint(1, 2), cin=rng.randint(2, 9), cout=rng.randint(1, 9),
                                  T=rng.randint(17, 48), padding="reflect")
+            # (cin >= 2: with one input channel, demodulation makes the output independent of the style, and its
+            # float32 style gradient is pure cancellation noise around 0)
             leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
             for t in leaves:
                 t.requires_grad_(True)
