@@ -43,10 +43,11 @@ def skeletal_grad_input(grad: torch.Tensor, weight: torch.Tensor, index: torch.T
                         kind: int, n_out: int, n_in: int, t_in: int, padding_mode: str) -> torch.Tensor:
     """``A_W^T grad``: the input gradient of an unmodulated skeletal op, shape ``(B, Cin, n_in, t_in)``."""
     c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
-    x_like = grad.new_empty(grad.shape[0], c_in, n_in, t_in)  # shape only: the kernel reads no input values here
-    gx = torch.ops.modi_ext.skeletal_backward(grad.contiguous(), grad, x_like, weight, None, index, offsets, None,
-                                              None, padding_mode, kind, n_out, [True, False, False, False])[0]
-    return gx
+    g = grad.contiguous()
+    x_like = g.new_empty(g.shape[0], c_in, n_in, t_in)  # shape only: the kernel reads no input values here
+    # ``out`` (read only for the scale gradient, not requested here) must merely have the output's shape
+    return torch.ops.modi_ext.skeletal_backward(g, g, x_like, weight.contiguous(), None, index, offsets, None, None,
+                                                padding_mode, kind, n_out, [True, False, False, False])[0]
 
 
 @skeletal_grad_input.register_fake
@@ -59,10 +60,10 @@ def _(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode):
 def skeletal_grad_weight(grad: torch.Tensor, x: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
                          kind: int, n_out: int, taps: int, padding_mode: str) -> torch.Tensor:
     """``d<grad, A_W x>/dW`` in the compact layout of ``W`` (``taps`` = the kernel width U)."""
-    w_like = x.new_empty(_weight_shape(kind, grad, x, index.shape[0], taps))  # shape only
-    gw = torch.ops.modi_ext.skeletal_backward(grad.contiguous(), grad, x.contiguous(), w_like, None, index, offsets,
-                                              None, None, padding_mode, kind, n_out, [False, True, False, False])[1]
-    return gw
+    g = grad.contiguous()
+    w_like = x.new_empty(_weight_shape(kind, g, x, index.shape[0], taps))  # shape only
+    return torch.ops.modi_ext.skeletal_backward(g, g, x.contiguous(), w_like, None, index, offsets, None, None,
+                                                padding_mode, kind, n_out, [False, True, False, False])[1]
 
 
 @skeletal_grad_weight.register_fake

@@ -242,3 +242,20 @@ def test_double_backward_reference_switch(monkeypatch):
     assert calls
     for a, r in zip(fast, slow):
         torch.testing.assert_close(a, r, rtol=1e-9, atol=1e-9)
+
+
+def test_backward_ops_accept_non_contiguous_inputs():
+    """The registered backward ops are public: strided gradients and weights are made contiguous, not refused."""
+    from modi_ext import gradfix
+
+    x, w, topo = _disconnected_conv_case()
+    y = ops.skeletal_conv(x, w, None, topo.index, topo.offsets)
+    g = torch.randn(y.shape[::-1], dtype=y.dtype).permute(3, 2, 1, 0)  # same shape, transposed strides
+    assert not g.is_contiguous()
+    gx = gradfix.skeletal_grad_input(g, w, topo.index, topo.offsets, gradfix.KIND_CONV, 5, 5, 7, "zeros")
+    gw = gradfix.skeletal_grad_weight(g, x, topo.index, topo.offsets, gradfix.KIND_CONV, 5, 5, "zeros")
+    ref_gx, ref_gw = torch.autograd.grad(
+        R.skeletal_conv(x.requires_grad_(True), w.requires_grad_(True), None, topo.index, topo.offsets), [x, w],
+        g.contiguous())
+    torch.testing.assert_close(gx, ref_gx, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(gw, ref_gw, rtol=1e-9, atol=1e-9)
