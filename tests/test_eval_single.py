@@ -316,6 +316,26 @@ def test_implausible_frame_time_names_the_option(tmp_path, capsys, frame_time):
         assert rc == 2 and "--gen-fps" in err and len(err.strip().splitlines()) == 1, err
 
 
+
+def test_reports_never_overwrite_an_input_and_numbers_are_checked_while_parsing(tmp_path, capsys):
+    from modi.bvh import save
+
+    save(_rig_bvh(120), tmp_path / "src.bvh")
+    save(_rig_bvh(120, seed=1), tmp_path / "gen.bvh")
+    before = {n: (tmp_path / n).read_bytes() for n in ("src.bvh", "gen.bvh")}
+    for opt, target in (("--json", "src.bvh"), ("--md", "gen.bvh"), ("--json", "gen.bvh")):
+        rc, _, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh", opt, tmp_path / target)
+        lines = err.strip().splitlines()
+        assert rc == 2 and len(lines) == 1 and f"{opt} {tmp_path / target} is the input file" in lines[0], err
+    assert {n: (tmp_path / n).read_bytes() for n in before} == before
+    for opt, bad, says in (("--fps", "5000", "in (2, 1000]"), ("--fps", "2", "in (2, 1000]"),
+                           ("--gen-fps", "1e9", "in (2, 1000]"), ("--window", "0", "between 1 and"),
+                           ("--min-segment", "-3", "between 1 and"), ("--local-window", "1.5", "integer"),
+                           ("--json", str(tmp_path), "is a folder")):
+        rc, _, err = _run_single(capsys, tmp_path / "gen.bvh", "--source", tmp_path / "src.bvh", opt, bad)
+        assert rc == 2 and f"argument {opt}" in err and says in err and len(err.strip().splitlines()) == 1, err
+
+
 def test_a_different_rig_is_rejected_by_joint_parent(tmp_path, capsys):
     from modi.bvh import save
 

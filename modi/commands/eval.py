@@ -22,6 +22,8 @@ from modi.errors import UserError
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
 _AXES = {"x": 0, "y": 1, "z": 2}
+# a frame rate above 2 fps (a Frame Time under 0.5 s, what ``_motion`` accepts from a header) and at most MAX_FPS
+_single_fps = ct.float_range(2.0, ct.MAX_FPS, lo_inclusive=False)
 
 
 def register(subparsers: Any) -> None:
@@ -88,19 +90,19 @@ def register(subparsers: Any) -> None:
     s.add_argument("generated", nargs="+", help="generated BVH files (the source's rig; joints are matched by name, "
                                                 "namespace prefix and sibling order ignored)")
     s.add_argument("--source", required=True, help="the training sequence (BVH)")
-    s.add_argument("--json", default=None, help="write the results (means and per-file values) here")
-    s.add_argument("--md", default=None, help="also write a Markdown summary here")
-    s.add_argument("--window", type=int, default=30, help="coverage window (frames)")
+    s.add_argument("--json", default=None, type=ct.output_file, help="write the results (means and per-file values) here")
+    s.add_argument("--md", default=None, type=ct.output_file, help="also write a Markdown summary here")
+    s.add_argument("--window", type=ct.int_range(1, ct.MAX_FRAMES), default=30, help="coverage window (frames)")
     s.add_argument("--threshold", type=ct.positive_finite_float, default=2.0, help="coverage distance threshold")
-    s.add_argument("--min-segment", type=int, default=30, help="PNN minimum segment length (frames)")
-    s.add_argument("--local-window", type=int, default=15, help="local-diversity window (frames)")
+    s.add_argument("--min-segment", type=ct.int_range(1, ct.MAX_FRAMES), default=30, help="PNN minimum segment length (frames)")
+    s.add_argument("--local-window", type=ct.int_range(1, ct.MAX_FRAMES), default=15, help="local-diversity window (frames)")
     s.add_argument("--representation", choices=["6d", "matrix"], default="6d",
                    help="pose vector: the first two rows of each local rotation matrix, as in the GANimator "
                         "authors' evaluation code (what threshold 2.0 and their tables use), or all 9 entries")
-    s.add_argument("--fps", type=float, default=30.0,
+    s.add_argument("--fps", type=_single_fps, default=30.0,
                    help="resample source and generated clips to this rate (the authors score at 30 fps; their "
                         "loader halves 60 fps files)")
-    s.add_argument("--gen-fps", type=float, default=None,
+    s.add_argument("--gen-fps", type=_single_fps, default=None,
                    help="the generated files' true frame rate, when their header's Frame Time is wrong "
                         "(unset: the header's)")
     s.add_argument("--joints", choices=["reduced", "all"], default="reduced",
@@ -341,19 +343,14 @@ def _motion(path: str, true_fps: float | None = None, remedy: str = "") -> Any:
 
 
 def cmd_single(args: argparse.Namespace) -> int:
-    import math
     import warnings
 
     from modi.evaluation.report import to_markdown, write_reports
     from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
 
-    for name in ("window", "min_segment", "local_window"):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
-    for name in ("fps", "gen_fps"):
-        v = getattr(args, name)
-        if v is not None and not (math.isfinite(v) and v > 2.0):
-            raise UserError(f"--{name.replace('_', '-')} must be a frame rate above 2 fps, got {v:g}")
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.source, *args.generated], f"--{opt}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
         src = _motion(args.source)
