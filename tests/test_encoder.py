@@ -325,7 +325,7 @@ def test_released_head_reads_one_level_before_the_coarsest(model):
     assert enc.cfg.inplace_convs == 1 and all(len(b.convs) == 1 + 1 for b in enc.blocks)
     n = g.cfg.n_inplace_convs
     assert old.cfg.inplace_convs is None and all(len(b.convs) == n + 1 for b in old.blocks)
-    assert len(build_encoder(g, inplace_convs=None).blocks[0].convs) == n + 1
+    assert len(build_encoder(g, inplace_convs=n).blocks[0].convs) == n + 1
     with pytest.raises(ValueError, match="head"):
         build_encoder(g, head="wide")
 
@@ -430,3 +430,100 @@ def test_encoder_cli_options_reach_the_config(monkeypatch, tmp_path):
             args.func(args)
         c = seen["cfg"]
         assert (c.losses, c.optimizer, c.head, c.lambda_rec) == want
+
+
+def test_inplace_convs_default_is_resolved_by_the_head_everywhere(model, tmp_path):
+    """One rule for the dataclass, saved configs and build_encoder: None = by head (released 1, bottleneck the
+    generator's count, kept as None); old checkpoints load with the convs they were built with."""
+    from modi.encoder.model import ENCODER_HEADS, EncoderConfig
+
+    g, codec, x = model
+    n = g.cfg.n_inplace_convs
+    assert n != 1
+    base = dict(in_channels=4, n_latent=3, latent_dim=16)
+    assert EncoderConfig(**base).inplace_convs == 1
+    assert EncoderConfig(**base, head="released", inplace_convs=None).inplace_convs == 1
+    assert EncoderConfig(**base, head="bottleneck").inplace_convs is None
+    assert EncoderConfig(**base, head="bottleneck", inplace_convs=3).inplace_convs == 3
+    assert EncoderConfig.from_dict(dict(base)).inplace_convs is None  # the oldest: bottleneck head
+    assert EncoderConfig.from_dict({**base, "head": "released", "inplace_convs": 1}).inplace_convs == 1
+    assert EncoderConfig.from_dict({**base, "head": "released"}, generator_inplace_convs=n).inplace_convs == n
+    for head in ENCODER_HEADS:
+        enc = build_encoder(g, head=head)
+        assert enc.cfg == EncoderConfig.from_dict(enc.cfg.to_dict())
+        assert enc.cfg.inplace_convs == (1 if head == "released" else None)
+        assert all(len(b.convs) == (1 if head == "released" else n) + 1 for b in enc.blocks)
+    # a released-head checkpoint saved before inplace_convs was: built with the generator's count, loads so
+    data = split_windows(x[:40], 0.2, seed=1)
+    EncoderTrainer((g, codec, None), data, tmp_path / "r.pt", EncoderTrainConfig(iters=1, batch=4, eval_every=0,
+                                                                                   ckpt_every=0), progress=False).train()
+    st = torch.load(tmp_path / "r.pt", weights_only=True)
+    assert st["encoder_config"]["inplace_convs"] == 1
+    del st["encoder_config"]["inplace_convs"]
+    st["encoder"] = build_encoder(g, inplace_convs=n).state_dict()
+    torch.save(st, tmp_path / "old.pt")
+    bundle = load_encoder(tmp_path / "old.pt")
+    assert bundle.cfg.head == "released" and bundle.cfg.inplace_convs == n
+    assert all(len(b.convs) == n + 1 for b in bundle.encoder.blocks)
+
+
+def _encoder_cli(monkeypatch, g, codec, data):
+    """``modi encoder train`` on the in-process generator and windows (no files but the encoder checkpoint)."""
+    from modi.cli import main
+    from modi.encoder import training as T_
+
+    monkeypatch.setattr(T_, "load_encoder_data", lambda *a, **k: data)
+    monkeypatch.setattr("modi.modi_model.sampling.load_checkpoint", lambda p: generator_bundle(g, codec))
+    monkeypatch.setattr("modi.latent.space.load_model", lambda st, device: (g, codec, None))
+    return lambda out, *argv: main(["encoder", "train", "g.pt", "procedural", "--out", str(out), "--batch", "4",
+                                    "--eval-every", "0", "--ckpt-every", "0", "--quiet", *argv])
+
+
+def test_resume_keeps_the_checkpoints_losses_optimizer_and_head(model, tmp_path, monkeypatch, capsys):
+    g, codec, x = model
+    train = _encoder_cli(monkeypatch, g, codec, split_windows(x[:40], 0.2, seed=1))
+    enc = tmp_path / "e.pt"
+    assert train(enc, "--iters", "1", "--losses", "ours", "--optimizer", "ours", "--head", "bottleneck",
+                 "--lambda-pos", "0.5") == 0
+    assert train(enc, "--iters", "2", "--resume") == 0, capsys.readouterr().err
+    st = torch.load(enc, weights_only=True)
+    tc = st["train_config"]
+    assert st["step"] == 2 and st["encoder_config"]["head"] == "bottleneck"
+    assert (tc["losses"], tc["optimizer"], tc["lambda_rec"], tc["lambda_pos"], tc["lr"], tc["beta1"]) == \
+        ("ours", "ours", 1.0, 0.5, 0.002, 0.9)
+    capsys.readouterr()
+    # a given option that differs is refused, naming it (and the checkpoint's value); one that agrees is fine
+    assert train(enc, "--iters", "3", "--resume", "--losses", "released", "--lambda-pos", "0.1") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--losses ours (this run: released)" in err[0] and "--lambda-pos 0.5" in err[0], err
+    assert train(enc, "--iters", "3", "--resume", "--losses", "ours", "--head", "bottleneck") == 0
+    # an old checkpoint (no losses/optimizer/head saved) resumes as what it was: ours, bottleneck
+    st = torch.load(enc, weights_only=True)
+    for k in ("losses", "optimizer", "head"):
+        del st["train_config"][k]
+    del st["encoder_config"]["head"], st["encoder_config"]["inplace_convs"]
+    torch.save(st, tmp_path / "old.pt")
+    assert train(tmp_path / "old.pt", "--iters", "4", "--resume") == 0
+    assert torch.load(tmp_path / "old.pt", weights_only=True)["train_config"]["losses"] == "ours"
+
+
+def test_library_resume_refuses_other_losses_or_head(model, tmp_path):
+    g, codec, x = model
+    data = split_windows(x[:40], 0.2, seed=1)
+    cfg = EncoderTrainConfig(iters=1, batch=4, eval_every=0, ckpt_every=0, losses="ours")
+    EncoderTrainer((g, codec, None), data, tmp_path / "a.pt", cfg, progress=False).train()
+    with pytest.raises(CheckpointError, match="--losses ours"):
+        EncoderTrainer((g, codec, None), data, tmp_path / "a.pt", EncoderTrainConfig(iters=2, batch=4),
+                       progress=False, resume=tmp_path / "a.pt")
+    other = EncoderTrainConfig(iters=2, batch=4, losses="ours", head="bottleneck")
+    with pytest.raises(CheckpointError, match="built differently .*--head"):
+        EncoderTrainer((g, codec, None), data, tmp_path / "a.pt", other, progress=False, resume=tmp_path / "a.pt")
+
+
+def test_hidden_is_refused_with_the_released_head(tmp_path, capsys):
+    from modi.cli import main
+
+    rc = main(["encoder", "train", "g.pt", "procedural", "--out", str(tmp_path / "e.pt"), "--hidden", "8"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--hidden" in err[0] and "--head bottleneck" in err[0], err
+    assert not (tmp_path / "e.pt").exists()

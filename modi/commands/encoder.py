@@ -48,17 +48,18 @@ def register(subparsers) -> None:
     q.add_argument("--out", required=True, metavar="ENC", type=ct.output_file, help="encoder checkpoint to write (e.g. runs/enc.pt)")
     q.add_argument("--iters", type=ct.iters_int, default=5000, help="training steps")
     q.add_argument("--batch", type=ct.batch_int, default=16, help="batch size")
-    q.add_argument("--losses", choices=("released", "ours"), default="released",
-                   help="loss form: 'released' = the authors' code (weights rec/contact/root/pos 10/1000/20/1, root "
-                        "L2 on the real root rotation, FK positions local, in data units); 'ours' = 1/100/2/0.1, "
-                        "root L2 on entity 0, global positions in tenths of the body size")
-    q.add_argument("--optimizer", choices=("released", "ours"), default="released",
-                   help="Adam defaults: 'released' lr 0.002*16/17, betas (0, 0.99^(16/17)); 'ours' lr 0.002, "
-                        "betas (0.9, 0.99)")
-    q.add_argument("--head", choices=("released", "bottleneck"), default="released",
-                   help="encoder head: 'released' = features one level before the coarsest through two linear "
-                        "layers of width n_latent x latent_dim -> W+; 'bottleneck' = the earlier head (coarsest "
-                        "level, one --hidden-wide layer, offset from the mean latent)")
+    q.add_argument("--losses", choices=("released", "ours"), default=None,
+                   help="loss form: 'released' (the default) = the authors' code (weights rec/contact/root/pos "
+                        "10/1000/20/1, root L2 on the real root rotation, FK positions local, in data units); "
+                        "'ours' = 1/100/2/0.1, root L2 on entity 0, global positions in tenths of the body size. "
+                        "With --resume: the checkpoint's, like the other loss, optimizer and head options")
+    q.add_argument("--optimizer", choices=("released", "ours"), default=None,
+                   help="Adam defaults: 'released' (the default) lr 0.002*16/17, betas (0, 0.99^(16/17)); 'ours' lr "
+                        "0.002, betas (0.9, 0.99)")
+    q.add_argument("--head", choices=("released", "bottleneck"), default=None,
+                   help="encoder head: 'released' (the default) = features one level before the coarsest through two "
+                        "linear layers of width n_latent x latent_dim -> W+; 'bottleneck' = the earlier head "
+                        "(coarsest level, one --hidden-wide layer, offset from the mean latent)")
     q.add_argument("--lr", type=ct.lr_float, default=None, help="Adam learning rate (default: from --optimizer)")
     q.add_argument("--lambda-rec", type=ct.float_range(0.0, 1e6), default=None, help="weight of the representation L2 "
                    "(default: from --losses)")
@@ -76,7 +77,8 @@ def register(subparsers) -> None:
     q.add_argument("--seed", type=ct.seed_int, default=0, help="seed")
     q.add_argument("--eval-every", type=ct.nonneg_int, default=500, help="steps between test-split evaluations (0: end only)")
     q.add_argument("--ckpt-every", type=ct.nonneg_int, default=250, help="steps between checkpoint writes")
-    q.add_argument("--resume", action="store_true", help="continue ENC (same options) instead of starting anew")
+    q.add_argument("--resume", action="store_true",
+                   help="continue ENC instead of starting anew, with its loss form, weights, optimizer and head")
     q.add_argument("--no-cache", action="store_true", help="rebuild the dataset instead of using the cache")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     _runtime(q)
@@ -147,8 +149,6 @@ def _threads(args: argparse.Namespace) -> None:
     import torch
 
     if args.threads is not None:
-        if args.threads < 1:
-            raise UserError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     if str(args.device).startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")
@@ -157,7 +157,7 @@ def _threads(args: argparse.Namespace) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from modi.encoder.metrics import format_table5
     from modi.encoder.training import (EncoderTrainConfig, EncoderTrainer, EncoderTrainingInterrupted,
-                                       load_encoder_data)
+                                       load_encoder_data, resumed_train_options)
     from modi.latent.space import load_model
     from modi.modi_model.sampling import load_checkpoint
 
@@ -167,14 +167,21 @@ def run_train(args: argparse.Namespace) -> int:
         raise UserError(f"{out} exists: pass --resume to continue it, or choose another --out")
     if args.resume and not out.exists():
         raise UserError(f"--resume: {out} does not exist")
+    options = {"losses": args.losses, "optimizer": args.optimizer, "head": args.head, "lr": args.lr,
+               "lambda_rec": args.lambda_rec, "lambda_contact": args.lambda_contact,
+               "lambda_root": args.lambda_root, "lambda_pos": args.lambda_pos}
+    if args.resume:  # the checkpoint's loss form, weights, optimizer and head, unless given (then they must agree)
+        options = resumed_train_options(out, options)
+    else:
+        options = {k: v for k, v in options.items() if v is not None}  # EncoderTrainConfig's defaults
+    if args.hidden is not None and options.get("head", "released") == "released":
+        raise UserError("--hidden is the width of the bottleneck head's hidden layer; the released head has none "
+                        "(its layers are n_latent x latent_dim wide): add --head bottleneck or drop --hidden")
     st = load_checkpoint(args.ckpt)
     gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
                  if k in st}
     g, codec, gcfg = load_model(st, device=args.device)
-    cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, lr=args.lr, lambda_rec=args.lambda_rec,
-                             lambda_contact=args.lambda_contact, lambda_root=args.lambda_root,
-                             lambda_pos=args.lambda_pos, losses=args.losses, optimizer=args.optimizer,
-                             head=args.head, prefix_frames=args.prefix,
+    cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, **options, prefix_frames=args.prefix,
                              channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units,
                              seed=args.seed, eval_every=args.eval_every, ckpt_every=args.ckpt_every)
     _, _, t = g.output_shape

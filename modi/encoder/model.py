@@ -44,14 +44,16 @@ class EncoderConfig:
     # "bottleneck": this package's earlier head: every level + a coarsest-level conv, one ``hidden``-wide layer,
     # then W+ as an offset from w̄ (head scaled by ``head_init``).
     head: str = "released"
-    # in-place convs per residual block; None: the generator's count. The released encoder is the released
-    # Discriminator class built without n_inplace_conv, i.e. 1 (train_encoder.py); build_encoder picks that for
-    # the released head and the generator's count for the bottleneck head.
-    inplace_convs: int | None = 1
+    # in-place convs per residual block. None (the default) is resolved by the head on construction: 1 for the
+    # released head (the released encoder is the released Discriminator class built without n_inplace_conv,
+    # train_encoder.py), and for the bottleneck head it stays None, meaning the generator's own count.
+    inplace_convs: int | None = None
 
     def __post_init__(self) -> None:
         if self.head not in ENCODER_HEADS:
             raise ValueError(f"encoder head must be one of {', '.join(ENCODER_HEADS)}, not {self.head!r}")
+        if self.inplace_convs is None and self.head == "released":
+            self.inplace_convs = 1
         if self.inplace_convs is not None and self.inplace_convs < 1:
             raise ValueError(f"inplace_convs must be >= 1 or None, not {self.inplace_convs}")
 
@@ -59,10 +61,15 @@ class EncoderConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "EncoderConfig":
-        # fields missing from older checkpoints take their defaults (``hidden``), or the value those checkpoints
-        # were built with (``head``: they all have the bottleneck head)
-        return cls(**{"head": "bottleneck", "inplace_convs": None, **d})
+    def from_dict(cls, d: dict[str, Any], generator_inplace_convs: int | None = None) -> "EncoderConfig":
+        """The config saved in a checkpoint. Fields missing from older checkpoints take their defaults
+        (``hidden``), or the value those checkpoints were built with: the bottleneck ``head``, and the generator's
+        count of in-place convs -- None for the bottleneck head; for a released head saved before
+        ``inplace_convs`` was (``generator_inplace_convs``, when the caller knows the generator)."""
+        d = {"head": "bottleneck", **d}
+        if "inplace_convs" not in d and d["head"] == "released" and generator_inplace_convs is not None:
+            d["inplace_convs"] = int(generator_inplace_convs)
+        return cls(**d)
 
 
 def _scaled_levels(levels: Sequence[LevelSpec], mult: float) -> list[LevelSpec]:
@@ -160,12 +167,10 @@ class MotionEncoder(nn.Module):
 
 def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | None = None,
                   mask_channel: bool | None = None, hidden: int | None = None,
-                  head: str = "released", inplace_convs: int | None | str = "auto") -> MotionEncoder:
+                  head: str = "released", inplace_convs: int | None = None) -> MotionEncoder:
     """An encoder matching generator ``g`` (its levels, channels, style count and w̄); ``head``: see
-    :class:`EncoderConfig` (``hidden`` applies to the bottleneck head only). ``inplace_convs="auto"``: 1 with the
-    released head (as the released encoder), the generator's count (None) with the bottleneck head."""
-    if inplace_convs == "auto":
-        inplace_convs = 1 if head == "released" else None
+    :class:`EncoderConfig` (``hidden`` applies to the bottleneck head only). ``inplace_convs`` None: by the head
+    (1 with the released head, as the released encoder; the generator's count with the bottleneck head)."""
     k, e, t = g.output_shape
     if prefix_frames is not None and not 0 < prefix_frames < t:
         raise ValueError(f"prefix_frames must be in 1..{t - 1}, got {prefix_frames}")

@@ -52,6 +52,14 @@ LOSS_WEIGHTS = {
 # Adam (lr, beta1, beta2): the released train_encoder.py uses the discriminator's lazy-R1-corrected settings
 _C = 16 / 17
 OPTIMIZERS = {"released": (0.002 * _C, 0.0, 0.99 ** _C), "ours": (0.002, 0.9, 0.99)}
+# training options a resumed run keeps from its checkpoint: the loss form and weights, the optimizer, the head
+# (the encoder's architecture as a whole is compared through its saved EncoderConfig)
+RESUMED_OPTIONS = ("losses", "optimizer", "head", "lr", "beta1", "beta2", "lambda_rec", "lambda_contact",
+                   "lambda_root", "lambda_pos", "generated", "lambda_latent")
+# what checkpoints written before an option existed were trained with (before 'losses'/'optimizer'/'head' were
+# saved, the only form was this package's: "ours" losses and optimizer, bottleneck head)
+_OLD_TRAIN_OPTIONS = {"losses": "ours", "optimizer": "ours", "head": "bottleneck", "generated": 0.0,
+                      "lambda_latent": 0.0}
 
 
 @dataclass
@@ -306,7 +314,7 @@ def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "c
         raise CheckpointError(f"{where}: encoder checkpoint version {st['version']} is newer than this modi")
     g, codec, gcfg = load_model(st["generator"], device=device)
     try:
-        cfg = EncoderConfig.from_dict(st["encoder_config"])
+        cfg = EncoderConfig.from_dict(st["encoder_config"], generator_inplace_convs=g.cfg.n_inplace_convs)
         enc = MotionEncoder(g.cfg, g.levels, cfg).to(device)
         enc.load_state_dict(st["encoder"])
     except Exception as exc:  # noqa: BLE001
@@ -505,17 +513,15 @@ class EncoderTrainer:
 
     def load_state(self, path: str | os.PathLike) -> None:
         p = Path(path)
-        if not p.is_file():
-            raise CheckpointError(f"{p}: no encoder checkpoint to resume")
-        try:
-            st = torch.load(p, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{p}: unreadable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") from None
-        if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
-            raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
-        if EncoderConfig.from_dict(st["encoder_config"]).to_dict() != self.encoder.cfg.to_dict():
-            raise CheckpointError(f"{p}: encoder was built differently (e.g. --prefix or --channel-multiplier); "
-                                  "resume with the same options")
+        st = _read_resume_checkpoint(p)
+        saved_enc = EncoderConfig.from_dict(st["encoder_config"], generator_inplace_convs=self.g.cfg.n_inplace_convs)
+        differ = [k for k, v in saved_enc.to_dict().items() if self.encoder.cfg.to_dict().get(k) != v]
+        if differ:
+            flags = sorted({_ENCODER_FIELD_OPTIONS.get(k, k) for k in differ})
+            raise CheckpointError(f"{p}: encoder was built differently ({', '.join(flags)}: the checkpoint has "
+                                  f"{', '.join(f'{k}={getattr(saved_enc, k)!r}' for k in differ)}); resume with the "
+                                  "same --head, --prefix, --channel-multiplier and --hidden")
+        _refuse_changed_options(p, saved_train_options(st), asdict(self.cfg))
         gen = st.get("generator") or {}
         mine = self.generator_state
         if gen.get("config") != mine.get("config") or gen.get("step") != mine.get("step"):
@@ -534,7 +540,59 @@ class EncoderTrainer:
         self.last_losses = dict(st.get("last_losses") or {})
 
 
-__all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
+# the command-line option behind each EncoderConfig field (for messages)
+_ENCODER_FIELD_OPTIONS = {"prefix_frames": "--prefix", "mask_channel": "--prefix", "channel_multiplier":
+                          "--channel-multiplier", "hidden": "--hidden", "head": "--head", "inplace_convs": "--head",
+                          "in_channels": "the generator", "n_latent": "the generator", "latent_dim": "the generator"}
+
+
+def _option_name(name: str) -> str:
+    """``lambda_rec`` -> ``--lambda-rec`` for options ``modi encoder train`` has, else the field's own name."""
+    return name if name in ("beta1", "beta2", "generated", "lambda_latent") else "--" + name.replace("_", "-")
+
+
+def _read_resume_checkpoint(p: Path) -> dict[str, Any]:
+    if not p.is_file():
+        raise CheckpointError(f"{p}: no encoder checkpoint to resume")
+    try:
+        st = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001
+        raise CheckpointError(f"{p}: unreadable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") from None
+    if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
+        raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
+    return st
+
+
+def saved_train_options(st: dict[str, Any]) -> dict[str, Any]:
+    """The ``RESUMED_OPTIONS`` an encoder checkpoint (its state dict) was trained with; an option the checkpoint
+    predates takes the value it was trained with (``_OLD_TRAIN_OPTIONS``), the head comes from its encoder."""
+    tc = {**_OLD_TRAIN_OPTIONS, **dict(st.get("train_config") or {})}
+    tc["head"] = EncoderConfig.from_dict(st["encoder_config"]).head
+    return {k: tc.get(k) for k in RESUMED_OPTIONS}
+
+
+def _refuse_changed_options(p: Path, saved: dict[str, Any], given: dict[str, Any]) -> None:
+    def fmt(v: Any) -> str:
+        return f"{v:g}" if isinstance(v, float) else str(v)
+
+    differ = [k for k in RESUMED_OPTIONS if given.get(k) is not None and given[k] != saved[k]]
+    if differ:
+        was = ", ".join(f"{_option_name(k)} {fmt(saved[k])} (this run: {fmt(given[k])})" for k in differ)
+        raise CheckpointError(f"{p} was trained with {was}; a resumed run keeps its loss form, weights, optimizer "
+                              "and head: drop those options (or choose another --out)")
+
+
+def resumed_train_options(path: str | os.PathLike, given: dict[str, Any]) -> dict[str, Any]:
+    """The ``RESUMED_OPTIONS`` for resuming the encoder checkpoint ``path``: the checkpoint's, where ``given``
+    (option -> value, None = not given) gives none; ``CheckpointError`` naming every given option that differs."""
+    p = Path(path)
+    saved = saved_train_options(_read_resume_checkpoint(p))
+    _refuse_changed_options(p, saved, given)
+    return {**saved, **{k: v for k, v in given.items() if k in saved and v is not None}}
+
+
+__all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "RESUMED_OPTIONS", "saved_train_options",
+           "resumed_train_options", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
            "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
            "EncoderTrainingInterrupted",
            "ENCODER_FORMAT", "ENCODER_VERSION"]
