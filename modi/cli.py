@@ -9,7 +9,8 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
 * ``UserError`` and OS errors about files (missing, a folder, not a folder, no permission, disk full) are one line;
   an output folder the command created and left empty when it failed is removed again;
 * Ctrl-C at any moment -- while torch is imported, while parsing, while running -- prints ``modi: interrupted`` and
-  exits 130 (long-running commands catch it earlier and save a checkpoint);
+  exits 130 (``modi train``, ``modi ganimator train`` and ``modi encoder train`` catch it earlier and save a
+  resumable checkpoint);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
 from __future__ import annotations

@@ -371,6 +371,7 @@ def test_ctrl_c_during_ganimator_train_saves_a_resumable_checkpoint(work, tmp_pa
                "--quiet"])
     err = capsys.readouterr().err
     assert rc == 130 and "checkpoint saved" in err and "Traceback" not in err
+    assert "stopping after this" in err
     st = read_checkpoint(run)["state"]
     assert (st["block"], st["iteration"]) == (0, 3)  # the interrupted iteration finished, then it saved
     monkeypatch.setattr(Trainer, "_iteration", real)
@@ -396,7 +397,25 @@ def test_ctrl_c_during_encoder_train_saves_a_resumable_checkpoint(work, tmp_path
                "--eval-every", "0", "--ckpt-every", "0", "--quiet"])
     err = capsys.readouterr().err
     assert rc == 130 and "checkpoint saved" in err and "--resume" in err and "Traceback" not in err
+    assert "stopping after this" in err
     assert torch.load(enc, map_location="cpu", weights_only=True)["step"] == 3
+
+
+def test_stop_on_sigint_finishes_the_step_then_a_second_ctrl_c_aborts(capsys):
+    """The one handler both GANimator and encoder training use: the first Ctrl-C sets the flag and says so on
+    stderr, the second raises at once, and the previous handler is back afterwards."""
+    from modi.interrupt import stop_on_sigint
+
+    before = signal.getsignal(signal.SIGINT)
+    with stop_on_sigint("iteration") as stop:
+        assert not stop
+        signal.raise_signal(signal.SIGINT)
+        assert stop
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+    out = capsys.readouterr()
+    assert out.out == "" and "stopping after this iteration and saving a checkpoint" in out.err
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_dataset_offsets_do_not_come_from_one_odd_clip(work, tmp_path):

@@ -258,3 +258,22 @@ def test_real_skeletons_reduce_and_find_feet(shared_data):
     assert keys.n_frames == 21 and keys.skeleton.names == salsa.skeleton.names
     with pytest.raises(UserError):
         load_sequence(root / "Crabnew" / "Crab-dance-long.bvh", cfg, like=salsa)
+
+
+def test_iterations_help_names_the_coarse_multiplier_and_min_frames_is_the_shortest():
+    import argparse
+
+    from modi.commands import ganimator as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.register(parser.add_subparsers())
+    train = parser._subparsers._group_actions[0].choices["ganimator"]._subparsers._group_actions[0].choices["train"]
+    help_ = next(a.help for a in train._actions if "--iterations" in a.option_strings)
+    assert "× --coarse-multiplier" in help_ and "fast preset multiplies it by 3" in help_
+    assert gconfig.preset("fast").block_budgets(2) == [900, 300]
+    for ratio in (0.2, 0.5):
+        cfg = gconfig.preset("paper", coarse_ratio=ratio)
+        n = cmd._min_training_frames(cfg)
+        need = cfg.kernel_size // 2 + 1
+        coarsest = lambda m: pyramid_lengths(m, cfg.coarse_ratio, cfg.scale_factor)[0]  # noqa: E731
+        assert coarsest(n) >= need and all(coarsest(m) < need for m in range(2, n))

@@ -5,6 +5,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Callable
 
 from modi import cli_types as ct
 from modi.errors import UserError
@@ -28,7 +29,9 @@ def register(subparsers) -> None:
     t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
                    help="paper: published schedule (15k iterations per block); fast: CPU schedule (300 per block, "
                         "900 on the coarsest); tiny: smoke test. All take 5 discriminator steps per generator step")
-    t.add_argument("--iterations", type=ct.iters_int, default=None, help="iterations per block of levels (preset's if omitted)")
+    t.add_argument("--iterations", type=ct.iters_int, default=None,
+                   help="iterations per block of levels (preset's if omitted); the coarsest block trains ITERATIONS "
+                        "× --coarse-multiplier (the fast preset multiplies it by 3)")
     t.add_argument("--d-steps", type=ct.int_range(0, 100), default=None, help="discriminator steps per iteration (preset's if omitted)")
     t.add_argument("--block-iters", default=None,
                    help="iterations per block of levels, coarsest first, e.g. 2000,800,800,800 (the last value "
@@ -112,14 +115,20 @@ def _coarsest_needed(cfg) -> int:
     return cfg.kernel_size // 2 + 1 if cfg.padding_mode == "reflect" else 1
 
 
+def _min_frames(cfg, coarsest_length: Callable[[int], int]) -> int:
+    """The shortest sequence (training clip or output) whose coarsest pyramid level, ``coarsest_length(n)`` frames
+    for ``n`` frames, is long enough for the convolutions of ``cfg``."""
+    need = _coarsest_needed(cfg)
+    for n in range(2, ct.MAX_FRAMES):
+        if coarsest_length(n) >= need:
+            return n
+    return ct.MAX_FRAMES
+
+
 def _min_training_frames(cfg) -> int:
     from modi.ganimator.data import pyramid_lengths
 
-    need = _coarsest_needed(cfg)
-    for n in range(2, ct.MAX_FRAMES):
-        if pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0] >= need:
-            return n
-    return ct.MAX_FRAMES
+    return _min_frames(cfg, lambda n: pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0])
 
 
 def _check_training_length(clips, cfg) -> None:
@@ -136,11 +145,7 @@ def _check_training_length(clips, cfg) -> None:
 
 def _min_output_frames(model) -> int:
     """Shortest output length whose coarsest level is long enough for the model's convolutions."""
-    need = _coarsest_needed(model.cfg)
-    for n in range(2, ct.MAX_FRAMES):
-        if model.level_lengths(n)[0] >= need:
-            return n
-    return ct.MAX_FRAMES
+    return _min_frames(model.cfg, lambda n: model.level_lengths(n)[0])
 
 
 def _check_generation_length(args) -> None:

@@ -129,8 +129,6 @@ def _setup(args: argparse.Namespace):
     from modi.latent.space import load_model
 
     if args.threads is not None:
-        if args.threads < 1:
-            raise UserError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     if str(args.device).startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")

@@ -34,12 +34,6 @@ def run(args: argparse.Namespace) -> int:
 
     from modi.modi_model.sampling import generate_tensors, load_generator, write_outputs
 
-    if args.n < 1:
-        raise UserError(f"--n must be >= 1, got {args.n}")
-    if args.batch < 1:
-        raise UserError(f"--batch must be >= 1, got {args.batch}")
-    if args.gif_max < 0:
-        raise UserError(f"--gif-max must be >= 0, got {args.gif_max}")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError("--device cuda requested but torch has no CUDA device")
     ct.input_file(args.ckpt, "MoDi checkpoint file")

@@ -438,8 +438,7 @@ class EncoderTrainer:
     def train(self, iters: int | None = None) -> EncoderTrainResult:
         """Train to ``iters`` steps (default ``cfg.iters``). Ctrl-C finishes the step, saves the checkpoint and
         raises ``EncoderTrainingInterrupted`` (``--resume`` continues); a second Ctrl-C aborts."""
-        import signal
-        import threading
+        from modi.interrupt import stop_on_sigint
 
         target = self.cfg.iters if iters is None else int(iters)
         t0 = time.time()
@@ -448,43 +447,34 @@ class EncoderTrainer:
             from tqdm import tqdm
 
             bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
-        stop: list = []
-
-        def on_sigint(signum, frame):  # noqa: ARG001
-            if stop:
-                raise KeyboardInterrupt
-            stop.append(True)
-            print("\nmodi: stopping after this step and saving a checkpoint (Ctrl-C again to abort)", flush=True)
-
-        old_handler = None
-        if threading.current_thread() is threading.main_thread():
-            old_handler = signal.signal(signal.SIGINT, on_sigint)
         try:
-            while self.step < target:
-                if stop:
-                    raise EncoderTrainingInterrupted(self.save_checkpoint())
-                losses = self.train_step()
-                self.last_losses = losses
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(total=f"{losses['total']:.3f}", rec=f"{losses['rec']:.3f}",
-                                    pos=f"{losses['pos']:.2f}")
-                if self.step % self.cfg.log_every == 0 or self.step == target:
-                    self._log({"step": self.step, **{k: round(v, 6) for k, v in losses.items()}})
-                if self.cfg.eval_every and self.step % self.cfg.eval_every == 0:
-                    self.metrics = self.evaluate()
-                    self._log({"step": self.step, "test": self.metrics["encoder"]})
-                if self.cfg.ckpt_every and self.step % self.cfg.ckpt_every == 0:
-                    self.save_checkpoint()
+            with stop_on_sigint("step") as stop:
+                self._train_to(target, bar, stop)
         finally:
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
             if bar is not None:
                 bar.close()
         self.metrics = self.evaluate()
         self._log({"step": self.step, "test": self.metrics["encoder"], "final": True})
         ckpt = self.save_checkpoint()
         return EncoderTrainResult(self.step, ckpt, time.time() - t0, dict(self.last_losses), self.metrics)
+
+    def _train_to(self, target: int, bar: Any, stop: Any) -> None:
+        while self.step < target:
+            if stop:
+                raise EncoderTrainingInterrupted(self.save_checkpoint())
+            losses = self.train_step()
+            self.last_losses = losses
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(total=f"{losses['total']:.3f}", rec=f"{losses['rec']:.3f}",
+                                pos=f"{losses['pos']:.2f}")
+            if self.step % self.cfg.log_every == 0 or self.step == target:
+                self._log({"step": self.step, **{k: round(v, 6) for k, v in losses.items()}})
+            if self.cfg.eval_every and self.step % self.cfg.eval_every == 0:
+                self.metrics = self.evaluate()
+                self._log({"step": self.step, "test": self.metrics["encoder"]})
+            if self.cfg.ckpt_every and self.step % self.cfg.ckpt_every == 0:
+                self.save_checkpoint()
 
     def _log(self, rec: dict[str, Any]) -> None:
         path = self.out.with_name(self.out.name + ".log.jsonl")

@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -352,28 +352,14 @@ class Trainer:
             elif log:
                 log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
                     f"iteration {self.state['iteration']}")
-        import signal
-        import threading
+        from modi.interrupt import stop_on_sigint
 
-        stop = []  # Ctrl-C: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
-
-        def on_sigint(signum, frame):  # noqa: ARG001
-            if stop:
-                raise KeyboardInterrupt
-            stop.append(True)
-            print("\nmodi: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort)", flush=True)
-
-        old_handler = None
-        if threading.current_thread() is threading.main_thread():
-            old_handler = signal.signal(signal.SIGINT, on_sigint)
-        try:
+        # Ctrl-C: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
+        with stop_on_sigint("iteration") as stop:
             return self._run_blocks(progress, log, max_seconds, stop)
-        finally:
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
 
     def _run_blocks(self, progress: bool, log: Callable[[str], None] | None, max_seconds: float | None,
-                    stop: list) -> GanimatorModel:
+                    stop: Any) -> GanimatorModel:
         from tqdm import tqdm
 
         cfg, model = self.cfg, self.model
