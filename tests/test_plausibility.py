@@ -119,3 +119,28 @@ def test_aggregate_and_bad_input():
         plausibility_metrics(_still(), FPS, [9])
     with pytest.raises(ValueError, match="NaN"):
         plausibility_metrics(_still() * np.nan, FPS, FEET)
+
+
+def test_cli_feet_match_modulo_namespace_prefix(tmp_path):
+    """``--feet LeftFoot`` finds ``mixamorig:LeftFoot`` (exporters keep or drop the prefix): same figures as the full
+    names; a bare name that fits two joints is refused."""
+    import json
+    import re
+
+    from modi.cli import main
+
+    assert main(["synth", str(tmp_path / "clips"), "--n", "1", "--seed", "3"]) == 0
+    src = next((tmp_path / "clips").glob("*.bvh")).read_text()
+    feet = [n for n in re.findall(r"JOINT (\S+)", src) if "Foot" in n or "Toe" in n][:2]
+    assert len(feet) == 2
+    pref = tmp_path / "prefixed.bvh"
+    pref.write_text(re.sub(r"(ROOT|JOINT) (\S+)", r"\1 ns:\2", src))
+    assert main(["eval", "plausibility", str(pref), "--feet", *feet, "--json", str(tmp_path / "a.json")]) == 0
+    assert main(["eval", "plausibility", str(pref), "--feet", *[f"ns:{f}" for f in feet],
+                 "--json", str(tmp_path / "b.json")]) == 0
+    a, b = (json.loads((tmp_path / f"{k}.json").read_text())["mean"] for k in "ab")
+    assert a == b and a["contact_fraction"] > 0
+    two = tmp_path / "two.bvh"
+    two.write_text(src.replace(f"JOINT {feet[0]}", f"JOINT x:{feet[0]}", 1)
+                   .replace(f"JOINT {feet[1]}", f"JOINT y:{feet[0]}", 1))
+    assert main(["eval", "plausibility", str(two), "--feet", feet[0]]) == 2

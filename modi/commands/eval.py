@@ -413,13 +413,23 @@ def _plausibility_feet(path: Path, names: list[str], given: list[str] | None) ->
             raise UserError(f"{path}: no foot joints found by name (foot/toe/ankle/heel); name them with "
                             f"--feet JOINT ... (joints: {', '.join(names[:12])}{', ...' if len(names) > 12 else ''})"
                             ) from None
+    from modi.evaluation.single import bare_name
+
     ct.unique_names("--feet", given)
-    missing = [n for n in given if n not in names]
+    # a name matches exactly, or modulo a namespace prefix (``mixamorig:LeftToeBase`` = ``LeftToeBase``)
+    bare = [bare_name(n) for n in names]
+    idx = []
+    for n in given:
+        hits = [j for j, (full, b) in enumerate(zip(names, bare)) if n in (full, b)]
+        if len(hits) > 1:
+            raise UserError(f"{path}: --feet: {n!r} names {len(hits)} joints; give the full names")
+        idx.append(hits[0] if hits else -1)
+    missing = [n for n, j in zip(given, idx) if j < 0]
     if missing:
         raise UserError(f"{path}: --feet: no joint named {', '.join(missing)}")
-    if names[0] in given:
+    if 0 in idx:
         raise UserError(f"--feet: the root joint {names[0]} cannot be a foot")
-    return [names.index(n) for n in given]
+    return idx
 
 
 def cmd_plausibility(args: argparse.Namespace) -> int:
