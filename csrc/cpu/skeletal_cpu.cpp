@@ -726,7 +726,8 @@ void nt_edge(const float* const*, int64_t, const float* const*, int64_t, int64_t
 #endif
 
 // acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
-// columns past N and rows past M are computed and ignored).  Column chunks keep the pointed-to data in L2.
+// columns past N are computed and ignored, rows past M are left untouched).  Column chunks keep the pointed-to data
+// in L2.
 void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, int64_t N, float* acc,
              int64_t ldacc) {
   const int64_t panels = (M + MR - 1) / MR, tiles = (N + NR - 1) / NR;
