@@ -99,17 +99,23 @@ def level_names(n: int) -> list[str]:
 
 
 @contextlib.contextmanager
-def forced_impl(impl: str):
-    """MODI_EXT_IMPL=impl for the ops called inside the block (the ops read it on every call)."""
-    old = os.environ.get("MODI_EXT_IMPL")
-    os.environ["MODI_EXT_IMPL"] = impl
+def forced_env(values: dict[str, str]):
+    """The environment variables ``values`` for the code run inside the block (the ops read them on every call)."""
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
     try:
         yield
     finally:
-        if old is None:
-            del os.environ["MODI_EXT_IMPL"]
-        else:
-            os.environ["MODI_EXT_IMPL"] = old
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def forced_impl(impl: str):
+    """MODI_EXT_IMPL=impl for the ops called inside the block."""
+    return forced_env({"MODI_EXT_IMPL": impl})
 
 
 def _with_impl(impl: str, fn: Callable[[], object]) -> Callable[[], object]:

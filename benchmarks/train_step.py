@@ -25,8 +25,6 @@ GANimator: one trainer per side on one clip (default Joe/Salsa-Dancing-6, fast p
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
 import statistics
 import sys
 import tempfile
@@ -39,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from compare import machine, write_json  # noqa: E402  (benchmarks/compare.py)
+from compare import forced_env, machine, write_json  # noqa: E402  (benchmarks/compare.py)
 from modi_ext import HAS_EXT  # noqa: E402
 
 SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
@@ -47,19 +45,9 @@ SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
          "ext": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext"}}
 
 
-@contextlib.contextmanager
 def side_env(side: str):
-    """The environment of one side for the code run inside the block (the ops read it on every call)."""
-    old = {k: os.environ.get(k) for k in SIDES[side]}
-    os.environ.update(SIDES[side])
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    """The environment of one side for the code run inside the block."""
+    return forced_env(SIDES[side])
 
 
 def _sync(device: torch.device) -> None:
@@ -195,7 +183,7 @@ def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
                 _sync(device)
                 times[side].append((time.perf_counter() - t) / args.iters)
     tr0, levels0, _ = trainers[sides[0]]
-    lengths = tr0.model.level_lengths(seq.n_frames) if hasattr(tr0.model, "level_lengths") else None
+    lengths = tr0.model.level_lengths(seq.n_frames)
     res = {"clip": str(clip), "preset": args.ganimator_preset, "d_steps": cfg.d_steps, "g_steps": cfg.g_steps,
            "block_levels": levels0, "level_frames": lengths, "entities": seq.n_entities,
            "iters_per_chunk": args.iters, "chunks": args.reps, "sides": {}}
