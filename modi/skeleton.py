@@ -11,6 +11,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
+
+def strip_namespace(name: str) -> str:
+    """``mixamorig7:LeftArm`` -> ``LeftArm``: exporters keep or drop the namespace prefix; the joint is the same."""
+    return name.rsplit(":", 1)[-1]
+
 # Default humanoid reduction: (joint pattern, ancestor pattern). A joint is dropped when its name matches the
 # first and one of its ancestors matches the second -- so a crab's eye stalks (under the pelvis) survive while a
 # Mixamo character's eyes (under the head) go. All case-insensitive ``re.search``.

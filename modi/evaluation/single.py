@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from modi.skeleton import strip_namespace
+
 __all__ = [
     "rotation_features",
     "frame_distances",
@@ -233,9 +235,7 @@ def single_sequence_metrics(
 # ---------------------------------------------------------------------------------------- matching skeletons
 
 
-def bare_name(name: str) -> str:
-    """``mixamorig7:Hips`` -> ``Hips``: exporters keep or drop the namespace prefix, the joint is the same."""
-    return name.rsplit(":", 1)[-1]
+bare_name = strip_namespace  # one definition, in modi.skeleton
 
 
 def _bare_names(skeleton: Any, label: str) -> list[str]:

@@ -29,18 +29,13 @@ import torch
 from torch import Tensor
 
 from modi.errors import UserError
-from modi.skeleton import Skeleton
+from modi.skeleton import Skeleton, strip_namespace  # noqa: F401  (strip_namespace: re-exported)
 
 K = 6  # feature width of every entity (6D rotation)
 
 _FINGER = re.compile(r"(thumb|index|middle|ring|pinky|pinkie|finger|handtip|carpal)", re.IGNORECASE)
 _HAND = re.compile(r"(hand|wrist)", re.IGNORECASE)
 _HEADTOP = re.compile(r"(headtop|head_top|headend|head_end|head_tip)", re.IGNORECASE)
-
-
-def strip_namespace(name: str) -> str:
-    """``mixamorig7:LeftArm`` -> ``LeftArm``: rigs exported from different tools then match by name."""
-    return name.rsplit(":", 1)[-1]
 
 
 # ------------------------------------------------------------------------------------------ skeleton choices
