@@ -48,7 +48,10 @@ class DatasetConfig:
     """Everything that changes the tensors (and so the cache key).
 
     ``drop_patterns=None`` uses the default reduction; ``keep_all_joints`` disables reduction entirely.
-    ``feet`` are joint names (``None``: ``Skeleton.detect_feet()``).
+    ``feet`` are joint names (``None``: ``Skeleton.detect_feet()``). ``drop_root_anchor`` removes a root that only
+    carries its single child at its own place (Bandai's ``joint_Root`` above ``Hips``; exact, see
+    ``root_anchor``); ``leaf_rotations="drop"`` stores no rotation for joints without children
+    (``modi.representation``). Both are MoDi's released preprocessing; the defaults here keep every joint.
     """
 
     fps: float = 30.0
@@ -67,6 +70,8 @@ class DatasetConfig:
     height_factor: float | None = DEFAULT_HEIGHT_FACTOR
     min_std: float = 1e-3
     dtype: str = "float32"
+    drop_root_anchor: bool = False
+    leaf_rotations: str = "keep"
 
     def validate(self) -> None:
         if self.fps <= 0:
@@ -79,6 +84,8 @@ class DatasetConfig:
             raise UserError(f"--test-fraction must be in [0, 1), got {self.test_fraction}")
         if self.dtype not in ("float32", "float64"):
             raise UserError(f"dtype must be float32 or float64, got {self.dtype!r}")
+        if self.leaf_rotations not in ("keep", "drop"):
+            raise UserError(f"leaf_rotations must be 'keep' or 'drop', got {self.leaf_rotations!r}")
 
 
 @dataclass
@@ -249,6 +256,18 @@ def _bake_moving_anchor(b: bvh_io.Bvh) -> bvh_io.Bvh | None:
     return out
 
 
+def root_anchor(skeleton: Skeleton) -> bool:
+    """Whether joint 0 is an anchor that only repeats its one child: the child sits at the root (zero offset,
+    which is what ``Motion.from_bvh`` leaves when it moves the child's animated translation into the root
+    trajectory, as for Bandai's ``joint_Root`` -> ``Hips``). Dropping such a root with ``Motion.subset`` is
+    exact: the child becomes the root with its global trajectory and orientation."""
+    kids = skeleton.children(0) if skeleton.n_joints > 1 else []
+    if len(kids) != 1:
+        return False
+    scale = max(float(np.abs(skeleton.offsets).max()), 1e-12)
+    return bool(np.abs(skeleton.offsets[kids[0]]).max() <= 1e-9 * scale)
+
+
 def motion_from_bvh(b: bvh_io.Bvh, path: str | None = None) -> Any:
     """``Motion.from_bvh`` that also keeps the trajectory of rigs whose root anchor moves.
 
@@ -375,12 +394,14 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
         if first is None:
             first = motion.skeleton
             if config.keep_all_joints:
-                kept = list(range(first.n_joints))
+                reduced, kept = first, list(range(first.n_joints))
             else:
                 try:
-                    _, kept = first.reduce(config.drop_patterns, config.keep_joints)
+                    reduced, kept = first.reduce(config.drop_patterns, config.keep_joints)
                 except (KeyError, ValueError) as exc:
                     raise UserError(f"joint reduction: {exc}") from None
+            if config.drop_root_anchor and kept[0] == 0 and root_anchor(reduced):
+                kept = kept[1:]
         elif motion.skeleton.names != first.names or motion.skeleton.parents != first.parents:
             raise UserError(f"{rel}: skeleton differs from the first file's ({motion.skeleton.n_joints} vs "
                             f"{first.n_joints} joints or different names/hierarchy); a dataset needs one skeleton")
@@ -417,7 +438,8 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
         raise UserError(f"--feet: the root joint {skeleton.names[0]} cannot be a foot (contacts are measured on "
                         "the feet relative to the ground while the root carries the trajectory)")
     rep = MotionRepresentation(skeleton, feet, rotation=config.rotation, root=config.root,
-                               velocity_factor=config.velocity_factor, height_factor=config.height_factor)
+                               velocity_factor=config.velocity_factor, height_factor=config.height_factor,
+                               leaf_rotations=config.leaf_rotations)
 
     # Pass 2: contacts and windows on that one skeleton.
     clips: list[ClipInfo] = []

@@ -16,6 +16,11 @@ z[t]-z[t-1]]`` -- horizontal displacement per frame in world axes and the absolu
 drift and is meaningful on its own); ``x[-1] = z[-1] = 0``, so frame 0 carries the starting ground position and
 a cumulative sum restores the trajectory exactly. ``root="position"`` stores ``[x, y, z]``. Y is up.
 Contact entities hold the label (0/1 in data, a logit or probability from a model) in channel 0.
+
+``leaf_rotations="drop"`` (MoDi's released preprocessing): the local rotation of a joint without children moves no
+joint, so it is not data: the leaf's entity (its bone, which stays in the topology) holds the identity rotation
+in every frame, and decoding returns the identity there whatever a model wrote. Joint positions still round-trip
+exactly; only those invisible rotations (and any End Site marker they would turn) are lost. ``"keep"`` stores them.
 """
 from __future__ import annotations
 
@@ -33,6 +38,7 @@ from modi.topology import EntityLayout
 
 ROTATION_WIDTH = {"quat": 4, "6d": 6}
 ROOT_MODES = ("velocity", "position")
+LEAF_ROTATIONS = ("keep", "drop")
 
 
 def continuous_quats(q: Tensor, dim: int = -3) -> Tensor:
@@ -73,6 +79,7 @@ class MotionRepresentation:
     contacts_to_root_motion: bool = False
     velocity_factor: float = DEFAULT_VELOCITY_FACTOR
     height_factor: float | None = DEFAULT_HEIGHT_FACTOR
+    leaf_rotations: str = "keep"
     layout: EntityLayout = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -80,6 +87,8 @@ class MotionRepresentation:
             raise ValueError(f"rotation must be one of {sorted(ROTATION_WIDTH)}, got {self.rotation!r}")
         if self.root not in ROOT_MODES:
             raise ValueError(f"root must be one of {ROOT_MODES}, got {self.root!r}")
+        if self.leaf_rotations not in LEAF_ROTATIONS:
+            raise ValueError(f"leaf_rotations must be one of {LEAF_ROTATIONS}, got {self.leaf_rotations!r}")
         self.feet = [int(f) for f in self.feet]
         self.layout = EntityLayout(list(self.skeleton.parents), self.feet, self.contacts_to_root_motion)
 
@@ -96,6 +105,25 @@ class MotionRepresentation:
     @property
     def n_entities(self) -> int:
         return self.layout.n_entities
+
+    @property
+    def dropped_rotations(self) -> list[int]:
+        """Joints whose rotation is not stored (``leaf_rotations="drop"``): every non-root joint without children."""
+        if self.leaf_rotations == "keep":
+            return []
+        parents = list(self.skeleton.parents)
+        has_child = {p for p in parents if p >= 0}
+        return [j for j in range(1, len(parents)) if j not in has_child]
+
+    def _identity_at_dropped(self, quats: Tensor) -> Tensor:
+        """``quats (..., J, 4)`` with the identity at ``dropped_rotations`` (differentiable elsewhere)."""
+        dropped = self.dropped_rotations
+        if not dropped:
+            return quats
+        mask = torch.zeros(quats.shape[-2], 1, dtype=torch.bool, device=quats.device)
+        mask[dropped] = True
+        ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+        return torch.where(mask, ident, quats)
 
     @property
     def root_motion(self) -> int:
@@ -123,7 +151,7 @@ class MotionRepresentation:
             contacts = rotations.new_zeros((*lead, T, F))
         if contacts.shape != (*lead, T, F):
             raise ValueError(f"encode: contacts must be {(*lead, T, F)}, got {tuple(contacts.shape)}")
-        q = continuous_quats(quat_normalize(rotations), dim=-3)
+        q = continuous_quats(self._identity_at_dropped(quat_normalize(rotations)), dim=-3)
         rot = q if self.rotation == "quat" else quat_to_6d(q)  # (..., T, J, K)
         rp = root_positions.to(rot.dtype)
         if self.root == "velocity":
@@ -146,7 +174,7 @@ class MotionRepresentation:
             raise ValueError(f"decode: expected (..., K={K}, E={E}, T), got {tuple(x.shape)}")
         t = _swap_te(x)  # (..., T, E, K)
         rot = t[..., :J, :]
-        quats = quat_normalize(rot) if self.rotation == "quat" else sixd_to_quat(rot)
+        quats = self._identity_at_dropped(quat_normalize(rot) if self.rotation == "quat" else sixd_to_quat(rot))
         rm = t[..., J, :3]
         if self.root == "velocity":
             xz = torch.cumsum(rm[..., [0, 2]], dim=-2)
@@ -211,6 +239,7 @@ class MotionRepresentation:
             "contacts_to_root_motion": self.contacts_to_root_motion,
             "velocity_factor": self.velocity_factor,
             "height_factor": self.height_factor,
+            "leaf_rotations": self.leaf_rotations,
         }
 
     @classmethod

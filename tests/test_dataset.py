@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -150,3 +151,19 @@ def test_bandai_full_dataset(shared_data, tmp_path):
     print(f"Bandai: {len(ds.clips)} clips, {ds.train.shape[0]}+{ds.test.shape[0]} windows in {elapsed:.1f} s")
     again = build_dataset(root, cache_dir=tmp_path)
     assert again.from_cache and torch.equal(again.train, ds.train)
+
+
+def test_root_anchor_rule():
+    """Only a root whose single child sits at the root is an anchor (Bandai's joint_Root once Hips' translation
+    is the trajectory); a root with a real bone or with two children is not."""
+    from modi.dataset import root_anchor
+    from modi.skeleton import Skeleton
+
+    def sk(parents, offsets):
+        return Skeleton([f"j{i}" for i in range(len(parents))], parents, np.array(offsets, dtype=float))
+
+    assert root_anchor(sk([-1, 0, 1], [[0, 0, 0], [0, 0, 0], [0, 5, 0]]))
+    assert root_anchor(sk([-1, 0, 1], [[3, 90, 1], [0, 0, 0], [0, 5, 0]]))  # where the anchor stands is irrelevant
+    assert not root_anchor(sk([-1, 0, 1], [[0, 0, 0], [0, 2, 0], [0, 5, 0]]))  # a real bone from the root
+    assert not root_anchor(sk([-1, 0, 0], [[0, 0, 0], [0, 0, 0], [0, 5, 0]]))  # two children
+    assert not root_anchor(sk([-1], [[0, 0, 0]]))

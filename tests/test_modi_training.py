@@ -405,8 +405,43 @@ def test_bandai_released_loss_joints(shared_data, tmp_path):
     sub.mkdir()
     for f in files:
         (sub / f.name).symlink_to(f)
-    codec = prepare_data(sub, tiny_cfg(), cache=False).codec
-    names = codec.skeleton.names
-    assert [names[j] for j in codec.feet] == ["Toes_L", "Toes_R"]
-    assert [names[j] for j in codec.ankles] == ["Foot_L", "Foot_R"]
-    assert names[0] == "joint_Root" and names[root_rotation_entity(codec)] == "Hips"
+    for ablations, root in (((), "Hips"), (("joint-representation",), "joint_Root")):
+        codec = prepare_data(sub, tiny_cfg(*ablations), cache=False).codec
+        names = codec.skeleton.names
+        assert [names[j] for j in codec.feet] == ["Toes_L", "Toes_R"]
+        assert [names[j] for j in codec.ankles] == ["Foot_L", "Foot_R"]
+        assert names[0] == root and names[root_rotation_entity(codec)] == "Hips"
+
+
+def test_bandai_released_representation(shared_data, tmp_path):
+    """Item 4 of issue 13 on real data: the released preprocessing drops Bandai's joint_Root anchor and the leaf
+    rotations, and every remaining joint's position is exactly the full representation's."""
+    src = shared_data / "bvh" / "bandai-namco-1"
+    files = sorted(src.rglob("*.bvh"))[:3]
+    if len(files) < 3:
+        pytest.skip(f"fewer than 3 BVH files under {src}")
+    sub = tmp_path / "bandai"
+    sub.mkdir()
+    for f in files:
+        (sub / f.name).symlink_to(f)
+    full = prepare_data(sub, tiny_cfg("joint-representation"), cache=False)
+    rel = prepare_data(sub, tiny_cfg(), cache=False)
+    fr, rr = full.codec.rep, rel.codec.rep
+    assert rr.n_entities == fr.n_entities - 1 and rr.skeleton.names == fr.skeleton.names[1:]
+    assert [rr.skeleton.names[j] for j in rr.dropped_rotations] == ["Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R"]
+    assert fr.dropped_rotations == []
+    xf = full.codec.normalizer.denormalize(full.windows).double()
+    xr = rel.codec.normalizer.denormalize(rel.windows).double()
+    assert xf.shape[0] == xr.shape[0]
+    # the leaf entities hold the identity rotation in every frame: no data left in them
+    leaf = xr[:, :, rr.dropped_rotations]
+    assert (leaf[:, 0] - 1).abs().max() < 1e-6 and leaf[:, 1:].abs().max() < 1e-6
+    # positions: every joint except the dropped anchor, exactly (float32 windows)
+    pf, pr = fr.positions(xf), rr.positions(xr)
+    scale = float(pf.abs().max())
+    assert (pr - pf[..., 1:, :]).abs().max() <= 1e-5 * scale
+    # a model's output at the leaves is ignored when decoding
+    noisy = xr.clone()
+    noisy[:, :, rr.dropped_rotations] += torch.randn_like(noisy[:, :, rr.dropped_rotations])
+    q = rr.decode_parts(noisy)[0][..., rr.dropped_rotations, :]
+    assert torch.equal(q, torch.tensor([1.0, 0, 0, 0], dtype=q.dtype).expand_as(q))

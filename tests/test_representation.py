@@ -71,6 +71,34 @@ def test_parts_round_trip_and_layout(rotation, K, root):
     torch.testing.assert_close(c2, c)
 
 
+@pytest.mark.parametrize("rotation", ["quat", "6d"])
+def test_dropped_leaf_rotations_keep_positions(rotation):
+    """leaf_rotations="drop": leaves (not the root) hold the identity, every joint position is unchanged, and the
+    leaf channels of a model's output are ignored; a random tree, not only the humanoid."""
+    rng = np.random.default_rng(3)
+    J = 12
+    parents = [-1] + [int(rng.integers(0, j)) for j in range(1, J)]
+    sk = Skeleton([f"j{j}" for j in range(J)], parents, rng.normal(size=(J, 3)) * 10)
+    leaves = [j for j in range(1, J) if j not in parents]
+    keep = MotionRepresentation(sk, [], rotation=rotation)
+    drop = MotionRepresentation(sk, [], rotation=rotation, leaf_rotations="drop")
+    assert drop.dropped_rotations == leaves and keep.dropped_rotations == []
+    q = _random_quats((2, 9, J), seed=4)
+    rp = torch.randn(2, 9, 3, dtype=D) * 20
+    xk, xd = keep.encode_parts(q, rp), drop.encode_parts(q, rp)
+    assert not torch.equal(xk[:, :, leaves], xd[:, :, leaves])
+    torch.testing.assert_close(xd[:, :, [j for j in range(J) if j not in leaves]],
+                               xk[:, :, [j for j in range(J) if j not in leaves]])
+    torch.testing.assert_close(drop.positions(xd), keep.positions(xk), atol=1e-9, rtol=0)
+    noisy = xd.clone()
+    noisy[:, :, leaves] = torch.randn_like(noisy[:, :, leaves])
+    q2 = drop.decode_parts(noisy)[0]
+    assert torch.equal(q2[..., leaves, :], torch.tensor([1.0, 0, 0, 0], dtype=D).expand_as(q2[..., leaves, :]))
+    assert MotionRepresentation.from_dict(drop.to_dict()).dropped_rotations == leaves
+    with pytest.raises(ValueError, match="leaf_rotations"):
+        MotionRepresentation(sk, [], leaf_rotations="none")
+
+
 def test_root_velocity_channels_by_hand():
     sk = _small_skeleton()
     rep = modi_representation(sk, feet=[2, 4])

@@ -55,6 +55,10 @@ def register(subparsers) -> None:
                    help="pooling hierarchy: 'merge' = down to one entity; 'released' = root edge never pooled, "
                         "root-motion and contact entities kept to the coarsest level, stop at <= 2 edges "
                         "(default: merge)")
+    p.add_argument("--representation", choices=("released", "joints"), default=keep,
+                   help="'released' = no root anchor that only repeats its child (Bandai's joint_Root) and no "
+                        "rotation for joints without children, as the released MoDi preprocessing; 'joints' = "
+                        "every joint and rotation (default: released)")
     p.add_argument("--log-every", type=ct.positive_int, default=keep, help="steps between logged scalars (default: 10)")
     p.add_argument("--sample-every", type=ct.nonneg_int, default=keep,
                    help="steps between sample grids, 0 = never (default: paper 1000, small 500)")
@@ -104,6 +108,10 @@ def build_config(args: argparse.Namespace):
         value = getattr(args, flag, None)
         if value is not None:
             overrides[key] = value
+    if getattr(args, "representation", None) is not None:
+        released = args.representation == "released"
+        overrides["data.drop_root_anchor"] = released
+        overrides["data.leaf_rotations"] = "drop" if released else "keep"
     try:
         return make_config(args.preset, args.ablation, **overrides)
     except ValueError as exc:

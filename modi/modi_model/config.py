@@ -15,6 +15,7 @@ CONTACT_LOSSES = ("released", "squared")
 LEGACY_DEFAULTS: dict[str, dict[str, Any]] = {
     "model": {"noise_injection": True},
     "train": {"contact_loss": "squared"},
+    "data": {"drop_root_anchor": False, "leaf_rotations": "keep"},
 }
 
 
@@ -73,12 +74,18 @@ class DataConfig:
     feet: list[str] | None = None  # foot joint names; None = detect by name
     drop_patterns: list[str] | None = None  # joint-name regexes to drop; None = fingers/face (modi.dataset default)
     keep_joints: list[str] | None = None  # joints never dropped
+    # the released preprocessing: no root anchor that only repeats its child (Bandai's joint_Root), no rotation for
+    # joints without children (they move nothing); False / "keep" = every joint and rotation (before issue 13)
+    drop_root_anchor: bool = True
+    leaf_rotations: str = "drop"
 
     def validate(self) -> None:
         if self.rotation not in ("quaternion", "positions"):
             raise ValueError(f"data.rotation must be 'quaternion' or 'positions', not {self.rotation!r}")
         if self.root not in ("velocity", "position"):
             raise ValueError(f"data.root must be 'velocity' or 'position', not {self.root!r}")
+        if self.leaf_rotations not in ("keep", "drop"):
+            raise ValueError(f"data.leaf_rotations must be 'keep' or 'drop', not {self.leaf_rotations!r}")
         if self.n_frames < 2:
             raise ValueError(f"data.n_frames must be >= 2, not {self.n_frames}")
         if self.stride < 1:
@@ -158,7 +165,7 @@ class MoDiConfig:
             return sub_cls(**values)
 
         model = {**LEGACY_DEFAULTS["model"], **dict(d.get("model", {}))}
-        data = dict(d.get("data", {}))
+        data = {**LEGACY_DEFAULTS["data"], **dict(d.get("data", {}))}
         if "joints" in data:  # early drafts called keep_joints "joints"
             data.setdefault("keep_joints", data.pop("joints"))
         if "channels" in model:
@@ -196,7 +203,9 @@ ABLATIONS = {
     # this package's choices before the released code's became the defaults (issue 13), one at a time or together
     "noise": {"model.noise_injection": True},
     "squared-contact": {"train.contact_loss": "squared"},
-    "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared"},
+    "joint-representation": {"data.drop_root_anchor": False, "data.leaf_rotations": "keep"},
+    "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared",
+                    "data.drop_root_anchor": False, "data.leaf_rotations": "keep"},
     # the released code's skeleton topology (not the default: not yet measured on our data)
     "tree-neighbors": {"model.neighbors": "tree"},
     "released-pooling": {"model.pooling": "released"},

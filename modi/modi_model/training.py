@@ -60,7 +60,8 @@ def _dataset_config(cfg: MoDiConfig) -> Any:
 
     return DatasetConfig(fps=cfg.data.fps, window=cfg.data.n_frames, stride=cfg.data.stride, root=cfg.data.root,
                          rotation="quat", feet=cfg.data.feet, drop_patterns=cfg.data.drop_patterns,
-                         keep_joints=cfg.data.keep_joints)
+                         keep_joints=cfg.data.keep_joints, drop_root_anchor=cfg.data.drop_root_anchor,
+                         leaf_rotations=cfg.data.leaf_rotations)
 
 
 def write_procedural_data(out_dir: str | os.PathLike, n_clips: int = 48, frames: int = 160, seed: int = 0,
