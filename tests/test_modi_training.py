@@ -405,7 +405,7 @@ def test_bandai_released_loss_joints(shared_data, tmp_path):
     sub.mkdir()
     for f in files:
         (sub / f.name).symlink_to(f)
-    for ablations, root in (((), "Hips"), (("joint-representation",), "joint_Root")):
+    for ablations, root in (((), "joint_Root"), (("released-representation",), "Hips")):
         codec = prepare_data(sub, tiny_cfg(*ablations), cache=False).codec
         names = codec.skeleton.names
         assert [names[j] for j in codec.feet] == ["Toes_L", "Toes_R"]
@@ -424,8 +424,8 @@ def test_bandai_released_representation(shared_data, tmp_path):
     sub.mkdir()
     for f in files:
         (sub / f.name).symlink_to(f)
-    full = prepare_data(sub, tiny_cfg("joint-representation"), cache=False)
-    rel = prepare_data(sub, tiny_cfg(), cache=False)
+    full = prepare_data(sub, tiny_cfg(), cache=False)
+    rel = prepare_data(sub, tiny_cfg("released-representation"), cache=False)
     fr, rr = full.codec.rep, rel.codec.rep
     assert rr.n_entities == fr.n_entities - 1 and rr.skeleton.names == fr.skeleton.names[1:]
     assert [rr.skeleton.names[j] for j in rr.dropped_rotations] == ["Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R"]

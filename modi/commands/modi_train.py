@@ -58,7 +58,7 @@ def register(subparsers) -> None:
     p.add_argument("--representation", choices=("released", "joints"), default=keep,
                    help="'released' = no root anchor that only repeats its child (Bandai's joint_Root) and no "
                         "rotation for joints without children, as the released MoDi preprocessing; 'joints' = "
-                        "every joint and rotation (default: released)")
+                        "every joint and rotation (default: joints)")
     p.add_argument("--log-every", type=ct.positive_int, default=keep, help="steps between logged scalars (default: 10)")
     p.add_argument("--sample-every", type=ct.nonneg_int, default=keep,
                    help="steps between sample grids, 0 = never (default: paper 1000, small 500)")
