@@ -75,8 +75,8 @@ class DataConfig:
     drop_patterns: list[str] | None = None  # joint-name regexes to drop; None = fingers/face (modi.dataset default)
     keep_joints: list[str] | None = None  # joints never dropped
     # True / "drop" = the released preprocessing: no root anchor that only repeats its child (Bandai's joint_Root), no
-    # rotation for joints without children (they move nothing). Not the default: at equal budget it trained far
-    # worse on Bandai (FID 40.6 vs 15.7; the samples barely translate), see the README
+    # rotation for joints without children (they move nothing). Not the default: its one equal-budget run was the
+    # worst arm (FID 40.6), though within the run-to-run spread measured so far (README); needs more seeds
     drop_root_anchor: bool = False
     leaf_rotations: str = "keep"
 
