@@ -30,7 +30,7 @@ from modi import bvh as bvh_io
 from modi.contacts import DEFAULT_HEIGHT_FACTOR, DEFAULT_VELOCITY_FACTOR, foot_contacts
 from modi.errors import UserError
 from modi.normalization import Normalizer
-from modi.representation import MotionRepresentation
+from modi.representation import LEAF_ROTATIONS, MotionRepresentation
 from modi.skeleton import Skeleton
 from modi.topology import EntityLayout, PoolingHierarchy, build_hierarchy
 
@@ -84,8 +84,8 @@ class DatasetConfig:
             raise UserError(f"--test-fraction must be in [0, 1), got {self.test_fraction}")
         if self.dtype not in ("float32", "float64"):
             raise UserError(f"dtype must be float32 or float64, got {self.dtype!r}")
-        if self.leaf_rotations not in ("keep", "drop"):
-            raise UserError(f"leaf_rotations must be 'keep' or 'drop', got {self.leaf_rotations!r}")
+        if self.leaf_rotations not in LEAF_ROTATIONS:
+            raise UserError(f"leaf_rotations must be one of {LEAF_ROTATIONS}, got {self.leaf_rotations!r}")
 
 
 @dataclass

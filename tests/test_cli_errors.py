@@ -131,6 +131,7 @@ CASES: list[tuple[str, str]] = [
     ("train {d} --out {out} --threads -2", "argument --threads"),
     ("train {d} --out {out} --seed -1", "argument --seed"),
     ("train {d} --out {out} --mixing 2", "argument --mixing"),
+    ("train {d} --out {out} --representation edges", "argument --representation: invalid choice"),
     ("generate {tiny} --out {out} --psi 1e30", "argument --psi"),
     ("generate {tiny} --out {out} --psi inf", "argument --psi"),
     ("generate {tiny} --out {out} --batch 0", "argument --batch"),

@@ -70,7 +70,8 @@ def test_discriminator_learns_on_procedural_data(proc_data, tmp_path):
     assert np.mean(losses[-3:]) < np.mean(losses[:3]) - 0.05, losses
 
 
-def test_discriminator_learns_on_real_data(shared_data, tmp_path):
+def _bandai_subset(shared_data: Path, tmp_path: Path) -> Path:
+    """A folder linking the first 3 Bandai-Namco-1 clips (skips when the shared data is absent)."""
     src = shared_data / "bvh" / "bandai-namco-1"
     files = sorted(src.rglob("*.bvh"))[:3]
     if len(files) < 3:
@@ -79,6 +80,11 @@ def test_discriminator_learns_on_real_data(shared_data, tmp_path):
     sub.mkdir()
     for f in files:
         (sub / f.name).symlink_to(f)
+    return sub
+
+
+def test_discriminator_learns_on_real_data(shared_data, tmp_path):
+    sub = _bandai_subset(shared_data, tmp_path)
     data = prepare_data(sub, tiny_cfg(), cache=False)
     assert data.skeleton.n_joints >= 20 and data.windows.shape[1:] == (4, data.codec.n_entities, 16)
     torch.manual_seed(0)
@@ -397,14 +403,7 @@ def test_bandai_released_loss_joints(shared_data, tmp_path):
     encoder's root term must skip the constant joint_Root placeholder for Hips."""
     from modi.encoder.training import root_rotation_entity
 
-    src = shared_data / "bvh" / "bandai-namco-1"
-    files = sorted(src.rglob("*.bvh"))[:3]
-    if len(files) < 3:
-        pytest.skip(f"fewer than 3 BVH files under {src}")
-    sub = tmp_path / "bandai"
-    sub.mkdir()
-    for f in files:
-        (sub / f.name).symlink_to(f)
+    sub = _bandai_subset(shared_data, tmp_path)
     for ablations, root in (((), "joint_Root"), (("released-representation",), "Hips")):
         codec = prepare_data(sub, tiny_cfg(*ablations), cache=False).codec
         names = codec.skeleton.names
@@ -416,14 +415,7 @@ def test_bandai_released_loss_joints(shared_data, tmp_path):
 def test_bandai_released_representation(shared_data, tmp_path):
     """Item 4 of issue 13 on real data: the released preprocessing drops Bandai's joint_Root anchor and the leaf
     rotations, and every remaining joint's position is exactly the full representation's."""
-    src = shared_data / "bvh" / "bandai-namco-1"
-    files = sorted(src.rglob("*.bvh"))[:3]
-    if len(files) < 3:
-        pytest.skip(f"fewer than 3 BVH files under {src}")
-    sub = tmp_path / "bandai"
-    sub.mkdir()
-    for f in files:
-        (sub / f.name).symlink_to(f)
+    sub = _bandai_subset(shared_data, tmp_path)
     full = prepare_data(sub, tiny_cfg(), cache=False)
     rel = prepare_data(sub, tiny_cfg("released-representation"), cache=False)
     fr, rr = full.codec.rep, rel.codec.rep

@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from modi.representation import LEAF_ROTATIONS
+
 PAPER_CHANNELS = (256, 128, 64, 64, 32)  # coarse -> fine, paper Table 3
 CONTACT_LOSSES = ("released", "squared")
 
@@ -85,8 +87,8 @@ class DataConfig:
             raise ValueError(f"data.rotation must be 'quaternion' or 'positions', not {self.rotation!r}")
         if self.root not in ("velocity", "position"):
             raise ValueError(f"data.root must be 'velocity' or 'position', not {self.root!r}")
-        if self.leaf_rotations not in ("keep", "drop"):
-            raise ValueError(f"data.leaf_rotations must be 'keep' or 'drop', not {self.leaf_rotations!r}")
+        if self.leaf_rotations not in LEAF_ROTATIONS:
+            raise ValueError(f"data.leaf_rotations must be one of {LEAF_ROTATIONS}, not {self.leaf_rotations!r}")
         if self.n_frames < 2:
             raise ValueError(f"data.n_frames must be >= 2, not {self.n_frames}")
         if self.stride < 1:
