@@ -8,12 +8,12 @@ import pytest
 import torch
 from PIL import Image
 
-from modi import render as render_mod
+from modi.viz import render as render_mod
 from modi.cli import main
 from modi.errors import UserError
 from modi.kinematics import forward_kinematics
 from modi.procedural import builtin_skeleton, generate_clip, write_dataset
-from modi.render import foot_contacts, render_bvh, render_frames, render_positions
+from modi.viz.render import foot_contacts, render_bvh, render_frames, render_positions
 
 CONTACT_RGB = (225, 40, 40)
 

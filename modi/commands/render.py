@@ -38,7 +38,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from modi.render import render_bvh
+    from modi.viz.render import render_bvh
 
     if len(args.files) < 2:
         raise UserError("render needs at least one input .bvh and an output .gif/.mp4")

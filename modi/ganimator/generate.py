@@ -55,7 +55,7 @@ def fix_contacts(seq: Clip, quats: Tensor, root: Tensor, contacts: Tensor) -> tu
 
 def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
     """A ``modi.bvh.Bvh`` in the *source file's* units (root: 6 channels, other joints: 3 rotation channels)."""
-    from modi.bvh import Bvh
+    from modi.io.bvh import Bvh
     from modi.rotations import quat_to_euler
 
     sk = seq.skeleton
@@ -83,7 +83,7 @@ def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
 
 
 def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path) -> Path:
-    from modi.bvh import save
+    from modi.io.bvh import save
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -348,7 +348,7 @@ class TrajectoryStream:
 
 
 def _render(seqs_and_positions, parents, path: Path, fps: float, names, contacts=None, layout="grid") -> None:
-    from modi.render import render_positions
+    from modi.viz.render import render_positions
 
     render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout)
 

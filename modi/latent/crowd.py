@@ -61,9 +61,9 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
                    gif: bool = True, size: tuple[int, int] = (520, 400)) -> Crowd:
     """Sample ``k`` variations of the motion of ``w`` and write ``crowd_NN.bvh`` (placed on a grid) plus
     ``crowd.gif`` with every character in one scene. ``include_source`` adds the original motion as ``crowd_00``."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.motion import Motion
-    from modi.render import render_positions
+    from modi.viz.render import render_positions
 
     w = check_latent(g, w.unsqueeze(0), "w")[0]
     lat = crowd_latents(w, k, sigma, seed)

@@ -122,7 +122,7 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
                   prefix: str = "motion", start_index: int = 0) -> list[Path]:
     """Write generated tensors: ``{prefix}_NNNN.bvh`` (+ ``_contacts.npy``, (T, F) uint8 in ``codec.feet``
     order) per motion and one GIF grid of the first ``max_gif``; returns the BVH paths."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -156,7 +156,7 @@ def render_gif(codec: Any, positions: Sequence[np.ndarray], contacts: Sequence[n
                path: str | os.PathLike, titles: Sequence[str] | None = None,
                size: tuple[int, int] = (200, 200)) -> Path:
     """Stick-figure GIF grid of global positions with the feet drawn red while labelled in contact."""
-    from modi.render import render_positions
+    from modi.viz.render import render_positions
 
     sk = codec.skeleton
     per_joint = None

@@ -481,7 +481,7 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
                contacts: bool = False, up: str = "y", max_frames: int | None = None,
                azimuth: float = 35.0, elevation: float = 18.0) -> Path:
     """Preview one or more BVH files (in real time at ``fps``). Missing files raise ``UserError``."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
 
     if isinstance(paths, (str, Path)):
