@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from modi import bvh as bvh_io
+from modi.io import bvh as bvh_io
 from modi.contacts import DEFAULT_HEIGHT_FACTOR, DEFAULT_VELOCITY_FACTOR, foot_contacts
 from modi.errors import UserError
 from modi.normalization import Normalizer

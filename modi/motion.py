@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from modi import bvh as bvh_io
+from modi.io import bvh as bvh_io
 from modi.kinematics import forward_kinematics
 from modi.rotations import (
     euler_to_quat,

@@ -547,7 +547,7 @@ def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, see
     and equals ``generate_clip(kind, frames, fps, np.random.default_rng([seed, i]))``. All clips' Euler angles
     are converted in one batched call: thousands of tiny torch calls would cost more than the generation.
     """
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.rotations import matrix_to_euler
 
     kinds = tuple(KINDS if kinds is None else kinds)

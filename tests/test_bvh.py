@@ -1,4 +1,4 @@
-"""modi.bvh: parsing, writing, round trips on every shared file, malformations with line numbers, fuzzing."""
+"""modi.io.bvh: parsing, writing, round trips on every shared file, malformations with line numbers, fuzzing."""
 from __future__ import annotations
 
 import os
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from modi import bvh as B
+from modi.io import bvh as B
 from modi.errors import BvhError
 from modi.kinematics import bvh_positions
 

@@ -65,7 +65,7 @@ def test_windows_split_and_layout(proc_dir, tmp_path):
     assert torch.equal(y[:, :, J + 1:], x[:, :, J + 1:])
     assert ds.hierarchy().levels[0].n_entities == E
     # a window decodes to the clip's own joint positions over its frames, moved to start at x = z = 0
-    from modi import bvh
+    from modi.io import bvh
     from modi.dataset import motion_from_bvh
 
     k = int(torch.nonzero(ds.clip_index_train == ds.clip_index_train[-1])[0, 0]) + 1

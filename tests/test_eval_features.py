@@ -153,7 +153,7 @@ def test_load_rejects_foreign_files(tmp_path: Path):
 
 def _labelled_folder(root: Path) -> None:
     """Procedural walk (label 0) and wave (label 1) clips in the Bandai layout (JSON beside each BVH)."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.procedural import generate_clip
 
     (root / "cfg").mkdir(parents=True)

@@ -189,7 +189,7 @@ _REDUCED = [n for n, _ in _RIG if n not in ("HeadTop_End", "LeftHandIndex1", "Le
 
 def _rig_bvh(frames: int = 240, fps: float = 60.0, seed: int = 0):
     """Smooth, non-periodic Euler curves on every joint (root also translates), namespaced 'mixamorig:'."""
-    from modi.bvh import Bvh
+    from modi.io.bvh import Bvh
 
     rng = np.random.default_rng(seed)
     J = len(_RIG)
@@ -209,7 +209,7 @@ def _rig_bvh(frames: int = 240, fps: float = 60.0, seed: int = 0):
 def _as_other_tool_writes_it(b, prefix: str = "", drop: tuple[str, ...] = ()):
     """The same motion with the namespace prefix replaced, the legs listed before the spine (sibling order) and
     the joints in ``drop`` (leaves) removed."""
-    from modi.bvh import Bvh
+    from modi.io.bvh import Bvh
     from modi.evaluation.single import bare_name
 
     names = [bare_name(n) for n in b.names]
@@ -243,7 +243,7 @@ _OPTIONS = [[], ["--joints", "all"], ["--fps", "60"], ["--fps", "24"], ["--repre
 def test_source_against_itself_under_every_option(tmp_path, capsys, options):
     import json
 
-    from modi.bvh import save
+    from modi.io.bvh import save
 
     save(_rig_bvh(), tmp_path / "src.bvh")
     rc, out, err = _run_single(capsys, tmp_path / "src.bvh", "--source", tmp_path / "src.bvh",
@@ -268,7 +268,7 @@ def test_source_against_itself_under_every_option(tmp_path, capsys, options):
 def test_renamed_reordered_wrong_rate_copy_scores_exactly_like_the_source(tmp_path, capsys, prefix, drop, joints):
     import json
 
-    from modi.bvh import dumps, save
+    from modi.io.bvh import dumps, save
 
     src = _rig_bvh()
     save(src, tmp_path / "src.bvh")
@@ -299,7 +299,7 @@ def test_renamed_reordered_wrong_rate_copy_scores_exactly_like_the_source(tmp_pa
 
 @pytest.mark.parametrize("frame_time", ["1.00000000", "0.5", "0", "-0.03"])
 def test_implausible_frame_time_names_the_option(tmp_path, capsys, frame_time):
-    from modi.bvh import dumps, save
+    from modi.io.bvh import dumps, save
 
     src = _rig_bvh(120)
     save(src, tmp_path / "src.bvh")
@@ -318,7 +318,7 @@ def test_implausible_frame_time_names_the_option(tmp_path, capsys, frame_time):
 
 
 def test_reports_never_overwrite_an_input_and_numbers_are_checked_while_parsing(tmp_path, capsys):
-    from modi.bvh import save
+    from modi.io.bvh import save
 
     save(_rig_bvh(120), tmp_path / "src.bvh")
     save(_rig_bvh(120, seed=1), tmp_path / "gen.bvh")
@@ -337,7 +337,7 @@ def test_reports_never_overwrite_an_input_and_numbers_are_checked_while_parsing(
 
 
 def test_a_different_rig_is_rejected_by_joint_parent(tmp_path, capsys):
-    from modi.bvh import save
+    from modi.io.bvh import save
 
     src = _rig_bvh(120)
     save(src, tmp_path / "src.bvh")

@@ -263,7 +263,7 @@ def test_compile_fullgraph_matches_eager():
 
 @needs_ext
 def test_real_skeletons_match_modi_kinematics(shared_data):
-    bvh = pytest.importorskip("modi.bvh")
+    bvh = pytest.importorskip("modi.io.bvh")
     kin = pytest.importorskip("modi.kinematics")
     rotations = pytest.importorskip("modi.rotations")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from modi import bvh as B
+from modi.io import bvh as B
 from modi.kinematics import bvh_global_quats, bvh_positions, forward_kinematics
 from modi.rotations import axis_angle_to_quat, euler_to_quat, quat_identity, quat_normalize
 

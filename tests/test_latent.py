@@ -289,7 +289,7 @@ def test_crowd_latents_spread_with_sigma():
 
 
 def test_crowd_writes_placed_bvh_files_and_one_scene(tiny, tmp_path):
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
 
     g, codec = tiny

@@ -356,7 +356,7 @@ def test_cli_train_resume_generate(proc_dir, tmp_path, capsys):
                  "--psi", "0.8", "--ik"]) == 0
     assert sorted(p.name for p in out.glob("*.bvh")) == ["motion_0000.bvh", "motion_0001.bvh", "motion_0002.bvh"]
     assert (out / "samples.gif").is_file() and np.load(out / "motion_0002_contacts.npy").shape == (16, 2)
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
 
     b = bvh_io.load(out / "motion_0000.bvh")
     assert b.n_frames == 16 and b.names == load_checkpoint(run / "checkpoint.pt")["skeleton"]["names"]

@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation, Slerp
 
-from modi import bvh as B
+from modi.io import bvh as B
 from modi.kinematics import bvh_positions
 from modi.motion import Motion
 from modi.rotations import quat_identity, quat_mul, quat_inverse, quat_to_matrix

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from modi import bvh as bvh_io
+from modi.io import bvh as bvh_io
 from modi.kinematics import bvh_positions, forward_kinematics
 from modi.procedural import KINDS, builtin_skeleton, generate_clip, write_dataset
 

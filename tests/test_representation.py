@@ -232,7 +232,7 @@ def _file_positions_and_motion(path):
     """(bvh, Motion, reference positions, joints expected exact). Bandai's ``joint_Root`` anchor rides on Hips in
     the Motion (its own position is meaningless); the Elephant's stretchy bones are made rigid by Motion, so
     there the reference is the Motion's own FK."""
-    from modi import bvh
+    from modi.io import bvh
     from modi.dataset import motion_from_bvh
     from modi.kinematics import bvh_positions
 
@@ -263,7 +263,7 @@ def test_real_round_trip_positions(shared_data, rel, rotation):
 
 def test_real_round_trip_through_bvh_file_with_reduction(shared_data, tmp_path):
     """Mixamo 65 joints -> default reduction (24) -> tensor -> BVH on disk -> positions of the kept joints."""
-    from modi import bvh
+    from modi.io import bvh
     from modi.kinematics import bvh_positions
 
     b, motion, ref, _ = _file_positions_and_motion(shared_data / "bvh" / "ganimator/Joe/Salsa-Dancing-6.bvh")

@@ -343,7 +343,7 @@ def test_opcheck(kind):
 @needs_ext
 def test_real_bandai_hierarchy(shared_data):
     topology = pytest.importorskip("modi.topology")
-    bvh = pytest.importorskip("modi.bvh")
+    bvh = pytest.importorskip("modi.io.bvh")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))
     if not files:
         pytest.skip("no BVH files under shared data")

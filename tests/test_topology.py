@@ -227,7 +227,7 @@ def test_skeleton_dict_round_trip():
 
 
 def _real(shared_data, rel: str) -> Skeleton:
-    from modi import bvh
+    from modi.io import bvh
 
     return bvh.load(shared_data / "bvh" / rel).skeleton()
 

@@ -203,7 +203,7 @@ def cmd_train_features(args: argparse.Namespace) -> int:
 
 
 def _load_bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
 
     b = bvh_io.load(path)
@@ -327,7 +327,7 @@ def cmd_gen(args: argparse.Namespace) -> int:
 def _motion(path: str, true_fps: float | None = None, remedy: str = "") -> Any:
     """A BVH as a Motion; ``true_fps`` replaces the header's rate (``--gen-fps``), else the header must be
     plausible: some tools write ``Frame Time: 0`` or ``1``, which would silently change every window."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.motion import Motion
 
     p = Path(path)

@@ -27,7 +27,7 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from modi import bvh
+    from modi.io import bvh
     from modi.kinematics import bvh_positions
 
     if os.path.isdir(args.input):

@@ -467,7 +467,7 @@ def load_labelled_folder(
     ``class_<i>``. An anchor root with a single child (Bandai's ``joint_Root`` above ``Hips``) is dropped, as
     ``modi.dataset.motion_from_bvh`` does, so generated motions of the promoted skeleton match by name. All clips must share the skeleton's joint names.
     """
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
 
     root = Path(root)

@@ -275,7 +275,7 @@ class RawClip:
 
 def read_clip(path: str | Path) -> RawClip:
     """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET)."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.rotations import euler_to_quat
 
     p = Path(path)

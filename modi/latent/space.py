@@ -259,7 +259,7 @@ def model_window_from_motion(codec: Any, motion: Any, n_frames: int, start: int 
 
 def load_bvh_window(codec: Any, path: str | os.PathLike, n_frames: int, start: int = 0) -> Tensor:
     """Read a BVH clip onto the model's skeleton (joints matched by name), resample, cut one window (K, E, T)."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.dataset import motion_from_bvh
 
     path = Path(path)
@@ -296,7 +296,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
                   gif: str | None = "preview.gif", titles: Sequence[str] | None = None,
                   size: tuple[int, int] = (220, 220)) -> list[Path]:
     """Write each motion as ``{name}.bvh`` and all of them side by side in one GIF; returns the BVH paths."""
-    from modi import bvh as bvh_io
+    from modi.io import bvh as bvh_io
     from modi.modi_model.sampling import render_gif
 
     out = Path(out_dir)
