@@ -249,10 +249,10 @@ def _bare_names(skeleton: Any, label: str) -> list[str]:
 def shared_joints(skeletons: Sequence[Any], reduce: bool = True, labels: Sequence[str] | None = None) -> list[str]:
     """Bare names of the joints that every skeleton has, in the first skeleton's order.
 
-    ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.ganimator.data.reduce_joints`:
+    ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.joint_reduction.reduce_joints`:
     fingers and head-top dropped), so a full Mixamo source and a 24-joint output meet on the published joint set.
     """
-    from modi.ganimator.data import reduce_joints
+    from modi.joint_reduction import reduce_joints
 
     labels = list(labels) if labels is not None else [f"skeleton {i}" for i in range(len(skeletons))]
     common: list[str] | None = None
