@@ -1,8 +1,11 @@
 """Batched forward kinematics: local joint quaternions -> global joint positions (and rotations).
 
-``fk`` checks its arguments, then runs the fused C++ kernel (``torch.ops.modi_ext.fk``) when the extension
-is built and the tensors are on the CPU, else the dense torch reference ``fk_reference`` (the test oracle).
-``MODI_EXT_IMPL=ref|ext`` forces a path (see ``modi_ext._loader.impl_choice``).
+``fk`` checks its arguments, then runs the fused C++ kernel (``torch.ops.modi_ext.fk``) when this build has it for
+the tensors' device type (decided once per device type, ``modi_ext.dispatch.kernels_built``, so ``torch.compile``
+traces no probe), else the dense torch reference ``fk_reference`` (the test oracle; FK's dense form).
+``MODI_EXT_IMPL=ref|dense|ext|auto`` picks the path; ``auto`` also requires the kernels' first-use self-check.
+The kernel's backward is first order; when a graph of the gradient is asked for (``create_graph=True``) it is built
+from the reference's torch ops instead, so second-order gradients through FK are exact.
 
 Semantics (shared with ``modi.kinematics.forward_kinematics``): quaternions are (w, x, y, z) in the parent's
 frame; joint 0's global position *is* ``root_positions`` (its offset is not added); for ``j > 0`` with
@@ -17,7 +20,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from modi_ext._loader import HAS_EXT, impl_choice
+from modi_ext import dispatch
+from modi_ext._loader import HAS_EXT, requested_impl
 
 __all__ = ["fk", "fk_reference", "ForwardKinematics", "check_parents"]
 
@@ -166,12 +170,16 @@ if _op_defined():
         local_quats, global_quats, offsets = ctx.saved_tensors
         if grad_positions is None:
             grad_positions = local_quats.new_zeros(tuple(local_quats.shape[:-1]) + (3,))
-        if grad_global_quats is not None:
-            grad_global_quats = grad_global_quats.contiguous()
-        grad_q, grad_root, grad_off = torch.ops.modi_ext.fk_backward(
-            grad_positions.contiguous(), grad_global_quats, local_quats, global_quats, offsets,
-            ctx.parents, bool(ctx.needs_input_grad[1]),
-        )
+        if torch.is_grad_enabled():  # create_graph=True: a differentiable formulation of the same gradients
+            grad_q, grad_root, grad_off = _graph_backward(grad_positions, grad_global_quats, local_quats, offsets,
+                                                          ctx.parents, ctx.needs_input_grad)
+        else:
+            if grad_global_quats is not None:
+                grad_global_quats = grad_global_quats.contiguous()
+            grad_q, grad_root, grad_off = torch.ops.modi_ext.fk_backward(
+                grad_positions.contiguous(), grad_global_quats, local_quats, global_quats, offsets,
+                ctx.parents, bool(ctx.needs_input_grad[1]),
+            )
         return (
             grad_q if ctx.needs_input_grad[0] else None,
             grad_off if ctx.needs_input_grad[1] else None,
@@ -182,28 +190,49 @@ if _op_defined():
     torch.library.register_autograd("modi_ext::fk", _fk_backward, setup_context=_fk_setup_context)
 
 
-def _use_kernel(device: torch.device, impl: str | None = None) -> bool:
+def _graph_backward(grad_positions, grad_global_quats, local_quats, offsets, parents, needs):
+    """``fk_backward`` as torch ops with a graph: vector-Jacobian products of ``fk_reference``.
+
+    The root translation enters every joint's position additively, so its gradient is the sum over joints and the
+    recomputation can start from a zero root."""
+    q = local_quats if local_quats.requires_grad else local_quats.detach().requires_grad_()
+    off = offsets if offsets.requires_grad else offsets.detach().requires_grad_()
+    with torch.enable_grad():
+        root = q.new_zeros(tuple(q.shape[:-2]) + (3,))
+        pos, rot = fk_reference(q, off, parents, root, return_rotations=True)
+        outs, grads = [pos], [grad_positions]
+        if grad_global_quats is not None:
+            outs.append(rot)
+            grads.append(grad_global_quats)
+        want = [t for t, n in ((q, needs[0]), (off, needs[1])) if n]
+        got = iter(torch.autograd.grad(outs, want, grads, create_graph=True, allow_unused=True,
+                                       materialize_grads=True)) if want else iter(())
+    grad_q = next(got) if needs[0] else None
+    grad_off = next(got) if needs[1] else None
+    return grad_q, grad_positions.sum(-2), grad_off
+
+
+def _use_kernel(device: torch.device, impl: str | None = None, dtype: torch.dtype = torch.float32) -> bool:
     if impl is None:
-        impl = impl_choice()
-    elif impl not in ("ref", "ext"):
-        raise ValueError(f"fk: impl must be 'ref', 'ext' or None, got {impl!r}")
+        impl = requested_impl()
+    elif impl not in ("ref", "ext", "dense", "auto"):
+        raise ValueError(f"fk: impl must be 'ref', 'ext' or None (or 'dense' / 'auto'), got {impl!r}")
     elif impl == "ext" and not _op_defined():
         raise RuntimeError("fk: impl='ext' but the modi_ext C++ extension is not built")
-    if impl != "ext":
+    if impl in ("ref", "dense"):
         return False
-    if device.type in ("cpu", "meta"):  # meta: the fake kernel gives shapes
+    # Devices without a kernel (e.g. CUDA when only the CPU part is built) use the reference; decided once per type.
+    if not dispatch.kernels_built(device.type, "fk"):
+        return False
+    if impl == "ext" or device.type == "meta":
         return True
-    # Fall back to the reference on devices without a kernel (e.g. CUDA when only the CPU part is built).
-    try:
-        return torch._C._dispatch_has_kernel_for_dispatch_key("modi_ext::fk", device.type.upper())
-    except RuntimeError:
-        return False
+    return dispatch.kernels_trusted(str(device), str(dtype))
 
 
 def _fk_checked(local_quats, offsets, parents: tuple[int, ...], root_positions, return_rotations: bool,
                 impl: str | None = None):
-    if _use_kernel(local_quats.device, impl):
-        positions, rotations = torch.ops.modi_ext.fk(local_quats, offsets, list(parents), root_positions)
+    if _use_kernel(local_quats.device, impl, local_quats.dtype):
+        positions, rotations = dispatch.KERNELS["fk"](local_quats, offsets, list(parents), root_positions)
         return (positions, rotations) if return_rotations else positions
     return fk_reference(local_quats, offsets, parents, root_positions, return_rotations)
 

@@ -1,9 +1,13 @@
-"""Public skeletal operators: argument checks, then the C++ kernels or the dense reference.
+"""Public skeletal operators: argument checks, then the sparse kernels, the dense form or the reference.
 
-``MODI_EXT_IMPL=ref|ext|auto`` picks the path (see ``modi_ext._loader``).  On the extension path the demodulation
-coefficients ``d[b,o,j]`` are computed here with small torch ops (a ``(B, Cin) x (Cin, Cout*E)`` product of squared
-weights, never a per-sample weight tensor) and handed to the kernel, which applies the style on the input rows and
-``d`` on the output rows while it packs/unpacks its GEMM operands.
+``modi_ext.dispatch.route`` picks the path per call (``MODI_EXT_IMPL=auto|ext|dense|ref``; kernels only where this
+build has them for the device, only after their self-check, on CUDA only where measured faster than ``dense``).  On
+the kernel path the demodulation coefficients ``d[b,o,j]`` are computed here with small torch ops (a
+``(B, Cin) x (Cin, Cout*E)`` product of squared weights, never a per-sample weight tensor; ``dense.demod_scale``) and
+handed to the kernel, which applies the style on the input rows and ``d`` on the output rows.
+
+Under ``torch.autocast`` the inputs are cast to one dtype (the autocast dtype on CUDA, where the kernels take half
+types; the widest input dtype elsewhere) and the op runs with autocast off, so standard AMP works.
 
 Autograd goes through ``torch.library.register_autograd``: first-order gradients use the fused C++ backward kernel;
 when a graph of the gradient is requested (``create_graph=True``: R1, path length, WGAN-GP) the backward is built
@@ -13,15 +17,16 @@ from ops that are themselves differentiable (``modi_ext.gradfix``), so every ord
 from __future__ import annotations
 
 import os
+import weakref
 
 import torch
 
-from modi_ext import reference
-from modi_ext._loader import HAS_EXT, impl_choice
+from modi_ext import dense, dispatch, reference
+from modi_ext._loader import HAS_EXT
+from modi_ext.dense import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
 from modi_ext.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
-from modi_ext.topology_tensors import pair_entity
 
-__all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_dense", "demod_scale"]
+__all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_dense", "demod_scale", "validate_csr"]
 
 _KIND_CONV, _KIND_DOWN, _KIND_UP = 0, 1, 2
 _FLOATS = (torch.float32, torch.float64)
@@ -116,34 +121,124 @@ def _check(kind: int, x, weight, bias, index, offsets, n_out: int | None, style,
             raise TypeError(f"style must be {x.dtype} on {x.device}, got {style.dtype} on {style.device}")
     if not isinstance(demodulate, bool):
         raise TypeError(f"demodulate must be a bool, got {type(demodulate).__name__}")
-    if not _is_tracing() and index.device.type == "cpu":
-        off = offsets
-        if int(off[0]) != 0 or int(off[-1]) != index.shape[0]:
-            raise ValueError(f"offsets must run from 0 to index.numel()={index.shape[0]}, "
-                             f"got {int(off[0])}..{int(off[-1])}")
-        counts = off[1:] - off[:-1]
-        if bool((counts <= 0).any()):
-            j = int(torch.nonzero(counts <= 0)[0, 0])
-            raise ValueError(f"offsets: output entity {j} has no neighbors")
-        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_idx_range):
-            raise ValueError(f"index holds an entity out of range [0, {n_idx_range})")
+    if not _is_tracing() and index.device.type != "meta":
+        validate_csr(index, offsets, n_idx_range)
     return int(n_out) if kind == _KIND_UP else n_rows
 
 
-def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor, style: torch.Tensor | None,
-                up: bool, n_out: int, batch: int) -> torch.Tensor:
-    """Demodulation coefficients ``(B, Cout, E_out)`` without a per-sample weight: ``s^2 @ sum_{n,u} W^2``."""
-    q = weight.pow(2).sum(-1)  # conv/down (Co, nnz, Ci) ; up (Ci, nnz, Co)
-    if up:
-        acc = q.new_zeros(q.shape[0], n_out, q.shape[2]).index_add(1, index, q)  # (Ci, Ef, Co)
-        a = (torch.einsum("bi,ifo->bof", style.pow(2), acc) if style is not None
-             else acc.sum(0).transpose(0, 1).unsqueeze(0))
-    else:
-        seg = pair_entity(offsets, index.shape[0])
-        acc = q.new_zeros(q.shape[0], n_out, q.shape[2]).index_add(1, seg, q)  # (Co, Eo, Ci)
-        a = (torch.einsum("bi,oji->boj", style.pow(2), acc) if style is not None else acc.sum(2).unsqueeze(0))
-    d = torch.rsqrt(a + reference.DEMOD_EPS)
-    return d.expand(batch, -1, -1).contiguous()
+_CSR_CACHE: dict[tuple, tuple] = {}
+_CSR_CACHE_MAX = 512
+
+
+def _csr_key(index: torch.Tensor, offsets: torch.Tensor, n_range: int) -> tuple:
+    return (index.device, index.data_ptr(), index._version, index.shape[0], offsets.data_ptr(), offsets._version,
+            offsets.shape[0], int(n_range))
+
+
+def validate_csr(index: torch.Tensor, offsets: torch.Tensor, n_range: int) -> None:
+    """Check a CSR map on the host before any kernel reads it, once per (index, offsets) tensor pair.
+
+    A bad map would make the CUDA kernels stop on a device-side assert, which poisons the CUDA context for the rest
+    of the process; here it is a ``ValueError`` naming the problem.  The result is cached by data pointer, version
+    counter (bumped by in-place writes) and shape, and the cached entry holds weak references so a new tensor that
+    reuses freed memory is never mistaken for a validated one.  On CUDA the first call copies the map to the host.
+    """
+    key = _csr_key(index, offsets, n_range)
+    hit = _CSR_CACHE.get(key)
+    if hit is not None and hit[0]() is index and hit[1]() is offsets:
+        return
+    _check_csr_values(index.cpu(), offsets.cpu(), n_range)
+    if len(_CSR_CACHE) >= _CSR_CACHE_MAX:
+        _CSR_CACHE.clear()
+    _CSR_CACHE[key] = (weakref.ref(index), weakref.ref(offsets))
+
+
+def _check_csr_values(index: torch.Tensor, off: torch.Tensor, n_range: int) -> None:
+    if int(off[0]) != 0 or int(off[-1]) != index.shape[0]:
+        raise ValueError(f"offsets must run from 0 to index.numel()={index.shape[0]}, "
+                         f"got {int(off[0])}..{int(off[-1])}")
+    counts = off[1:] - off[:-1]
+    if bool((counts <= 0).any()):
+        j = int(torch.nonzero(counts <= 0)[0, 0])
+        what = "has no neighbors" if int(counts[j]) == 0 else "ends before it starts (offsets not monotone)"
+        raise ValueError(f"offsets: output entity {j} {what}")
+    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_range):
+        raise ValueError(f"index holds an entity out of range [0, {n_range})")
+
+
+_NAMES = {_KIND_CONV: "skeletal_conv", _KIND_DOWN: "skeletal_down", _KIND_UP: "skeletal_up"}
+
+
+def _run(kind: int, impl: str, x, weight, bias, index, offsets, n_out: int, style, demodulate: bool,
+         padding_mode: str) -> torch.Tensor:
+    """The checked call on one path ('ext', 'dense' or 'ref')."""
+    if impl == "ref" or impl == "dense":
+        mod = reference if impl == "ref" else dense
+        if kind == _KIND_UP:
+            return mod.skeletal_up(x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+        fn = mod.skeletal_conv if kind == _KIND_CONV else mod.skeletal_down
+        return fn(x, weight, bias, index, offsets, style, demodulate, padding_mode)
+    scale = demod_scale(weight, index, offsets, style, kind == _KIND_UP, n_out, x.shape[0]) if demodulate else None
+    kernel = dispatch.KERNELS[_NAMES[kind]]
+    if kind == _KIND_UP:
+        return kernel(x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
+    return kernel(x, weight, bias, index, offsets, style, scale, padding_mode)
+
+
+def _autocast_device(x: torch.Tensor) -> str | None:
+    dev = x.device.type
+    try:
+        return dev if torch.is_autocast_enabled(dev) else None
+    except (RuntimeError, TypeError):  # a device type autocast does not know
+        return None
+
+
+def _amp_cast(dev: str, x, weight, bias, style):
+    """One dtype for every floating input under autocast (the kernels and the checks want one)."""
+    floats = [t for t in (x, weight, bias, style) if isinstance(t, torch.Tensor) and t.is_floating_point()]
+    if dev == "cuda":
+        target = torch.get_autocast_dtype(dev)
+    else:  # the CPU kernels take float32/float64 only: promote to the widest input dtype
+        target = floats[0].dtype
+        for t in floats[1:]:
+            target = torch.promote_types(target, t.dtype)
+    cast = lambda t: t.to(target) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
+    return cast(x), cast(weight), cast(bias), cast(style)
+
+
+def _op(kind: int, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode) -> torch.Tensor:
+    amp = _autocast_device(x) if isinstance(x, torch.Tensor) else None
+    if amp is not None:
+        x, weight, bias, style = _amp_cast(amp, x, weight, bias, style)
+        with torch.autocast(amp, enabled=False):
+            return _op_checked(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    return _op_checked(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+
+
+def _op_checked(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode) -> torch.Tensor:
+    n_out = _check(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    args = (x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+
+    def signature() -> str:
+        train = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, style))
+        return (f"{str(x.dtype).replace('torch.', '')} x{tuple(x.shape)} w{tuple(weight.shape)} out{n_out} "
+                f"style={style is not None} demod={demodulate} bias={bias is not None} {padding_mode} "
+                f"{'fwd_bwd' if train else 'fwd'}")
+
+    def bench(impl: str):
+        train = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (x, weight, style))
+        leaves = [t.detach().requires_grad_(train) if isinstance(t, torch.Tensor) else t for t in (x, weight, style)]
+
+        def call():
+            with torch.set_grad_enabled(train):
+                y = _run(kind, impl, leaves[0], leaves[1], bias.detach() if bias is not None else None, index,
+                         offsets, n_out, leaves[2], demodulate, padding_mode)
+                if train:
+                    torch.autograd.grad(y, [t for t in leaves if t is not None], torch.ones_like(y))
+        return call
+
+    impl = dispatch.route(_NAMES[kind], x, "skeletal", signature, bench)
+    return _run(kind, impl, *args)
 
 
 def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
@@ -154,22 +249,14 @@ def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | No
     ``(index, offsets)`` is the CSR neighbor map (``modi_ext.topology_tensors.csr_from_lists``).  Exact semantics in
     ``modi_ext.reference``.
     """
-    n_out = _check(_KIND_CONV, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
-    if impl_choice() == "ref":
-        return reference.skeletal_conv(x, weight, bias, index, offsets, style, demodulate, padding_mode)
-    scale = demod_scale(weight, index, offsets, style, False, n_out, x.shape[0]) if demodulate else None
-    return torch.ops.modi_ext.skeletal_conv(x, weight, bias, index, offsets, style, scale, padding_mode)
+    return _op(_KIND_CONV, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
 
 
 def skeletal_down(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                   offsets: torch.Tensor, *, style: torch.Tensor | None = None, demodulate: bool = False,
                   padding_mode: str = "zeros") -> torch.Tensor:
     """Convolutional scaler ``(B, Cin, E_fine, T) -> (B, Cout, E_coarse, T // 2)``; CSR = coarse -> fine map."""
-    n_out = _check(_KIND_DOWN, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
-    if impl_choice() == "ref":
-        return reference.skeletal_down(x, weight, bias, index, offsets, style, demodulate, padding_mode)
-    scale = demod_scale(weight, index, offsets, style, False, n_out, x.shape[0]) if demodulate else None
-    return torch.ops.modi_ext.skeletal_down(x, weight, bias, index, offsets, style, scale, padding_mode)
+    return _op(_KIND_DOWN, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
 
 
 def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
@@ -179,11 +266,7 @@ def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
 
     weight ``(Cin, nnz, Cout, U)`` (the layout of the down op it is the adjoint of); CSR = coarse -> fine map.
     """
-    n_out = _check(_KIND_UP, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
-    if impl_choice() == "ref":
-        return reference.skeletal_up(x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
-    scale = demod_scale(weight, index, offsets, style, True, n_out, x.shape[0]) if demodulate else None
-    return torch.ops.modi_ext.skeletal_up(x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
+    return _op(_KIND_UP, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -92,8 +92,10 @@ def _modulated(dense: torch.Tensor, style: torch.Tensor | None, demodulate: bool
         out_ch_axis = 1 - in_axis
         keep = {0, 1 + out_ch_axis, 1 + out_entity_axis}
         dims = [a for a in range(w.dim()) if a not in keep]
-        d = torch.rsqrt(w.pow(2).sum(dims, keepdim=True) + DEMOD_EPS)
-        w = w * d
+        # in fp32 for half inputs: in fp16 the epsilon rounds to 0 and an all-zero row would give inf * 0 = NaN
+        wf = w.float() if w.dtype in (torch.float16, torch.bfloat16) else w
+        d = torch.rsqrt(wf.pow(2).sum(dims, keepdim=True) + DEMOD_EPS)
+        w = w * d.to(w.dtype)
     return w
 
 
@@ -178,7 +180,8 @@ def demod_coefficients(dense: torch.Tensor, style: torch.Tensor | None) -> torch
     w = dense.unsqueeze(0)
     if style is not None:
         w = w * style.view(style.shape[0], 1, -1, 1, 1, 1)
-    return torch.rsqrt(w.pow(2).sum((2, 4, 5)) + DEMOD_EPS)
+    wf = w.float() if w.dtype in (torch.float16, torch.bfloat16) else w
+    return torch.rsqrt(wf.pow(2).sum((2, 4, 5)) + DEMOD_EPS).to(w.dtype)
 
 
 try:  # one place for FK: H-fk's reference, re-exported so every oracle lives here
