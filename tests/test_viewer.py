@@ -1,0 +1,209 @@
+"""The 3D HTML viewer: the page's content and size, the CLI, notebooks, and the page in a real headless Chromium."""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from modi.cli import main
+from modi.io import bvh as bvh_io
+from modi.kinematics import bvh_positions
+from modi.procedural import builtin_skeleton, generate_clip
+from modi.viz.viewer import Viewer, from_positions, load_motion, page_html, show
+
+CHROMIUM = shutil.which("chromium")
+needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="headless browser test needs the Debian package "
+                                                             "'chromium' (binary 'chromium' on PATH)")
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("clips")
+    out = {}
+    for kind, seed in (("walk", 1), ("wave", 2)):
+        out[kind] = d / f"{kind}.bvh"
+        generate_clip(kind, 64, 30.0, rng=seed).save(out[kind])
+    return out
+
+
+def page_data(text: str) -> dict:
+    m = re.search(r'<script type="application/json" id="modi-data">(.*?)</script>', text, re.S)
+    assert m, "the page carries its motions as JSON"
+    return json.loads(m.group(1))
+
+
+def decoded_positions(m: dict) -> np.ndarray:
+    q = np.frombuffer(base64.b64decode(m["pos"]), dtype="<i2").astype(np.float64)
+    return (np.asarray(m["origin"]) + (q.reshape(m["frames"], len(m["names"]), 3) + 32768) * m["step"])
+
+
+def test_cli_page_for_bvh_is_self_contained_and_exact(clips, tmp_path, capsys):
+    out = tmp_path / "view.html"
+    assert main(["view", str(clips["walk"]), str(clips["wave"]), "--out", str(out)]) == 0
+    assert str(out) in capsys.readouterr().out
+    text = out.read_text(encoding="utf-8")
+    assert not re.search(r"https?://", text), "the page must not reference the network"
+    assert not re.search(r"<(script|link|img|iframe)[^>]*\s(src|href)=", text), "no external resources"
+    data = page_data(text)
+    assert [m["title"] for m in data["motions"]] == ["walk", "wave"]
+    for m, path in zip(data["motions"], (clips["walk"], clips["wave"])):
+        b = bvh_io.load(path)
+        ref = bvh_positions(b) * 0.01  # the procedural rig is in centimetres
+        ref[..., 1] -= ref[..., 1].min()
+        assert m["names"] == b.names and m["parents"] == list(b.parents) and m["fps"] == pytest.approx(b.fps)
+        assert np.abs(decoded_positions(m) - ref).max() < 1e-4  # int16 quantisation: < 0.1 mm
+        assert m["contacts"] is not None  # walking and standing feet touch the ground
+
+
+def test_page_for_16_motions_of_64_frames_is_small():
+    sk = builtin_skeleton()
+    rng = np.random.default_rng(0)
+    motions = [from_positions(rng.normal(size=(64, sk.n_joints, 3)) * 0.5, sk.parents, sk.names, 30.0,
+                              contacts=rng.random((64, sk.n_joints)) < 0.2, title=f"{i}") for i in range(16)]
+    size = len(page_html(motions).encode("utf-8"))
+    assert size < 2_000_000, f"{size} bytes"
+    # the bound is meant to hold with room: 16 x 64 frames x 22 joints fit in well under a third of it
+    assert size < 600_000, f"{size} bytes"
+
+
+def test_cli_refuses_bad_input_and_writes_nothing(clips, tmp_path, capsys):
+    garbage = tmp_path / "garbage.bvh"
+    garbage.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff" * 50)
+    text_file = tmp_path / "motion.txt"
+    text_file.write_text("HIERARCHY\n")
+    broken = tmp_path / "broken.bvh"
+    broken.write_text("HIERARCHY\nROOT Hips\n{\n")
+    out = tmp_path / "sub" / "view.html"
+    for bad in ([str(tmp_path / "missing.bvh")], [str(tmp_path)], [str(text_file)], [str(garbage)],
+                [str(broken)], [str(clips["walk"]), str(tmp_path / "missing.glb")]):
+        capsys.readouterr()
+        assert main(["view", *bad, "--out", str(out)]) == 2, bad
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and Path(bad[-1]).name in err, err
+        assert not out.exists() and not out.parent.exists(), bad
+    assert main(["view", str(clips["walk"]), "--out", str(tmp_path / "v.png")]) == 2
+    assert main(["view", str(clips["walk"]), "--out", str(clips["walk"])]) == 2
+    assert clips["walk"].read_text().startswith("HIERARCHY")
+
+
+def test_glb_input_matches_the_bvh(clips, tmp_path):
+    gltf = pytest.importorskip("modi.io.gltf", reason="modi.io.gltf (the glTF reader) is not in this checkout yet")
+    glb = tmp_path / "walk.glb"
+    if main(["export", "gltf", str(clips["walk"]), str(glb)]) != 0:
+        pytest.skip("'modi export gltf' is not available in this checkout yet")
+    names, parents, pos, fps, _ = gltf.load_positions(glb)
+    out = tmp_path / "view.html"
+    assert main(["view", str(clips["walk"]), str(glb), "--out", str(out)]) == 0
+    a, b = page_data(out.read_text(encoding="utf-8"))["motions"]
+    assert b["names"] == a["names"] and b["frames"] == a["frames"]
+    pa, pb = decoded_positions(a), decoded_positions(b)
+    # the glTF is in metres as exported; the BVH is scaled by the unit guess: same motion up to that unit
+    s = float((pa * pb).sum() / (pa * pa).sum())
+    assert np.abs(pb - s * pa).max() < 1e-3 * np.ptp(pb[..., 1])
+
+
+def test_show_for_notebooks_without_jupyter(clips, tmp_path):
+    v = show(str(clips["walk"]))
+    assert isinstance(v, Viewer)
+    frag = v._repr_html_()
+    assert frag.startswith("<iframe ") and "<script" not in frag  # the page is escaped into srcdoc
+    srcdoc = html.unescape(re.search(r'srcdoc="([^"]*)"', frag).group(1))
+    assert srcdoc == v.html and page_data(srcdoc)["motions"][0]["names"] == bvh_io.load(clips["walk"]).names
+    m = generate_clip("jump", 20, 30.0, rng=3)
+    from_motion = show(m, layout="scene")
+    got = decoded_positions(page_data(from_motion.html)["motions"][0])
+    ref = m.positions().numpy() * 0.01
+    ref[..., 1] -= ref[..., 1].min()
+    assert np.abs(got - ref).max() < 1e-4
+    assert v.save(tmp_path / "nb.html").read_text(encoding="utf-8") == v.html
+    with pytest.raises(TypeError):
+        show(42)
+
+
+# ------------------------------------------------------------------------------------------------ Chromium
+def chromium(url: str, *extra: str) -> subprocess.CompletedProcess:
+    cmd = [CHROMIUM, "--headless=new", "--disable-gpu", "--no-sandbox", "--hide-scrollbars", "--mute-audio",
+           "--no-first-run", "--disable-extensions", "--enable-logging=stderr", "--v=0", *extra, url]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+
+
+def console_errors(stderr: str) -> list[str]:
+    return [ln for ln in stderr.splitlines() if "CONSOLE" in ln and ("rror" in ln or "Uncaught" in ln)]
+
+
+def body_attrs(dom: str) -> dict[str, str]:
+    m = re.search(r"<body([^>]*)>", dom)
+    assert m, dom[:500]
+    return dict(re.findall(r'([\w-]+)="([^"]*)"', m.group(1)))
+
+
+@needs_chromium
+def test_page_runs_in_chromium_without_errors(clips, tmp_path):
+    out = tmp_path / "view.html"
+    walk = load_motion(clips["walk"])
+    out.write_text(page_html([walk, load_motion(clips["wave"])]), encoding="utf-8")
+    head = walk.names.index("Head")
+    r = chromium(f"{out.as_uri()}?frame=20&paused=1&probe=0,{head}", "--dump-dom")
+    attrs = body_attrs(r.stdout)
+    assert attrs.get("data-status") == "ready", (attrs, r.stderr[-2000:])
+    assert "data-errors" not in attrs and not console_errors(r.stderr), (attrs, console_errors(r.stderr))
+    assert attrs.get("data-probe") == "Head"  # hovering a joint names it
+    assert re.search(r'id="frame"[^>]*>frame 20 / 63 ', r.stdout)  # ?frame=N is honoured
+    # the harness can fail: the same page with a script error is caught by it
+    bad = tmp_path / "bad.html"
+    bad.write_text(out.read_text(encoding="utf-8").replace("'use strict';", "'use strict'; noSuchFunction();", 1),
+                   encoding="utf-8")
+    r = chromium(bad.as_uri(), "--dump-dom")
+    attrs = body_attrs(r.stdout)
+    assert "noSuchFunction" in attrs.get("data-errors", "") and "data-status" not in attrs
+
+
+def _box(mask: np.ndarray, margin: int) -> np.ndarray:
+    """The bounding box of a mask's pixels, grown by ``margin``."""
+    ys, xs = np.nonzero(mask)
+    out = np.zeros_like(mask)
+    out[max(0, ys.min() - margin):ys.max() + margin + 1, max(0, xs.min() - margin):xs.max() + margin + 1] = True
+    return out
+
+
+@needs_chromium
+def test_stills_differ_where_the_figure_is(clips, tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "view.html"
+    walk = load_motion(clips["walk"])
+    out.write_text(page_html([walk]), encoding="utf-8")
+    shots = []
+    for frame in (0, 30):
+        png = tmp_path / f"still_{frame}.png"
+        r = chromium(f"{out.as_uri()}?frame={frame}&paused=1", f"--screenshot={png}", "--window-size=800,600")
+        assert png.is_file(), r.stderr[-2000:]
+        assert not console_errors(r.stderr), console_errors(r.stderr)
+        shots.append(np.asarray(Image.open(png).convert("RGB")).astype(np.int16))
+    a, b = (s[:-40] for s in shots)  # the canvas; the control bar below it shows the frame number
+    assert a.shape == b.shape and a.shape[0] > 400
+
+    def figure(img):  # the figure is drawn in saturated colours, the background and the grid in greys
+        m = (img.max(-1) - img.min(-1)) > 60
+        m[:30, :200] = False  # the legend
+        return m
+
+    fa, fb = figure(a), figure(b)
+    assert fa.sum() > 300 and fb.sum() > 300, "the figure is visible in both stills"
+    assert (fa & fb).sum() < 0.8 * min(fa.sum(), fb.sum()), "the figure moved between the stills"
+    diff = (a != b).any(-1)
+    near = _box(fa, 20) | _box(fb, 20)  # the figure with its floor shadow
+    assert diff[near].sum() > 300, "the stills differ where the figure is"
+    assert not diff[~near].any(), "the background (grid, floor) is the same in both stills"
+    assert (~near).mean() > 0.7, "the comparison covers most of the background"
+    # contacts are highlighted: frame 0 has a foot on the ground, drawn in the contact red
+    assert walk.contacts[0].any()
+    red = (np.abs(a - np.array([225, 40, 40])).max(-1) < 12)
+    assert red.sum() > 10
