@@ -71,12 +71,12 @@ class ViewMotion:
 
 # ------------------------------------------------------------------------------------------------ inputs
 def guess_scale(height: float) -> tuple[float, str]:
-    """Metres per file unit from a body size: BVH has no unit field, so the size is the only evidence."""
-    if height < 5.0:
-        return 1.0, "m"
-    if height < 500.0:
-        return 0.01, "cm"
-    return 0.001, "mm"
+    """(metres per file unit, unit name) from a body size in file units: BVH has no unit field. The same guess as
+    the glTF export (:func:`modi.io.gltf.guess_unit`), so a BVH and its .glb show at the same size."""
+    from modi.io.gltf import guess_unit
+
+    g = guess_unit(height)
+    return g.scale, g.unit
 
 
 def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
