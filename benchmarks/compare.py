@@ -22,7 +22,10 @@ built-in fallback otherwise), batch 16, fp32:
   fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
 
 Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
-the medians are reported.  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.
+the medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
+style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
+``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against issue 20's targets (dense >= 5x the
+grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.
 """
 from __future__ import annotations
 
@@ -125,8 +128,8 @@ def _with_impl(impl: str, fn: Callable[[], object]) -> Callable[[], object]:
     return run
 
 
-def _case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bwd: bool):
-    """(ref_fn, ext_fn) running the module forward (and backward w.r.t. input + parameters)."""
+def _case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bwd: bool, impls=("ref", "ext")):
+    """(ref_fn, ext_fn[, dense_fn]) running the module forward (and backward w.r.t. input + parameters)."""
     params = [p for p in module.parameters() if p.requires_grad]
     x = inputs[0].detach().clone().requires_grad_(bwd)
     rest = inputs[1:]
@@ -142,11 +145,11 @@ def _case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], bwd: bool):
             grad = torch.randn_like(y)
         return torch.autograd.grad(y, [x] + params, grad)
 
-    return _with_impl("ref", body), _with_impl("ext", body)
+    return tuple(_with_impl(i, body) for i in impls)
 
 
-def _double_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...]):
-    """(ref_fn, ext_fn): forward, grad w.r.t. the input with create_graph, ||grad||^2, backward to input + params."""
+def _double_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], impls=("ref", "ext")):
+    """(ref_fn, ext_fn[, dense_fn]): forward, input grad with create_graph, ||grad||^2, backward to input + params."""
     params = [p for p in module.parameters() if p.requires_grad]
     x = inputs[0].detach().clone().requires_grad_(True)
     rest = inputs[1:]
@@ -160,7 +163,7 @@ def _double_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...]):
         (gx,) = torch.autograd.grad(y, x, grad, create_graph=True)
         return torch.autograd.grad(gx.pow(2).sum(), [x] + params, allow_unused=True)
 
-    return _with_impl("ref", body), _with_impl("ext", body)
+    return tuple(_with_impl(i, body) for i in impls)
 
 
 GANIMATOR_SHAPES = {  # clip -> (BVH under ../shared/data/bvh/ganimator, channels per entity at the finest level)
@@ -227,8 +230,9 @@ def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, di
         for op, module, inputs in defs:
             for kind in ("fwd", "fwd_bwd") + (("double",) if lv == 0 else ()):
                 key = f"{op}.{name}.{kind}"
-                cases[key] = _double_case(module, inputs) if kind == "double" else \
-                    _case(module, inputs, kind == "fwd_bwd")
+                impls = ("ref", "ext", "dense")  # dense: one shared conv, style/demod as scales (modi_ext.dense)
+                cases[key] = _double_case(module, inputs, impls) if kind == "double" else \
+                    _case(module, inputs, kind == "fwd_bwd", impls)
                 info[key] = {"input_shape": list(inputs[0].shape), "entities_out": e, "channels_out": c,
                              "pairs": int(sum(len(r) for r in (nb if op in ("skeletal_conv", "modulated_conv")
                                                            else pools[lv])))}
@@ -253,20 +257,23 @@ def fk_cases() -> dict[str, tuple[Callable, Callable]]:
 def time_pair(ref: Callable, ext: Callable, reps: int, min_time: float,
               clock: Callable[[], float] = time.perf_counter) -> tuple[float, float, int]:
     """Interleaved medians (ms) of ref and ext; at least `reps` runs each and `min_time` s in total."""
+    (rt, et), n = time_all((ref, ext), reps, min_time, clock)
+    return rt, et, n
+
+
+def time_all(fns, reps: int, min_time: float, clock: Callable[[], float] = time.perf_counter):
+    """([median ms of each fn], runs): the fns interleaved (a, b, c, a, b, c, ...), >= `reps` runs each."""
     for _ in range(2):
-        ref()
-        ext()
-    rt, et = [], []
+        for fn in fns:
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
     start = time.perf_counter()
-    while len(rt) < reps or (time.perf_counter() - start < min_time and len(rt) < 200):
-        t0 = clock()
-        ref()
-        t1 = clock()
-        ext()
-        t2 = clock()
-        rt.append(t1 - t0)
-        et.append(t2 - t1)
-    return statistics.median(rt) * 1e3, statistics.median(et) * 1e3, len(rt)
+    while len(times[0]) < reps or (time.perf_counter() - start < min_time and len(times[0]) < 200):
+        for fn, acc in zip(fns, times):
+            t0 = clock()
+            fn()
+            acc.append(clock() - t0)
+    return [statistics.median(t) * 1e3 for t in times], len(times[0])
 
 
 def machine() -> str:
@@ -311,18 +318,26 @@ def main(argv: list[str] | None = None) -> int:
     desc = machine()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
     print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32; {args.clock} clock")
-    print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
+    print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'ref/dense':>9s} "
+          f"{'dense/ext':>9s}")
     results: dict[str, dict] = {}
-    for name, (ref, ext) in cases.items():
+    for name, fns in cases.items():
         if pattern and not pattern.search(name):
             continue
-        ref_ms, ext_ms, n = time_pair(ref, ext, args.reps, args.min_time, clock)
+        ms, n = time_all(fns, args.reps, args.min_time, clock)
+        ref_ms, ext_ms = ms[0], ms[1]
         results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
                          "speedup": round(ref_ms / ext_ms, 3), "runs": n, "threads": torch.get_num_threads(),
                          "clock": args.clock,
                          "machine": desc, **info.get(name, {})}
-        print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+        extra = ""
+        if len(ms) > 2:  # the dense path (modi_ext.dense) as a third side
+            results[name].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),
+                                 speedup_ext_vs_dense=round(ms[2] / ext_ms, 3))
+            extra = f" {ms[2]:10.3f} {ref_ms / ms[2]:8.2f}x {ms[2] / ext_ms:8.2f}x"
+        print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x{extra}", flush=True)
     _backward_over_forward(results)
+    _targets(results)
     write_json(args.json, results)
     return 0
 
@@ -337,6 +352,19 @@ def _backward_over_forward(results: dict) -> None:
         r["ext_bwd_over_fwd"] = round((r["ext_ms"] - f["ext_ms"]) / f["ext_ms"], 3)
         if name.startswith("ganimator_conv."):
             print(f"{name}: backward / forward  ref {r['ref_bwd_over_fwd']:.2f}  ext {r['ext_bwd_over_fwd']:.2f}")
+
+
+TARGET_CASE = "modulated_conv.finest.fwd_bwd"  # issue 20: dense >= 5x the grouped reference, ext >= 3x dense
+
+
+def _targets(results: dict) -> None:
+    r = results.get(TARGET_CASE)
+    if r is None or "dense_ms" not in r:
+        return
+    r["target_dense_vs_ref"], r["target_ext_vs_dense"] = 5.0, 3.0
+    r["targets_met"] = bool(r["speedup_dense_vs_ref"] >= 5.0 and r["speedup_ext_vs_dense"] >= 3.0)
+    print(f"{TARGET_CASE}: dense is {r['speedup_dense_vs_ref']:.2f}x faster than the grouped reference "
+          f"(target 5x), ext {r['speedup_ext_vs_dense']:.2f}x faster than dense (target 3x)")
 
 
 def write_json(path: Path | None, results: dict) -> None:
