@@ -1,34 +1,66 @@
 """Faults a long run meets: preemption, a full disk, a second process in the same folder.
 
-One place for the three things that belong together (issue 22):
+One place for the things that belong together (issue 22), shared by ``modi train``, ``modi ganimator train`` and
+``modi encoder train``:
 
-* ``atomic_output`` / ``atomic_write``: every file a command writes goes to a temp file in the same folder, is
-  fsynced, then renamed over the final name, so a crash, SIGKILL or full disk never leaves half a file under it. A
-  full disk or read-only folder becomes one :class:`OutputError` line naming the path.
-* (to come) the SIGINT/SIGTERM stop flag and the run-folder lock.
+* ``atomic_output`` / ``atomic_write`` / ``atomic_torch_save``: every file a command writes goes to a temp file in
+  the same folder, is fsynced, then renamed over the final name, so a crash, SIGKILL or full disk never leaves half
+  a file under it. A full disk or read-only folder becomes one :class:`OutputError` line naming the path (for a
+  checkpoint also its size, the free space and that the previous one is intact). ``append_line`` does the same for
+  append-only logs (a failed append is cut back off), ``output_errors`` for writers a library owns (TensorBoard).
+* ``stop_on_signals``: within a training loop SIGINT and SIGTERM only set a flag; the loop finishes its step, saves
+  a resumable checkpoint and stops (exit 130 for Ctrl-C, 143 for SIGTERM, as a shell reports a signal death);
+  ``StopRequest.agreed`` makes every DDP rank stop at the same step.
+* ``hold_run_folder``: an ``flock`` on ``RUN/.lock`` for the life of a run. A second run into the folder is refused
+  at once, naming the holder; the kernel drops the lock when its process dies, so a killed run never leaves it stuck.
 """
 from __future__ import annotations
 
 import errno
 import os
+import shutil
+import signal
+import socket
+import sys
 import tempfile
+import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO, Any, Iterator
 
 from modi.errors import UserError
 
 
 class OutputError(UserError):
-    """An output could not be written (no space left, read-only folder, permission): the final name is untouched."""
+    """An output could not be written (no space left, read-only folder, permission): the final name is untouched.
+    ``errno`` is the OS error number when one caused it."""
+
+    def __init__(self, message: str, errno_: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno_
 
 
-def _describe(exc: OSError, path: Path) -> str:
+class RunFolderBusy(UserError):
+    """Another live process holds the run folder's lock."""
+
+
+def describe_os_error(exc: OSError, path: str | os.PathLike) -> str:
+    """One line for an OS error writing ``path``: what a user can act on, not an errno dump."""
     if exc.errno == errno.ENOSPC:
         return f"no space left on the device writing {path}"
     if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
         return f"cannot write {path}: {exc.strerror.lower() if exc.strerror else exc}"
-    return f"cannot write {path}: {exc}"
+    return f"cannot write {path}: {exc.strerror or exc}"
+
+
+_describe = describe_os_error  # the name colleagues' code may use
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 @contextmanager
@@ -41,16 +73,17 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as exc:
-        raise OutputError(_describe(exc, path)) from None
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
     try:
         with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as f:
             yield f
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; outputs get the usual permissions
         os.replace(tmp, path)
     except OSError as exc:
         _discard(tmp)
-        raise OutputError(_describe(exc, path)) from None
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
     except BaseException:
         _discard(tmp)
         raise
@@ -62,6 +95,41 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
 
 
+@contextmanager
+def output_errors(path: str | os.PathLike) -> Iterator[None]:
+    """OS errors inside the block (a library writing ``path``, e.g. TensorBoard's event files) become one
+    :class:`OutputError` line."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
+
+
+def append_line(path: str | os.PathLike, line: str) -> None:
+    """Append one line to a log; if it cannot be written whole (disk full), cut the file back to where it was, so
+    a log never ends in half a record, and raise :class:`OutputError`."""
+    path = Path(path)
+    data = (line if line.endswith("\n") else line + "\n").encode("utf-8")
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except OSError as exc:
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
+    try:
+        size = os.fstat(fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, size)
+            except OSError:
+                pass
+            raise OutputError(describe_os_error(exc, path), exc.errno) from None
+    finally:
+        os.close(fd)
+
+
 def _discard(tmp: str) -> None:
     try:
         os.unlink(tmp)
@@ -69,4 +137,280 @@ def _discard(tmp: str) -> None:
         pass
 
 
-__all__ = ["OutputError", "atomic_output", "atomic_write"]
+def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Remove temp files that an atomic write of ``path`` left when its process was killed mid-write (call only
+    while holding the run's lock, so no live writer owns them); returns what was removed."""
+    path = Path(path)
+    gone = []
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            tmp.unlink()
+            gone.append(tmp)
+        except OSError:
+            pass
+    return gone
+
+
+# ============================================================================================ checkpoints
+class _Recorder:
+    """File wrapper that keeps the OSError of a failed write: ``torch.save`` reports it as an opaque
+    ``RuntimeError: [enforce fail at inline_container.cc] unexpected pos``."""
+
+    def __init__(self, f: IO) -> None:
+        self.f, self.error = f, None
+
+    def write(self, b) -> int:
+        try:
+            return self.f.write(b)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
+
+
+class _Counter:
+    def __init__(self) -> None:
+        self.n = 0
+
+    def write(self, b) -> int:
+        self.n += len(b)
+        return len(b)
+
+    def flush(self) -> None:
+        pass
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return f"{n:.1f} TB"  # pragma: no cover
+
+
+def _previous_text(path: Path, previous_step: int | str | None) -> str:
+    if not path.is_file():
+        return f"nothing was written to {path.name}"
+    if previous_step is None:
+        return "the previous checkpoint is intact"
+    where = f"step {previous_step}" if isinstance(previous_step, int) else previous_step
+    return f"the previous checkpoint ({where}) is intact"
+
+
+def atomic_torch_save(obj: Any, path: str | os.PathLike, *, previous_step: int | str | None = None) -> Path:
+    """``torch.save`` through :func:`atomic_output`. A full disk is one :class:`OutputError` line: the path, the
+    checkpoint's size against the free space (an atomic save needs room for a second copy beside the previous
+    one) and that the previous checkpoint (``previous_step``: a step, or a position such as "block 2/4, iteration
+    30") is intact; a read-only folder likewise."""
+    import torch
+
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
+    try:
+        with atomic_output(path, "wb") as f:
+            rec = _Recorder(f)
+            try:
+                torch.save(obj, rec)
+            except Exception:  # noqa: BLE001 - the OS error behind torch's opaque one, if any
+                if rec.error is not None:
+                    raise rec.error from None
+                raise
+    except OutputError as exc:
+        if exc.errno == errno.ENOSPC:
+            count = _Counter()
+            torch.save(obj, count)
+            try:
+                free = human_bytes(shutil.disk_usage(path.parent).free)
+            except OSError:
+                free = "unknown"
+            raise OutputError(
+                f"no space left on the device writing {path}: the checkpoint needs {human_bytes(count.n)} "
+                f"({count.n} bytes) free beside the previous one (an atomic save writes a second copy before "
+                f"replacing it), {free} free; {_previous_text(path, previous_step)}", exc.errno) from None
+        raise OutputError(f"{exc}; {_previous_text(path, previous_step)}", exc.errno) from None
+    return path
+
+
+# ============================================================================================ stop signals
+def exit_code(signum: int | None) -> int:
+    """The exit status of a run stopped by ``signum`` (128 + its number, as a shell reports a signal death):
+    130 for Ctrl-C, 143 for SIGTERM."""
+    return 128 + int(signum) if signum else 130
+
+
+class StopRequest:
+    """True once SIGINT/SIGTERM arrived inside :func:`stop_on_signals` (or :meth:`set` was called); ``signum`` is
+    the signal (SIGTERM wins over SIGINT: it is the scheduler's word)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.signum: int | None = None
+
+    def set(self, signum: int = signal.SIGINT) -> None:
+        self.requested = True
+        if self.signum is None or signum == signal.SIGTERM:
+            self.signum = int(signum)
+
+    def __bool__(self) -> bool:
+        return self.requested
+
+    @property
+    def exit_code(self) -> int:
+        return exit_code(self.signum)
+
+    def agreed(self, device: Any = None) -> bool:
+        """The flag as every process of a ``torch.distributed`` group sees it (a MAX all-reduce of the signal
+        number), so all ranks stop at the same step even when only one was signalled; the local flag otherwise.
+        Every rank must call it at the same point of each step."""
+        try:
+            import torch.distributed as dist
+
+            distributed = dist.is_available() and dist.is_initialized()
+        except ImportError:  # pragma: no cover
+            distributed = False
+        if not distributed:
+            return bool(self)
+        import torch
+
+        t = torch.tensor([self.signum or 0], dtype=torch.int64, device=device)
+        dist.all_reduce(t, op=dist.ReduceOp.MAX)
+        s = int(t.item())
+        if s and (not self.requested or s == signal.SIGTERM):
+            self.set(s)
+        return bool(s)
+
+
+@contextmanager
+def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, notice: bool = True
+                    ) -> Iterator[StopRequest]:
+    """Within the block the first SIGINT or SIGTERM only sets the yielded flag (and says so on stderr): the loop
+    is to finish its ``unit``, save and stop. A second Ctrl-C raises ``KeyboardInterrupt`` at once (the user
+    insists); a second SIGTERM is ignored -- the save is under way, and SIGKILL is the scheduler's way to insist.
+    The previous handlers are restored on exit. Outside the main thread the flag never turns on by signal."""
+    stop = stop if stop is not None else StopRequest()
+
+    def say(text: str) -> None:
+        if notice:
+            print(f"\nmodi: {text}", file=sys.stderr, flush=True)
+
+    def on_sigint(signum, frame) -> None:  # noqa: ARG001
+        if stop:
+            raise KeyboardInterrupt
+        stop.set(signal.SIGINT)
+        say(f"stopping after this {unit} and saving a checkpoint (Ctrl-C again to abort)")
+
+    def on_sigterm(signum, frame) -> None:  # noqa: ARG001
+        first = stop.signum != signal.SIGTERM
+        stop.set(signal.SIGTERM)
+        if first:
+            say(f"SIGTERM: stopping after this {unit} and saving a checkpoint")
+
+    installed = threading.current_thread() is threading.main_thread()
+    old = {}
+    if installed:
+        old[signal.SIGINT] = signal.signal(signal.SIGINT, on_sigint)
+        old[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        yield stop
+    finally:
+        for sig, handler in old.items():
+            # None: the previous handler was not set from Python; Python's own default is the closest
+            signal.signal(sig, handler if handler is not None else (
+                signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL))
+
+
+# ============================================================================================ run-folder lock
+LOCK_NAME = ".lock"
+_held: dict[str, list] = {}  # lock file -> [fd, depth]: this process's locks (re-entrant within a process)
+
+
+def _holder_text(lock: Path) -> str:
+    try:
+        lines = lock.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        lines = []
+    fields = dict(line.split("=", 1) for line in lines if "=" in line)
+    if "pid" not in fields:
+        return "another process (it has not written its pid yet)"
+    cmd = fields.get("command", "").strip()
+    cmd = cmd if len(cmd) <= 160 else cmd[:157] + "..."
+    return (f"pid {fields['pid']} on {fields.get('host', '?')}, since {fields.get('started', '?')}"
+            + (f": {cmd}" if cmd else ""))
+
+
+def _command_line() -> str:
+    prog = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "python"
+    prog = "modi" if prog in ("modi", "__main__.py", "-m") else prog
+    return " ".join([prog, *sys.argv[1:]]).replace("\n", " ")
+
+
+@contextmanager
+def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what: str | None = None
+                    ) -> Iterator[Path]:
+    """Hold an exclusive ``flock`` on ``folder/lock_name`` (created with the folder) for the block; the file names
+    the holder (pid, host, start time, command). If another process holds it, raise :class:`RunFolderBusy` at
+    once naming it. The kernel releases the lock when the process dies, however it dies; the file is removed on a
+    clean exit. Re-entrant within one process (a command and the trainer it calls may both take it)."""
+    import fcntl
+
+    folder = Path(folder)
+    lock = folder / lock_name
+    key = os.path.realpath(lock)
+    if key in _held:
+        _held[key][1] += 1
+        try:
+            yield lock
+        finally:
+            _held[key][1] -= 1
+        return
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(describe_os_error(exc, folder), exc.errno) from None
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise OutputError(describe_os_error(exc, lock), exc.errno) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise RunFolderBusy(f"{what or folder} is in use by another run ({_holder_text(lock)}): wait for "
+                                    f"it to end, or choose another --out") from None
+            raise OutputError(describe_os_error(exc, lock), exc.errno) from None
+        try:  # the holder we waited on may have removed the file before we locked it: lock the current one
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    info = (f"pid={os.getpid()}\nhost={socket.gethostname()}\nstarted={time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+            f"command={_command_line()}\n").encode("utf-8")
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+    except OSError:
+        pass  # a full disk: the lock still works, only the holder's name is missing
+    _held[key] = [fd, 1]
+    try:
+        yield lock
+    finally:
+        _held.pop(key, None)
+        try:
+            os.unlink(lock)  # still holding it: nobody can have locked this file meanwhile
+        except OSError:
+            pass
+        os.close(fd)
+
+
+__all__ = ["OutputError", "RunFolderBusy", "atomic_output", "atomic_write", "atomic_torch_save", "append_line",
+           "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
+           "stop_on_signals", "exit_code", "hold_run_folder", "LOCK_NAME"]

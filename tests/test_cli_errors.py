@@ -405,10 +405,10 @@ def test_ctrl_c_during_encoder_train_saves_a_resumable_checkpoint(work, tmp_path
 def test_stop_on_sigint_finishes_the_step_then_a_second_ctrl_c_aborts(capsys):
     """The one handler both GANimator and encoder training use: the first Ctrl-C sets the flag and says so on
     stderr, the second raises at once, and the previous handler is back afterwards."""
-    from modi.interrupt import stop_on_sigint
+    from modi.faults import stop_on_signals
 
     before = signal.getsignal(signal.SIGINT)
-    with stop_on_sigint("iteration") as stop:
+    with stop_on_signals("iteration") as stop:
         assert not stop
         signal.raise_signal(signal.SIGINT)
         assert stop

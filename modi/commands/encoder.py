@@ -42,7 +42,8 @@ def register(subparsers) -> None:
                                    "λ_rec rec L2 + λ_contact BCE + λ_root root L2 + λ_pos FK-position L2 (the "
                                    "released code's form and weights by default, --losses ours for ours). Writes ENC "
                                    "(one self-contained checkpoint with the generator inside) and ENC.log.jsonl, and "
-                                   "prints the Table 5 metrics on the 20% test split.")
+                                   "prints the Table 5 metrics on the 20% test split. Ctrl-C (exit 130) and SIGTERM "
+                                   "(exit 143) finish the step and save; --resume continues.")
     q.add_argument("ckpt", metavar="CKPT", help="MoDi generator checkpoint")
     q.add_argument("data", metavar="DATA", help="BVH folder the generator was trained on, or 'procedural'")
     q.add_argument("--out", required=True, metavar="ENC", type=ct.output_file, help="encoder checkpoint to write (e.g. runs/enc.pt)")
@@ -155,6 +156,13 @@ def _threads(args: argparse.Namespace) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    from modi.encoder.training import hold_output
+
+    with hold_output(args.out):  # a second run writing ENC is refused before any work
+        return _run_train(args)
+
+
+def _run_train(args: argparse.Namespace) -> int:
     from modi.encoder.metrics import format_table5
     from modi.encoder.training import (EncoderTrainConfig, EncoderTrainer, EncoderTrainingInterrupted,
                                        load_encoder_data, resumed_train_options)
@@ -197,7 +205,7 @@ def run_train(args: argparse.Namespace) -> int:
     except EncoderTrainingInterrupted as exc:
         print(f"modi encoder train: interrupted at step {trainer.step}; checkpoint saved to {exc.checkpoint} "
               "(add --resume to the same command to continue)", file=sys.stderr)
-        return 130
+        return exc.exit_code
     print(f"modi encoder train: step {res.step} in {res.seconds:.0f} s; checkpoint {res.checkpoint}")
     print(f"Table 5 metrics on the {res.metrics['n_windows']} test windows:")
     print(format_table5(res.metrics))

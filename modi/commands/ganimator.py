@@ -23,7 +23,9 @@ def register(subparsers) -> None:
 
     t = sub.add_parser("train", help="train (or resume) a model on BVH clips", formatter_class=_FMT,
                        description="Train a GANimator pyramid on one BVH, or several of one character (mixing). "
-                                   "Re-running on the same --out resumes from its checkpoint.")
+                                   "Re-running on the same --out resumes from its checkpoint. Ctrl-C (exit 130) "
+                                   "and SIGTERM (exit 143) finish the iteration and save; a run folder in use by "
+                                   "another run is refused.")
     t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
     t.add_argument("--out", required=True, type=ct.output_dir, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
     t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
@@ -190,6 +192,13 @@ def _int_csv(s: str | None, flag: str) -> list[int] | None:
 
 
 def _train(args) -> int:
+    from modi import faults
+
+    with faults.hold_run_folder(Path(args.out)):  # a second run into the folder is refused before any work
+        return _train_locked(args)
+
+
+def _train_locked(args) -> int:
     import torch
 
     from modi.ganimator.config import preset
@@ -242,7 +251,7 @@ def _train(args) -> int:
     except TrainingInterrupted as exc:
         print(f"modi ganimator train: interrupted; checkpoint saved to {exc.checkpoint} "
               "(run the same command again to continue)", file=sys.stderr)
-        return 130
+        return exc.exit_code
     print(f"checkpoint: {Path(args.out) / 'ganimator.ckpt'}")
     return 0
 

@@ -18,7 +18,8 @@ def register(subparsers) -> None:
         description="Train MoDi (skeleton-aware StyleGAN2 for motion) on every BVH under DATA_DIR, or on the "
                     "built-in procedural clips when DATA_DIR is the word 'procedural'. Writes RUN_DIR/checkpoint.pt "
                     "(one self-contained file), TensorBoard scalars in RUN_DIR/tb, RUN_DIR/log.jsonl and sample "
-                    "BVH + GIF grids in RUN_DIR/samples. Ctrl-C saves a checkpoint; --resume continues exactly. "
+                    "BVH + GIF grids in RUN_DIR/samples. Ctrl-C (exit 130) and SIGTERM (exit 143) finish the step and "
+                    "save a checkpoint; --resume continues exactly. A run folder in use by another run is refused. "
                     "Multi-process: torchrun --nproc_per_node N -m modi train ... (gloo on CPU, NCCL on GPU).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("data", metavar="DATA_DIR", help="folder of BVH files, or 'procedural'")
@@ -119,18 +120,53 @@ def build_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from modi.modi_model.training import init_distributed_from_env
+
+    device = _device(args.device)
+    rank, world = init_distributed_from_env(device)
+    with _run_folder_lock(Path(args.out), rank, world, device):
+        return _run(args, device, rank, world)
+
+
+def _run_folder_lock(run_dir: Path, rank: int, world: int, device):
+    """Rank 0 takes RUN_DIR's lock before anything else (a second run is refused at once, before any data is
+    read); under torchrun every rank learns the outcome, so all of them exit 2 together."""
+    from contextlib import ExitStack
+
+    from modi import faults
+
+    stack, refusal = ExitStack(), None
+    if rank == 0:
+        try:
+            stack.enter_context(faults.hold_run_folder(run_dir))
+        except UserError as exc:
+            refusal = exc
+    if world > 1:
+        import torch
+        import torch.distributed as dist
+
+        flag = torch.tensor([int(refusal is not None)], device=device if device.type == "cuda" else "cpu")
+        dist.broadcast(flag, 0)
+        if int(flag.item()) and refusal is None:
+            refusal = UserError(f"{run_dir}: rank 0 could not take the run folder (see its message)")
+    if refusal is not None:
+        stack.close()
+        raise refusal
+    return stack
+
+
+def _run(args: argparse.Namespace, device, rank: int, world: int) -> int:
     import torch
 
+    from modi import faults
     from modi.modi_model.config import MoDiConfig
     from modi.modi_model.sampling import load_checkpoint
-    from modi.modi_model.training import NonFiniteLossError, Trainer, init_distributed_from_env, prepare_data
+    from modi.modi_model.training import NonFiniteLossError, Trainer, prepare_data
 
     if getattr(args, "threads", None) is not None:
         if args.threads < 1:
             raise UserError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
-    device = _device(args.device)
-    rank, world = init_distributed_from_env(device)
     run_dir = Path(args.out)
     resume_state = None
     if args.resume is not None:
@@ -158,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     data = prepare_data(args.data, cfg, work_dir=run_dir, cache=not args.no_cache, progress=rank == 0,
                         normalizer=normalizer)
     if rank == 0:
-        (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1) + "\n")
+        faults.atomic_write(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=1) + "\n")
         s = data.summary
         print(f"modi train: {data.windows.shape[0]} training windows {tuple(data.windows.shape[1:])} from "
               f"{s.get('train_clips', '?')} clips; hierarchy {data.hierarchy.entity_counts}; preset {cfg.preset}; "
@@ -173,4 +209,4 @@ def run(args: argparse.Namespace) -> int:
         losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items() if k in ("d", "g", "r1", "path",
                                                                                         "touch", "contact"))
         print(f"modi train: step {result.step} in {result.seconds:.1f} s; checkpoint {result.checkpoint}; {losses}")
-    return 130 if result.interrupted else 0
+    return result.exit_code

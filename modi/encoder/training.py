@@ -20,7 +20,8 @@ prefix variant (§4.2) zeroes every frame from ``prefix_frames`` on (plus a visi
 supervised by the whole motion.
 
 The checkpoint is one file written atomically; it embeds the generator it was trained against (config, codec,
-levels, EMA weights), so applications need nothing else, and resuming continues the same run exactly.
+levels, EMA weights), so applications need nothing else, and resuming continues the same run exactly. Ctrl-C and
+SIGTERM finish the step and save (``modi.faults``); the checkpoint's name is locked while training runs.
 """
 from __future__ import annotations
 
@@ -36,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from modi import faults
 from modi.encoder.model import EncoderConfig, MotionEncoder, build_encoder, encode
 from modi.errors import CheckpointError, UserError
 from modi.latent.space import position_scale
@@ -326,11 +328,20 @@ def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "c
 
 # =============================================================================================== trainer
 class EncoderTrainingInterrupted(KeyboardInterrupt):
-    """Ctrl-C during ``EncoderTrainer.train``: the checkpoint was saved at a step boundary (resumable)."""
+    """Ctrl-C or SIGTERM during ``EncoderTrainer.train``: the checkpoint was saved at a step boundary (resumable);
+    ``exit_code`` is 130 / 143."""
 
-    def __init__(self, checkpoint: Path) -> None:
+    def __init__(self, checkpoint: Path, signum: int | None = None) -> None:
         super().__init__(f"checkpoint saved to {checkpoint}")
         self.checkpoint = checkpoint
+        self.signum = signum
+        self.exit_code = faults.exit_code(signum)
+
+
+def hold_output(out: str | os.PathLike):
+    """The lock of an encoder checkpoint ``out``: ``.NAME.lock`` beside it (other encoders may share the folder)."""
+    out = Path(out)
+    return faults.hold_run_folder(out.parent, f".{out.name}.lock", what=str(out))
 
 
 @dataclass
@@ -381,6 +392,7 @@ class EncoderTrainer:
 
             self.w_std = random_w(g, 4096, seed=self.cfg.seed + 5).std(0).clamp_min(1e-3)
         self.step = 0
+        self._saved_step: int | None = None  # step of the checkpoint on disk (named by a disk-full error)
         self.last_losses: dict[str, float] = {}
         self.metrics: dict[str, Any] | None = None
         self.train_x = data.train.to(self.device)
@@ -436,32 +448,32 @@ class EncoderTrainer:
         return evaluate_encoder(self.encoder, self.g, self.codec, x, units=self.cfg.units)
 
     def train(self, iters: int | None = None) -> EncoderTrainResult:
-        """Train to ``iters`` steps (default ``cfg.iters``). Ctrl-C finishes the step, saves the checkpoint and
-        raises ``EncoderTrainingInterrupted`` (``--resume`` continues); a second Ctrl-C aborts."""
-        from modi.interrupt import stop_on_sigint
-
+        """Train to ``iters`` steps (default ``cfg.iters``). Ctrl-C or SIGTERM finishes the step, saves the
+        checkpoint and raises ``EncoderTrainingInterrupted`` (``--resume`` continues); a second Ctrl-C aborts. A
+        signal during the final evaluation does not stop it: the run is done, it is saved and returns."""
         target = self.cfg.iters if iters is None else int(iters)
         t0 = time.time()
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
+        with hold_output(self.out), faults.stop_on_signals("step") as stop:
+            faults.remove_stale_temps(self.out)
+            bar = None
+            if self.progress:
+                from tqdm import tqdm
 
-            bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
-        try:
-            with stop_on_sigint("step") as stop:
+                bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
+            try:
                 self._train_to(target, bar, stop)
-        finally:
-            if bar is not None:
-                bar.close()
-        self.metrics = self.evaluate()
-        self._log({"step": self.step, "test": self.metrics["encoder"], "final": True})
-        ckpt = self.save_checkpoint()
+            finally:
+                if bar is not None:
+                    bar.close()
+            self.metrics = self.evaluate()
+            self._log({"step": self.step, "test": self.metrics["encoder"], "final": True})
+            ckpt = self.save_checkpoint()
         return EncoderTrainResult(self.step, ckpt, time.time() - t0, dict(self.last_losses), self.metrics)
 
     def _train_to(self, target: int, bar: Any, stop: Any) -> None:
         while self.step < target:
             if stop:
-                raise EncoderTrainingInterrupted(self.save_checkpoint())
+                raise EncoderTrainingInterrupted(self.save_checkpoint(), stop.signum)
             losses = self.train_step()
             self.last_losses = losses
             if bar is not None:
@@ -479,8 +491,7 @@ class EncoderTrainer:
     def _log(self, rec: dict[str, Any]) -> None:
         path = self.out.with_name(self.out.name + ".log.jsonl")
         path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as fh:
-            fh.write(json.dumps(rec) + "\n")
+        faults.append_line(path, json.dumps(rec))
 
     # ------------------------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
@@ -491,15 +502,20 @@ class EncoderTrainer:
             "optim": self.optim.state_dict(), "step": self.step,
             "train_config": asdict(self.cfg), "generator": self.generator_state,
             "rng": {"data": self.rng.get_state(), "generated": self.gen_rng.get_state(),
-                    "torch": torch.get_rng_state()},
+                    "torch": torch.get_rng_state(),
+                    **({"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_available() else {})},
             "data_source": self.data.source, "data_info": self.data.info,
             "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": str(torch.__version__),
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
-        from modi.modi_model.checkpoint import atomic_torch_save
-
-        return atomic_torch_save(self.state_dict(), Path(path) if path is not None else self.out)
+        """Atomic (``modi.faults``): a full disk is one line, and the previous checkpoint stays as it was."""
+        path = Path(path) if path is not None else self.out
+        main = path == self.out
+        faults.atomic_torch_save(self.state_dict(), path, previous_step=self._saved_step if main else None)
+        if main:
+            self._saved_step = self.step
+        return path
 
     def load_state(self, path: str | os.PathLike) -> None:
         p = Path(path)
@@ -526,6 +542,9 @@ class EncoderTrainer:
         if "generated" in st["rng"]:
             self.gen_rng.set_state(st["rng"]["generated"])
         torch.set_rng_state(st["rng"]["torch"])
+        if "cuda" in st["rng"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(st["rng"]["cuda"])
+        self._saved_step = self.step if p == self.out else None
         self.metrics = st.get("metrics")
         self.last_losses = dict(st.get("last_losses") or {})
 
@@ -584,5 +603,5 @@ def resumed_train_options(path: str | os.PathLike, given: dict[str, Any]) -> dic
 __all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "RESUMED_OPTIONS", "saved_train_options",
            "resumed_train_options", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
            "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
-           "EncoderTrainingInterrupted",
+           "EncoderTrainingInterrupted", "hold_output",
            "ENCODER_FORMAT", "ENCODER_VERSION"]

@@ -9,10 +9,12 @@ losses (the authors' scheme; the output is detached between levels). Levels belo
 The checkpoint is one file (written atomically) holding the config, the clips in GANimator form, the pyramid,
 noise amplitudes, ``z*``, every network and optimiser, the fake pools, the RNG state and the position in the
 schedule, so ``train`` on the same run directory resumes exactly where it stopped, and ``generate`` needs
-nothing else.
+nothing else. Ctrl-C and SIGTERM finish the iteration and save (``modi.faults``); the run folder is locked
+meanwhile, and ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations.
 """
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
@@ -22,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from modi import faults
 from modi.errors import CheckpointError, UserError
 from modi.ganimator.config import GanimatorConfig
 from modi.ganimator.data import K, Sequence as Clip, check_compatible, real_pyramid, resample, sequence_pyramid
@@ -30,6 +33,7 @@ from modi.skeleton import Skeleton
 
 FORMAT = "modi.ganimator/1"
 CHECKPOINT_NAME = "ganimator.ckpt"
+LOG_EVERY = 10  # iterations between lines of RUN/log.jsonl
 
 
 # ------------------------------------------------------------------------------------------- (de)serialising
@@ -76,16 +80,10 @@ def model_from_payload(p: dict, with_discriminators: bool = False, device: str =
     return model.to(device)
 
 
-def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file in the same directory, fsync, then rename over the target."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+def atomic_save(obj: dict, path: Path, previous: str | None = None) -> None:
+    """Write to a temporary file in the same directory, fsync, then rename over the target (``modi.faults``: a
+    full disk is one line naming ``previous``, the position of the checkpoint left intact)."""
+    faults.atomic_torch_save(obj, path, previous_step=previous)
 
 
 def checkpoint_path(run: str | Path) -> Path:
@@ -94,11 +92,14 @@ def checkpoint_path(run: str | Path) -> Path:
 
 
 class TrainingInterrupted(KeyboardInterrupt):
-    """Ctrl-C during ``Trainer.run``: the run was checkpointed at an iteration boundary and can be resumed."""
+    """Ctrl-C or SIGTERM during ``Trainer.run``: the run was checkpointed at an iteration boundary and can be
+    resumed; ``exit_code`` is 130 / 143."""
 
-    def __init__(self, checkpoint: Path) -> None:
+    def __init__(self, checkpoint: Path, signum: int | None = None) -> None:
         super().__init__(f"checkpoint saved to {checkpoint}")
         self.checkpoint = checkpoint
+        self.signum = signum
+        self.exit_code = faults.exit_code(signum)
 
 
 def read_checkpoint(run: str | Path) -> dict:
@@ -241,6 +242,7 @@ class Trainer:
         self.opt_g: dict[int, torch.optim.Optimizer] = {}
         self.opt_d: dict[int, torch.optim.Optimizer] = {}
         self.writer = None
+        self._saved: str | None = None  # schedule position of the checkpoint on disk (for a disk-full message)
 
     # --------------------------------------------------------------------------------- persistence
 
@@ -255,11 +257,17 @@ class Trainer:
             "pools": [p.items for p in self.pools],
             "state": dict(self.state),
             "rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "cond_source": model_payload(self.cond_source) if self.cond_source is not None else None,
         }
 
     def save(self) -> None:
-        atomic_save(self._payload(), self.ckpt)
+        atomic_save(self._payload(), self.ckpt, previous=self._saved)
+        self._saved = self._position()
+
+    def _position(self) -> str:
+        b, n = self.state["block"], len(self.blocks)
+        return "fully trained" if b >= n else f"block {b + 1}/{n}, iteration {self.state['iteration']}"
 
     def restore(self, ck: dict) -> None:
         p = ck["model"]
@@ -293,6 +301,9 @@ class Trainer:
         for pool, items in zip(self.pools, ck["pools"]):
             pool.items = [t.to(self.device) for t in items]
         torch.set_rng_state(ck["rng"])
+        if ck.get("cuda_rng") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(ck["cuda_rng"])
+        self._saved = self._position()
 
     def _make_opts(self, l: int) -> None:
         if l not in self.opt_g:
@@ -342,8 +353,14 @@ class Trainer:
     def run(self, progress: bool = True, log: Callable[[str], None] | None = print,
             max_seconds: float | None = None) -> GanimatorModel:
         """Train (or resume) to the end of the schedule; returns the model. ``max_seconds`` stops early
-        (checkpointed) — a budgeted run that a later call continues. Ctrl-C finishes the iteration, saves and
-        raises ``TrainingInterrupted``; running again resumes."""
+        (checkpointed) — a budgeted run that a later call continues. Ctrl-C or SIGTERM finishes the iteration,
+        saves and raises ``TrainingInterrupted``; running again resumes. The run folder is locked meanwhile."""
+        with faults.hold_run_folder(self.ckpt.parent):
+            faults.remove_stale_temps(self.ckpt)
+            return self._run_locked(progress, log, max_seconds)
+
+    def _run_locked(self, progress: bool, log: Callable[[str], None] | None,
+                    max_seconds: float | None) -> GanimatorModel:
         if self.ckpt.is_file():
             self.restore(read_checkpoint(self.ckpt))
             if log and self.state["block"] >= len(self.blocks):
@@ -352,10 +369,8 @@ class Trainer:
             elif log:
                 log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
                     f"iteration {self.state['iteration']}")
-        from modi.interrupt import stop_on_sigint
-
-        # Ctrl-C: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
-        with stop_on_sigint("iteration") as stop:
+        # Ctrl-C / SIGTERM: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
+        with faults.stop_on_signals("iteration") as stop:
             return self._run_blocks(progress, log, max_seconds, stop)
 
     def _run_blocks(self, progress: bool, log: Callable[[str], None] | None, max_seconds: float | None,
@@ -366,7 +381,10 @@ class Trainer:
         try:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(str(self.run_dir / "tb"))
+            with faults.output_errors(self.run_dir / "tb"):
+                self.writer = SummaryWriter(str(self.run_dir / "tb"))
+        except faults.OutputError:
+            raise
         except Exception:  # tensorboard missing: training works without logs
             self.writer = None
         started = time.time()
@@ -393,12 +411,16 @@ class Trainer:
                 self.state["iteration"] += 1
                 it = self.state["iteration"]
                 bar.update(1)
+                if it % LOG_EVERY == 0 or it == budget:
+                    faults.append_line(self.run_dir / "log.jsonl", json.dumps(
+                        {"block": b, "iteration": it, **{k: round(float(v), 6) for k, v in losses.items()}}))
                 if it % 50 == 0 or it == budget:
                     bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items() if k in ("D", "G", "rec", "con")})
                     if self.writer is not None:
                         step = sum(cfg.block_budgets(b)) + it
-                        for k, v in losses.items():
-                            self.writer.add_scalar(f"block{b}/{k}", v, step)
+                        with faults.output_errors(self.run_dir / "tb"):  # event files appended by the library
+                            for k, v in losses.items():
+                                self.writer.add_scalar(f"block{b}/{k}", v, step)
                 now = time.time()
                 if now - t_save > cfg.checkpoint_every:
                     self.state["block_seconds"][b] += now - t_block
@@ -415,8 +437,9 @@ class Trainer:
                     bar.close()
                     self.save()
                     if self.writer is not None:
-                        self.writer.close()
-                    raise TrainingInterrupted(self.ckpt)
+                        with faults.output_errors(self.run_dir / "tb"):
+                            self.writer.close()
+                    raise TrainingInterrupted(self.ckpt, stop.signum)
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
             self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
@@ -428,7 +451,8 @@ class Trainer:
             if log:
                 log(f"levels {levels[0]}-{levels[-1]} done in {self.state['block_seconds'][b]:.1f} s")
         if self.writer is not None:
-            self.writer.close()
+            with faults.output_errors(self.run_dir / "tb"):
+                self.writer.close()
         model.trained_levels = model.n_levels
         return model
 

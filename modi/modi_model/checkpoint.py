@@ -1,17 +1,17 @@
-"""MoDi checkpoint files: the format tag, reading with validation, atomic writing.
+"""MoDi checkpoint files: the format tag, reading with validation, atomic writing (``modi.faults``).
 
 Shared by ``training`` (writes), ``sampling`` (reads) and the encoder, so none of them imports another for it.
 """
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from modi.errors import CheckpointError
+from modi.faults import atomic_torch_save  # the one atomic writer (disk full: one clear line)
 
 CHECKPOINT_FORMAT = "modi-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -46,27 +46,6 @@ def load_checkpoint(ckpt: str | os.PathLike | dict) -> dict[str, Any]:
     if missing:
         raise CheckpointError(f"{where}: checkpoint is missing {', '.join(missing)}")
     return st
-
-
-def atomic_torch_save(obj: Any, path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temp file in the same folder, fsync, then ``os.replace``: readers never see half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            torch.save(obj, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 __all__ = ["CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "REQUIRED_KEYS", "load_checkpoint", "atomic_torch_save"]

@@ -8,12 +8,13 @@ MoDi's foot-touch and contact-consistency terms (through the FK op), lazy path-l
 Exact resume: every source of randomness is a torch RNG whose state goes into the checkpoint (the global CPU/CUDA
 generators for latents and noise, a dedicated generator for batch indices), the optimisers' states are saved, and
 the loop only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
+Ctrl-C and SIGTERM (``modi.faults.stop_on_signals``) stop at the next boundary on every rank and save; the run
+folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
 """
 from __future__ import annotations
 
 import json
 import os
-import signal
 import tempfile
 import time
 import warnings
@@ -24,6 +25,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor, nn
 
+from modi import faults
 from modi.errors import CheckpointError, UserError
 from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint
 from modi.modi_model.codec import MotionCodec
@@ -176,6 +178,12 @@ class TrainResult:
     checkpoint: Path | None
     seconds: float
     last_losses: dict[str, float]
+    signum: int | None = None  # the signal that stopped the run (SIGINT / SIGTERM)
+
+    @property
+    def exit_code(self) -> int:
+        """0, or 130 / 143 for a run stopped by Ctrl-C / SIGTERM."""
+        return faults.exit_code(self.signum) if self.interrupted else 0
 
 
 class Trainer:
@@ -234,7 +242,8 @@ class Trainer:
                                     generator=torch.Generator().manual_seed(tc.seed + 12345))
         self.last_losses: dict[str, float] = {}
         self._latest_reg: dict[str, float] = {}
-        self._stop_requested = False
+        self.stop = faults.StopRequest()
+        self._saved_step: int | None = None  # step of the checkpoint on disk (named by a disk-full error)
         torch.manual_seed(tc.seed * 1000 + 1 + self.rank)  # per-rank latents and noise
         if resume is not None:
             self.load_state(resume)
@@ -261,7 +270,10 @@ class Trainer:
             try:
                 from torch.utils.tensorboard import SummaryWriter
 
-                self.writer = SummaryWriter(str(self.run_dir / "tb"))
+                with faults.output_errors(self.run_dir / "tb"):
+                    self.writer = SummaryWriter(str(self.run_dir / "tb"))
+            except faults.OutputError:
+                raise
             except Exception as exc:  # noqa: BLE001 - tensorboard is optional at run time
                 warnings.warn(f"TensorBoard logging disabled: {exc}", stacklevel=2)
 
@@ -391,13 +403,22 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------------- loop
     def train(self, iters: int | None = None) -> TrainResult:
-        """Run until ``iters`` total steps (default ``cfg.train.iters``); Ctrl-C saves a checkpoint and returns."""
+        """Run until ``iters`` total steps (default ``cfg.train.iters``). Ctrl-C or SIGTERM (on any rank) finishes
+        the step, saves a checkpoint and returns (``interrupted``; ``exit_code`` 130 / 143). Rank 0 holds the run
+        folder's lock meanwhile."""
+        from contextlib import nullcontext
+
         tc = self.cfg.train
         target = tc.iters if iters is None else int(iters)
-        self._stop_requested = False
-        old_handler = None
-        if self._is_main_thread():
-            old_handler = signal.signal(signal.SIGINT, self._on_sigint)
+        self.stop = faults.StopRequest()
+        lock = faults.hold_run_folder(self.run_dir) if self.rank == 0 else nullcontext()
+        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0):
+            if self.rank == 0:
+                faults.remove_stale_temps(self.run_dir / "checkpoint.pt")
+            return self._train_to(target)
+
+    def _train_to(self, target: int) -> TrainResult:
+        tc = self.cfg.train
         t0 = time.time()
         bar = None
         if self.progress:
@@ -410,7 +431,7 @@ class Trainer:
         last_t, last_step = time.time(), self.step  # mean time per step since the last logged step
         try:
             while self.step < target:
-                if self._stop_flag():
+                if self.stop.agreed(self.device):
                     interrupted = True
                     break
                 losses = self.train_step()
@@ -433,56 +454,35 @@ class Trainer:
                 if tc.snapshot_every and self.step % tc.snapshot_every == 0:
                     self.save_checkpoint(self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt")
             ckpt = self.save_checkpoint()
-            if self.write_samples and (not tc.sample_every or self.step % tc.sample_every != 0):
+            # a stopped run saves and leaves at once (a scheduler's grace period is short): no extra preview
+            if not interrupted and self.write_samples and (not tc.sample_every or self.step % tc.sample_every != 0):
                 self.write_sample_grid()
         finally:
             if bar is not None:
                 bar.close()
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
             if self.writer is not None:
-                self.writer.flush()
+                with faults.output_errors(self.run_dir / "tb"):
+                    self.writer.flush()
         if interrupted and self.rank == 0:
             self.log(f"interrupted at step {self.step}: checkpoint saved to {ckpt}")
-        return TrainResult(self.step, interrupted, ckpt, time.time() - t0, dict(self.last_losses))
-
-    @staticmethod
-    def _is_main_thread() -> bool:
-        import threading
-
-        return threading.current_thread() is threading.main_thread()
-
-    def _on_sigint(self, signum, frame) -> None:  # noqa: ARG002
-        if self._stop_requested:  # second Ctrl-C: give up immediately
-            raise KeyboardInterrupt
-        self._stop_requested = True
-        if self.rank == 0:
-            print("\nmodi: stopping after this iteration and saving a checkpoint (Ctrl-C again to abort)",
-                  flush=True)
+        return TrainResult(self.step, interrupted, ckpt, time.time() - t0, dict(self.last_losses),
+                           self.stop.signum if interrupted else None)
 
     def request_stop(self) -> None:
         """Ask the loop to save and return at the next iteration boundary (what Ctrl-C does)."""
-        self._stop_requested = True
-
-    def _stop_flag(self) -> bool:
-        flag = torch.tensor(float(self._stop_requested), device=self.device)
-        if self.distributed:
-            import torch.distributed as dist
-
-            dist.all_reduce(flag)
-        return bool(flag.item() > 0)
+        self.stop.set()
 
     def _log_scalars(self, losses: dict[str, float]) -> None:
         rec = {"step": self.step, **{k: round(v, 6) for k, v in losses.items()}}
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.run_dir / "log.jsonl", "a") as fh:
-            fh.write(json.dumps(rec) + "\n")
+        faults.append_line(self.run_dir / "log.jsonl", json.dumps(rec))
         if self.writer is not None:
             groups = {"d": "loss/d", "g": "loss/g", "r1": "loss/r1", "path": "loss/path", "touch": "loss/touch",
                       "contact": "loss/contact", "real_score": "score/real", "fake_score": "score/fake",
                       "path_length": "reg/path_length", "sec_per_iter": "time/sec_per_iter"}
-            for k, v in losses.items():
-                self.writer.add_scalar(groups.get(k, k), v, self.step)
+            with faults.output_errors(self.run_dir / "tb"):  # event files are appended by the library
+                for k, v in losses.items():
+                    self.writer.add_scalar(groups.get(k, k), v, self.step)
 
     # ------------------------------------------------------------------------------------------- samples
     def write_sample_grid(self) -> Path | None:
@@ -545,7 +545,10 @@ class Trainer:
         state = self.state_dict()
         path = Path(path) if path is not None else self.run_dir / "checkpoint.pt"
         if self.rank == 0:
-            atomic_torch_save(state, path)
+            main = path == self.run_dir / "checkpoint.pt"
+            atomic_torch_save(state, path, previous_step=self._saved_step if main else None)
+            if main:
+                self._saved_step = self.step
         if self.distributed:
             import torch.distributed as dist
 
@@ -569,6 +572,7 @@ class Trainer:
         except (RuntimeError, KeyError, ValueError) as exc:
             raise CheckpointError(f"checkpoint does not match this model: {exc}") from None
         self.step = int(st["step"])
+        self._saved_step = self.step
         self.mean_path_length = torch.tensor(float(st.get("mean_path_length", 0.0)), device=self.device)
         self.last_losses = dict(st.get("last_losses", {}))
         rngs = st.get("rng") or []
