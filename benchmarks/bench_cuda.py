@@ -1,6 +1,7 @@
-"""CUDA benchmarks: the dense reference (cuDNN convs on masked weights) vs the modi_ext CUDA kernels.
+"""CUDA benchmarks: the reference (MoDi's grouped per-sample form), the dense form (one shared cuDNN conv on the
+masked weight, style/demodulation as scales: ``modi_ext.dense``) and the modi_ext CUDA kernels.
 
-``cuda_cases(dtype)`` returns ``{case: (ref_fn, ext_fn)}`` of zero-argument callables for ``benchmarks/compare.py
+``cuda_cases(dtype)`` returns ``{case: (ref_fn, ext_fn[, dense_fn])}`` of zero-argument callables for ``benchmarks/compare.py
 --device cuda``; every callable ends with ``torch.cuda.synchronize()`` so a wall-clock timer measures the GPU work.
 ``cuda_case_info(dtype)`` gives the shapes behind each case.
 
@@ -39,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from modi_ext import ops, reference  # noqa: E402
+from modi_ext import dense, ops, reference  # noqa: E402
 from modi_ext.fk import fk_reference  # noqa: E402
 from modi_ext.topology_tensors import csr_from_lists  # noqa: E402
 
@@ -78,8 +79,8 @@ def _synced(fn: Callable[[], object]) -> Fn:
 
 
 def _pair(ref: Callable[..., torch.Tensor], ext: Callable[..., torch.Tensor], leaves: list[torch.Tensor],
-          bwd: bool) -> tuple[Fn, Fn]:
-    """(ref_fn, ext_fn): forward under no_grad, or forward + grads of every leaf with a fixed upstream gradient."""
+          bwd: bool, dense_fn: Callable[..., torch.Tensor] | None = None) -> tuple[Fn, ...]:
+    """(ref_fn, ext_fn[, dense_fn]): forward under no_grad, or forward + grads of every leaf (fixed upstream grad)."""
     grad: list[torch.Tensor] = []
 
     def make(fn):
@@ -93,11 +94,11 @@ def _pair(ref: Callable[..., torch.Tensor], ext: Callable[..., torch.Tensor], le
             return torch.autograd.grad(y, leaves, grad[0])
         return _synced(body)
 
-    return make(ref), make(ext)
+    return (make(ref), make(ext)) + ((make(dense_fn),) if dense_fn is not None else ())
 
 
 def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
-    """Yield (op, level name, ref, ext, leaves, info) for every MoDi level at one batch size."""
+    """Yield (op, level name, ref, ext, leaves, info, dense) for every MoDi level at one batch size."""
     cmp = _compare_module()
     neigh, pools, _ = cmp.bandai_hierarchy()
     names = cmp.level_names(len(neigh))
@@ -122,7 +123,8 @@ def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
                lambda x_, w_, b_, i=idx, o=off: reference.skeletal_conv(x_, w_, b_, i, o, None, False, "zeros"),
                lambda x_, w_, b_, i=idx, o=off: torch.ops.modi_ext.skeletal_conv(x_, w_, b_, i, o, None, None,
                                                                                  "zeros"),
-               [x, w, b], info)
+               [x, w, b], info,
+               lambda x_, w_, b_, i=idx, o=off: dense.skeletal_conv(x_, w_, b_, i, o, None, False, "zeros"))
 
         def ref_mod(x_, w_, s_, i=idx, o=off):
             return reference.skeletal_conv(x_, w_, None, i, o, s_, True, "zeros")
@@ -131,7 +133,8 @@ def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
             d = ops.demod_scale(w_, i, o, s_, False, n, x_.shape[0])
             return torch.ops.modi_ext.skeletal_conv(x_, w_, None, i, o, s_, d, "zeros")
 
-        yield "modulated_conv", name, ref_mod, ext_mod, [x, w, s], info
+        yield ("modulated_conv", name, ref_mod, ext_mod, [x, w, s], info,
+               lambda x_, w_, s_, i=idx, o=off: dense.skeletal_conv(x_, w_, None, i, o, s_, True, "zeros"))
         if lv + 1 >= len(neigh):
             continue
         c2, t2 = levels[min(lv + 1, len(levels) - 1)]
@@ -150,12 +153,14 @@ def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
                                                                              "zeros"),
                lambda x_, w_, b_, i=pidx, o=poff, n=e: torch.ops.modi_ext.skeletal_up(x_, w_, b_, i, o, n, None,
                                                                                       None, "zeros"),
-               [xc, wu, bu], up_info)
+               [xc, wu, bu], up_info,
+               lambda x_, w_, b_, i=pidx, o=poff, n=e: dense.skeletal_up(x_, w_, b_, i, o, n, None, False, "zeros"))
         yield ("scaler_down", name,
                lambda x_, w_, b_, i=pidx, o=poff: reference.skeletal_down(x_, w_, b_, i, o, None, False, "zeros"),
                lambda x_, w_, b_, i=pidx, o=poff: torch.ops.modi_ext.skeletal_down(x_, w_, b_, i, o, None, None,
                                                                                    "zeros"),
-               [x, wd, bd], dict(batch=batch, input_shape=[batch, c, e, t], pairs=pnnz))
+               [x, wd, bd], dict(batch=batch, input_shape=[batch, c, e, t], pairs=pnnz),
+               lambda x_, w_, b_, i=pidx, o=poff: dense.skeletal_down(x_, w_, b_, i, o, None, False, "zeros"))
 
         def ref_up(x_, w_, s_, i=pidx, o=poff, n=e):
             return reference.skeletal_up(x_, w_, None, i, o, n, s_, True, "zeros")
@@ -164,7 +169,8 @@ def _skeletal_defs(dtype: torch.dtype, batch: int, device: str):
             d = ops.demod_scale(w_, i, o, s_, True, n, x_.shape[0])
             return torch.ops.modi_ext.skeletal_up(x_, w_, None, i, o, n, s_, d, "zeros")
 
-        yield "modulated_up", name, ref_up, ext_up, [xc, wu, su], up_info
+        yield ("modulated_up", name, ref_up, ext_up, [xc, wu, su], up_info,
+               lambda x_, w_, s_, i=pidx, o=poff, n=e: dense.skeletal_up(x_, w_, None, i, o, n, s_, True, "zeros"))
 
 
 def _fk_pairs(dtype: torch.dtype, device: str, tag: str) -> dict[str, tuple[Fn, Fn]]:
@@ -209,11 +215,11 @@ def _build(dtype: torch.dtype) -> tuple[dict[str, tuple[Fn, Fn]], dict[str, dict
     cases: dict[str, tuple[Fn, Fn]] = {}
     info: dict[str, dict] = {}
     for batch in BATCHES:
-        for op, level, ref, ext, leaves, meta in _skeletal_defs(dtype, batch, "cuda"):
+        for op, level, ref, ext, leaves, meta, dense_fn in _skeletal_defs(dtype, batch, "cuda"):
             for bwd in (False, True):
                 key = f"{op}.{level}.b{batch}.{tag}.{'fwd_bwd' if bwd else 'fwd'}"
                 leaves_i = [t.detach().clone().requires_grad_(bwd) for t in leaves]
-                cases[key] = _pair(ref, ext, leaves_i, bwd)
+                cases[key] = _pair(ref, ext, leaves_i, bwd, dense_fn)
                 info[key] = {**meta, "dtype": tag}
     for key, pair in _fk_pairs(dtype, "cuda", tag).items():
         cases[key] = pair
@@ -239,19 +245,25 @@ def device_description() -> str:
 
 def time_pair_cuda(ref: Fn, ext: Fn, reps: int = 20, warmup: int = 3) -> tuple[float, float]:
     """Interleaved medians (ms) with CUDA events (the callables synchronise at their end)."""
+    rt, et = time_cuda((ref, ext), reps, warmup)
+    return rt, et
+
+
+def time_cuda(fns, reps: int = 20, warmup: int = 3) -> list[float]:
+    """Interleaved medians (ms) of every callable, with CUDA events."""
     for _ in range(warmup):
-        ref()
-        ext()
-    rt, et = [], []
+        for fn in fns:
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
     for _ in range(reps):
-        for fn, acc in ((ref, rt), (ext, et)):
+        for fn, acc in zip(fns, times):
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
             fn()
             end.record()
             end.synchronize()
             acc.append(start.elapsed_time(end))
-    return statistics.median(rt), statistics.median(et)
+    return [statistics.median(t) for t in times]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -273,17 +285,23 @@ def main(argv: list[str] | None = None) -> int:
     desc = device_description()
     pattern = re.compile(args.only) if args.only else None
     print(f"# {desc}")
-    print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s}")
+    print(f"{'case':48s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'dense/ext':>9s}")
     results: dict[str, dict] = {}
     for name in names:
         cases, info = _build(DTYPES[name])
-        for case, (ref, ext) in cases.items():
+        for case, fns in cases.items():
             if pattern and not pattern.search(case):
                 continue
-            ref_ms, ext_ms = time_pair_cuda(ref, ext, args.reps)
+            ms = time_cuda(fns, args.reps)
+            ref_ms, ext_ms = ms[0], ms[1]
             results[case] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
                              "speedup": round(ref_ms / ext_ms, 3), "runs": args.reps, "machine": desc, **info[case]}
-            print(f"{case:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x", flush=True)
+            extra = ""
+            if len(ms) > 2:
+                results[case].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),
+                                     speedup_ext_vs_dense=round(ms[2] / ext_ms, 3))
+                extra = f" {ms[2]:10.3f} {ms[2] / ext_ms:8.2f}x"
+            print(f"{case:48s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x{extra}", flush=True)
     _compare_module().write_json(args.json, results)
     return 0
 

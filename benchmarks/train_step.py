@@ -7,7 +7,9 @@
 
 Sides (``--sides``, comma separated):
 
-* ``ref``          the dense pure-torch reference everywhere (``MODI_EXT_IMPL=ref``);
+* ``ref``          the pure-torch reference everywhere (``MODI_EXT_IMPL=ref``: MoDi's grouped per-sample form);
+* ``dense``        the dense form everywhere (``MODI_EXT_IMPL=dense``: one shared conv, style/demod as scales --
+                   what the package runs without the extension);
 * ``ext_refgrad``  the C++ kernels for forward and first-order backward, but the graph of a gradient (R1, path
                    length, WGAN-GP) built through the dense reference (``MODI_EXT_DOUBLE=ref``: how the extension
                    worked before ``modi_ext.gradfix``);
@@ -41,6 +43,7 @@ from compare import forced_env, machine, write_json  # noqa: E402  (benchmarks/c
 from modi_ext import HAS_EXT  # noqa: E402
 
 SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
+         "dense": {"MODI_EXT_IMPL": "dense", "MODI_EXT_DOUBLE": "ext"},
          "ext_refgrad": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ref"},
          "ext": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext"}}
 
@@ -114,13 +117,13 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
                               "r1_extra_s": round(med.get("r1+path", float("nan")) - med.get("path", float("nan")), 4)}
         print(f"{side:12s} {med['plain']:8.3f} {med.get('path', float('nan')):8.3f} "
               f"{med.get('r1+path', float('nan')):8.3f} {mean:11.3f} {ratio:11.2f}")
-    for a, b in (("ext_refgrad", "ext"), ("ref", "ext")):
+    for a, b in (("ext_refgrad", "ext"), ("ref", "ext"), ("dense", "ext"), ("ref", "dense")):
         if a in sides and b in sides:
             sp = res["sides"][a]["cycle_mean_s"] / res["sides"][b]["cycle_mean_s"]
             res[f"cycle_speedup_{b}_vs_{a}"] = round(sp, 3)
             print(f"cycle mean: {b} is {sp:.2f}x faster than {a}")
 
-    gen_sides = [s for s in ("ref", "ext") if s in sides]
+    gen_sides = [s for s in ("ref", "dense", "ext") if s in sides]
     if args.gen_batch > 0 and gen_sides:
         z = torch.randn(args.gen_batch, trainers[gen_sides[0]].G_ema.latent_dim, device=device)
         times: dict[str, list[float]] = {s: [] for s in gen_sides}
@@ -193,7 +196,7 @@ def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
         med = statistics.median(times[side])
         res["sides"][side] = {"s_per_iter": round(med, 4)}
         print(f"{side:12s} {med:8.3f} s/it")
-    for a in ("ref", "ext_refgrad"):
+    for a in ("ref", "dense", "ext_refgrad"):
         if a in sides and "ext" in sides:
             sp = res["sides"][a]["s_per_iter"] / res["sides"]["ext"]["s_per_iter"]
             res[f"speedup_ext_vs_{a}"] = round(sp, 3)
@@ -206,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default="modi", choices=["modi", "ganimator"])
     ap.add_argument("--sides", default=None,
-                    help="comma-separated among ref, ext_refgrad, ext (default: MoDi ext_refgrad,ext; "
+                    help="comma-separated among ref, dense, ext_refgrad, ext (default: MoDi ext_refgrad,ext; "
                          "GANimator ref,ext_refgrad,ext)")
     ap.add_argument("--data", default=None, help="MoDi BVH folder (default: ../shared/data/bvh/bandai-namco-1, "
                     "else 'procedural')")
