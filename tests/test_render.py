@@ -150,6 +150,15 @@ def test_humanoid_preview_colours_limbs_and_marks_planted_feet(tmp_path):
         assert (np.abs(rgb - colour).sum(-1) < 10).sum() > 5
 
 
+def test_render_positions_writes_the_viewer_beside(tmp_path):
+    motions = [_stick(12), _stick(8)]
+    render_positions(motions, STICK_PARENTS, tmp_path / "a.gif", size=(64, 48), titles=["x", "y"], view="view.html")
+    page = (tmp_path / "view.html").read_text(encoding="utf-8")
+    assert '"title":"x"' in page and '"title":"y"' in page and '"frames":8' in page
+    render_positions(motions, STICK_PARENTS, tmp_path / "sub.gif", size=(64, 48))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.gif", "sub.gif", "view.html"]
+
+
 def test_cli_render_and_synth(tmp_path, capsys):
     out_dir = tmp_path / "synth"
     assert main(["synth", str(out_dir), "--n", "3", "--frames", "20", "--seed", "2", "--kinds", "walk,squat"]) == 0
@@ -162,8 +171,11 @@ def test_cli_render_and_synth(tmp_path, capsys):
                  "--contacts"]) == 0
     im = _gif(gif)
     assert im.size == (128, 48) and im.n_frames == 9
-    assert main(["render", str(files[0]), str(tmp_path / "s.gif"), "--layout", "scene", "--size", "80x60"]) == 0
-    assert _gif(tmp_path / "s.gif").size == (80, 60)
+    page = (tmp_path / "two.html").read_text(encoding="utf-8")  # the 3D viewer beside the GIF, full clips
+    assert page.startswith("<!DOCTYPE html>") and '"title":"0001_squat"' in page and '"frames":20' in page
+    assert main(["render", str(files[0]), str(tmp_path / "s.gif"), "--layout", "scene", "--size", "80x60",
+                 "--no-view"]) == 0
+    assert _gif(tmp_path / "s.gif").size == (80, 60) and not (tmp_path / "s.html").exists()
 
     capsys.readouterr()
     assert main(["render", str(tmp_path / "nope.bvh"), str(tmp_path / "x.gif")]) == 2

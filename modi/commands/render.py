@@ -1,7 +1,8 @@
-"""``modi render``: stick-figure GIF/MP4 previews of BVH files."""
+"""``modi render``: stick-figure GIF/MP4 previews of BVH files, and the 3D viewer page beside them."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
@@ -34,6 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--max-frames", type=ct.int_range(1, ct.MAX_FRAMES), default=None, help="stop after this many output frames")
     p.add_argument("--azimuth", type=ct.angle_float, default=35.0, help="camera azimuth in degrees (0 = looking along -Z)")
     p.add_argument("--elevation", type=ct.float_range(-90.0, 90.0), default=18.0, help="camera elevation in degrees")
+    p.add_argument("--no-view", action="store_true",
+                   help="do not write the 3D viewer page OUT.html beside the preview (see 'modi view')")
     p.set_defaults(func=run)
 
 
@@ -52,7 +55,15 @@ def run(args: argparse.Namespace) -> int:
     except argparse.ArgumentTypeError as exc:
         raise UserError(f"output {exc}") from None
     ct.refuse_overwrite(out, inputs)
+    page = Path(out).with_suffix(".html")
+    if not args.no_view:
+        ct.refuse_overwrite(page, inputs, "viewer page")
     path = render_bvh(inputs, out, fps=args.fps, size=args.size, layout=args.layout, contacts=args.contacts,
                       up=args.up, max_frames=args.max_frames, azimuth=args.azimuth, elevation=args.elevation)
     print(path)
+    if not args.no_view:
+        from modi.viz.viewer import load_motion, write_view
+
+        write_view(page, [load_motion(f, up=args.up) for f in inputs], layout=args.layout)
+        print(page)
     return 0

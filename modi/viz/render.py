@@ -7,6 +7,7 @@ characters stay in view while the ground grid and the floor shadow show how they
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -428,14 +429,18 @@ def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30
     if not frames:
         raise ValueError("no frames to save")
     if out.suffix.lower() == ".gif":
+        from modi.faults import atomic_output
+
         frames = _distinct(frames)
-        frames[0].save(out, save_all=True, append_images=frames[1:], duration=max(20, round(1000.0 / fps)), loop=0,
-                       optimize=False)
+        with atomic_output(out, "wb") as fh:
+            frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
+                           duration=max(20, round(1000.0 / fps)), loop=0, optimize=False)
         return out
     w, h = frames[0].size
+    tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.mp4")  # ffmpeg picks the container by the extension
     cmd = ["ffmpeg", "-y", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
            "-r", f"{fps:g}", "-i", "-", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", "-pix_fmt", "yuv420p",
-           "-c:v", "libx264", str(out)]
+           "-c:v", "libx264", str(tmp)]
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stdin is not None
     try:
@@ -446,7 +451,9 @@ def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30
         pass
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     if proc.wait() != 0:
+        tmp.unlink(missing_ok=True)
         raise UserError(f"{out}: ffmpeg failed: {err.strip().splitlines()[-1] if err.strip() else 'unknown error'}")
+    os.replace(tmp, out)
     return out
 
 
@@ -454,17 +461,26 @@ def render_positions(positions, parents: Sequence[int] | Sequence[Sequence[int]]
                      fps: float = 30.0, size: tuple[int, int] = (320, 320), titles: Sequence[str] | None = None,
                      layout: str = "grid", contacts: Sequence[np.ndarray | None] | None = None,
                      names: Sequence[str] | Sequence[Sequence[str]] | None = None, up: str = "y",
-                     azimuth: float = 35.0, elevation: float = 18.0) -> Path:
+                     azimuth: float = 35.0, elevation: float = 18.0, view: str | None = None) -> Path:
     """Render global joint positions (each ``(T, J, 3)``, any units) to a GIF/MP4 stick-figure preview.
 
     ``layout="grid"``: one panel per motion, each camera following its own root; ``"scene"``: all characters in
     one panel (crowds), the camera following their mean. ``contacts``: per motion ``(T, J)`` bool (or None), joints
-    drawn larger in red while set. ``names`` colours left/right limbs. Returns the written path.
+    drawn larger in red while set. ``names`` colours left/right limbs. ``view``: also write the same motions as
+    the 3D HTML viewer under this file name in the GIF's folder (:func:`modi.viz.viewer.write_beside`).
+    Returns the written path.
     """
     out = _check_out(out_path)
     frames = render_frames(positions, parents, fps=fps, size=size, titles=titles, layout=layout, contacts=contacts,
                            names=names, up=up, azimuth=azimuth, elevation=elevation)
-    return save_frames(frames, out, fps)
+    path = save_frames(frames, out, fps)
+    if view:
+        from modi.viz.viewer import write_beside
+
+        pos = [_to_y_up(p, up) for p in _as_list(positions)]
+        write_beside(out, pos, parents, names=names, fps=fps, contacts=contacts, titles=titles, layout=layout,
+                     name=view)
+    return path
 
 
 def _resample_frames(n_src: int, src_fps: float, fps: float, max_frames: int | None) -> np.ndarray:
