@@ -16,7 +16,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -556,11 +555,9 @@ def _from_state(s: dict[str, Any], from_cache: bool = False) -> MotionDataset:
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
+    from modi.faults import OutputError, atomic_torch_save
+
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".pt")
-        os.close(fd)
-        torch.save(obj, tmp)
-        os.replace(tmp, path)
-    except OSError as exc:  # an unwritable cache must not stop training
+        atomic_torch_save(obj, path)  # temp + fsync + rename: a killed run never leaves half a cache file
+    except OutputError as exc:  # an unwritable cache (full disk, read-only) must not stop training
         warnings.warn(f"could not write dataset cache {path}: {exc}", stacklevel=3)

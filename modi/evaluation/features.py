@@ -22,7 +22,6 @@ import json
 import math
 import os
 import re
-import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -396,18 +395,10 @@ class FeatureExtractor:
 
     def save(self, path: str | os.PathLike) -> None:
         """One file with config, skeleton (joint names + parents), normalisation, weights and training info;
-        written atomically (temp file + rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        os.close(fd)
-        try:
-            torch.save(self.state(), tmp)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        written atomically (``modi.faults``: a full disk is one line, an earlier file stays intact)."""
+        from modi.faults import atomic_torch_save
+
+        atomic_torch_save(self.state(), path)
 
 
 def load_extractor(path: str | os.PathLike) -> FeatureExtractor:

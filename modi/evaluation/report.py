@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -36,17 +35,14 @@ def _plain(x: Any) -> Any:
 
 
 def _atomic_write(path: str | os.PathLike, text: str) -> None:
+    from modi.faults import OutputError, atomic_write, describe_os_error
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(describe_os_error(exc, path), exc.errno) from None
+    atomic_write(path, text)
 
 
 def write_json(results: dict[str, Any], path: str | os.PathLike) -> None:

@@ -15,7 +15,6 @@ meanwhile, and ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
