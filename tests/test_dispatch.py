@@ -472,3 +472,69 @@ def test_unknown_impl_is_rejected(monkeypatch):
     monkeypatch.setenv("MODI_EXT_IMPL", "fastest")
     with pytest.raises(ValueError, match="MODI_EXT_IMPL must be 'auto', 'ext', 'dense' or 'ref'"):
         call(ops, problem("conv"))
+
+
+# ------------------------------------------------------------------------------------------------ validate command
+def test_validate_without_a_gpu_says_so_and_fails(tmp_path):
+    import subprocess
+    import sys
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is visible here")
+    out = tmp_path / "r.json"
+    r = subprocess.run([sys.executable, "-m", "modi_ext.validate", "--json", str(out)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2
+    assert "no GPU is visible" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert not out.exists()
+
+
+def test_validate_dry_run_lists_every_step_within_budget(capsys):
+    from modi_ext import validate
+
+    assert validate.main(["--dry-run"]) == 0
+    text = capsys.readouterr().out
+    for name in ("dispatch", "cuda_tests", "sanitizer_racecheck", "sanitizer_synccheck", "sanitizer_initcheck",
+                 "compare_fp32", "compare_bf16", "train_step"):
+        assert name in text
+    assert "--device cuda" in text and "test_cuda_ops.py" in text and "--preset paper" in text
+    steps = validate.plan(__import__("pathlib").Path("/nonexistent"))
+    assert sum(s.timeout_s for s in steps) <= validate.DEFAULT_BUDGET_S <= 8 * 60
+    assert all(s.needs or s.tool or s.name == "dispatch" for s in steps)
+
+
+def test_validate_step_runner_statuses(tmp_path):
+    import sys
+
+    from modi_ext import validate
+
+    ok = validate.Step("ok", [sys.executable, "-c", "print('hi')"], 30)
+    assert validate.run_step(ok, 30)["status"] == "pass"
+    bad = validate.Step("bad", [sys.executable, "-c", "raise SystemExit(3)"], 30)
+    res = validate.run_step(bad, 30)
+    assert (res["status"], res["rc"]) == ("fail", 3)
+    slow = validate.Step("slow", [sys.executable, "-c", "import time; print('started', flush=True); time.sleep(60)"],
+                         30)
+    res = validate.run_step(slow, 6)
+    assert res["status"] == "timeout" and res["seconds"] < 30 and "started" in res["tail"]
+    missing = validate.Step("m", ["true"], 30, needs=[tmp_path / "absent.py"])
+    assert validate.run_step(missing, 30)["status"] == "skipped"
+    tool = validate.Step("t", ["x"], 30, tool="no-such-tool-modi")
+    assert "not on PATH" in validate.run_step(tool, 30)["reason"]
+    result = tmp_path / "res.json"
+    writes = validate.Step("w", [sys.executable, "-c", f"open({str(result)!r}, 'w').write('{{\"a\": 1}}')"], 30,
+                           result_json=result)
+    assert validate.run_step(writes, 30)["result"] == {"a": 1}
+    assert validate.gpu_slug("NVIDIA H200") == "nvidia_h200"
+    assert validate.gpu_slug("NVIDIA H100 80GB HBM3") == "nvidia_h100_80gb_hbm3"
+
+
+@needs_ext
+def test_validate_payloads_run_on_cpu(tmp_path):
+    from modi_ext import validate
+
+    assert validate.main(["--payload", "kernels", "--device", "cpu", "--out", str(tmp_path / "k.json")]) == 0
+    import json
+
+    ran = json.loads((tmp_path / "k.json").read_text())["ran"]
+    assert {r.split(".")[0] for r in ran} == {"skeletal_conv", "skeletal_down", "skeletal_up", "fk"}

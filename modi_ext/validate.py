@@ -1,0 +1,268 @@
+"""One command that validates modi_ext on a real GPU and records what it measured.
+
+    python -m modi_ext.validate [--json FILE] [--budget SECONDS] [--emulated] [--dry-run]
+
+What the CPU-only CI cannot prove (real concurrency, the hardware's own numerics, speed) is checked here, each step a
+subprocess with its own timeout so the whole run fits ``--budget`` (default 470 s: under 8 minutes on one H100/H200):
+
+1. ``dispatch``   first-use self-check of the kernels in fp32/bf16/fp16 and ``auto``'s ext-vs-dense choice on MoDi's
+                  finest-level shapes (``modi_ext.dispatch_report()``);
+2. ``cuda_tests`` ``pytest tests/test_cuda_ops.py`` (every op against the float64 reference, gradcheck, opcheck, half
+                  precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated`` suite;
+3. ``sanitizer_*`` ``compute-sanitizer`` racecheck / synccheck / initcheck over one small call of every kernel, forward
+                  and backward (skipped, saying so, when the tool is not on PATH);
+4. ``compare_fp32`` / ``compare_bf16``  ``benchmarks/compare.py --device cuda``: reference vs dense vs kernels;
+5. ``train_step`` ``benchmarks/train_step.py --device cuda --preset paper``: seconds per MoDi training step on the
+                  ref, dense and ext paths.
+
+Writes ``benchmarks/results/cuda_<gpu>.json`` (or ``--json FILE``).  Without a visible GPU it says so and exits 2.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_BUDGET_S = 470.0
+SUBSET = "finest|level1|fk"  # benchmark cases: the levels that dominate a training step, and FK
+
+
+@dataclass
+class Step:
+    name: str
+    cmd: list[str]
+    timeout_s: float
+    needs: list[Path] = field(default_factory=list)  # files that must exist (a source checkout)
+    tool: str | None = None  # an executable that must be on PATH
+    result_json: Path | None = None  # a file the step writes, loaded into the report
+
+
+def gpu_slug(name: str) -> str:
+    """'NVIDIA H200' -> 'nvidia_h200' (the results file name)."""
+    return re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_") or "gpu"
+
+
+def plan(work: Path, emulated: bool = False) -> list[Step]:
+    """The steps in order, with their timeouts (seconds) -- together within the default budget."""
+    py = sys.executable
+    tests = ROOT / "tests" / "test_cuda_ops.py"
+    bench = ROOT / "benchmarks"
+    steps = [
+        Step("dispatch", [py, "-m", "modi_ext.validate", "--payload", "dispatch", "--out", str(work / "dispatch.json")],
+             30, result_json=work / "dispatch.json"),
+        Step("cuda_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(tests)], 110, needs=[tests]),
+    ]
+    if emulated:
+        steps.append(Step("emulated_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m",
+                                             "cuda_emulated", str(ROOT / "tests")], 120, needs=[ROOT / "tests"]))
+    for tool in ("racecheck", "synccheck", "initcheck"):
+        steps.append(Step(f"sanitizer_{tool}", ["compute-sanitizer", "--tool", tool, "--error-exitcode", "1", py,
+                                                "-m", "modi_ext.validate", "--payload", "kernels"], 40,
+                          tool="compute-sanitizer"))
+    for dt, t in (("fp32", 65), ("bf16", 45)):
+        out = work / f"compare_{dt}.json"
+        steps.append(Step(f"compare_{dt}", [py, str(bench / "compare.py"), "--device", "cuda", "--dtype", dt, "--reps",
+                                            "5", "--only", SUBSET, "--json", str(out)], t,
+                          needs=[bench / "compare.py", bench / "bench_cuda.py"], result_json=out))
+    out = work / "train_step.json"
+    steps.append(Step("train_step", [py, str(bench / "train_step.py"), "--device", "cuda", "--preset", "paper",
+                                     "--sides", "ref,dense,ext", "--reps", "1", "--gen-reps", "3", "--json", str(out)],
+                      85, needs=[bench / "train_step.py"], result_json=out))
+    return steps
+
+
+def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
+    """Run one step; ``status`` is pass / fail / timeout / skipped, with the output's tail."""
+    missing = [str(p) for p in step.needs if not p.exists()]
+    if missing:
+        return {"status": "skipped", "reason": f"not found: {', '.join(missing)} (run from a source checkout)"}
+    if step.tool and shutil.which(step.tool) is None:
+        return {"status": "skipped", "reason": f"{step.tool} not on PATH (CUDA toolkit)"}
+    if timeout_s < 5:
+        return {"status": "skipped", "reason": "time budget spent"}
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run(step.cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, env=env)
+        rc, out, timed_out = r.returncode, (r.stdout or "") + (r.stderr or ""), False
+    except subprocess.TimeoutExpired as exc:
+        rc, timed_out = None, True
+        out = "".join(x.decode(errors="replace") if isinstance(x, bytes) else (x or "")
+                      for x in (exc.stdout, exc.stderr))
+    res = {"status": "timeout" if timed_out else ("pass" if rc == 0 else "fail"), "rc": rc,
+           "seconds": round(time.perf_counter() - t0, 2), "timeout_s": round(timeout_s, 1), "tail": out[-3000:]}
+    if step.result_json is not None and step.result_json.is_file():
+        try:
+            res["result"] = json.loads(step.result_json.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            res["result_error"] = str(exc)
+    return res
+
+
+# ---------------------------------------------------------------------------------------------------------- payloads
+def _payload_kernels(device: str) -> dict:
+    """One small call of every kernel, forward and backward (what compute-sanitizer watches)."""
+    import torch
+
+    from modi_ext import ops
+    from modi_ext.fk import fk
+    from modi_ext.topology_tensors import csr_from_lists
+
+    os.environ["MODI_EXT_IMPL"] = "ext"
+    g = torch.Generator().manual_seed(0)
+    nb = csr_from_lists([[0, 1], [0, 1, 2], [1, 2, 3], [2, 3]])
+    pool = csr_from_lists([[0, 1], [2, 3]], n_in=4)
+    done = []
+    for dtype in (torch.float32, torch.bfloat16) if device.startswith("cuda") else (torch.float32, torch.float64):
+        rnd = lambda *s: torch.randn(*s, generator=g).to(device, dtype).requires_grad_()  # noqa: E731
+        for kind in ("conv", "down", "up"):
+            topo = nb if kind == "conv" else pool
+            idx, off = topo.index.to(device), topo.offsets.to(device)
+            if kind == "up":
+                x, w = rnd(2, 3, 2, 8), rnd(3, topo.nnz, 5, 3)
+                y = ops.skeletal_up(x, w, None, idx, off, 4, style=rnd(2, 3), demodulate=True)
+            else:
+                x, w = rnd(2, 3, 4, 8), rnd(5, topo.nnz, 3, 3)
+                fn = ops.skeletal_conv if kind == "conv" else ops.skeletal_down
+                y = fn(x, w, None, idx, off, style=rnd(2, 3), demodulate=True)
+            y.float().square().sum().backward()
+            done.append(f"skeletal_{kind}.{str(dtype).replace('torch.', '')}")
+        q = torch.randn(2, 4, 5, 4, generator=g)
+        q = (q / q.norm(dim=-1, keepdim=True)).to(device, dtype).requires_grad_()
+        pos = fk(q, torch.randn(5, 3).to(device, dtype), [-1, 0, 1, 1, 3], torch.zeros(2, 4, 3, device=device,
+                                                                                          dtype=dtype))
+        pos.float().square().sum().backward()
+        done.append(f"fk.{str(dtype).replace('torch.', '')}")
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    return {"ran": done}
+
+
+def _payload_dispatch(device: str) -> dict:
+    """Self-check per dtype and auto's choice on MoDi's finest level (batch 16, 32 channels, 64 frames)."""
+    import torch
+
+    import modi_ext
+    from modi_ext import dispatch
+    from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
+
+    os.environ["MODI_EXT_IMPL"] = "auto"
+    nb = [[m for m in (j - 1, j, j + 1) if 0 <= m < 25] for j in range(25)]
+    cuda = device.startswith("cuda")
+    for dtype in (torch.float32, torch.bfloat16, torch.float16) if cuda else (torch.float32,):
+        dispatch.kernels_trusted(str(torch.device(device)), str(dtype))
+    torch.manual_seed(0)
+    for module in (SkeletalConv(32, 32, nb), ModulatedSkeletalConv(32, 32, 512, nb, demodulate=True)):
+        module = module.to(device)
+        x = torch.randn(16, 32, 25, 64, device=device, requires_grad=True)
+        args = (x,) if isinstance(module, SkeletalConv) else (x, torch.randn(16, 512, device=device))
+        for _ in range(2):
+            module(*args).sum().backward()
+            with torch.no_grad():
+                module(*args)
+    return {"report": modi_ext.dispatch_report()}
+
+
+def _run_payload(name: str, out: Path | None, device: str) -> int:
+    res = (_payload_kernels if name == "kernels" else _payload_dispatch)(device)
+    text = json.dumps(res, indent=2, default=str)
+    if out is None:
+        print(text)
+    else:
+        _write_atomic(out, text + "\n")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------------- main
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def no_gpu_message() -> str | None:
+    """Why no GPU can be validated here, or None when torch sees one."""
+    import torch
+
+    if torch.cuda.is_available():
+        return None
+    build = f"a CUDA {torch.version.cuda} build" if torch.version.cuda else "a CPU-only build"
+    return (f"validate: no GPU is visible (torch.cuda.is_available() is False; torch {torch.__version__} is {build}); "
+            "nothing was validated -- run this on a machine with an NVIDIA GPU")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m modi_ext.validate", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", type=Path, default=None, help="results file (default benchmarks/results/cuda_<gpu>.json)")
+    ap.add_argument("--budget", type=float, default=DEFAULT_BUDGET_S, help="seconds for all steps together")
+    ap.add_argument("--emulated", action="store_true", help="also run the cuda_emulated suite (CPU-bound)")
+    ap.add_argument("--dry-run", action="store_true", help="list the steps and their timeouts, run nothing")
+    ap.add_argument("--payload", choices=("kernels", "dispatch"), help=argparse.SUPPRESS)
+    ap.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.budget <= 0:
+        print(f"validate: --budget must be positive, got {args.budget}", file=sys.stderr)
+        return 2
+    if args.payload:
+        return _run_payload(args.payload, args.out, args.device)
+    with tempfile.TemporaryDirectory(prefix="modi_validate_") as tmp:
+        steps = plan(Path(tmp), args.emulated)
+        if args.dry_run:
+            total = 0.0
+            for s in steps:
+                total += s.timeout_s
+                print(f"{s.name:18s} {s.timeout_s:5.0f} s  {' '.join(s.cmd)}")
+            print(f"{'total':18s} {total:5.0f} s  (budget {args.budget:.0f} s)")
+            return 0
+        why = no_gpu_message()
+        if why is not None:
+            print(why, file=sys.stderr)
+            return 2
+        return _validate(steps, args)
+
+
+def _validate(steps: list[Step], args: argparse.Namespace) -> int:
+    import torch
+
+    p = torch.cuda.get_device_properties(0)
+    path = args.json or ROOT / "benchmarks" / "results" / f"cuda_{gpu_slug(p.name)}.json"
+    report = {"gpu": p.name, "sms": p.multi_processor_count, "memory_gib": round(p.total_memory / 2**30, 1),
+              "torch": torch.__version__, "cuda": torch.version.cuda, "date": datetime.date.today().isoformat(),
+              "budget_s": args.budget, "steps": {}}
+    deadline = time.perf_counter() + args.budget
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    for step in steps:
+        left = deadline - time.perf_counter()
+        res = run_step(step, min(step.timeout_s, left), env)
+        report["steps"][step.name] = res
+        print(f"{step.name:18s} {res['status']:8s} {res.get('seconds', 0):7.1f} s  {res.get('reason', '')}",
+              flush=True)
+        _write_atomic(path, json.dumps(report, indent=2, default=str) + "\n")  # partial results survive a kill
+    failed = [n for n, r in report["steps"].items() if r["status"] in ("fail", "timeout")]
+    report["ok"] = not failed
+    _write_atomic(path, json.dumps(report, indent=2, default=str) + "\n")
+    print(f"wrote {path}" + (f"; failed: {', '.join(failed)}" if failed else "; every step that ran passed"))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
