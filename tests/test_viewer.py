@@ -203,3 +203,39 @@ def test_stills_differ_where_the_figure_is(clips, tmp_path):
     assert walk.contacts[0].any()
     red = (np.abs(a - np.array([225, 40, 40])).max(-1) < 12)
     assert red.sum() > 10
+
+
+# ------------------------------------------------------------------------------------------------ beside GIFs
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    import torch
+
+    from modi.encoder.training import generator_bundle
+    from test_latent import build_tiny
+
+    torch.set_num_threads(1)
+    g, codec = build_tiny()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    torch.save(generator_bundle(g, codec), path)
+    return path, g, codec
+
+
+def test_gif_writing_commands_write_the_viewer_beside(tiny_ckpt, tmp_path):
+    from modi.modi_model.sampling import generate_tensors, write_outputs
+    from modi.viz import view_pages
+
+    ckpt, g, codec = tiny_ckpt
+    assert main(["latent", "mean", str(ckpt), "--out", str(tmp_path / "m")]) == 0
+    data = page_data((tmp_path / "m" / "view.html").read_text(encoding="utf-8"))
+    assert (tmp_path / "m" / "mean.gif").is_file() and data["motions"][0]["names"] == list(codec.skeleton.names)
+    assert main(["latent", "truncate", str(ckpt), "--out", str(tmp_path / "t"), "--steps", "2", "--no-view"]) == 0
+    assert (tmp_path / "t" / "truncation.gif").is_file() and not list((tmp_path / "t").glob("*.html"))
+    assert main(["latent", "cluster", str(ckpt), "--out", str(tmp_path / "c"), "--n", "12", "--k", "2",
+                 "--per-cluster", "2", "--tsne-max", "0"]) == 0  # several GIFs in one folder: NAME.html each
+    assert sorted(p.name for p in (tmp_path / "c").glob("*.html")) == ["cluster_0.html", "cluster_1.html"]
+    x, _ = generate_tensors(None, 3, model=(g, codec, None))  # what 'modi generate' writes
+    write_outputs(codec, x, tmp_path / "gen", bvh=False)
+    assert len(page_data((tmp_path / "gen" / "view.html").read_text(encoding="utf-8"))["motions"]) == 3
+    with view_pages(False):
+        write_outputs(codec, x, tmp_path / "gen2", bvh=False)
+    assert (tmp_path / "gen2" / "samples.gif").is_file() and not (tmp_path / "gen2" / "view.html").exists()

@@ -467,14 +467,17 @@ def render_positions(positions, parents: Sequence[int] | Sequence[Sequence[int]]
     ``layout="grid"``: one panel per motion, each camera following its own root; ``"scene"``: all characters in
     one panel (crowds), the camera following their mean. ``contacts``: per motion ``(T, J)`` bool (or None), joints
     drawn larger in red while set. ``names`` colours left/right limbs. ``view``: also write the same motions as
-    the 3D HTML viewer under this file name in the GIF's folder (:func:`modi.viz.viewer.write_beside`).
+    the 3D HTML viewer under this file name in the GIF's folder (:func:`modi.viz.viewer.write_beside`) unless
+    :func:`modi.viz.view_pages` turned that off.
     Returns the written path.
     """
     out = _check_out(out_path)
     frames = render_frames(positions, parents, fps=fps, size=size, titles=titles, layout=layout, contacts=contacts,
                            names=names, up=up, azimuth=azimuth, elevation=elevation)
     path = save_frames(frames, out, fps)
-    if view:
+    from modi.viz import view_pages_enabled
+
+    if view and view_pages_enabled():  # ``--no-view`` switches it off for a whole command
         from modi.viz.viewer import write_beside
 
         pos = [_to_y_up(p, up) for p in _as_list(positions)]
