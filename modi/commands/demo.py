@@ -7,6 +7,7 @@ from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.viz import add_view_option
 
 DEFAULT_ITERS = 300  # ~0.65 s of CPU per iteration (small preset, 1 thread, modi_ext kernels): ~3.5 min in all
 
@@ -29,6 +30,7 @@ def register(subparsers) -> None:
                         "slow down badly when the CPU is shared)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+    add_view_option(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     real = data.windows[torch.linspace(0, data.windows.shape[0] - 1, args.n).long()]
     dec = data.codec.decode(real)
     render_gif(data.codec, [p.numpy() for p in dec["positions"]], [(c > 0.5).numpy() for c in dec["contacts"]],
-               out / "training_examples.gif")
+               out / "training_examples.gif", view="training_examples.html")
     model = load_generator(result.checkpoint)
     x, codec = generate_tensors(result.checkpoint, args.n, seed=args.seed, model=model)
     written = write_outputs(codec, x, out / "samples", gif=True, gif_name="samples.gif")

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.viz import add_view_option
 
 
 def _units(text: str) -> str:
@@ -143,6 +144,8 @@ def register(subparsers) -> None:
     t.add_argument("--from-frame", type=ct.int_range(0, ct.MAX_FRAMES), default=None, help="first edited frame (default: the middle)")
     t.add_argument("--joint", default=None, help="joint to turn (default: the right shoulder found by name)")
     t.set_defaults(func=run_apply, task="edit")
+    for t in asub.choices.values():  # every task writes a GIF, and the 3D viewer beside it
+        add_view_option(t)
 
 
 # --------------------------------------------------------------------------------------------- helpers

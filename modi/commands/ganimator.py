@@ -9,6 +9,7 @@ from typing import Callable
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.viz import add_view_option
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
 
@@ -87,6 +88,7 @@ def register(subparsers) -> None:
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
     g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
     g.set_defaults(func=_generate)
+    add_view_option(g)
 
     e = sub.add_parser("evaluate", help="coverage and diversity of random samples of a run", formatter_class=_FMT,
                        description="Sample motions and report coverage (30-frame windows, threshold 2.0), global "

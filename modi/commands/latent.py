@@ -12,6 +12,7 @@ from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.viz import add_view_option
 
 _LATENT_HELP = "a seed (integer or seed:N), 'mean', or a .npy W/W+ latent file"
 
@@ -120,6 +121,8 @@ def register(subparsers) -> None:
                    help="weight of the FK-position term (positions in tenths of the body size)")
     q.add_argument("--init", choices=("mean", "random"), default="mean", help="starting latent")
     q.set_defaults(func=run_invert)
+    for action in sub.choices.values():  # every action writes GIF previews, and the 3D viewer beside them
+        add_view_option(action)
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -259,7 +262,7 @@ def run_edit(args: argparse.Namespace) -> int:
     for s in seeds[:max(0, args.render)]:
         lat = edit_latents(seed_w(g, [s])[0], boundary.normal, report.alphas)
         names = [f"edit_{s}_alpha{a:+.1f}".replace(".", "p") for a in report.alphas_sigma]
-        write_motions(codec, synthesize(g, lat), out / f"edit_{s}", names, gif=f"../edit_{s}.gif",
+        write_motions(codec, synthesize(g, lat), out / f"edit_{s}", names, gif=f"../edit_{s}.gif", view=f"edit_{s}.html",
                       titles=[f"alpha={a:+g} sd" for a in report.alphas_sigma])
     print(f"modi latent edit: boundary accuracy {boundary.accuracy:.2f} (held-out extremes); {report.summary()}")
     print(f"modi latent edit: {out / 'report.json'}, {out / 'score_vs_alpha.png'}")

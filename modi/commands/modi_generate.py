@@ -6,6 +6,7 @@ import time
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.viz import add_view_option
 
 
 def register(subparsers) -> None:
@@ -27,6 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
     p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
     p.set_defaults(func=run)
+    add_view_option(p)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -34,7 +34,8 @@ def _write_triplet(bundle: EncoderBundle, out_dir: str | Path, stem: str, inp: T
     x = torch.cat([inp.reshape(1, *inp.shape[-3:]), naive.reshape(1, *naive.shape[-3:]),
                    enc.reshape(1, *enc.shape[-3:])]).cpu()
     names = [f"{stem}_{lab}" for lab in ("input", "naive", "encoder")]
-    paths = write_motions(bundle.codec, x, out_dir, names, gif=f"{stem}.gif", titles=list(labels))
+    paths = write_motions(bundle.codec, x, out_dir, names, gif=f"{stem}.gif", titles=list(labels),
+                          view=f"{stem}.html")
     return {"bvh": [str(p) for p in paths], "gif": str(Path(out_dir) / f"{stem}.gif")}
 
 

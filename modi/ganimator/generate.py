@@ -350,7 +350,8 @@ class TrajectoryStream:
 def _render(seqs_and_positions, parents, path: Path, fps: float, names, contacts=None, layout="grid") -> None:
     from modi.viz.render import render_positions
 
-    render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout)
+    render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout,
+                     view="view.html")
 
 
 def generate_command(args) -> dict:

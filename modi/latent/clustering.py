@@ -144,7 +144,8 @@ def cluster_latent_space(g: Any, codec: Any, out_dir: str | Path, n: int = 10_00
             write_motions(codec, x, out / f"cluster_{c}", names, gif=None)
             pos, con = decode_positions(codec, x)
             gif = render_gif(codec, pos, con, out / f"cluster_{c}.gif",
-                             titles=[f"cluster {c}: #{i}" for i in members], size=(200, 200))
+                             titles=[f"cluster {c}: #{i}" for i in members], size=(200, 200),
+                             view=f"cluster_{c}.html")
             gifs.append(str(gif))
         res.files["gifs"] = gifs
     summary = {"n": n, "k": k, "seed": seed, "sizes": res.sizes, "members": res.members,

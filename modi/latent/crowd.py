@@ -89,7 +89,8 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
     if gif:
         sk = codec.skeleton
         res.files["gif"] = str(render_positions(positions, list(sk.parents), out / "crowd.gif", fps=codec.fps,
-                                                size=size, layout="scene", names=list(sk.names)))
+                                                size=size, layout="scene", names=list(sk.names),
+                                                view="view.html"))
     return res
 
 

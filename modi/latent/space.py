@@ -294,7 +294,7 @@ def decode_positions(codec: Any, x: Tensor) -> tuple[list[np.ndarray], list[np.n
 
 def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequence[str],
                   gif: str | None = "preview.gif", titles: Sequence[str] | None = None,
-                  size: tuple[int, int] = (220, 220)) -> list[Path]:
+                  size: tuple[int, int] = (220, 220), view: str | None = "view.html") -> list[Path]:
     """Write each motion as ``{name}.bvh`` and all of them side by side in one GIF; returns the BVH paths."""
     from modi.io import bvh as bvh_io
     from modi.modi_model.sampling import render_gif
@@ -313,7 +313,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
         pos, con = decode_positions(codec, x)
         try:
             render_gif(codec, pos, con, out / gif, titles=list(titles) if titles is not None else list(names),
-                       size=size)
+                       size=size, view=view)
         except Exception as exc:  # noqa: BLE001 - a preview must not lose the BVH results
             warnings.warn(f"could not render {out / gif}: {exc}", stacklevel=2)
     return paths

@@ -154,8 +154,9 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
 
 def render_gif(codec: Any, positions: Sequence[np.ndarray], contacts: Sequence[np.ndarray] | None,
                path: str | os.PathLike, titles: Sequence[str] | None = None,
-               size: tuple[int, int] = (200, 200)) -> Path:
-    """Stick-figure GIF grid of global positions with the feet drawn red while labelled in contact."""
+               size: tuple[int, int] = (200, 200), view: str | None = "view.html") -> Path:
+    """Stick-figure GIF grid of global positions with the feet drawn red while labelled in contact, and the 3D
+    viewer page ``view`` beside it (see ``modi.viz``; None: no page)."""
     from modi.viz.render import render_positions
 
     sk = codec.skeleton
@@ -167,7 +168,7 @@ def render_gif(codec: Any, positions: Sequence[np.ndarray], contacts: Sequence[n
             m[:, codec.feet] = c
             per_joint.append(m)
     return render_positions(list(positions), list(sk.parents), path, fps=codec.fps, size=size, titles=titles,
-                            contacts=per_joint, names=list(sk.names))
+                            contacts=per_joint, names=list(sk.names), view=view)
 
 
 __all__ = ["load_checkpoint", "load_generator", "generate_tensors", "sample_motions", "sample_positions",
