@@ -73,6 +73,18 @@ def test_page_for_16_motions_of_64_frames_is_small():
     assert size < 600_000, f"{size} bytes"
 
 
+def test_a_translating_root_link_is_not_drawn_as_a_bone():
+    t = np.linspace(0, 2, 30)
+    pos = np.zeros((30, 3, 3))  # a floor root fixed at the origin, hips walking away from it, a head above them
+    pos[:, 1] = np.stack([t, np.full_like(t, 0.9), 0 * t], -1)
+    pos[:, 2] = pos[:, 1] + [0, 0.8, 0]
+    m = page_data(page_html([from_positions(pos, [-1, 0, 1], ["Root", "Hips", "Head"])]))["motions"][0]
+    assert m["hide"] == [0, 1, 0]
+    pos[:, 1] = [0, 0.9, 0]  # the same link with a constant length is a bone
+    pos[:, 2] = pos[:, 1] + [0, 0.8, 0]
+    assert page_data(page_html([from_positions(pos, [-1, 0, 1])]))["motions"][0]["hide"] == [0, 0, 0]
+
+
 def test_cli_refuses_bad_input_and_writes_nothing(clips, tmp_path, capsys):
     garbage = tmp_path / "garbage.bvh"
     garbage.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff" * 50)

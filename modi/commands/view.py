@@ -14,18 +14,19 @@ def register(subparsers) -> None:
         description="Write one HTML file (no network needed) that plays the motions in sync in 3D: drag to orbit, "
                     "wheel to zoom, shift-drag to pan; play/pause, scrub and speed controls; joint names on hover; "
                     "feet in contact with the ground in red. The page URL takes ?frame=N&paused=1 for a still. "
-                    "Positions are shown in metres: BVH units are guessed from the body size (m, cm or mm) "
-                    "unless --scale is given; glTF is metres already.",
+                    "Positions are shown in metres: BVH units are guessed from the body size (m, in, cm or mm; "
+                    "printed) unless --scale is given; glTF is metres already.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("inputs", nargs="+", metavar="FILE", help="input .bvh, .glb or .gltf files")
     p.add_argument("--out", default="view.html", type=ct.output_file, metavar="OUT.html", help="output page")
     p.add_argument("--layout", choices=("grid", "scene"), default="grid",
                    help="grid: motions side by side; scene: all in one scene at their own positions")
     p.add_argument("--scale", type=ct.float_range(0.0, 1e6, lo_inclusive=False), default=None,
-                   help="metres per file unit for every input (default: guessed per BVH, 1 for glTF)")
+                   help="metres per file unit for every input; None: guessed per BVH from the body size (m, in, cm "
+                        "or mm, as 'modi export gltf' does), 1 for glTF")
     p.add_argument("--up", choices=("y", "z"), default="y", help="the BVH files' up axis")
     p.add_argument("--no-contacts", action="store_true", help="do not mark foot contacts")
-    p.add_argument("--title", default=None, help="page title (default: the output's name)")
+    p.add_argument("--title", default=None, help="page title; None: the output's name")
     p.set_defaults(func=run)
 
 
@@ -38,6 +39,9 @@ def run(args: argparse.Namespace) -> int:
     for f in args.inputs:
         ct.refuse_overwrite(out, [f])
     motions = [load_motion(f, scale=args.scale, up=args.up, contacts=not args.no_contacts) for f in args.inputs]
+    for f, m in zip(args.inputs, motions):
+        if m.unit:
+            print(f"{f}: {m.unit}")
     out.parent.mkdir(parents=True, exist_ok=True)
     write_view(out, motions, title=args.title, layout=args.layout)
     frames = max(m.positions.shape[0] for m in motions)

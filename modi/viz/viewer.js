@@ -29,7 +29,7 @@
       con = new Uint8Array(m.frames * m.names.length);
       for (var k = 0; k < con.length; k++) con[k] = (bits[k >> 3] >> (7 - (k & 7))) & 1;
     }
-    return {title: m.title, names: m.names, parents: m.parents, side: m.side, fps: m.fps, T: m.frames,
+    return {title: m.title, names: m.names, parents: m.parents, side: m.side, hide: m.hide, fps: m.fps, T: m.frames,
             J: m.names.length, pos: pos, con: con, off: [0, 0, 0], color: D.colors[m.color % D.colors.length]};
   });
   var fpsMaster = Math.max.apply(null, motions.map(function (m) { return m.fps; }));
@@ -167,7 +167,7 @@
       for (var j = 0; j < m.J; j++) P.push(joint(m, t, j));
       for (j = 0; j < m.J; j++) {  // floor shadow first: it lies under everything
         var p = m.parents[j];
-        if (p >= 0) line([P[p][0], 0, P[p][2]], [P[j][0], 0, P[j][2]], D.style.shadow, 3);
+        if (p >= 0 && !m.hide[j]) line([P[p][0], 0, P[p][2]], [P[j][0], 0, P[j][2]], D.style.shadow, 3);
       }
       for (j = 0; j < m.J; j++) {
         var c = toCam(P[j]);
@@ -175,7 +175,7 @@
         if (on) ring(P[j], 0.04 * hMax, D.style.contactRing);
         if (c[2] > NEAR) drawn.push({m: mi, j: j, s: project(c), on: on, depth: c[2]});
         p = m.parents[j];
-        if (p >= 0) bones.push({a: P[p], b: P[j], color: m.color[m.side[j]], depth: (toCam(P[p])[2] + c[2]) / 2});
+        if (p >= 0 && !m.hide[j]) bones.push({a: P[p], b: P[j], color: m.color[m.side[j]], depth: (toCam(P[p])[2] + c[2]) / 2});
       }
     });
     bones.sort(function (a, b) { return b.depth - a.depth; });

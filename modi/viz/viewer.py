@@ -43,6 +43,7 @@ class ViewMotion:
     positions: np.ndarray
     fps: float
     contacts: np.ndarray | None = None  # (T, J) bool, True where a joint touches the ground
+    unit: str = ""  # how file units became metres, for the user to check a guess
 
     def __post_init__(self) -> None:
         p = np.asarray(self.positions, dtype=np.float64)
@@ -94,9 +95,14 @@ def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> Vie
 
     b = bvh_io.load(path)
     pos = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
-    s = scale if scale is not None else guess_scale(b.skeleton().height())[0]
+    height = b.skeleton().height()
+    if scale is None:
+        scale, unit = guess_scale(height)
+        note = f"body size {height:.4g} file units looks like {unit}: x {scale:g} to metres (--scale overrides)"
+    else:
+        note = f"x {scale:g} to metres (--scale)"
     con = foot_contacts(pos, _feet_of(b), b.fps) if contacts else None
-    return ViewMotion(path.stem, list(b.names), list(b.parents), pos * s, b.fps, con)
+    return ViewMotion(path.stem, list(b.names), list(b.parents), pos * scale, b.fps, con, note)
 
 
 def _gltf_motion(path: Path, scale: float | None, contacts: bool) -> ViewMotion:
@@ -111,7 +117,8 @@ def _gltf_motion(path: Path, scale: float | None, contacts: bool) -> ViewMotion:
         con = np.asarray(con).astype(bool)
         if con.shape == pos.shape[:2]:
             mask = con
-    return ViewMotion(path.stem, list(names), list(parents), pos, float(fps), mask)
+    return ViewMotion(path.stem, list(names), list(parents), pos, float(fps), mask,
+                      "glTF: metres" if scale is None else f"x {scale:g} (--scale)")
 
 
 def load_motion(path: str | os.PathLike, scale: float | None = None, up: str = "y",
@@ -185,9 +192,16 @@ def _pack(m: ViewMotion, index: int) -> dict:
     step = max(span / 65535.0, 1e-9)
     qv = np.clip(np.round((p - lo) / step) - 32768, -32768, 32767).astype("<i2")
     ext = np.ptp(p, axis=1).max(axis=-1)  # per-frame extent: the body size in metres
+    height = float(max(np.median(ext), 1e-3))
+    # a "bone" from the root whose length changes is a translation (e.g. Bandai's floor root -> hips), not a limb
+    hide = [0] * len(m.parents)
+    for j, par in enumerate(m.parents):
+        if par >= 0 and m.parents[par] < 0:
+            length = np.linalg.norm(p[:, j] - p[:, par], axis=-1)
+            hide[j] = int(np.ptp(length) > 0.1 * height)
     d = {"title": m.title, "names": m.names, "parents": m.parents, "side": _side_codes(m.names), "fps": m.fps,
          "frames": int(p.shape[0]), "origin": [float(v) for v in lo], "step": step, "color": index,
-         "height": float(max(np.median(ext), 1e-3)), "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
+         "height": height, "hide": hide, "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
          "contacts": None}
     if m.contacts is not None and m.contacts.any():
         d["contacts"] = base64.b64encode(np.packbits(m.contacts.reshape(-1)).tobytes()).decode("ascii")
