@@ -548,6 +548,7 @@ def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, see
     are converted in one batched call: thousands of tiny torch calls would cost more than the generation.
     """
     from modi.io import bvh as bvh_io
+    from modi.io.formats import save_motion
     from modi.rotations import matrix_to_euler
 
     kinds = tuple(KINDS if kinds is None else kinds)
@@ -574,8 +575,7 @@ def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, see
         motion = np.concatenate([arrays[i][1], euler[i].reshape(euler.shape[1], -1)], axis=1)
         b = bvh_io.Bvh(names=list(sk.names), parents=list(sk.parents), offsets=sk.offsets, channels=channels,
                        end_sites=dict(sk.end_sites), frame_time=1.0 / float(fps), motion=motion)
-        path = out / f"{i:04d}_{kind}.bvh"
-        bvh_io.save(b, path, precision=4)
+        path = save_motion(b, out / f"{i:04d}_{kind}.bvh", precision=4)
         paths.append(path)
         labels[path.name] = kind
     (out / "labels.json").write_text(json.dumps(labels, indent=1, sort_keys=True) + "\n")

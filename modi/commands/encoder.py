@@ -13,6 +13,7 @@ from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 
@@ -117,6 +118,7 @@ def register(subparsers) -> None:
         t.add_argument("--start", type=ct.int_range(0, ct.MAX_FRAMES), default=0, help="first frame of the window cut from BVH inputs")
         t.add_argument("--data", default=None, help="data folder for test:I inputs (default: the encoder's)")
         _runtime(t)
+        add_format_options(t)
         return t
 
     t = task("invert", "project unseen motions with the encoder (vs optimisation)",

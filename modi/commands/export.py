@@ -1,4 +1,5 @@
-"""``modi export-positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks)."""
+"""``modi export-positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks);
+``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers."""
 from __future__ import annotations
 
 import argparse
@@ -22,6 +23,49 @@ def register(subparsers) -> None:
     p.add_argument("--names", metavar="FILE", default=None, type=ct.output_file,
                    help="also write the joint names, one per line, to this text file")
     p.set_defaults(func=run)
+
+    e = subparsers.add_parser("export", help="convert a BVH to another format (gltf)",
+                              description="Convert motion files for other tools.",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    esub = e.add_subparsers(dest="export_format", metavar="FORMAT")
+    e.set_defaults(func=lambda args: (e.print_help(), 2)[1])
+    g = esub.add_parser(
+        "gltf", help="write a BVH as glTF 2.0 (.glb or .gltf)", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Write IN.bvh as glTF 2.0: one node per joint (names kept), a skin with a simple box-per-bone "
+                    "mesh, and one animation at the clip's frame rate. glTF is Y-up in metres: the BVH is read as "
+                    "Y-up and its lengths are scaled to metres (the unit is guessed from the body height and printed; "
+                    "--scale overrides). OUT.glb is binary; OUT.gltf is JSON with the buffer embedded (or beside it "
+                    "as OUT.bin with --side-buffer).")
+    g.add_argument("input", metavar="IN.bvh", help="input BVH file")
+    g.add_argument("output", metavar="OUT.glb", type=ct.output_file, help="output .glb or .gltf file")
+    g.add_argument("--scale", type=ct.positive_finite_float, default=None,
+                   help="multiply lengths by this to get metres (default: guessed from the body height)")
+    g.add_argument("--side-buffer", action="store_true", help=".gltf only: write the binary buffer as OUT.bin")
+    g.set_defaults(func=run_gltf)
+
+
+def run_gltf(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from modi.io import bvh, gltf
+    from modi.io.formats import check_motion
+
+    out = Path(args.output)
+    if out.suffix.lower() not in gltf.SUFFIXES:
+        raise UserError(f"{args.output}: the output name must end in .glb or .gltf")
+    if args.side_buffer and out.suffix.lower() != ".gltf":
+        raise UserError("--side-buffer needs an output ending in .gltf")
+    ct.input_file(args.input)
+    if not out.absolute().parent.is_dir():
+        raise UserError(f"{args.output}: folder {out.absolute().parent} does not exist")
+    ct.refuse_overwrite(args.output, [args.input])
+    if args.side_buffer:
+        ct.refuse_overwrite(out.with_suffix(".bin"), [args.input], "buffer file")
+    b = bvh.load(args.input)
+    check_motion(b, args.input)
+    unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer)
+    print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {unit.describe()}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,6 +9,7 @@ from typing import Callable
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
@@ -87,6 +88,7 @@ def register(subparsers) -> None:
     g.add_argument("--crowd-spacing", type=ct.positive_finite_float, default=None, help="grid spacing of a crowd (default: 1.5 x body size)")
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
     g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
+    add_format_options(g)
     g.set_defaults(func=_generate)
     add_view_option(g)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 _LATENT_HELP = "a seed (integer or seed:N), 'mean', or a .npy W/W+ latent file"
@@ -24,6 +25,7 @@ def _common(p: argparse.ArgumentParser, out: bool = True) -> None:
     p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
     p.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
+    add_format_options(p)
 
 
 def register(subparsers) -> None:

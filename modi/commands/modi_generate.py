@@ -6,6 +6,7 @@ import time
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 
@@ -27,6 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--gif-max", type=ct.int_range(0, 256), default=16, help="motions in the GIF grid (0: no GIF)")
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
     p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")
+    add_format_options(p)
     p.set_defaults(func=run)
     add_view_option(p)
 
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     if args.gif_max:
         write_outputs(codec, x[:args.gif_max], args.out, bvh=False, contacts=False, gif=True, max_gif=args.gif_max,
                       ik=args.ik)
-    what = f"{len(written)} BVH files" if written else f"{args.n} position arrays"
+    what = f"{len(written)} motion files ({','.join(args.format)})" if written else f"{args.n} position arrays"
     print(f"modi generate: {what} in {args.out} (sampling {t_gen:.2f} s, {args.n / max(t_gen, 1e-9):.1f} motions/s; "
           f"total {time.perf_counter() - t0:.1f} s)")
     return 0

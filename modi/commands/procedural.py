@@ -6,6 +6,7 @@ import time
 
 from modi import cli_types as ct
 from modi.errors import UserError
+from modi.io.formats import add_format_options
 
 
 def register(subparsers) -> None:
@@ -22,6 +23,7 @@ def register(subparsers) -> None:
     p.add_argument("--fps", type=ct.fps_float, default=30.0, help="frame rate")
     p.add_argument("--seed", type=ct.seed_int, default=0, help="random seed")
     p.add_argument("--kinds", default=",".join(KINDS), help="comma-separated clip kinds, used in turn")
+    add_format_options(p)
     p.set_defaults(func=run)
 
 

@@ -82,13 +82,18 @@ def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
                frame_time=1.0 / float(fps or seq.fps), motion=motion)
 
 
-def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path) -> Path:
-    from modi.io.bvh import save
+def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path, contacts: Tensor | None = None) -> Path:
+    """Write the motion at ``path`` in the requested ``--format`` formats (``modi.io.formats``); ``contacts`` (T, F) in
+    ``seq.feet`` order go into glTF extras. Returns the first format's path."""
+    from modi.io.formats import save_motion
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    save(to_bvh(seq, quats, root), str(path))
-    return path
+    labels = None
+    if contacts is not None and seq.feet:
+        c = contacts.detach().cpu().numpy()
+        labels = {seq.skeleton.names[f]: c[:, k] for k, f in enumerate(seq.feet)}
+    return save_motion(to_bvh(seq, quats, root), path, contacts=labels)
 
 
 # ------------------------------------------------------------------------------------------- metrics
@@ -415,7 +420,7 @@ def generate_command(args) -> dict:
             root[:, 0] += (i % cols) * spacing
             root[:, 2] += (i // cols) * spacing
         name = f"sample_{i:03d}.bvh" if len(samples) > 1 else "sample.bvh"
-        written.append(str(write_bvh(seq, quats, root, out / name)))
+        written.append(str(write_bvh(seq, quats, root, out / name, contacts=contacts)))
         positions.append(positions_of(seq, quats, root).numpy())
         mask = np.zeros((quats.shape[0], seq.n_joints), dtype=bool)
         if seq.feet:

@@ -578,15 +578,8 @@ def dumps(bvh: Bvh, precision: int = 6) -> str:
 
 
 def save(bvh: Bvh, path: str | os.PathLike, precision: int = 6) -> None:
-    """Write ``bvh`` to ``path`` (see :func:`dumps`); written to a temporary name and renamed, so a
-    crash never leaves half a file."""
-    text = dumps(bvh, precision)
-    path = os.fspath(path)
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        with open(tmp, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    """Write ``bvh`` to ``path`` (see :func:`dumps`) through :func:`modi.faults.atomic_write`, so a crash or a full
+    disk never leaves half a file (a full disk is one ``OutputError`` line)."""
+    from modi.faults import atomic_write
+
+    atomic_write(path, dumps(bvh, precision))

@@ -460,7 +460,8 @@ def _node_static(node: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.ndarray, float, np.ndarray | None]:
     """``(names, parents, positions (T, J, 3) in the file's units -- metres for glTF --, fps, contacts)`` of a glTF.
 
-    Joints are the first skin's joints (all nodes when there is no skin), ordered so parents come first; frames are
+    Joints are the first skin's joints (all nodes when there is no skin), in the skin's order when parents come first
+    there, else depth first; frames are
     the first animation's key times (the union over its samplers). Each frame's TRS is sampled from the accessors
     and turned into positions by :func:`modi.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
     the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
@@ -490,6 +491,10 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
         stack.extend(reversed(nodes[i].get("children", [])))
     if not order:
         raise UserError(f"{path}: no joint node is in the scene")
+    skin_order = list(skins[0]["joints"]) if skins else []
+    if sorted(skin_order) == sorted(order) and all(
+            parent_of.get(i) not in members or skin_order.index(parent_of[i]) < k for k, i in enumerate(skin_order)):
+        order = skin_order  # the writer's own order (a BVH's file order) whenever parents already come first
     index = {n: k for k, n in enumerate(order)}
 
     def joint_parent(i: int) -> int:

@@ -61,7 +61,7 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
                    gif: bool = True, size: tuple[int, int] = (520, 400)) -> Crowd:
     """Sample ``k`` variations of the motion of ``w`` and write ``crowd_NN.bvh`` (placed on a grid) plus
     ``crowd.gif`` with every character in one scene. ``include_source`` adds the original motion as ``crowd_00``."""
-    from modi.io import bvh as bvh_io
+    from modi.io.formats import save_motion
     from modi.motion import Motion
     from modi.viz.render import render_positions
 
@@ -81,9 +81,7 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
         off = torch.as_tensor(offsets[i], dtype=m.root_positions.dtype)
         placed = Motion(m.skeleton, m.rotations, m.root_positions + off, m.fps)
         name = f"crowd_{i:02d}" + ("_source" if include_source and i == 0 else "")
-        p = out / f"{name}.bvh"
-        bvh_io.save(placed.to_bvh(), p)
-        paths.append(str(p))
+        paths.append(str(save_motion(placed.to_bvh(), out / f"{name}.bvh")))
         positions.append(placed.positions().detach().cpu().numpy())
     res.files["bvh"] = paths
     if gif:

@@ -295,8 +295,9 @@ def decode_positions(codec: Any, x: Tensor) -> tuple[list[np.ndarray], list[np.n
 def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequence[str],
                   gif: str | None = "preview.gif", titles: Sequence[str] | None = None,
                   size: tuple[int, int] = (220, 220), view: str | None = "view.html") -> list[Path]:
-    """Write each motion as ``{name}.bvh`` and all of them side by side in one GIF; returns the BVH paths."""
-    from modi.io import bvh as bvh_io
+    """Write each motion as ``{name}.bvh`` (and/or the other ``--format`` formats) and all of them side by side in one
+    GIF; returns the motion paths."""
+    from modi.io.formats import save_motion
     from modi.modi_model.sampling import render_gif
 
     out = Path(out_dir)
@@ -306,9 +307,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
         raise ValueError(f"{len(names)} names for {x.shape[0]} motions")
     paths = []
     for m, name in zip(codec.to_motions(x), names):
-        p = out / f"{name}.bvh"
-        bvh_io.save(m.to_bvh(), p)
-        paths.append(p)
+        paths.append(save_motion(m.to_bvh(), out / f"{name}.bvh"))
     if gif:
         pos, con = decode_positions(codec, x)
         try:

@@ -122,7 +122,7 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
                   prefix: str = "motion", start_index: int = 0) -> list[Path]:
     """Write generated tensors: ``{prefix}_NNNN.bvh`` (+ ``_contacts.npy``, (T, F) uint8 in ``codec.feet``
     order) per motion and one GIF grid of the first ``max_gif``; returns the BVH paths."""
-    from modi.io import bvh as bvh_io
+    from modi.io.formats import save_motion
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -137,9 +137,8 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
             motions = [cleanup_feet(m, c, codec.feet) for m, c in zip(motions, con)]
             positions = [m.positions().detach().cpu().numpy() for m in motions]
         for i, m in enumerate(motions if bvh else []):
-            path = out / f"{prefix}_{start_index + i:04d}.bvh"
-            bvh_io.save(m.to_bvh(), path)
-            written.append(path)
+            labels = {codec.skeleton.names[f]: con[i][:, k] for k, f in enumerate(codec.feet)}
+            written.append(save_motion(m.to_bvh(), out / f"{prefix}_{start_index + i:04d}.bvh", contacts=labels))
     elif codec.positions_mode:
         for i, p in enumerate(positions):
             np.save(out / f"{prefix}_{start_index + i:04d}_positions.npy", p.astype(np.float32))
