@@ -98,7 +98,10 @@ def _run(argv: list[str] | None) -> int:
         return 2
     created = _new_output_roots(args)
     try:
-        return int(func(args) or 0)
+        from modi.io.formats import requested  # --format / --gltf-scale of commands that write motion
+
+        with requested(getattr(args, "format", None), getattr(args, "gltf_scale", None)):
+            return int(func(args) or 0)
     except BaseException:
         for root in created:  # a user error found after the output folder was made: leave nothing behind
             _remove_if_empty(root)
