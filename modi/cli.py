@@ -10,7 +10,8 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
   an output folder the command created and left empty when it failed is removed again;
 * Ctrl-C at any moment -- while torch is imported, while parsing, while running -- prints ``modi: interrupted`` and
   exits 130 (``modi train``, ``modi ganimator train`` and ``modi encoder train`` catch it earlier and save a
-  resumable checkpoint);
+  resumable checkpoint; SIGTERM there does the same and exits 143, see ``modi.faults``);
+* a full disk, a read-only folder, or a run folder another run holds is one line and exit 2 (``modi.faults``);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
 from __future__ import annotations
@@ -130,13 +131,23 @@ def main(argv: list[str] | None = None) -> int:
         _say("out of memory: ask for fewer or shorter motions, or a smaller --batch")
         return 2
     except OSError as exc:  # disk full, read-only file system, ...: the environment, not a bug
-        _say(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
+        import errno
+
+        if exc.filename and exc.errno in (errno.ENOSPC, errno.EROFS):
+            from modi.faults import describe_os_error
+
+            _say(describe_os_error(exc, exc.filename))
+        else:
+            _say(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
         return 2
     except Exception as exc:  # noqa: BLE001 - last resort: a bug
         text = str(exc)
         if type(exc).__name__ == "OutOfMemoryError" or (isinstance(exc, RuntimeError) and (
                 "can't allocate memory" in text or "out of memory" in text.lower())):  # torch's allocators
             _say("out of memory: ask for fewer or shorter motions, a lower --fps or a smaller --batch")
+            return 2
+        if isinstance(exc, RuntimeError) and "inline_container" in text and "unexpected pos" in text:
+            _say("a torch file could not be written whole (torch's 'unexpected pos': the disk is most likely full)")
             return 2
         if os.environ.get(TRACEBACK_ENV, "") not in ("", "0"):
             raise
