@@ -92,9 +92,11 @@ def test_cli_refuses_bad_input_and_writes_nothing(clips, tmp_path, capsys):
     text_file.write_text("HIERARCHY\n")
     broken = tmp_path / "broken.bvh"
     broken.write_text("HIERARCHY\nROOT Hips\n{\n")
+    junk_glb = tmp_path / "junk.glb"
+    junk_glb.write_bytes(bytes(range(256)) * 2)
     out = tmp_path / "sub" / "view.html"
     for bad in ([str(tmp_path / "missing.bvh")], [str(tmp_path)], [str(text_file)], [str(garbage)],
-                [str(broken)], [str(clips["walk"]), str(tmp_path / "missing.glb")]):
+                [str(broken)], [str(junk_glb)], [str(clips["walk"]), str(tmp_path / "missing.glb")]):
         capsys.readouterr()
         assert main(["view", *bad, "--out", str(out)]) == 2, bad
         err = capsys.readouterr().err.strip()
@@ -251,3 +253,19 @@ def test_gif_writing_commands_write_the_viewer_beside(tiny_ckpt, tmp_path):
     with view_pages(False):
         write_outputs(codec, x, tmp_path / "gen2", bvh=False)
     assert (tmp_path / "gen2" / "samples.gif").is_file() and not (tmp_path / "gen2" / "view.html").exists()
+
+
+@needs_chromium
+def test_notebook_iframe_renders_in_chromium(clips, tmp_path):
+    from PIL import Image
+
+    nb = tmp_path / "notebook.html"  # what Jupyter does with _repr_html_: put the fragment into its page
+    nb.write_text("<!DOCTYPE html><html><body><h3>cell output</h3>" + show(str(clips["walk"]))._repr_html_()
+                  + "</body></html>", encoding="utf-8")
+    png = tmp_path / "nb.png"
+    r = chromium(nb.as_uri(), f"--screenshot={png}", "--window-size=800,600")
+    assert png.is_file() and not console_errors(r.stderr), r.stderr[-2000:]
+    img = np.asarray(Image.open(png).convert("RGB")).astype(np.int16)
+    figure = (img.max(-1) - img.min(-1)) > 60
+    figure[:80, :250] = False  # the heading and the legend
+    assert figure.sum() > 300, "the viewer draws the figure inside the notebook's iframe"
