@@ -95,6 +95,14 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
 
 
+def atomic_save_npy(path: str | os.PathLike, array: Any) -> None:
+    """``np.save`` through :func:`atomic_output` (to a file object, so numpy adds no ``.npy`` to the name)."""
+    import numpy as np
+
+    with atomic_output(path, "wb") as f:
+        np.save(f, array)
+
+
 @contextmanager
 def output_errors(path: str | os.PathLike) -> Iterator[None]:
     """OS errors inside the block (a library writing ``path``, e.g. TensorBoard's event files) become one
@@ -411,6 +419,7 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
         os.close(fd)
 
 
-__all__ = ["OutputError", "RunFolderBusy", "atomic_output", "atomic_write", "atomic_torch_save", "append_line",
+__all__ = ["OutputError", "RunFolderBusy", "atomic_output", "atomic_write", "atomic_torch_save", "atomic_save_npy",
+           "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "hold_run_folder", "LOCK_NAME"]

@@ -78,7 +78,9 @@ class Normalizer:
             raise ValueError(f"normalizer state is missing {exc}") from None
 
     def save(self, path: str | os.PathLike) -> None:
-        torch.save(self.state_dict(), path)
+        from modi.faults import atomic_torch_save
+
+        atomic_torch_save(self.state_dict(), path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Normalizer":

@@ -88,16 +88,10 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--names {args.names} is the output array's file; choose another name")
     b = bvh.load(args.input)
     pos = bvh_positions(b).astype(np.float32)
-    tmp = f"{args.output}.tmp{os.getpid()}"
-    try:
-        with open(tmp, "wb") as fh:  # a file object, so numpy does not append ".npy" to the name
-            np.save(fh, pos)
-        os.replace(tmp, args.output)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    from modi.faults import atomic_save_npy, atomic_write
+
+    atomic_save_npy(args.output, pos)
     if args.names:
-        with open(args.names, "w", encoding="utf-8") as fh:
-            fh.write("\n".join(b.names) + "\n")
+        atomic_write(args.names, "\n".join(b.names) + "\n")
     print(f"{args.output}: {pos.shape[0]} frames x {pos.shape[1]} joints x 3 (float32, {b.fps:g} fps)")
     return 0

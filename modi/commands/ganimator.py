@@ -289,6 +289,8 @@ def _evaluate(args) -> int:
     text = json.dumps(figures, indent=2)
     print(text if args.json == "-" else format_figures(figures))
     if args.json and args.json != "-":
+        from modi.faults import atomic_write
+
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(text + "\n")
+        atomic_write(args.json, text + "\n")
     return 0

@@ -194,7 +194,9 @@ def save_latent(path: str | os.PathLike, w: Tensor) -> Path:
     """Write one latent ((D,) W or (L, D) W+) or a batch as float32 ``.npy``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.save(path, w.detach().cpu().float().numpy())
+    from modi.faults import atomic_save_npy
+
+    atomic_save_npy(path, w.detach().cpu().float().numpy())
     return path
 
 

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from modi.errors import CheckpointError, UserError
+from modi.faults import atomic_save_npy
 from modi.modi_model.checkpoint import REQUIRED_KEYS, load_checkpoint  # noqa: F401 - re-exported
 
 
@@ -141,10 +142,10 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
             written.append(save_motion(m.to_bvh(), out / f"{prefix}_{start_index + i:04d}.bvh", contacts=labels))
     elif codec.positions_mode:
         for i, p in enumerate(positions):
-            np.save(out / f"{prefix}_{start_index + i:04d}_positions.npy", p.astype(np.float32))
+            atomic_save_npy(out / f"{prefix}_{start_index + i:04d}_positions.npy", p.astype(np.float32))
     if contacts:
         for i, c in enumerate(con):
-            np.save(out / f"{prefix}_{start_index + i:04d}_contacts.npy", c.astype(np.uint8))
+            atomic_save_npy(out / f"{prefix}_{start_index + i:04d}_contacts.npy", c.astype(np.uint8))
     if gif and positions:
         render_gif(codec, positions[:max_gif], con[:max_gif], out / gif_name,
                    titles=[f"{start_index + i}" for i in range(min(len(positions), max_gif))])
