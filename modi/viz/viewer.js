@@ -54,7 +54,12 @@
     }
     return [lo, hi];
   }
-  motions.forEach(function (m) { m.bounds = bounds(m); });
+  motions.forEach(function (m) {
+    m.bounds = bounds(m);
+    m.centre = Math.max(0, m.hide.indexOf(1));  // the hips when the root is a floor marker, else the root
+    m.marker = m.hide.map(function () { return 0; });
+    m.hide.forEach(function (h, j) { if (h) m.marker[m.parents[j]] = 1; });
+  });
   function applyLayout(kind) {
     var n = motions.length, cols = Math.ceil(Math.sqrt(n)), sp = hMax;
     motions.forEach(function (m) {
@@ -77,11 +82,34 @@
 
   // ---------------------------------------------------------------------------------------------- camera
   var cam = {};
+  function groupCentre(f) {  // mean ground position of the bodies at frame f (what 'follow' looks at)
+    var sx = 0, sz = 0;
+    motions.forEach(function (m) { var c = joint(m, frameOf(m, f), m.centre); sx += c[0]; sz += c[2]; });
+    return [sx / motions.length, sz / motions.length];
+  }
+  function fitDistance() {
+    var r;
+    if (followBox.checked) {  // the group around its moving centre, not the ground it covers
+      r = 0;
+      for (var f = 0; f < nFrames; f += Math.max(1, Math.floor(nFrames / 200))) {
+        var g = groupCentre(f);
+        motions.forEach(function (m) {
+          var c = joint(m, frameOf(m, f), m.centre);
+          r = Math.max(r, Math.sqrt((c[0] - g[0]) * (c[0] - g[0]) + (c[2] - g[1]) * (c[2] - g[1])));
+        });
+      }
+      r = Math.sqrt((r + 0.6 * hMax) * (r + 0.6 * hMax) + 0.25 * hMax * hMax) + 0.1 * hMax;
+      cam.dist = r / Math.sin(FOV / 2);
+    } else {
+      var dx = box[1][0] - box[0][0], dy = box[1][1] - box[0][1], dz = box[1][2] - box[0][2];
+      r = 0.5 * Math.sqrt(dx * dx + dy * dy + dz * dz) + 0.1 * hMax;
+      cam.dist = 0.8 * r / Math.sin(FOV / 2);  // the scene is flat: the bounding sphere over-fits
+    }
+  }
   function resetCamera() {
-    var dx = box[1][0] - box[0][0], dy = box[1][1] - box[0][1], dz = box[1][2] - box[0][2];
-    var r = 0.5 * Math.sqrt(dx * dx + dy * dy + dz * dz) + 0.1 * hMax;
     cam.target = [(box[0][0] + box[1][0]) / 2, 0.45 * box[1][1], (box[0][2] + box[1][2]) / 2];
-    cam.dist = 0.8 * r / Math.sin(FOV / 2);  // the scene is flat: the bounding sphere over-fits
+    cam.home = cam.target.slice();
+    fitDistance();
     cam.az = num('az', 35) * Math.PI / 180;
     cam.el = num('el', 18) * Math.PI / 180;
   }
@@ -153,10 +181,9 @@
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     ctx.fillStyle = D.style.background; ctx.fillRect(0, 0, W, H);
     var target = cam.target;
-    if (followBox.checked) {
-      var sx = 0, sz = 0;
-      motions.forEach(function (m) { var r = joint(m, frameOf(m, frame), 0); sx += r[0]; sz += r[2]; });
-      target = [sx / motions.length, cam.target[1], sz / motions.length];
+    if (followBox.checked) {  // the group's centre, shifted by any pan since the reset
+      var g = groupCentre(frame);
+      target = [g[0] + cam.target[0] - cam.home[0], cam.target[1], g[1] + cam.target[2] - cam.home[2]];
     }
     setupView(target);
     drawGrid();
@@ -173,7 +200,7 @@
         var c = toCam(P[j]);
         var on = m.con ? m.con[t * m.J + j] === 1 : false;
         if (on) ring(P[j], 0.04 * hMax, D.style.contactRing);
-        if (c[2] > NEAR) drawn.push({m: mi, j: j, s: project(c), on: on, depth: c[2]});
+        if (c[2] > NEAR && !m.marker[j]) drawn.push({m: mi, j: j, s: project(c), on: on, depth: c[2]});
         p = m.parents[j];
         if (p >= 0 && !m.hide[j]) bones.push({a: P[p], b: P[j], color: m.color[m.side[j]], depth: (toCam(P[p])[2] + c[2]) / 2});
       }
@@ -235,8 +262,9 @@
   scrub.addEventListener('input', function () { setPlaying(false); seek(parseInt(scrub.value, 10)); });
   speedSel.addEventListener('change', function () { speed = parseFloat(speedSel.value); });
   layoutSel.addEventListener('change', function () { applyLayout(layoutSel.value); resetCamera(); draw(); });
-  followBox.addEventListener('change', draw);
+  followBox.addEventListener('change', function () { fitDistance(); draw(); });
   window.addEventListener('keydown', function (e) {
+    if (/^(BUTTON|INPUT|SELECT)$/.test(e.target.tagName)) return;  // the control handles its own keys
     if (e.key === ' ') { setPlaying(!playing); e.preventDefault(); }
     else if (e.key === 'ArrowRight') { setPlaying(false); seek(frame + 1); }
     else if (e.key === 'ArrowLeft') { setPlaying(false); seek(frame - 1); }
@@ -275,7 +303,6 @@
   // ---------------------------------------------------------------------------------------------- start
   scrub.max = nFrames - 1;
   layoutSel.value = q.get('layout') === 'scene' || q.get('layout') === 'grid' ? q.get('layout') : D.layout;
-  followBox.checked = q.get('follow') === '1';
   speed = num('speed', 1); speedSel.value = String(speed);
   if (speedSel.value !== String(speed)) {
     var opt = document.createElement('option'); opt.value = opt.textContent = String(speed);
@@ -284,10 +311,13 @@
   motions.forEach(function (m) {
     var item = document.createElement('span'), sw = document.createElement('i');
     sw.style.background = m.color[0]; item.appendChild(sw);
-    item.appendChild(document.createTextNode(m.title + (m.con ? '' : '')));
+    item.appendChild(document.createTextNode(m.title));
     legend.appendChild(item);
   });
   applyLayout(layoutSel.value);
+  // follow by default when the motions cover much more ground than a body (long walks); ?follow=0/1 decides
+  followBox.checked = q.get('follow') === '1' || (q.get('follow') !== '0' &&
+      Math.max(box[1][0] - box[0][0], box[1][2] - box[0][2]) > 4 * hMax);
   resetCamera();
   setPlaying(q.get('paused') !== '1');
   seek(num('frame', 0));

@@ -89,19 +89,26 @@ def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
 
 
 def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> ViewMotion:
+    import torch
+
+    from modi.contacts import foot_contacts
     from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
-    from modi.viz.render import _feet_of, foot_contacts
+    from modi.viz.render import _feet_of
 
     b = bvh_io.load(path)
     pos = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
     height = b.skeleton().height()
+    con = None
+    if contacts:  # the repo's labeller (as for training data), on the ankles and toes
+        feet = _feet_of(b)
+        con = np.zeros(pos.shape[:2], dtype=bool)
+        con[:, feet] = foot_contacts(torch.from_numpy(pos), feet, height, b.fps).numpy() > 0.5
     if scale is None:
         scale, unit = guess_scale(height)
         note = f"body size {height:.4g} file units looks like {unit}: x {scale:g} to metres (--scale overrides)"
     else:
         note = f"x {scale:g} to metres (--scale)"
-    con = foot_contacts(pos, _feet_of(b), b.fps) if contacts else None
     return ViewMotion(path.stem, list(b.names), list(b.parents), pos * scale, b.fps, con, note)
 
 
@@ -183,6 +190,11 @@ def _side_codes(names: Sequence[str]) -> list[int]:
     return [_side_of(n) for n in names]
 
 
+def _body_size(p: np.ndarray) -> float:
+    """Median over frames of the figure's largest extent (metres): sets the grid step, line widths, spacing."""
+    return float(max(np.median(np.ptp(p, axis=1).max(axis=-1)), 1e-3))
+
+
 def _pack(m: ViewMotion, index: int) -> dict:
     """int16 positions with a per-motion origin and one step (error <= step/2), contacts as a bit field."""
     p = m.positions.copy()
@@ -191,14 +203,16 @@ def _pack(m: ViewMotion, index: int) -> dict:
     span = float((p.reshape(-1, 3).max(0) - lo).max())
     step = max(span / 65535.0, 1e-9)
     qv = np.clip(np.round((p - lo) / step) - 32768, -32768, 32767).astype("<i2")
-    ext = np.ptp(p, axis=1).max(axis=-1)  # per-frame extent: the body size in metres
-    height = float(max(np.median(ext), 1e-3))
+    height = _body_size(p)
     # a "bone" from the root whose length changes is a translation (e.g. Bandai's floor root -> hips), not a limb
     hide = [0] * len(m.parents)
     for j, par in enumerate(m.parents):
         if par >= 0 and m.parents[par] < 0:
             length = np.linalg.norm(p[:, j] - p[:, par], axis=-1)
             hide[j] = int(np.ptp(length) > 0.1 * height)
+    if any(hide):  # such a root is not part of the body: size the body without it
+        body = [j for j in range(p.shape[1]) if not any(h and m.parents[c] == j for c, h in enumerate(hide))]
+        height = _body_size(p[:, body])
     d = {"title": m.title, "names": m.names, "parents": m.parents, "side": _side_codes(m.names), "fps": m.fps,
          "frames": int(p.shape[0]), "origin": [float(v) for v in lo], "step": step, "color": index,
          "height": height, "hide": hide, "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
@@ -220,7 +234,7 @@ pointer-events:none;white-space:nowrap}
 #legend{position:absolute;left:8px;top:6px;pointer-events:none}#legend span{margin-right:12px}
 #legend i{display:inline-block;width:10px;height:10px;margin-right:4px;border-radius:2px}
 #bar{height:40px;display:flex;align-items:center;gap:10px;padding:0 10px;background:#e9e9e4;box-sizing:border-box}
-#bar label{white-space:nowrap}#scrub{flex:1;min-width:80px}#frame{min-width:150px;font-variant-numeric:tabular-nums}#hint{color:#777;white-space:nowrap;overflow:hidden}
+#bar label{white-space:nowrap}#scrub{flex:1;min-width:80px}#frame{min-width:150px;white-space:nowrap;font-variant-numeric:tabular-nums}#hint{color:#777;white-space:nowrap;overflow:hidden}
 """
 
 
