@@ -4,6 +4,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -270,3 +271,117 @@ def test_notebook_iframe_renders_in_chromium(clips, tmp_path):
     figure = (img.max(-1) - img.min(-1)) > 60
     figure[:80, :250] = False  # the heading and the legend
     assert figure.sum() > 300, "the viewer draws the figure inside the notebook's iframe"
+
+
+class _DevTools:
+    """A minimal Chrome DevTools Protocol client over ``--remote-debugging-pipe`` (fd 3 in, fd 4 out, NUL-framed
+    JSON): real mouse and key events, and every console error and uncaught exception of the page."""
+
+    def __init__(self, width: int = 800, height: int = 600):
+        import select  # noqa: F401 - checked here so a platform without it fails at once
+
+        cmd = ["sh", "-c", 'exec "$0" "$@" 3<&0 4>&1 0</dev/null 1>/dev/null', CHROMIUM, "--headless=new",
+               "--disable-gpu", "--no-sandbox", "--hide-scrollbars", "--mute-audio", "--no-first-run",
+               "--remote-debugging-pipe", f"--window-size={width},{height}", "about:blank"]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        self.buf, self.next_id, self.errors, self.session = b"", 0, [], None
+        target = self.call("Target.createTarget", url="about:blank")["targetId"]
+        self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        for domain in ("Runtime", "Log", "Page"):
+            self.call(f"{domain}.enable")
+
+    def _events(self, msg: dict) -> None:
+        method, params = msg.get("method"), msg.get("params", {})
+        if method == "Runtime.exceptionThrown":
+            d = params["exceptionDetails"]
+            self.errors.append(d.get("exception", {}).get("description") or d.get("text"))
+        elif method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
+            self.errors.append(" ".join(str(a.get("value", a.get("description"))) for a in params.get("args", [])))
+        elif method == "Log.entryAdded" and params["entry"].get("level") == "error":
+            self.errors.append(params["entry"].get("text"))
+
+    def call(self, method: str, timeout: float = 30.0, **params) -> dict:
+        import select
+        import time
+
+        self.next_id += 1
+        msg = {"id": self.next_id, "method": method, "params": params}
+        if self.session:
+            msg["sessionId"] = self.session
+        self.proc.stdin.write(json.dumps(msg).encode() + b"\0")
+        self.proc.stdin.flush()
+        end = time.monotonic() + timeout
+        while True:
+            while b"\0" in self.buf:
+                raw, self.buf = self.buf.split(b"\0", 1)
+                reply = json.loads(raw)
+                if reply.get("id") == self.next_id:
+                    if "error" in reply:
+                        raise RuntimeError(f"{method}: {reply['error']}")
+                    return reply.get("result", {})
+                self._events(reply)
+            left = end - time.monotonic()
+            if left <= 0 or not select.select([self.proc.stdout], [], [], left)[0]:
+                raise TimeoutError(f"no reply to {method} from chromium")
+            chunk = os.read(self.proc.stdout.fileno(), 1 << 16)
+            if not chunk:
+                raise RuntimeError("chromium closed the DevTools pipe")
+            self.buf += chunk
+
+    def js(self, expression: str):
+        r = self.call("Runtime.evaluate", expression=expression, returnByValue=True, awaitPromise=True)
+        if "exceptionDetails" in r:
+            raise RuntimeError(r["exceptionDetails"])
+        return r["result"].get("value")
+
+    def mouse(self, kind: str, x: float, y: float, **kw) -> None:
+        self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, **kw)
+
+    def close(self) -> None:
+        self.proc.kill()
+        self.proc.wait(timeout=30)
+
+
+@needs_chromium
+def test_orbit_zoom_hover_keys_and_scrub_with_real_input_events(clips, tmp_path):
+    import time
+
+    out = tmp_path / "view.html"
+    walk = load_motion(clips["walk"])
+    out.write_text(page_html([walk]), encoding="utf-8")
+    head = walk.names.index("Head")
+    dt = _DevTools()
+    try:
+        dt.call("Page.navigate", url=f"{out.as_uri()}?frame=10&paused=1&follow=0")
+        for _ in range(100):
+            if dt.js("document.body && document.body.getAttribute('data-status')") == "ready":
+                break
+            time.sleep(0.05)
+        state = lambda: dt.js("modiViewer.state()")  # noqa: E731
+        s0 = state()
+        assert s0["frame"] == 10 and not s0["playing"]
+        x, y = dt.js(f"modiViewer.screenOf(0, {head})")
+        dt.mouse("mouseMoved", x, y)  # hover: the joint's name
+        tip = "document.getElementById('tip')"
+        assert dt.js(f"getComputedStyle({tip}).display") == "block" and dt.js(f"{tip}.textContent") == "Head"
+        before = dt.js("document.getElementById('view').toDataURL()")
+        dt.mouse("mousePressed", 400, 300, button="left", buttons=1, clickCount=1)
+        dt.mouse("mouseMoved", 500, 280, button="left", buttons=1)
+        dt.mouse("mouseReleased", 500, 280, button="left", buttons=0, clickCount=1)
+        s1 = state()  # dragging right turns the camera, dragging up raises it, and the picture changes
+        assert s1["az"] == pytest.approx(s0["az"] - 100 * 0.008) and s1["el"] == pytest.approx(s0["el"] - 20 * 0.008)
+        assert dt.js("document.getElementById('view').toDataURL()") != before
+        dt.mouse("mouseWheel", 400, 300, deltaX=0, deltaY=500)  # the wheel zooms out
+        assert state()["dist"] == pytest.approx(s1["dist"] * np.exp(0.5), rel=1e-6)
+        dt.js("var s = document.getElementById('scrub'); s.value = 33; s.dispatchEvent(new Event('input'))")  # the scrub bar seeks and pauses
+        assert state()["frame"] == 33 and not state()["playing"]
+        dt.call("Input.dispatchKeyEvent", type="keyDown", key="ArrowRight", code="ArrowRight",
+                windowsVirtualKeyCode=39)
+        assert state()["frame"] == 34
+        dt.call("Input.dispatchKeyEvent", type="keyDown", key=" ", code="Space", windowsVirtualKeyCode=32)
+        time.sleep(0.4)  # space plays: the frame moves on
+        s2 = state()
+        assert s2["playing"] and s2["frame"] != 34
+        assert not dt.errors, dt.errors
+    finally:
+        dt.close()

@@ -327,6 +327,16 @@
     var s = project(toCam(joint(m0, frameOf(m0, frame), mj[1]))), hit = pick(s[0], s[1]);
     document.body.setAttribute('data-probe', hit ? motions[hit.m].names[hit.j] : '');
   }
+  window.modiViewer = {  // for scripts and tests: the viewer's state, and where a joint is drawn (CSS px)
+    state: function () {
+      return {frame: frame, frames: nFrames, playing: playing, speed: speed, az: cam.az, el: cam.el,
+              dist: cam.dist, follow: followBox.checked, layout: layoutSel.value};
+    },
+    screenOf: function (mi, j) {
+      var m = motions[mi], s = project(toCam(joint(m, frameOf(m, frame), j)));
+      return [s[0], s[1]];
+    }
+  };
   document.body.setAttribute('data-status', 'ready');
   window.requestAnimationFrame(tick);
 })();
