@@ -67,22 +67,42 @@ def _finish(y: torch.Tensor, d: torch.Tensor | None, bias: torch.Tensor | None) 
     return y
 
 
+def _shared_conv(x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                 padding_mode: str, stride: int) -> torch.Tensor:
+    """``conv1d`` of ``x (B, Cin, E_in, T)`` with the masked dense weight, as ONE GEMM over batch x time.
+
+    ``(Cout*E_out, Cin*E_in*U) @ (Cin*E_in*U, B*T_out)`` on the time-unfolded input: the forward and both backward
+    products are single large GEMMs (on the CPU markedly faster than the convolution's own backward, and on CUDA
+    cuBLAS's best case), and it is all plain differentiable torch ops.
+    """
+    b, cin, n_in, t = x.shape
+    cout, _, _, u = weight.shape
+    n_out = offsets.shape[0] - 1
+    t_out = t if stride == 1 else t // 2
+    wmat = reference.to_dense(weight, index, offsets, n_in).permute(0, 2, 1, 3, 4).reshape(cout * n_out, -1)
+    xp = reference._pad_time(x.reshape(b, cin * n_in, t), u // 2, padding_mode)
+    cols = xp.unfold(-1, u, stride)[:, :, :t_out]  # (B, Cin*E_in, T_out, U)
+    cols = cols.permute(1, 3, 0, 2).reshape(cin * n_in * u, b * t_out)
+    y = (wmat @ cols).view(cout, n_out, b, t_out)
+    return y.permute(2, 0, 1, 3)
+
+
 def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                   offsets: torch.Tensor, style: torch.Tensor | None = None, demodulate: bool = False,
                   padding_mode: str = "zeros") -> torch.Tensor:
     """In-place skeletal conv, same semantics as ``reference.skeletal_conv``."""
-    y = reference.skeletal_conv(_styled(x, style), weight, None, index, offsets, None, False, padding_mode)
+    y = _shared_conv(_styled(x, style), weight, index, offsets, padding_mode, 1)
     d = demod_scale(weight, index, offsets, style, False, offsets.shape[0] - 1, x.shape[0]) if demodulate else None
-    return _finish(y, d, bias)
+    return _finish(y, d, bias).contiguous()
 
 
 def skeletal_down(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                   offsets: torch.Tensor, style: torch.Tensor | None = None, demodulate: bool = False,
                   padding_mode: str = "zeros") -> torch.Tensor:
     """Convolutional scaler fine -> coarse, same semantics as ``reference.skeletal_down``."""
-    y = reference.skeletal_down(_styled(x, style), weight, None, index, offsets, None, False, padding_mode)
+    y = _shared_conv(_styled(x, style), weight, index, offsets, padding_mode, 2)
     d = demod_scale(weight, index, offsets, style, False, offsets.shape[0] - 1, x.shape[0]) if demodulate else None
-    return _finish(y, d, bias)
+    return _finish(y, d, bias).contiguous()
 
 
 def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
