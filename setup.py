@@ -7,6 +7,8 @@ Environment switches:
   MODI_EXT_BUILD=0      build no extension (the package runs on the dense reference)
   MODI_EXT_CUDA=1|0     force the CUDA sources on or off (default: on when torch has CUDA and nvcc is found)
   MODI_EXT_DEBUG=1      -O0 -g
+  MODI_EXT_EMU=0        skip the test-only emulated-CUDA module modi_ext._C_emu (tests/test_cuda_emulated.py)
+  TORCH_CUDA_ARCH_LIST  GPU architectures of the CUDA build; default: the visible GPUs, else 8.0;9.0+PTX
 """
 from __future__ import annotations
 
@@ -23,6 +25,39 @@ ROOT = os.path.dirname(os.path.abspath(__file__))
 def _flag(name: str) -> str | None:
     value = os.environ.get(name)
     return None if value is None else value.strip().lower()
+
+
+DEFAULT_CUDA_ARCH_LIST = "8.0;9.0+PTX"  # A100, H100/H200 (+ PTX for newer GPUs)
+
+
+def _default_cuda_arch_list(current: str | None, gpu_visible: bool) -> str | None:
+    """The TORCH_CUDA_ARCH_LIST to set for a CUDA build, or None to keep what is there.
+
+    Unset, torch derives the list from the visible GPUs, and with none visible (a build machine, a container build)
+    ``_get_cuda_arch_flags`` raises IndexError; so default to the data-centre GPUs MoDi trains on."""
+    if current is not None and current.strip():
+        return None
+    return None if gpu_visible else DEFAULT_CUDA_ARCH_LIST
+
+
+def _nvcc_flags(opt: list[str]) -> list[str]:
+    """Our nvcc flags (torch adds its COMMON_NVCC_FLAGS and the arch flags); .ci/cuda_compile_check reads these."""
+    return opt + ["--use_fast_math"]
+
+
+def _emu_module(cpp_extension, cxx_flags: list[str]):
+    """Test-only: the csrc/cuda kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
+    if _flag("MODI_EXT_EMU") in ("0", "false", "no", "off"):
+        return None
+    # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI)
+    flags = ["-O1", "-g0", "-Wno-unknown-pragmas"] + [f for f in cxx_flags if f.startswith("-march")]
+    return cpp_extension.CppExtension(
+        name="modi_ext._C_emu",
+        sources=sorted(glob.glob("csrc/emu/*.cpp")) + ["csrc/skeletal_defs.cpp", "csrc/fk_defs.cpp"],
+        include_dirs=[os.path.join(ROOT, "csrc")],
+        define_macros=[("MODI_EXT_EMULATE_CUDA", "1")],
+        extra_compile_args={"cxx": flags},
+    )
 
 
 def extension_modules():
@@ -70,12 +105,19 @@ def extension_modules():
         sources=cpp_sources + (cuda_sources if use_cuda else []),
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=define_macros,
-        extra_compile_args={"cxx": cxx_flags, "nvcc": opt + ["--use_fast_math"]},
+        extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt)},
         extra_link_args=["-fopenmp"],
     )
+    if use_cuda:
+        arch = _default_cuda_arch_list(os.environ.get("TORCH_CUDA_ARCH_LIST"), torch.cuda.device_count() > 0)
+        if arch is not None:
+            os.environ["TORCH_CUDA_ARCH_LIST"] = arch
+            print(f"modi_ext: no GPU visible, TORCH_CUDA_ARCH_LIST={arch}", file=sys.stderr)
     ext = cpp_extension.CUDAExtension(**kwargs) if use_cuda else cpp_extension.CppExtension(**kwargs)
     print(f"modi_ext: building the {'CPU+CUDA' if use_cuda else 'CPU'} extension", file=sys.stderr)
-    return [ext], {"build_ext": cpp_extension.BuildExtension.with_options(use_ninja=True)}
+    emu = _emu_module(cpp_extension, cxx_flags)
+    build_ext = cpp_extension.BuildExtension.with_options(use_ninja=True)
+    return [ext] + ([emu] if emu is not None else []), {"build_ext": build_ext}
 
 
 ext_modules, cmdclass = extension_modules()

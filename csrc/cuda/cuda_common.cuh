@@ -6,15 +6,71 @@
 #pragma once
 
 #include <ATen/ATen.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
-#include <cuda_runtime.h>
 
 #include <atomic>
 #include <cstdint>
+#include <utility>
+
+#ifdef MODI_EXT_EMULATE_CUDA
+// Test-only build: the same sources as host C++ on the CPU emulator (csrc/emu, tests/test_cuda_emulated.py).
+#include "emu/cuda_emu.h"
+#define MODI_CUDA_LIB MODI_EMU_LIB  // its own op namespace, CPU dispatch key only: never real CUDA tensors
+#define MODI_CUDA_KEY CPU
+#else
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <cuda_runtime.h>
+#define MODI_CUDA_LIB modi_ext
+#define MODI_CUDA_KEY CUDA
+#endif
+
+// The one launch site of every kernel: `<<<>>>` under nvcc, the emulator's launch otherwise.  Parenthesise a
+// template kernel name: MODI_LAUNCH((kernel<T, 32>), grid, block, smem, stream, args...).
+#ifdef MODI_EXT_EMULATE_CUDA
+#define MODI_LAUNCH(K, grid, block, smem, stream, ...) \
+  ((void)(stream), ::modi_emu::launch<K>(grid, block, smem, __VA_ARGS__))
+#else
+#define MODI_LAUNCH(K, grid, block, smem, stream, ...) \
+  ::modi_ext::cuda::launch_kernel(K, grid, block, smem, stream, __VA_ARGS__)
+#endif
+
+// Shared memory declarations, one text for both builds: MODI_SHARED(float, As, [2][16][65]) is
+// `__shared__ float As[2][16][65]` under nvcc and a bounds-checked, poisoned block-local array in the emulator;
+// MODI_DYNAMIC_SHARED(unsigned char, raw) is the `extern __shared__` buffer of the launch's dynamic size.
+#ifdef MODI_EXT_EMULATE_CUDA
+#define MODI_SHARED(T, name, dims) const auto name = ::modi_emu::shared_array<T dims>(#name, __LINE__)
+#define MODI_DYNAMIC_SHARED(T, name) T* const name = reinterpret_cast<T*>(::modi_emu::dynamic_shared())
+#else
+#define MODI_SHARED(T, name, dims) __shared__ T name dims
+#define MODI_DYNAMIC_SHARED(T, name) extern __shared__ __align__(16) T name[]
+#endif
+
+// Test-only defect injection (emulator build with -DMODI_EMU_INJECT=off_by_one): 0 everywhere else.
+#if defined(MODI_EXT_EMULATE_CUDA) && MODI_EMU_INJECTED == MODI_EMU_INJECT_OFF_BY_ONE_ID
+#define MODI_EMU_OFF_BY_ONE 1
+#else
+#define MODI_EMU_OFF_BY_ONE 0
+#endif
 
 namespace modi_ext {
 namespace cuda {
+
+#ifndef MODI_EXT_EMULATE_CUDA
+template <typename... P, typename... Args>
+inline void launch_kernel(void (*kernel)(P...), dim3 grid, dim3 block, size_t smem, cudaStream_t stream,
+                          Args&&... args) {
+  kernel<<<grid, block, smem, stream>>>(std::forward<Args>(args)...);
+}
+#endif
+
+// Tensors the kernels run on: CUDA tensors (CPU tensors in the emulator build).
+inline bool on_device(const at::Tensor& t) {
+#ifdef MODI_EXT_EMULATE_CUDA
+  return t.is_cpu();
+#else
+  return t.is_cuda();
+#endif
+}
 
 // Accumulator type: fp32 for float / half / bfloat16, fp64 for double (gradcheck).
 template <typename T>
@@ -70,9 +126,9 @@ __device__ __forceinline__ A warp_sum(A v) {
 }
 
 // Block sum for blockDim.x a multiple of 32 and <= 1024; the result is valid in thread 0.
-// `scratch` holds 32 values; the function ends with the block synchronised, so it can be called again.
-template <typename A>
-__device__ __forceinline__ A block_sum(A v, A* scratch) {
+// `scratch` is a shared array of 32 values; the function ends with the block synchronised, so it can be called again.
+template <typename A, typename Scratch>
+__device__ __forceinline__ A block_sum(A v, Scratch& scratch) {
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5, nwarps = blockDim.x >> 5;
   v = warp_sum(v);
   if (lane == 0) scratch[warp] = v;

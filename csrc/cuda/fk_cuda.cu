@@ -13,9 +13,6 @@
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
-#include <cuda_runtime.h>
 
 #include <vector>
 
@@ -69,7 +66,7 @@ struct FkSmem {
 template <typename T, bool kSmem>
 __device__ __forceinline__ FkSmem<acc_t<T>> stage_topology(const T* off, const FkParents& par) {
   using A = acc_t<T>;
-  extern __shared__ __align__(16) unsigned char fk_smem_raw[];
+  MODI_DYNAMIC_SHARED(unsigned char, fk_smem_raw);
   const int J = par.J, nt = blockDim.x;
   FkSmem<A> s;
   s.state = reinterpret_cast<A*>(fk_smem_raw);
@@ -260,7 +257,7 @@ __global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restri
 template <typename T>
 __global__ void fk_offsets_reduce_kernel(const acc_t<T>* __restrict__ part, int64_t n_warps, T* __restrict__ goff) {
   using A = acc_t<T>;
-  __shared__ A scratch[32];
+  MODI_SHARED(A, scratch, [32]);
   const A* row = part + int64_t(blockIdx.x) * n_warps;
   A s = A(0);
   for (int64_t w = threadIdx.x; w < n_warps; w += blockDim.x) s += row[w];
@@ -302,7 +299,7 @@ Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, at::
   TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
               "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
               local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
-  TORCH_CHECK(local_quats.is_cuda(), "modi_ext::fk: local_quats must be a CUDA tensor for the CUDA kernel, got ",
+  TORCH_CHECK(cuda::on_device(local_quats), "modi_ext::fk: local_quats must be a CUDA tensor for the CUDA kernel, got ",
               local_quats.device());
   TORCH_CHECK(cuda::is_cuda_float(local_quats.scalar_type()),
               "modi_ext::fk: local_quats must be float32, float64, float16 or bfloat16, got ",
@@ -368,11 +365,11 @@ std::tuple<at::Tensor, at::Tensor> fk_cuda(const at::Tensor& local_quats, const 
     using A = acc_t<T>;
     A* wsp = ws.defined() ? ws.data_ptr<A>() : nullptr;
     if (plan.smem_state) {
-      fk_forward_kernel<T, true><<<blocks, plan.threads, plan.smem_bytes, stream>>>(
+      MODI_LAUNCH((fk_forward_kernel<T, true>), blocks, plan.threads, plan.smem_bytes, stream,
           local_quats.data_ptr<T>(), offsets.data_ptr<T>(), root_positions.data_ptr<T>(), positions.data_ptr<T>(),
           global_quats.data_ptr<T>(), wsp, d.N, par);
     } else {
-      fk_forward_kernel<T, false><<<blocks, plan.threads, plan.smem_bytes, stream>>>(
+      MODI_LAUNCH((fk_forward_kernel<T, false>), blocks, plan.threads, plan.smem_bytes, stream,
           local_quats.data_ptr<T>(), offsets.data_ptr<T>(), root_positions.data_ptr<T>(), positions.data_ptr<T>(),
           global_quats.data_ptr<T>(), wsp, d.N, par);
     }
@@ -434,18 +431,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
     A* pp = part.defined() ? part.data_ptr<A>() : nullptr;
     const T* ggq_p = ggq.defined() ? ggq.data_ptr<T>() : nullptr;
     if (plan.smem_state) {
-      fk_backward_kernel<T, true><<<static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes, stream>>>(
+      MODI_LAUNCH((fk_backward_kernel<T, true>), static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes,
+                  stream,
           gpos.data_ptr<T>(), ggq_p, local_quats.data_ptr<T>(), global_quats.data_ptr<T>(), offsets.data_ptr<T>(),
           grad_local.data_ptr<T>(), grad_root.data_ptr<T>(), pp, n_warps, wsp, d.N, par);
     } else {
-      fk_backward_kernel<T, false><<<static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes, stream>>>(
+      MODI_LAUNCH((fk_backward_kernel<T, false>), static_cast<unsigned>(blocks), plan.threads, plan.smem_bytes,
+                  stream,
           gpos.data_ptr<T>(), ggq_p, local_quats.data_ptr<T>(), global_quats.data_ptr<T>(), offsets.data_ptr<T>(),
           grad_local.data_ptr<T>(), grad_root.data_ptr<T>(), pp, n_warps, wsp, d.N, par);
     }
     C10_CUDA_KERNEL_LAUNCH_CHECK();
     if (offsets_grad) {
-      fk_offsets_reduce_kernel<T><<<static_cast<unsigned>(d.J * 3), 256, 0, stream>>>(pp, n_warps,
-                                                                                       grad_off.data_ptr<T>());
+      MODI_LAUNCH((fk_offsets_reduce_kernel<T>), static_cast<unsigned>(d.J * 3), 256, 0, stream, pp, n_warps,
+                  grad_off.data_ptr<T>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
     }
   });
@@ -454,7 +453,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(modi_ext, CUDA, m) {
+TORCH_LIBRARY_IMPL(MODI_CUDA_LIB, MODI_CUDA_KEY, m) {
   m.impl("fk", &fk_cuda);
   m.impl("fk_backward", &fk_backward_cuda);
 }

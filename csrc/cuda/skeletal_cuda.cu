@@ -28,9 +28,6 @@
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
-#include <cuda_runtime.h>
 
 #include "cuda_common.cuh"
 #include "skeletal.h"
@@ -170,9 +167,9 @@ __device__ __forceinline__ void epi_store(const Epi<T>& e, int M, int To, int b,
 }
 
 // acc[i][j] += sum_k As[k][ty + i*TY] * Bs[k][tx + j*TX]
-template <typename A, int BM>
-__device__ __forceinline__ void mma_stage(const A (*As)[BM + 1], const A (*Bs)[kBN + 1], A (&acc)[4][4], int ty,
-                                          int tx) {
+// As / Bs: one stage, [kBK][BM + 1] and [kBK][kBN + 1] (a shared array's slice: any subscriptable view).
+template <typename A, int BM, typename SA, typename SB>
+__device__ __forceinline__ void mma_stage(const SA& As, const SB& Bs, A (&acc)[4][4], int ty, int tx) {
 #pragma unroll
   for (int k = 0; k < kBK; ++k) {
     A a[4], b[4];
@@ -260,9 +257,8 @@ DevTopo build_topology(const at::Tensor& index, const at::Tensor& offsets, int64
   DevTopo t;
   t.buf = at::empty({n}, index.options().dtype(at::kInt));
   int* p = t.buf.data_ptr<int>();
-  topology_kernel<<<1, 256, 0, stream>>>(offsets.data_ptr<int64_t>(), index.data_ptr<int64_t>(),
-                                         static_cast<int>(rows), static_cast<int>(cols), static_cast<int>(nnz), p,
-                                         transpose);
+  MODI_LAUNCH(topology_kernel, 1, 256, 0, stream, offsets.data_ptr<int64_t>(), index.data_ptr<int64_t>(),
+              static_cast<int>(rows), static_cast<int>(cols), static_cast<int>(nnz), p, transpose);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   t.off = p;
   t.idx = p + rows + 1;
@@ -296,8 +292,8 @@ template <typename T, int BM, bool kBlurAdj>
 __global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const RowArgs<T> a) {
   using A = acc_t<T>;
   using TL = Tile<BM>;
-  __shared__ A As[2][kBK][BM + 1];
-  __shared__ A Bs[2][kBK][kBN + 1];
+  MODI_SHARED(A, As, [2][kBK][BM + 1]);
+  MODI_SHARED(A, Bs, [2][kBK][kBN + 1]);
   const int tid = threadIdx.x;
   const int row = blockIdx.z;
   const int m0 = blockIdx.y * BM;
@@ -340,7 +336,7 @@ __global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const RowArgs<T>
 #pragma unroll
     for (int i = 0; i < TL::A_PER; ++i) As[buf][a_k][a_m + i * TL::A_STEP] = ra[i];
 #pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n] = rb[i];
+    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n + MODI_EMU_OFF_BY_ONE] = rb[i];  // +0 (see cuda_common)
   };
 
   const int tx = tid % TL::TX, ty = tid / TL::TX;
@@ -401,8 +397,8 @@ template <typename T, int BM, bool kBlur>
 __global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const TrArgs<T> a) {
   using A = acc_t<T>;
   using TL = Tile<BM>;
-  __shared__ A As[2][kBK][BM + 1];
-  __shared__ A Bs[2][kBK][kBN + 1];
+  MODI_SHARED(A, As, [2][kBK][BM + 1]);
+  MODI_SHARED(A, Bs, [2][kBK][kBN + 1]);
   const int tid = threadIdx.x;
   const int col = blockIdx.z;
   const int m0 = blockIdx.y * BM;
@@ -522,8 +518,8 @@ __global__ void __launch_bounds__(Tile<BM>::NT) wgrad_kernel(const WArgs<T> a) {
   using TL = Tile<BM>;
   constexpr int R_PER = kBN * kBK / TL::NT;  // right-operand elements per thread per stage
   constexpr int R_STEP = TL::NT / kBK;
-  __shared__ A Ls[2][kBK][BM + 1];
-  __shared__ A Rs[2][kBK][kBN + 1];
+  MODI_SHARED(A, Ls, [2][kBK][BM + 1]);
+  MODI_SHARED(A, Rs, [2][kBK][kBN + 1]);
   const int tid = threadIdx.x;
   const int row = blockIdx.z;
   const int m0 = blockIdx.y * BM;
@@ -633,7 +629,7 @@ __global__ void style_finish_kernel(const acc_t<T>* __restrict__ gxp, const T* _
                                     const T* __restrict__ style, int64_t len, T* __restrict__ gx,
                                     T* __restrict__ gs) {
   using A = acc_t<T>;
-  __shared__ A scratch[32];
+  MODI_SHARED(A, scratch, [32]);
   const int64_t bi = blockIdx.x;
   const A sv = ld(style + bi);
   const A* g = gxp + bi * len;
@@ -672,11 +668,11 @@ void launch_row(const RowArgs<T>& a, int64_t rows, cudaStream_t stream) {
   if (a.M <= 32) {
     const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 32)),
                     static_cast<unsigned>(rows));
-    row_gemm_kernel<T, 32, kBlurAdj><<<grid, Tile<32>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((row_gemm_kernel<T, 32, kBlurAdj>), grid, Tile<32>::NT, 0, stream, a);
   } else {
     const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 64)),
                     static_cast<unsigned>(rows));
-    row_gemm_kernel<T, 64, kBlurAdj><<<grid, Tile<64>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((row_gemm_kernel<T, 64, kBlurAdj>), grid, Tile<64>::NT, 0, stream, a);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
@@ -687,11 +683,11 @@ void launch_tr(const TrArgs<T>& a, int64_t cols, cudaStream_t stream) {
   if (a.M <= 32) {
     const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 32)),
                     static_cast<unsigned>(cols));
-    tr_gemm_kernel<T, 32, kBlur><<<grid, Tile<32>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((tr_gemm_kernel<T, 32, kBlur>), grid, Tile<32>::NT, 0, stream, a);
   } else {
     const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 64)),
                     static_cast<unsigned>(cols));
-    tr_gemm_kernel<T, 64, kBlur><<<grid, Tile<64>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((tr_gemm_kernel<T, 64, kBlur>), grid, Tile<64>::NT, 0, stream, a);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
@@ -717,15 +713,15 @@ void launch_wgrad(WArgs<T> a, int64_t rows, const at::Tensor& gw, int device, cu
   }
   const dim3 grid(static_cast<unsigned>(splits), static_cast<unsigned>(mtiles), static_cast<unsigned>(rows));
   if (bm == 32) {
-    wgrad_kernel<T, 32, kBlurAdj><<<grid, Tile<32>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((wgrad_kernel<T, 32, kBlurAdj>), grid, Tile<32>::NT, 0, stream, a);
   } else {
-    wgrad_kernel<T, 64, kBlurAdj><<<grid, Tile<64>::NT, 0, stream>>>(a);
+    MODI_LAUNCH((wgrad_kernel<T, 64, kBlurAdj>), grid, Tile<64>::NT, 0, stream, a);
   }
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (splits > 1) {
     const int threads = 256;
     const int64_t blocks = std::min<int64_t>(ceil_div(a.wnumel, threads), 4096);
-    split_reduce_kernel<T><<<static_cast<unsigned>(blocks), threads, 0, stream>>>(
+    MODI_LAUNCH((split_reduce_kernel<T>), static_cast<unsigned>(blocks), threads, 0, stream,
         a.ws, static_cast<int>(splits), a.wnumel, a.gw);
     C10_CUDA_KERNEL_LAUNCH_CHECK();
   }
@@ -762,7 +758,7 @@ Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, co
                  const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
                  const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
                  c10::string_view padding_mode) {
-  TORCH_CHECK(x.is_cuda(), "x must be a CUDA tensor for the CUDA kernel, got ", x.device());
+  TORCH_CHECK(cuda::on_device(x), "x must be a CUDA tensor for the CUDA kernel, got ", x.device());
   TORCH_CHECK(x.dim() == 4, "x must be 4-D (B, C, E, T), got ", x.dim(), " dims");
   TORCH_CHECK(cuda::is_cuda_float(x.scalar_type()), "x must be float32, float64, float16 or bfloat16, got ",
               x.scalar_type());
@@ -978,7 +974,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     if (want_gd) {
       const int64_t r = g.B * g.Cout * g.Eout;
       const int threads = 256;
-      scale_grad_kernel<T><<<static_cast<unsigned>(ceil_div(r * 32, threads)), threads, 0, stream>>>(
+      MODI_LAUNCH((scale_grad_kernel<T>), static_cast<unsigned>(ceil_div(r * 32, threads)), threads, 0, stream,
           gy, out.data_ptr<T>(), bias.has_value() ? bias->data_ptr<T>() : nullptr, dp, r,
           static_cast<int>(g.Cout), static_cast<int>(g.Eout), static_cast<int>(g.Tout), gd.data_ptr<T>());
       C10_CUDA_KERNEL_LAUNCH_CHECK();
@@ -1038,7 +1034,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
         launch_tr<T, false>(a, cols, stream);
       }
       if (want_gs) {
-        style_finish_kernel<T><<<static_cast<unsigned>(g.B * g.Cin), 256, 0, stream>>>(
+        MODI_LAUNCH((style_finish_kernel<T>), static_cast<unsigned>(g.B * g.Cin), 256, 0, stream,
             epi.ws, x.data_ptr<T>(), sp, g.Ein * g.Tin, want_gx ? gx.data_ptr<T>() : nullptr, gs.data_ptr<T>());
         C10_CUDA_KERNEL_LAUNCH_CHECK();
       }
@@ -1087,7 +1083,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
 
 }  // namespace
 
-TORCH_LIBRARY_IMPL(modi_ext, CUDA, m) {
+TORCH_LIBRARY_IMPL(MODI_CUDA_LIB, MODI_CUDA_KEY, m) {
   m.impl("skeletal_conv", &skeletal_conv_cuda);
   m.impl("skeletal_down", &skeletal_down_cuda);
   m.impl("skeletal_up", &skeletal_up_cuda);

@@ -1,0 +1,452 @@
+// The emulator's scheduler: one fiber (ucontext) per CUDA thread, blocks run one at a time on the calling thread.
+// See cuda_emu.h for what it checks.  Everything here is test-only code.
+#include "emu/cuda_emu.h"
+
+#include <ATen/Context.h>
+#include <c10/util/Exception.h>
+#include <sys/mman.h>
+#include <ucontext.h>
+
+#include <algorithm>
+#include <exception>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <numeric>
+#include <random>
+#include <sstream>
+#include <stdexcept>
+#include <vector>
+
+#include "emu/emu_control.h"
+
+namespace modi_emu {
+
+thread_local ThreadCtx* g_ctx = nullptr;
+
+namespace {
+
+constexpr size_t kStackBytes = 256 * 1024;
+constexpr size_t kGuardBytes = 4096;
+constexpr size_t kSmemLimit = 48 * 1024;  // default per-block limit (no opt-in attribute is used by the kernels)
+constexpr size_t kRedzone = 256;
+constexpr int kMaxThreads = 1024;
+
+// ---- global settings and counters (Python sets / reads them between launches)
+std::mutex g_mu;
+uint64_t g_seed = 0;
+int g_sm_count = 108;
+std::map<std::string, int64_t> g_counts;
+
+enum class St { Ready, Barrier, Warp, Done };
+
+struct Fiber {
+  ucontext_t uc;
+  ThreadCtx ctx;
+  St st = St::Ready;
+  int line = 0;
+  unsigned char xbuf[32 * 8];  // this lane's copy of a completed warp exchange
+  unsigned took = 0;
+};
+
+struct WarpState {
+  unsigned arrived = 0, mask = 0;
+  int line = -1;
+  size_t bytes = 0;
+  unsigned char deposit[32 * 8];
+};
+
+struct SharedAlloc {
+  const char* name;
+  int line;
+  size_t bytes;
+  void* p;
+};
+
+// Memory reused across blocks (refilled with poison per block).
+struct Arena {
+  std::vector<unsigned char*> stacks;
+  std::vector<std::pair<size_t, std::unique_ptr<unsigned char[]>>> shared;  // by allocation order in a block
+  std::vector<unsigned char> dyn;
+  ~Arena() {
+    for (unsigned char* s : stacks) munmap(s, kStackBytes + kGuardBytes);
+  }
+  unsigned char* stack(size_t i) {
+    while (stacks.size() <= i) {
+      void* p = mmap(nullptr, kStackBytes + kGuardBytes, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+      TORCH_CHECK(p != MAP_FAILED, "modi_emu: cannot map a fiber stack");
+      mprotect(p, kGuardBytes, PROT_NONE);  // a stack overflow faults instead of corrupting a neighbour
+      stacks.push_back(static_cast<unsigned char*>(p));
+    }
+    return stacks[i] + kGuardBytes;
+  }
+};
+
+struct Block {
+  const LaunchSpec* spec = nullptr;
+  std::string kname;
+  std::vector<Fiber> f;
+  ucontext_t sched;
+  int cur = -1;
+  std::exception_ptr err;
+  int err_thread = -1;
+  std::vector<WarpState> warps;
+  std::vector<SharedAlloc> shared;
+  size_t static_bytes = 0, dyn_bytes = 0;
+  unsigned char* dyn = nullptr;
+  bool drop_sync = false;
+  int dropped_line = -1;
+};
+
+thread_local Block* g_block = nullptr;
+thread_local Arena* g_arena = nullptr;
+
+Block& block() {
+  if (!g_block) throw std::logic_error("modi_emu: a CUDA device function was called outside an emulated launch");
+  return *g_block;
+}
+
+void fiber_entry() {
+  Block& b = *g_block;
+  const int me = b.cur;
+  try {
+    b.spec->body();
+  } catch (...) {
+    if (!b.err) {
+      b.err = std::current_exception();
+      b.err_thread = me;
+    }
+  }
+  b.f[me].st = St::Done;
+  swapcontext(&b.f[me].uc, &b.sched);  // never resumed
+}
+
+void yield_to_scheduler(Block& b) {
+  Fiber& f = b.f[b.cur];
+  swapcontext(&f.uc, &b.sched);
+  g_ctx = &f.ctx;
+}
+
+std::string dim_str(const dim3& d) {
+  std::ostringstream s;
+  s << "(" << d.x << ", " << d.y << ", " << d.z << ")";
+  return s.str();
+}
+
+uint64_t mix(uint64_t a, uint64_t b) {
+  uint64_t x = a * 0x9E3779B97F4A7C15ull ^ (b + 0x632BE59BD9B4E019ull + (a << 6) + (a >> 2));
+  x ^= x >> 31;
+  x *= 0xBF58476D1CE4E5B9ull;
+  return x ^ (x >> 29);
+}
+
+[[noreturn]] void block_fail(const Block& b, const dim3& bid, const std::string& what) {
+  TORCH_CHECK(false, "modi_emu: kernel ", b.kname, " block ", dim_str(bid), ": ", what);
+}
+
+// Run every thread of one block to completion.
+void run_block(Block& b, const dim3& bid, uint64_t seed) {
+  const LaunchSpec& s = *b.spec;
+  const int nt = static_cast<int>(s.block.x * s.block.y * s.block.z);
+  b.f.assign(nt, Fiber{});
+  b.warps.assign((nt + 31) / 32, WarpState{});
+  b.err = nullptr;
+  b.err_thread = -1;
+  b.shared.clear();
+  b.static_bytes = 0;
+  b.dropped_line = -1;
+  // dynamic shared memory, with poisoned red zones on both sides (a write past either end is reported)
+  g_arena->dyn.assign(b.dyn_bytes + 2 * kRedzone, 0xFF);
+  b.dyn = g_arena->dyn.data() + kRedzone;
+  for (int i = 0; i < nt; ++i) {
+    Fiber& f = b.f[i];
+    f.ctx.thread = dim3(i % s.block.x, (i / s.block.x) % s.block.y, i / (s.block.x * s.block.y));
+    f.ctx.block = bid;
+    f.ctx.bdim = s.block;
+    f.ctx.gdim = s.grid;
+    f.ctx.linear = i;
+    getcontext(&f.uc);
+    f.uc.uc_stack.ss_sp = g_arena->stack(i);
+    f.uc.uc_stack.ss_size = kStackBytes;
+    f.uc.uc_link = nullptr;
+    makecontext(&f.uc, fiber_entry, 0);
+  }
+  std::vector<int> order(nt);
+  std::iota(order.begin(), order.end(), 0);
+  std::mt19937_64 rng(mix(seed, (uint64_t(bid.z) << 40) ^ (uint64_t(bid.y) << 20) ^ bid.x));
+  std::vector<int> ready;
+  for (;;) {
+    ready.clear();
+    if (seed != 0) std::shuffle(order.begin(), order.end(), rng);
+    for (int i : order)
+      if (b.f[i].st == St::Ready) ready.push_back(i);
+    if (ready.empty()) {
+      int n_bar = 0, n_warp = 0, n_done = 0, bar_line = -1, warp_line = -1, warp_thread = -1;
+      bool lines_differ = false;
+      for (int i = 0; i < nt; ++i) {
+        const Fiber& f = b.f[i];
+        if (f.st == St::Done) {
+          ++n_done;
+        } else if (f.st == St::Barrier) {
+          if (bar_line >= 0 && bar_line != f.line) lines_differ = true;
+          bar_line = bar_line < 0 ? f.line : bar_line;
+          ++n_bar;
+        } else if (f.st == St::Warp) {
+          ++n_warp;
+          warp_line = f.line;
+          warp_thread = i;
+        }
+      }
+      if (n_done == nt) break;
+      if (n_warp > 0) {
+        const WarpState& w = b.warps[warp_thread / 32];
+        std::ostringstream m;
+        m << "warp " << warp_thread / 32 << " waits forever in a warp intrinsic at line " << warp_line
+          << ": mask 0x" << std::hex << w.mask << " but only lanes 0x" << w.arrived << std::dec
+          << " arrived (the others exited or wait at __syncthreads())";
+        block_fail(b, bid, m.str());
+      }
+      if (lines_differ) block_fail(b, bid, "threads wait at different __syncthreads() call sites");
+      if (n_done > 0) {
+        std::ostringstream m;
+        m << "__syncthreads() at line " << bar_line << " reached by " << n_bar << " of " << nt << " threads; "
+          << n_done << " exited without reaching it";
+        block_fail(b, bid, m.str());
+      }
+      for (Fiber& f : b.f) f.st = St::Ready;  // the barrier opens
+      continue;
+    }
+    for (int i : ready) {
+      if (b.f[i].st != St::Ready) continue;
+      b.cur = i;
+      g_ctx = &b.f[i].ctx;
+      swapcontext(&b.sched, &b.f[i].uc);
+      g_ctx = nullptr;
+      b.cur = -1;
+      if (b.err) break;
+    }
+    if (b.err) {
+      const dim3 tid = b.f[b.err_thread].ctx.thread;
+      try {
+        std::rethrow_exception(b.err);
+      } catch (const c10::Error& e) {
+        block_fail(b, bid, "thread " + dim_str(tid) + ": " + e.what_without_backtrace());
+      } catch (const std::exception& e) {
+        block_fail(b, bid, "thread " + dim_str(tid) + ": " + e.what());
+      }
+    }
+  }
+  for (size_t i = 0; i < kRedzone; ++i) {
+    if (g_arena->dyn[i] != 0xFF || g_arena->dyn[kRedzone + b.dyn_bytes + i] != 0xFF) {
+      block_fail(b, bid, "a write outside the " + std::to_string(b.dyn_bytes) + " bytes of dynamic shared memory");
+    }
+  }
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------------------------------------ device side
+[[noreturn]] void fail(const std::string& what) { throw std::runtime_error(what); }
+
+void syncthreads(int line) {
+  Block& b = block();
+#if MODI_EMU_INJECTED == MODI_EMU_INJECT_DROP_SYNC_ID
+  // Injected defect (test-only build): the first __syncthreads() of row_gemm_kernel is not there.
+  if (b.drop_sync) {
+    if (b.dropped_line < 0) b.dropped_line = line;
+    if (line == b.dropped_line) return;
+  }
+#endif
+  Fiber& f = b.f[b.cur];
+  f.st = St::Barrier;
+  f.line = line;
+  yield_to_scheduler(b);
+}
+
+unsigned warp_exchange(unsigned mask, const void* v, size_t n, void* all, int line) {
+  Block& b = block();
+  Fiber& f = b.f[b.cur];
+  const int lane = f.ctx.linear & 31;
+  if (!((mask >> lane) & 1u)) {
+    fail("warp intrinsic at line " + std::to_string(line) + ": lane " + std::to_string(lane) +
+         " is not in its own mask");
+  }
+  const int w = f.ctx.linear >> 5;
+  WarpState& ws = b.warps[w];
+  if (ws.arrived == 0) {
+    ws.mask = mask;
+    ws.line = line;
+    ws.bytes = n;
+  } else if (ws.mask != mask || ws.line != line || ws.bytes != n) {
+    std::ostringstream m;
+    m << "warp " << w << ": lanes meet in different warp intrinsics (line " << ws.line << " mask 0x" << std::hex
+      << ws.mask << " vs line " << std::dec << line << " mask 0x" << std::hex << mask << ")";
+    fail(m.str());
+  }
+  std::memcpy(ws.deposit + lane * n, v, n);
+  ws.arrived |= 1u << lane;
+  if (ws.arrived == mask) {
+    for (int l = 0; l < 32; ++l) {
+      if (!((mask >> l) & 1u)) continue;
+      Fiber& o = b.f[w * 32 + l];
+      std::memcpy(o.xbuf, ws.deposit, 32 * n);
+      o.took = mask;
+      if (o.st == St::Warp) o.st = St::Ready;
+    }
+    ws.arrived = 0;
+  } else {
+    f.st = St::Warp;
+    f.line = line;
+    yield_to_scheduler(b);
+  }
+  std::memcpy(all, f.xbuf, 32 * n);
+  return f.took;
+}
+
+void device_assert(const char* cond, const char* msg, const char* file, int line) {
+  fail(std::string("device-side assert `") + cond + "` failed at " + file + ":" + std::to_string(line) +
+       (msg && *msg ? std::string(": ") + msg : std::string()));
+}
+
+void* shared_storage(const char* name, int line, size_t bytes, void (*fill)(void*, size_t)) {
+  Block& b = block();
+  for (const SharedAlloc& a : b.shared)
+    if (a.line == line && std::strcmp(a.name, name) == 0) return a.p;
+  const size_t k = b.shared.size();
+  auto& pool = g_arena->shared;
+  if (pool.size() <= k) pool.emplace_back(0, nullptr);
+  if (pool[k].first < bytes) pool[k] = {bytes, std::make_unique<unsigned char[]>(bytes)};
+  void* p = pool[k].second.get();
+  fill(p, bytes);
+  b.static_bytes += bytes;
+  if (b.static_bytes + b.dyn_bytes > kSmemLimit) {
+    fail("shared memory of the block (" + std::to_string(b.static_bytes) + " static + " +
+         std::to_string(b.dyn_bytes) + " dynamic bytes) exceeds 48 KB");
+  }
+  b.shared.push_back({name, line, bytes, p});
+  return p;
+}
+
+unsigned char* dynamic_shared() { return block().dyn; }
+
+void shared_oob(const char* name, int64_t i, size_t n) {
+  fail(std::string("shared array `") + name + "`: index " + std::to_string(i) + " out of range [0, " +
+       std::to_string(n) + ")");
+}
+
+// ------------------------------------------------------------------------------------------------ host side
+std::string kernel_name(const char* pretty) {
+  std::string s(pretty);
+  const std::string key = "Kernel = ";
+  size_t a = s.find(key);
+  if (a == std::string::npos) return s;
+  a += key.size();
+  int depth = 0;
+  size_t e = a;
+  for (; e < s.size(); ++e) {
+    const char c = s[e];
+    if (c == '<' || c == '(') ++depth;
+    if (c == '>' || c == ')') --depth;
+    if (depth == 0 && (c == ';' || c == ']')) break;
+  }
+  std::string k = s.substr(a, e - a);
+  for (const std::string pre : {"modi_ext::{anonymous}::", "modi_ext::(anonymous namespace)::", "modi_ext::"}) {
+    for (size_t p; (p = k.find(pre)) != std::string::npos;) k.erase(p, pre.size());
+  }
+  return k;
+}
+
+void run_launch(const LaunchSpec& spec) {
+  Block b;
+  b.spec = &spec;
+  b.kname = kernel_name(spec.name);
+  const dim3 g = spec.grid, t = spec.block;
+  const uint64_t nthreads = uint64_t(t.x) * t.y * t.z;
+  TORCH_CHECK(g.x >= 1 && g.y >= 1 && g.z >= 1 && nthreads >= 1, "modi_emu: kernel ", b.kname,
+              ": invalid configuration (grid ", dim_str(g), ", block ", dim_str(t), ")");
+  TORCH_CHECK(g.x <= 2147483647u && g.y <= 65535u && g.z <= 65535u, "modi_emu: kernel ", b.kname, ": grid ",
+              dim_str(g), " exceeds the CUDA limits (2^31-1, 65535, 65535)");
+  TORCH_CHECK(nthreads <= kMaxThreads && t.z <= 64, "modi_emu: kernel ", b.kname, ": block ", dim_str(t),
+              " exceeds 1024 threads");
+  TORCH_CHECK(spec.smem <= kSmemLimit, "modi_emu: kernel ", b.kname, ": ", spec.smem,
+              " bytes of dynamic shared memory exceed 48 KB");
+  b.dyn_bytes = spec.smem;
+#if MODI_EMU_INJECTED == MODI_EMU_INJECT_DROP_SYNC_ID
+  b.drop_sync = b.kname.rfind("row_gemm_kernel", 0) == 0;
+#endif
+  uint64_t seed;
+  {
+    std::lock_guard<std::mutex> lk(g_mu);
+    seed = g_seed;
+    ++g_counts[b.kname];
+  }
+  TORCH_CHECK(g_block == nullptr, "modi_emu: nested kernel launch");
+  static thread_local std::unique_ptr<Arena> tl_arena;
+  if (!tl_arena) tl_arena = std::make_unique<Arena>();
+  g_arena = tl_arena.get();
+  g_block = &b;
+  struct Reset {
+    ~Reset() {
+      g_block = nullptr;
+      g_ctx = nullptr;
+    }
+  } reset;
+  // block order: permuted by the seed as well (a GPU runs blocks in any order)
+  const uint64_t nblocks = uint64_t(g.x) * g.y * g.z;
+  std::vector<uint64_t> border(nblocks);
+  std::iota(border.begin(), border.end(), uint64_t(0));
+  const uint64_t kseed = seed ? mix(seed, std::hash<std::string>{}(b.kname)) : 0;
+  if (kseed) {
+    std::mt19937_64 rng(kseed);
+    std::shuffle(border.begin(), border.end(), rng);
+  }
+  for (uint64_t lin : border) {
+    const dim3 bid(static_cast<unsigned>(lin % g.x), static_cast<unsigned>((lin / g.x) % g.y),
+                   static_cast<unsigned>(lin / (uint64_t(g.x) * g.y)));
+    run_block(b, bid, kseed);
+  }
+}
+
+int sm_count() {
+  std::lock_guard<std::mutex> lk(g_mu);
+  return g_sm_count;
+}
+
+PoisonScope::PoisonScope() {
+  auto& c = at::globalContext();
+  det_ = c.deterministicAlgorithms();
+  warn_ = c.deterministicAlgorithmsWarnOnly();
+  fill_ = c.deterministicFillUninitializedMemory();
+  c.setDeterministicAlgorithms(true, /*warn_only=*/true);
+  c.setDeterministicFillUninitializedMemory(true);
+}
+
+PoisonScope::~PoisonScope() {
+  auto& c = at::globalContext();
+  c.setDeterministicAlgorithms(det_, warn_);
+  c.setDeterministicFillUninitializedMemory(fill_);
+}
+
+// ------------------------------------------------------------------------------------------------ control
+void set_seed(uint64_t seed) {
+  std::lock_guard<std::mutex> lk(g_mu);
+  g_seed = seed;
+}
+uint64_t get_seed() {
+  std::lock_guard<std::mutex> lk(g_mu);
+  return g_seed;
+}
+void set_sm_count(int n) {
+  std::lock_guard<std::mutex> lk(g_mu);
+  g_sm_count = n;
+}
+std::map<std::string, int64_t> launch_counts() {
+  std::lock_guard<std::mutex> lk(g_mu);
+  return g_counts;
+}
+void reset_launch_counts() {
+  std::lock_guard<std::mutex> lk(g_mu);
+  g_counts.clear();
+}
+
+}  // namespace modi_emu

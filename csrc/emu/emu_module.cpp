@@ -1,0 +1,85 @@
+// Python module of the test-only emulated CUDA kernels (modi_ext._C_emu): the ops of csrc/cuda/*.cu under their
+// own namespace (torch.ops.modi_ext_emu.*, CPU dispatch key only) plus the emulator's controls.
+#include <Python.h>
+#include <torch/library.h>
+
+#include "emu/emu_control.h"
+#include "modi_ext.h"
+
+#define MODI_EMU_TORCH_LIBRARY(ns, m) TORCH_LIBRARY(ns, m)
+MODI_EMU_TORCH_LIBRARY(MODI_EMU_LIB, m) {
+  modi_ext::define_skeletal_ops(m);
+  modi_ext::define_fk_ops(m);
+}
+
+#define MODI_EMU_STR2(x) #x
+#define MODI_EMU_STR(x) MODI_EMU_STR2(x)
+
+namespace {
+
+PyObject* py_set_seed(PyObject*, PyObject* arg) {
+  const unsigned long long v = PyLong_AsUnsignedLongLong(arg);
+  if (PyErr_Occurred()) return nullptr;
+  modi_emu::set_seed(v);
+  Py_RETURN_NONE;
+}
+
+PyObject* py_get_seed(PyObject*, PyObject*) { return PyLong_FromUnsignedLongLong(modi_emu::get_seed()); }
+
+PyObject* py_set_sm_count(PyObject*, PyObject* arg) {
+  const long v = PyLong_AsLong(arg);
+  if (PyErr_Occurred()) return nullptr;
+  if (v < 1 || v > 100000) {
+    PyErr_SetString(PyExc_ValueError, "sm count must be in [1, 100000]");
+    return nullptr;
+  }
+  modi_emu::set_sm_count(static_cast<int>(v));
+  Py_RETURN_NONE;
+}
+
+PyObject* py_launch_counts(PyObject*, PyObject*) {
+  PyObject* d = PyDict_New();
+  if (!d) return nullptr;
+  for (const auto& [name, n] : modi_emu::launch_counts()) {
+    PyObject* v = PyLong_FromLongLong(n);
+    if (!v || PyDict_SetItemString(d, name.c_str(), v) < 0) {
+      Py_XDECREF(v);
+      Py_DECREF(d);
+      return nullptr;
+    }
+    Py_DECREF(v);
+  }
+  return d;
+}
+
+PyObject* py_reset_launch_counts(PyObject*, PyObject*) {
+  modi_emu::reset_launch_counts();
+  Py_RETURN_NONE;
+}
+
+PyMethodDef kMethods[] = {
+    {"set_schedule_seed", py_set_seed, METH_O, "Thread/block order: 0 = index order, else a seeded permutation."},
+    {"schedule_seed", py_get_seed, METH_NOARGS, "The current schedule seed."},
+    {"set_sm_count", py_set_sm_count, METH_O, "Multiprocessor count the host code sees (cudaDeviceGetAttribute)."},
+    {"launch_counts", py_launch_counts, METH_NOARGS, "{kernel instantiation: launches} since the last reset."},
+    {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters."},
+    {nullptr, nullptr, 0, nullptr}};
+
+}  // namespace
+
+#define MODI_EMU_CAT2(a, b) a##b
+#define MODI_EMU_CAT(a, b) MODI_EMU_CAT2(a, b)
+
+extern "C" PyObject* MODI_EMU_CAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
+  static PyModuleDef def = {PyModuleDef_HEAD_INIT, MODI_EMU_STR(TORCH_EXTENSION_NAME),
+                            "Test-only: the CUDA kernels run by the CPU emulator", -1, kMethods};
+  PyObject* m = PyModule_Create(&def);
+  if (!m) return nullptr;
+  if (PyModule_AddStringConstant(m, "LIBRARY", MODI_EMU_STR(MODI_EMU_LIB)) < 0) return nullptr;
+#ifdef MODI_EMU_INJECT
+  if (PyModule_AddStringConstant(m, "INJECTED", MODI_EMU_STR(MODI_EMU_INJECT)) < 0) return nullptr;
+#else
+  if (PyModule_AddStringConstant(m, "INJECTED", "") < 0) return nullptr;
+#endif
+  return m;
+}
