@@ -107,10 +107,31 @@ def atomic_save_npy(path: str | os.PathLike, array: Any) -> None:
 def output_errors(path: str | os.PathLike) -> Iterator[None]:
     """OS errors inside the block (a library writing ``path``, e.g. TensorBoard's event files) become one
     :class:`OutputError` line."""
+    _quiet_writer_threads()
     try:
         yield
     except OSError as exc:
         raise OutputError(describe_os_error(exc, path), exc.errno) from None
+
+
+_WRITER_THREADS = ("_AsyncWriterThread",)  # tensorboard's event-file thread: it hands its error to the caller
+
+
+def _quiet_writer_threads() -> None:
+    """TensorBoard appends its event files from a thread; on a full disk that thread dies printing a traceback, and
+    the library re-raises the same OSError at the next ``add_scalar``/``flush`` -- where ``output_errors`` makes it
+    one line. Keep the thread's copy off stderr (installed once; other threads' errors are untouched)."""
+    if getattr(threading.excepthook, "_modi_quiet", False):
+        return
+    previous = threading.excepthook
+
+    def hook(args) -> None:
+        if isinstance(args.exc_value, OSError) and type(args.thread).__name__ in _WRITER_THREADS:
+            return
+        previous(args)
+
+    hook._modi_quiet = True  # type: ignore[attr-defined]
+    threading.excepthook = hook
 
 
 def append_line(path: str | os.PathLike, line: str) -> None:
@@ -258,6 +279,7 @@ class StopRequest:
     def __init__(self) -> None:
         self.requested = False
         self.signum: int | None = None
+        self.error: BaseException | None = None
 
     def set(self, signum: int = signal.SIGINT) -> None:
         self.requested = True
@@ -271,10 +293,16 @@ class StopRequest:
     def exit_code(self) -> int:
         return exit_code(self.signum)
 
+    def fail(self, exc: BaseException) -> None:
+        """Record an error of this process only (rank 0 writing its log on a full disk): :meth:`agreed` raises it
+        on every rank at the same step, instead of one rank leaving the others hung in a collective."""
+        self.error = exc
+
     def agreed(self, device: Any = None) -> bool:
         """The flag as every process of a ``torch.distributed`` group sees it (a MAX all-reduce of the signal
-        number), so all ranks stop at the same step even when only one was signalled; the local flag otherwise.
-        Every rank must call it at the same point of each step."""
+        number and of :meth:`fail`), so all ranks stop at the same step even when only one was signalled, and a
+        recorded error is raised on all of them; the local flag otherwise. Every rank must call it at the same
+        point of each step."""
         try:
             import torch.distributed as dist
 
@@ -282,12 +310,18 @@ class StopRequest:
         except ImportError:  # pragma: no cover
             distributed = False
         if not distributed:
+            if self.error is not None:
+                raise self.error
             return bool(self)
         import torch
 
-        t = torch.tensor([self.signum or 0], dtype=torch.int64, device=device)
+        t = torch.tensor([self.signum or 0, int(self.error is not None)], dtype=torch.int64, device=device)
         dist.all_reduce(t, op=dist.ReduceOp.MAX)
-        s = int(t.item())
+        s, failed = int(t[0].item()), int(t[1].item())
+        if failed:
+            if self.error is not None:
+                raise self.error
+            raise UserError("another process of this run could not write its output (see rank 0's message)")
         if s and (not self.requested or s == signal.SIGTERM):
             self.set(s)
         return bool(s)

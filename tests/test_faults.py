@@ -191,21 +191,21 @@ def test_ganimator_sigterm_saves_and_rerun_equals_uninterrupted(gbvh, tmp_path):
 
 def test_encoder_sigterm_saves_and_resume_equals_uninterrupted(mdata, gen_ckpt, tmp_path):
     rng = random.Random(SEED + 2)
-    assert main(_train_argv("encoder", tmp_path / "a.pt", mdata, None, gen_ckpt, "--iters", "70")) == 0
-    proc, err = _start(_train_argv("encoder", tmp_path / "b.pt", mdata, None, gen_ckpt, "--iters", "70"),
+    assert main(_train_argv("encoder", tmp_path / "a.pt", mdata, None, gen_ckpt, "--iters", "50")) == 0
+    proc, err = _start(_train_argv("encoder", tmp_path / "b.pt", mdata, None, gen_ckpt, "--iters", "50"),
                        tmp_path, "b")
     _sigterm_while_stepping(proc, err, tmp_path / "b.pt.log.jsonl", rng, 2)
     step = _load(tmp_path / "b.pt")["step"]
-    assert 20 <= step < 70, f"seed {SEED}: stopped at step {step}"
-    assert main(_train_argv("encoder", tmp_path / "b.pt", mdata, None, gen_ckpt, "--iters", "70", "--resume")) == 0
+    assert 20 <= step < 50, f"seed {SEED}: stopped at step {step}"
+    assert main(_train_argv("encoder", tmp_path / "b.pt", mdata, None, gen_ckpt, "--iters", "50", "--resume")) == 0
     a, b = _load(tmp_path / "a.pt"), _load(tmp_path / "b.pt")
-    assert b["step"] == 70
+    assert b["step"] == 50
     diff = _differences({k: a[k] for k in ("encoder", "optim", "rng", "metrics")},
                         {k: b[k] for k in ("encoder", "optim", "rng", "metrics")})
     assert not diff, f"seed {SEED}: SIGTERM at step {step}, resumed encoder differs: {diff[:5]}"
 
 
-def test_ddp_ranks_stop_at_the_same_step_when_one_gets_sigterm(mdata, tmp_path):
+def test_ddp_ranks_stop_together_on_one_ranks_sigterm_or_rank0s_full_disk(mdata, tmp_path):
     import torch.multiprocessing as mp
 
     from modi.modi_model.config import make_config
@@ -213,12 +213,15 @@ def test_ddp_ranks_stop_at_the_same_step_when_one_gets_sigterm(mdata, tmp_path):
 
     cfg = make_config("small", [], **{"model.channels": (8, 8, 8, 6, 6), "model.latent_dim": 16, "model.n_mlp": 2,
                                       "data.n_frames": 16, "train.batch": 4, "train.sample_every": 0,
-                                      "train.ckpt_every": 0, "train.snapshot_every": 0})
+                                      "train.ckpt_every": 0, "train.snapshot_every": 0, "train.log_every": 1})
     data = prepare_data(mdata, cfg, cache=False)
     mp.spawn(_ddp_worker, args=(str(tmp_path / "init"), data, cfg.to_dict(), str(tmp_path)), nprocs=2, join=True)
     r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in (0, 1))
-    assert r0 == r1 == {"step": 3, "interrupted": True, "exit_code": 143}, (r0, r1)
+    assert r0["sigterm"] == r1["sigterm"] == {"step": 3, "interrupted": True, "exit_code": 143}, (r0, r1)
     assert _load(tmp_path / "checkpoint.pt")["step"] == 3
+    # rank 0's log write fails at step 5: both ranks leave at step 6's start, rank 0 with the disk's words
+    assert r0["full"] == ["OutputError", "no space left on the device writing log.jsonl", 5], r0
+    assert r1["full"][0] == "UserError" and "rank 0's message" in r1["full"][1] and r1["full"][2] == 5, r1
 
 
 def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -> None:
@@ -242,8 +245,21 @@ def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -
 
         tr.train_step = step_then_signal
         res = tr.train(50)
-        torch.save({"step": res.step, "interrupted": res.interrupted, "exit_code": res.exit_code},
-                   Path(out_dir) / f"rank{rank}.pt")
+        out = {"sigterm": {"step": res.step, "interrupted": res.interrupted, "exit_code": res.exit_code}}
+        log = tr._log_scalars
+
+        def log_on_a_full_disk(losses):
+            if tr.step == 5:
+                raise faults.OutputError("no space left on the device writing log.jsonl", errno.ENOSPC)
+            log(losses)
+
+        tr._log_scalars = log_on_a_full_disk
+        try:
+            tr.train(50)
+            out["full"] = ["no error", "", tr.step]
+        except Exception as exc:  # noqa: BLE001 - what each rank saw
+            out["full"] = [type(exc).__name__, str(exc), tr.step]
+        torch.save(out, Path(out_dir) / f"rank{rank}.pt")
     finally:
         dist.destroy_process_group()
 
@@ -289,11 +305,14 @@ def test_full_disk_is_one_line_exit_2_and_the_previous_checkpoint_loads(mdata, t
         assert _load(run / "checkpoint.pt")["step"] == 2
 
 
-def test_writers_on_a_full_disk_leave_the_previous_file_whole(tmp_path):
+def test_writers_on_a_full_disk_leave_the_previous_file_whole(tmp_path, capsys):
+    from torch.utils.tensorboard import SummaryWriter
+
     with _tmpfs(tmp_path / "disk", "256k") as mounted:
         if not mounted:
             pytest.skip("needs root and mount(8) (util-linux) for a tiny tmpfs")
         d = tmp_path / "disk"
+        writer = SummaryWriter(str(d / "tb"))
         faults.atomic_write(d / "out.json", '{"old": 1}\n')
         faults.append_line(d / "log.jsonl", '{"step": 1}')
         fd = os.open(d / "filler", os.O_WRONLY | os.O_CREAT)
@@ -313,7 +332,17 @@ def test_writers_on_a_full_disk_leave_the_previous_file_whole(tmp_path):
         with pytest.raises(faults.OutputError) as exc:
             faults.atomic_torch_save({"w": torch.zeros(100_000)}, d / "ck.pt", previous_step=7)
         assert "bytes) free beside the previous one" in str(exc.value) and "nothing was written" in str(exc.value)
-        assert sorted(p.name for p in d.iterdir()) == ["filler", "log.jsonl", "out.json"]
+        assert sorted(p.name for p in d.iterdir()) == ["filler", "log.jsonl", "out.json", "tb"]
+        # TensorBoard appends from its own thread: the error comes back at add_scalar/flush as one OutputError
+        with pytest.raises(faults.OutputError, match="no space left on the device writing .*tb$"):
+            with faults.output_errors(d / "tb"):
+                for i in range(5000):
+                    writer.add_scalar("loss/d", float(i), i)
+                writer.flush()
+        with pytest.raises(faults.OutputError):
+            with faults.output_errors(d / "tb"):
+                writer.close()
+        assert "Traceback" not in capsys.readouterr().err
 
 
 def test_read_only_run_folder_is_one_line_exit_2(mdata, tmp_path, capsys):

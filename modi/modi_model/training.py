@@ -446,14 +446,22 @@ class Trainer:
                     now = time.time()
                     losses["sec_per_iter"] = (now - last_t) / max(1, self.step - last_step)
                     last_t, last_step = now, self.step
-                    self._log_scalars(losses)
+                    try:
+                        self._log_scalars(losses)
+                    except faults.OutputError as exc:  # DDP: the other ranks stop with it at the next step
+                        if not self.distributed:
+                            raise
+                        self.stop.fail(exc)
                 if tc.sample_every and self.step % tc.sample_every == 0 and self.write_samples:
                     self.write_sample_grid()
                 if tc.ckpt_every and self.step % tc.ckpt_every == 0:
                     ckpt = self.save_checkpoint()
                 if tc.snapshot_every and self.step % tc.snapshot_every == 0:
                     self.save_checkpoint(self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt")
-            ckpt = self.save_checkpoint()
+            if self.distributed:
+                self.stop.agreed(self.device)  # a log error of the last step is raised on every rank
+            # stopped right after a periodic save (a signal during the save): that checkpoint is this step's
+            ckpt = self.save_checkpoint() if self._saved_step != self.step or ckpt is None else ckpt
             # a stopped run saves and leaves at once (a scheduler's grace period is short): no extra preview
             if not interrupted and self.write_samples and (not tc.sample_every or self.step % tc.sample_every != 0):
                 self.write_sample_grid()
@@ -544,15 +552,24 @@ class Trainer:
         """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states)."""
         state = self.state_dict()
         path = Path(path) if path is not None else self.run_dir / "checkpoint.pt"
+        main = path == self.run_dir / "checkpoint.pt"
+        error = None
         if self.rank == 0:
-            main = path == self.run_dir / "checkpoint.pt"
-            atomic_torch_save(state, path, previous_step=self._saved_step if main else None)
-            if main:
-                self._saved_step = self.step
-        if self.distributed:
+            try:
+                atomic_torch_save(state, path, previous_step=self._saved_step if main else None)
+            except faults.OutputError as exc:
+                error = exc
+        if self.distributed:  # doubles as the barrier: every rank learns whether rank 0's write failed
             import torch.distributed as dist
 
-            dist.barrier()
+            failed = torch.tensor([int(error is not None)], device=self.device)
+            dist.all_reduce(failed)
+            if error is None and int(failed.item()):
+                raise UserError(f"rank 0 could not write {path} (see its message)")
+        if error is not None:
+            raise error
+        if main:
+            self._saved_step = self.step
         return path
 
     def load_state(self, ckpt: str | os.PathLike | dict) -> None:
