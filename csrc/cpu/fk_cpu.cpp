@@ -1,5 +1,6 @@
 // CPU kernels of modi_ext::fk. One sample (b, t) is a sequential walk down the joint tree; samples
-// are independent, so at::parallel_for splits the flattened batch x time range across threads.
+// are independent, so the flattened batch x time range is cut into fixed blocks that threads claim dynamically
+// (cpu/tasks.h: a thread slowed by another process takes fewer blocks instead of holding up the call).
 // The backward walks the tree leaf-to-root, accumulating each joint's position/rotation gradient into
 // its parent, so every joint is visited once per sample in each direction (O(J), no J x J Jacobian).
 #include <ATen/Dispatch.h>
@@ -11,6 +12,7 @@
 #include <vector>
 
 #include "fk.h"
+#include "cpu/tasks.h"
 
 namespace modi_ext {
 namespace {
@@ -111,14 +113,23 @@ Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, cons
   return {local_quats.numel() / (J * 4), J};
 }
 
+// Samples per task: ~8k joint visits (tens of microseconds), so small calls stay on the calling thread.
 int64_t grain_for(int64_t J) { return std::max<int64_t>(1, 8192 / std::max<int64_t>(J, 1)); }
+
+// Run body(begin, end) over [0, N) in blocks of `block` samples, claimed dynamically.
+template <typename F>
+void for_blocks(int64_t N, int64_t block, const F& body) {
+  const int64_t n_blocks = (N + block - 1) / block;
+  auto task = [&](int64_t b, int) { body(b * block, std::min(N, (b + 1) * block)); };
+  cpu_tasks::run_phases({cpu_tasks::phase(n_blocks, task)}, n_blocks > 1);
+}
 
 // ---- forward ----
 
 template <typename T>
 void fk_forward_kernel(const T* lq, const T* off, const int64_t* par, const T* root, T* pos, T* gq, int64_t N,
                        int64_t J) {
-  at::parallel_for(0, N, grain_for(J), [&](int64_t begin, int64_t end) {
+  for_blocks(N, grain_for(J), [&](int64_t begin, int64_t end) {
     for (int64_t n = begin; n < end; ++n) {
       const T* q = lq + n * J * 4;
       T* Q = gq + n * J * 4;
@@ -214,15 +225,12 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
   };
 
   if (!goff) {
-    at::parallel_for(0, N, grain, [&](int64_t b, int64_t e) { run(b, e, nullptr); });
+    for_blocks(N, grain, [&](int64_t b, int64_t e) { run(b, e, nullptr); });
     return;
   }
   const int64_t per_block = (N + n_blocks - 1) / n_blocks;
-  at::parallel_for(0, n_blocks, 1, [&](int64_t b0, int64_t b1) {
-    for (int64_t b = b0; b < b1; ++b) {
-      const int64_t begin = b * per_block, end = std::min(N, begin + per_block);
-      if (begin < end) run(begin, end, goff_blocks.data() + b * J * 3);
-    }
+  for_blocks(N, per_block, [&](int64_t begin, int64_t end) {
+    run(begin, end, goff_blocks.data() + (begin / per_block) * J * 3);
   });
   for (int64_t i = 0; i < J * 3; ++i) {
     acc_t s = 0;

@@ -4,12 +4,20 @@
 // time-shifted inputs of j's neighbors into a contiguous (K x N) panel (rows = neighbor x channel x tap, columns =
 // batch x time, time innermost), multiply by the entity's weight block (a strided view of the compact weight, or a
 // once-per-call transposed copy), and write the tile out with the style / demodulation / bias / fold / blur applied
-// in the epilogue.  Tasks (batch tile x entity) run under at::parallel_for with thread-local panels; the weight
-// gradient accumulates into thread-local copies reduced at the end.  The GEMM is the BLAS that libtorch ships
-// (sgemm_/dgemm_, single-threaded inside the parallel region), with an ATen fallback when it is not exported.
+// in the epilogue.  The GEMM is the BLAS that libtorch ships (sgemm_/dgemm_, single-threaded inside the parallel
+// region), with an ATen fallback when it is not exported; fp32 with AVX2/FMA uses the indirect kernels below.
+//
+// Work distribution (cpu/tasks.h): each call runs at most a preparation region (operand layouts, packed weights,
+// bias / scale gradients) and one compute region (forward tiles; or input-gradient tiles and weight-gradient
+// blocks together).  Tasks are claimed dynamically, largest first, with per-slot scratch; every output element is
+// written by exactly one task, and the tiling depends on the shapes only, so results are the same for any thread
+// count and schedule.  The weight gradient is split by entity (and by output-row block when entities are few)
+// instead of accumulating thread-local copies.
 #include <algorithm>
 #include <cstdlib>
 #include <cstring>
+#include <memory>
+#include <numeric>
 #include <vector>
 
 #if defined(__x86_64__)
@@ -20,6 +28,7 @@
 #include <torch/library.h>
 
 #include "skeletal.h"
+#include "cpu/tasks.h"
 
 extern "C" {
 void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const float* alpha,
@@ -94,37 +103,77 @@ struct BlasSequential {
 inline int64_t mirror(int64_t q, int64_t L) { return q < 0 ? -q : (q >= L ? 2 * (L - 1) - q : q); }
 inline int64_t ceil_div_pos(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
+using cpu_tasks::phase;
+using cpu_tasks::Phase;
+using cpu_tasks::run_phases;
+
 // Threads only pay off above some work: waking a pool costs microseconds (milliseconds on a loaded machine).
 constexpr double kSerialMacs = 1.0e6;
 constexpr int64_t kSerialElems = 1 << 16;
-inline int64_t task_grain(int64_t n_tasks, double macs) { return macs < kSerialMacs ? std::max<int64_t>(n_tasks, 1) : 1; }
-inline int64_t elem_grain(int64_t elems_per_item) { return std::max<int64_t>(1, kSerialElems / std::max<int64_t>(1, elems_per_item)); }
+// Tasks per pass that the tiling aims for (when the batch allows), whatever the thread count: enough for the
+// dynamic claiming to balance up to ~8 threads with a small tail.
+constexpr int64_t kMinTasks = 16;
+inline bool worth_threads(double macs) { return macs >= kSerialMacs; }
+inline int64_t chunk_items(int64_t elems_per_item) {
+  return std::max<int64_t>(1, (kSerialElems / 2) / std::max<int64_t>(1, elems_per_item));
+}
 
-// A permutation of rows 0..n-1 (cost = neighbour count from CSR offsets) such that at::parallel_for's static split
-// of it into `parts` contiguous runs gives every run about the same total cost: greedy largest-first bin packing,
-// then the bins concatenated with their sizes padded to the even split parallel_for makes.
-inline std::vector<int64_t> balanced_order(const std::vector<int64_t>& off, int64_t n, int64_t parts) {
-  std::vector<int64_t> rows(static_cast<size_t>(n));
-  for (int64_t i = 0; i < n; ++i) rows[i] = i;
-  if (parts <= 1 || n <= parts) return rows;
-  auto cost = [&](int64_t r) { return off[r + 1] - off[r]; };
-  std::stable_sort(rows.begin(), rows.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
-  // parallel_for splits [0, n) into chunks of ceil(n / parts); give each bin exactly that many slots
-  const int64_t slots = (n + parts - 1) / parts;
-  std::vector<std::vector<int64_t>> bins(static_cast<size_t>(parts));
-  std::vector<int64_t> load(static_cast<size_t>(parts), 0);
-  for (int64_t r : rows) {
-    int64_t best = -1;
-    for (int64_t p = 0; p < parts; ++p)
-      if (static_cast<int64_t>(bins[p].size()) < slots && (best < 0 || load[p] < load[best])) best = p;
-    bins[best].push_back(r);
-    load[best] += cost(r);
+// Uninitialised storage (every element is written before it is read), so no memset pass over large operands.
+template <typename T>
+struct Buf {
+  std::unique_ptr<T[]> p;
+  void alloc(size_t n) { p.reset(n ? new T[n] : nullptr); }
+  T* data() const { return p.get(); }
+};
+
+// Scratch per slot (cpu_tasks::slots()), allocated on first use by the thread that owns the slot.
+template <typename T>
+struct SlotScratch {
+  std::vector<std::vector<T>> v;
+  SlotScratch() : v(static_cast<size_t>(cpu_tasks::slots())) {}
+  T* get(int slot, size_t n) {
+    auto& b = v[static_cast<size_t>(slot)];
+    if (b.size() < n) b.resize(n);
+    return b.data();
   }
-  std::stable_sort(bins.begin(), bins.end(), [](const auto& a, const auto& b) { return a.size() > b.size(); });
-  std::vector<int64_t> out;
-  out.reserve(static_cast<size_t>(n));
-  for (auto& b : bins) out.insert(out.end(), b.begin(), b.end());
-  return out;
+};
+
+// Task ids bt * E + e of a batch-tiled pass, largest first (cost ~ batch elements x (degree + 1)), so dynamic
+// claiming ends with small tasks.  off: CSR offsets of the entities' neighbour lists (their degrees).
+inline std::vector<int64_t> lpt_tiles(int64_t B, int64_t nb, int64_t E, const std::vector<int64_t>& off) {
+  const int64_t nbt = (B + nb - 1) / nb;
+  std::vector<int64_t> ids(static_cast<size_t>(nbt * E));
+  std::iota(ids.begin(), ids.end(), int64_t(0));
+  auto cost = [&](int64_t id) {
+    const int64_t bt = id / E, e = id % E;
+    return std::min(nb, B - bt * nb) * (off[e + 1] - off[e] + 1);
+  };
+  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
+  return ids;
+}
+
+// Weight-gradient blocks: task ids e * nrb + rb (entity e, output-row block rb of `rows` rows), largest first.
+// Entities alone give enough tasks on most layers; with few entities the rows are split too (each block
+// contracts the whole batch, so no partial sums are ever combined).
+struct RowBlocks {
+  int64_t nrb = 1, rb = 0;
+  std::vector<int64_t> order;
+};
+inline RowBlocks weight_blocks(int64_t E, int64_t rows, const std::vector<int64_t>& off, int64_t align) {
+  RowBlocks r;
+  r.nrb = std::min<int64_t>((kMinTasks + E - 1) / E, std::max<int64_t>(1, rows / align));
+  r.rb = (rows + r.nrb - 1) / r.nrb;
+  r.rb = (r.rb + align - 1) / align * align;
+  r.nrb = (rows + r.rb - 1) / r.rb;
+  r.order.resize(static_cast<size_t>(E * r.nrb));
+  std::iota(r.order.begin(), r.order.end(), int64_t(0));
+  const int64_t nrb = r.nrb, rbs = r.rb;
+  auto cost = [&](int64_t id) {
+    const int64_t e = id / nrb, b = id % nrb;
+    return (off[e + 1] - off[e]) * std::min(rbs, rows - b * rbs);
+  };
+  std::stable_sort(r.order.begin(), r.order.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
+  return r;
 }
 
 // Optional per-(b, channel, entity) factor with arbitrary strides (style: entity stride 0; demod: full).
@@ -292,20 +341,16 @@ Csr make_csr(const at::Tensor& index, const at::Tensor& offsets, int64_t n_cols)
 }
 
 // (C0, nnz, C1, U) -> (C1, nnz, C0, U) with pairs in transposed order: out[c1, q, c0, u] = w[c0, tpair[q], c1, u].
+// One task per c1 (a preparation phase of the pass that reads it).
 template <typename T>
-std::vector<T> transpose_weight(const T* w, int64_t C0, int64_t nnz, int64_t C1, int64_t U,
-                                const std::vector<int64_t>& tpair) {
-  std::vector<T> out(static_cast<size_t>(C0 * nnz * C1 * U));
-  at::parallel_for(0, C1, elem_grain(nnz * C0 * U), [&](int64_t lo, int64_t hi) {
-    for (int64_t c1 = lo; c1 < hi; ++c1)
-      for (int64_t q = 0; q < nnz; ++q)
-        for (int64_t c0 = 0; c0 < C0; ++c0) {
-          const T* src = w + ((c0 * nnz + tpair[q]) * C1 + c1) * U;
-          T* dst = out.data() + ((c1 * nnz + q) * C0 + c0) * U;
-          for (int64_t u = 0; u < U; ++u) dst[u] = src[u];
-        }
-  });
-  return out;
+void transpose_weight_row(T* out, const T* w, int64_t C0, int64_t nnz, int64_t C1, int64_t U,
+                          const std::vector<int64_t>& tpair, int64_t c1) {
+  for (int64_t q = 0; q < nnz; ++q)
+    for (int64_t c0 = 0; c0 < C0; ++c0) {
+      const T* src = w + ((c0 * nnz + tpair[q]) * C1 + c1) * U;
+      T* dst = out + ((c1 * nnz + q) * C0 + c0) * U;
+      for (int64_t u = 0; u < U; ++u) dst[u] = src[u];
+    }
 }
 
 // ------------------------------------------------------------------------------------------------ geometry
@@ -401,13 +446,15 @@ Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, co
   return g;
 }
 
-// Batch elements per tile: about `target` panel columns, and enough tiles to keep every thread busy.
+// Batch elements per tile: about `target` panel columns, at least kMinTasks tasks (entities x tiles) when the batch
+// allows, tiles as even as the count permits.  Depends on the shapes only (never on the thread count), so the
+// same products are computed whatever the threads.
 int64_t batch_tile(int64_t B, int64_t cols_per_b, int64_t n_entities, int64_t target = 512) {
   int64_t nb = std::max<int64_t>(1, target / std::max<int64_t>(1, cols_per_b));
   nb = std::min(nb, B);
-  const int64_t threads = at::get_num_threads();
-  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < 2 * threads) nb = (nb + 1) / 2;
-  return nb;
+  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < kMinTasks) nb = (nb + 1) / 2;
+  const int64_t nbt = (B + nb - 1) / nb;
+  return (B + nbt - 1) / nbt;
 }
 
 template <typename T>
@@ -438,76 +485,81 @@ void forward_conv_down(const Geo& g, const Csr& csr, const T* x, const T* w, con
                        const T* scale, T* y) {
   const int64_t stride = g.kind == kDown ? 2 : 1;
   const int64_t nb = batch_tile(g.B, g.Tout, g.Eout);
-  const int64_t nbt = (g.B + nb - 1) / nb;
   const int64_t maxK = csr.max_deg * g.Cin * g.U, cols = nb * g.Tout;
   const int64_t lda = g.nnz * g.Cin * g.U;
-  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+  const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.off);
+  SlotScratch<T> panels, accs;
+  auto task = [&](int64_t t, int slot) {
     BlasSequential blas_guard;
-    std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
-    for (int64_t task = lo; task < hi; ++task) {
-      const int64_t bt = task / g.Eout, j = task % g.Eout;
-      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * g.Tout;
-      const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * g.Cin * g.U;
-      gather_strided<T>(panel.data(), N, x, g.Cin, g.Ein, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride,
-                        g.U, g.reflect, sty);
-      gemm<T>(false, false, g.Cout, N, K, T(1), w + p0 * g.Cin * g.U, lda, panel.data(), N, T(0), acc.data(), N);
-      for (int64_t bl = 0; bl < nbl; ++bl) {
-        const int64_t b = b0 + bl;
-        for (int64_t o = 0; o < g.Cout; ++o) {
-          const T f = scale ? scale[(b * g.Cout + o) * g.Eout + j] : T(1);
-          const T bb = bias ? bias[o] : T(0);
-          const T* src = acc.data() + o * N + bl * g.Tout;
-          T* dst = y + ((b * g.Cout + o) * g.Eout + j) * g.Tout;
-          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = src[t] * f + bb;
-        }
+    T* panel = panels.get(slot, static_cast<size_t>(maxK * cols));
+    T* acc = accs.get(slot, static_cast<size_t>(g.Cout * cols));
+    const int64_t bt = order[t] / g.Eout, j = order[t] % g.Eout;
+    const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * g.Tout;
+    const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * g.Cin * g.U;
+    gather_strided<T>(panel, N, x, g.Cin, g.Ein, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride, g.U,
+                      g.reflect, sty);
+    gemm<T>(false, false, g.Cout, N, K, T(1), w + p0 * g.Cin * g.U, lda, panel, N, T(0), acc, N);
+    for (int64_t bl = 0; bl < nbl; ++bl) {
+      const int64_t b = b0 + bl;
+      for (int64_t o = 0; o < g.Cout; ++o) {
+        const T f = scale ? scale[(b * g.Cout + o) * g.Eout + j] : T(1);
+        const T bb = bias ? bias[o] : T(0);
+        const T* src = acc + o * N + bl * g.Tout;
+        T* dst = y + ((b * g.Cout + o) * g.Eout + j) * g.Tout;
+        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = src[t2] * f + bb;
       }
     }
-  });
+  };
+  run_phases({phase(static_cast<int64_t>(order.size()), task)}, worth_threads(g.macs));
 }
 
 template <typename T>
 void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* bias, const Scale<T>& sty,
                 const T* scale, T* y) {
   // For fine entity f: V (Cout x nb*Tp) = Wt_f (Cout x k*Cin*U) * transposed panel of its coarse sources.
-  const std::vector<T> wt = transpose_weight<T>(w, g.Cin, g.nnz, g.Cout, g.U, csr.tpair);
+  const bool par = worth_threads(g.macs);
+  Buf<T> wt;
+  wt.alloc(static_cast<size_t>(g.Cin * g.nnz * g.Cout * g.U));
+  auto tr = [&](int64_t c1, int) { transpose_weight_row<T>(wt.data(), w, g.Cin, g.nnz, g.Cout, g.U, csr.tpair, c1); };
+  run_phases({phase(g.Cout, tr)}, par);
   const int64_t Tp = g.Tout + 2 * g.h;
   const int64_t nb = batch_tile(g.B, Tp, g.Eout);
-  const int64_t nbt = (g.B + nb - 1) / nb;
   const int64_t maxK = csr.max_tdeg * g.Cin * g.U, cols = nb * Tp;
   const int64_t lda = g.nnz * g.Cin * g.U;
-  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
+  const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
+  SlotScratch<T> panels, accs, rows;
+  auto task = [&](int64_t t, int slot) {
     BlasSequential blas_guard;
-    std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(g.Cout * cols));
-    std::vector<T> v(static_cast<size_t>(g.Tout)), bl_out(static_cast<size_t>(g.Tout));
-    for (int64_t task = lo; task < hi; ++task) {
-      const int64_t bt = task / g.Eout, f = task % g.Eout;
-      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tp;
-      const int64_t q0 = csr.toff[f], k = csr.toff[f + 1] - q0, K = k * g.Cin * g.U;
-      if (k == 0) {
-        for (int64_t bl = 0; bl < nbl; ++bl)
-          for (int64_t o = 0; o < g.Cout; ++o) {
-            T* dst = y + (((b0 + bl) * g.Cout + o) * g.Eout + f) * g.Tout;
-            std::fill(dst, dst + g.Tout, bias ? bias[o] : T(0));
-          }
-        continue;
-      }
-      gather_transposed<T>(panel.data(), N, x, g.Cin, g.Ein, g.Tin, csr.tent.data() + q0, k, b0, nbl, Tp, 2, g.U,
-                           sty);
-      gemm<T>(false, false, g.Cout, N, K, T(1), wt.data() + q0 * g.Cin * g.U, lda, panel.data(), N, T(0),
-              acc.data(), N);
-      for (int64_t bl = 0; bl < nbl; ++bl) {
-        const int64_t b = b0 + bl;
+    const int64_t bt = order[t] / g.Eout, f = order[t] % g.Eout;
+    const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tp;
+    const int64_t q0 = csr.toff[f], k = csr.toff[f + 1] - q0, K = k * g.Cin * g.U;
+    if (k == 0) {
+      for (int64_t bl = 0; bl < nbl; ++bl)
         for (int64_t o = 0; o < g.Cout; ++o) {
-          const T fs = scale ? scale[(b * g.Cout + o) * g.Eout + f] : T(1);
-          const T bb = bias ? bias[o] : T(0);
-          fold_row<T>(acc.data() + o * N + bl * Tp, v.data(), g.Tout, g.h, g.reflect);
-          blur_row<T>(v.data(), bl_out.data(), g.Tout);
-          T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
-          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = bl_out[t] * fs + bb;
+          T* dst = y + (((b0 + bl) * g.Cout + o) * g.Eout + f) * g.Tout;
+          std::fill(dst, dst + g.Tout, bias ? bias[o] : T(0));
         }
+      return;
+    }
+    T* panel = panels.get(slot, static_cast<size_t>(maxK * cols));
+    T* acc = accs.get(slot, static_cast<size_t>(g.Cout * cols));
+    T* v = rows.get(slot, static_cast<size_t>(2 * g.Tout));
+    T* bl_out = v + g.Tout;
+    gather_transposed<T>(panel, N, x, g.Cin, g.Ein, g.Tin, csr.tent.data() + q0, k, b0, nbl, Tp, 2, g.U, sty);
+    gemm<T>(false, false, g.Cout, N, K, T(1), wt.data() + q0 * g.Cin * g.U, lda, panel, N, T(0), acc, N);
+    for (int64_t bl = 0; bl < nbl; ++bl) {
+      const int64_t b = b0 + bl;
+      for (int64_t o = 0; o < g.Cout; ++o) {
+        const T fs = scale ? scale[(b * g.Cout + o) * g.Eout + f] : T(1);
+        const T bb = bias ? bias[o] : T(0);
+        fold_row<T>(acc + o * N + bl * Tp, v, g.Tout, g.h, g.reflect);
+        blur_row<T>(v, bl_out, g.Tout);
+        T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
+        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = bl_out[t2] * fs + bb;
       }
     }
-  });
+  };
+  run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
 }
 
 // Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
@@ -773,56 +825,82 @@ void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K,
 // Column layout of a (B, C, E, Ts) tensor: row (phase, c, e) of length row_len; at b*Tq + m it holds
 // f(b,c,e) * src[b, c, e, q] for padded position p = S*m + phase < Lp, q = p - F; q outside [0, Ts) reads the
 // mirror image (reflect) or 0.  Past Lp, between batch blocks and in the slack after the last block: 0.
+// blur_adjoint: the source row of (b, c, e) is blur^T(src row) (the up op's backward), computed on the fly.
+struct ColsSrc {
+  const float* src = nullptr;
+  int64_t B = 0, Ts = 0;
+  Scale<float> f;
+  int64_t F = 0, Lp = 0;
+  bool reflect = false, blur_adjoint = false;
+};
+
 struct Cols {
-  std::vector<float> buf;
-  int64_t C = 0, E = 0, Tq = 0, row_len = 0;
+  Buf<float> buf;
+  int64_t C = 0, E = 0, Tq = 0, row_len = 0, rows = 0;
   const float* row(int64_t ph, int64_t c, int64_t e) const { return buf.data() + ((ph * C + c) * E + e) * row_len; }
 };
 
-Cols build_cols(const float* src, int64_t B, int64_t C, int64_t E, int64_t Ts, const Scale<float>& f, int64_t S,
-                int64_t F, int64_t Lp, int64_t Tq, bool reflect, int64_t max_shift) {
+// Builds a Cols as a preparation phase: tasks of whole rows.  Must stay in place while its phase runs.
+struct ColsBuild {
   Cols cl;
-  cl.C = C;
-  cl.E = E;
-  cl.Tq = Tq;
-  int64_t len = round_up(B * Tq + NR + max_shift + 8, 8);
-  if ((len * 4) % 4096 == 0) len += 16;  // avoid rows aliasing in the same cache sets
-  cl.row_len = len;
-  cl.buf.assign(static_cast<size_t>(S * C * E * len), 0.f);
-  const int64_t rows = S * C * E;
-  at::parallel_for(0, rows, elem_grain(B * Tq), [&](int64_t lo, int64_t hi) {
-    for (int64_t r = lo; r < hi; ++r) {
-      const int64_t ph = r / (C * E), c = (r / E) % C, e = r % E;
-      float* dst = cl.buf.data() + r * len;
-      for (int64_t b = 0; b < B; ++b) {
-        const float fv = f.at(b, c, e);
-        const float* s = src + ((b * C + c) * E + e) * Ts;
-        float* d = dst + b * Tq;
-        if (S == 1) {
-          const int64_t lo_m = std::min(std::max<int64_t>(F, 0), Tq), hi_m = std::max(lo_m, std::min({Tq, Lp, F + Ts}));
-          for (int64_t m = 0; m < lo_m; ++m)
-            d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
-          for (int64_t m = lo_m; m < hi_m; ++m) d[m] = fv * s[m - F];
-          for (int64_t m = hi_m; m < Tq; ++m) d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
-        } else {
-          for (int64_t m = 0; m < Tq; ++m) {
-            const int64_t p = S * m + ph;
-            float v = 0.f;
-            if (p < Lp) {
-              const int64_t q = p - F;
-              if (q >= 0 && q < Ts)
-                v = s[q];
-              else if (reflect)
-                v = s[mirror(q, Ts)];
-            }
-            d[m] = fv * v;
+  ColsSrc cs;
+  int64_t S = 1, chunk = 1;
+  mutable SlotScratch<float> tmp;
+  ColsBuild(const ColsSrc& src, int64_t C, int64_t E, int64_t S_, int64_t Tq, int64_t max_shift) : cs(src), S(S_) {
+    cl.C = C;
+    cl.E = E;
+    cl.Tq = Tq;
+    int64_t len = round_up(cs.B * Tq + NR + max_shift + 8, 8);
+    if ((len * 4) % 4096 == 0) len += 16;  // avoid rows aliasing in the same cache sets
+    cl.row_len = len;
+    cl.rows = S * C * E;
+    cl.buf.alloc(static_cast<size_t>(cl.rows * len));
+    chunk = chunk_items(len);
+  }
+  ColsBuild(const ColsBuild&) = delete;
+  ColsBuild& operator=(const ColsBuild&) = delete;
+
+  void fill(int64_t r, int slot) const {
+    const int64_t C = cl.C, E = cl.E, Tq = cl.Tq, B = cs.B, Ts = cs.Ts, F = cs.F, Lp = cs.Lp;
+    const bool reflect = cs.reflect;
+    const int64_t ph = r / (C * E), c = (r / E) % C, e = r % E;
+    float* dst = cl.buf.data() + r * cl.row_len;
+    float* blurred = cs.blur_adjoint ? tmp.get(slot, static_cast<size_t>(Ts)) : nullptr;
+    for (int64_t b = 0; b < B; ++b) {
+      const float fv = cs.f.at(b, c, e);
+      const float* s = cs.src + ((b * C + c) * E + e) * Ts;
+      if (blurred) {
+        blur_adjoint_row<float>(s, blurred, Ts);
+        s = blurred;
+      }
+      float* d = dst + b * Tq;
+      if (S == 1) {
+        const int64_t lo_m = std::min(std::max<int64_t>(F, 0), Tq), hi_m = std::max(lo_m, std::min({Tq, Lp, F + Ts}));
+        for (int64_t m = 0; m < lo_m; ++m) d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
+        for (int64_t m = lo_m; m < hi_m; ++m) d[m] = fv * s[m - F];
+        for (int64_t m = hi_m; m < Tq; ++m) d[m] = (m < Lp && reflect) ? fv * s[mirror(m - F, Ts)] : 0.f;
+      } else {
+        for (int64_t m = 0; m < Tq; ++m) {
+          const int64_t p = S * m + ph;
+          float v = 0.f;
+          if (p < Lp) {
+            const int64_t q = p - F;
+            if (q >= 0 && q < Ts)
+              v = s[q];
+            else if (reflect)
+              v = s[mirror(q, Ts)];
           }
+          d[m] = fv * v;
         }
       }
     }
-  });
-  return cl;
-}
+    std::fill(dst + B * Tq, dst + cl.row_len, 0.f);
+  }
+  void operator()(int64_t t, int slot) const {
+    for (int64_t r = t * chunk, end = std::min(cl.rows, (t + 1) * chunk); r < end; ++r) fill(r, slot);
+  }
+  Phase phase() const { return cpu_tasks::phase((cl.rows + chunk - 1) / chunk, *this); }
+};
 
 // A operands are packed once per call into 4-row panels: panel pn holds out[(pn*K + kk)*4 + r] = A[pn*4 + r][kk]
 // (rows past M are 0), so the NN kernel reads its 4 broadcasts from one cache line.
@@ -843,71 +921,85 @@ void pack_plain(float* out, int64_t M, int64_t K, const float* src, int64_t lda)
 }
 
 // Grouped: columns come in groups of Rp taps; A[m][g*Rp + r] = base[g][m*mstride + tap0 + tap_step*r].
-void pack_groups(float* out, int64_t M, int64_t K, const std::vector<const float*>& base, int64_t Rp,
+void pack_groups(float* out, int64_t M, int64_t K, const float* const* base, int64_t n_groups, int64_t Rp,
                  int64_t mstride, int64_t tap0, int64_t tap_step) {
   const int64_t panels = (M + MR - 1) / MR;
   if (panels * MR > M) std::fill(out, out + panels * MR * K, 0.f);
-  for (size_t gi = 0; gi < base.size(); ++gi)
+  for (int64_t gi = 0; gi < n_groups; ++gi)
     for (int64_t m = 0; m < M; ++m) {
       const float* src = base[gi] + m * mstride + tap0;
-      float* o = out + ((m / MR) * K + static_cast<int64_t>(gi) * Rp) * MR + (m % MR);
+      float* o = out + ((m / MR) * K + gi * Rp) * MR + (m % MR);
       for (int64_t r = 0; r < Rp; ++r) o[r * MR] = src[r * tap_step];
     }
 }
 
 // All entities' packed operands of one pass (and phase), addressed by entity * phases + phase.
 struct Packs {
-  std::vector<float> buf;
+  Buf<float> buf;
   std::vector<int64_t> off;
   const float* at(int64_t i) const { return buf.data() + off[i]; }
 };
 
 // Transposed pass: for output entity n and phase ph the operand row m, column (s, c, r) is
 // w_t(m, pair of transposed entry q0+s, c, tap) with tap = r (stride 1) or ph + 2r (stride 2).  `group_base(q, c)`
-// returns a pointer such that element (m, tap) sits at base[m*mstride + tap].
+// returns a pointer such that element (m, tap) sits at base[m*mstride + tap].  A preparation phase (one task per
+// entity and phase); must stay in place while it runs.
 template <typename GroupBase>
-Packs pack_transposed(const Csr& csr, int64_t n_ent, int64_t stride, int64_t U, int64_t M, int64_t Csrc,
-                      int64_t mstride, GroupBase group_base) {
+struct PackTransposed {
   Packs pk;
-  const int64_t rows = round_up(M, MR);
-  pk.off.assign(static_cast<size_t>(n_ent * stride + 1), 0);
-  for (int64_t n = 0; n < n_ent; ++n)
-    for (int64_t ph = 0; ph < stride; ++ph) {
-      const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
-      const int64_t k = csr.toff[n + 1] - csr.toff[n];
-      pk.off[n * stride + ph + 1] = pk.off[n * stride + ph] + rows * k * Csrc * Rp;
-    }
-  pk.buf.resize(static_cast<size_t>(pk.off.back()));
-  at::parallel_for(0, n_ent * stride, elem_grain(M * Csrc * U * std::max<int64_t>(1, csr.max_tdeg)),
-                   [&](int64_t lo, int64_t hi) {
-    std::vector<const float*> base;
-    for (int64_t e = lo; e < hi; ++e) {
-      const int64_t n = e / stride, ph = e % stride;
-      const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
-      const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
-      base.clear();
-      for (int64_t s = 0; s < k; ++s)
-        for (int64_t c = 0; c < Csrc; ++c) base.push_back(group_base(q0 + s, c));
-      pack_groups(pk.buf.data() + pk.off[e], M, k * Csrc * Rp, base, Rp, mstride, stride == 1 ? 0 : ph,
-                  stride == 1 ? 1 : 2);
-    }
-  });
-  return pk;
-}
+  const Csr& csr;
+  int64_t stride, U, M, Csrc, mstride;
+  GroupBase group_base;
+  mutable SlotScratch<const float*> bases;
+  PackTransposed(const Csr& csr_, int64_t n_ent, int64_t stride_, int64_t U_, int64_t M_, int64_t Csrc_,
+                 int64_t mstride_, GroupBase gb)
+      : csr(csr_), stride(stride_), U(U_), M(M_), Csrc(Csrc_), mstride(mstride_), group_base(gb) {
+    const int64_t rows = round_up(M, MR);
+    pk.off.assign(static_cast<size_t>(n_ent * stride + 1), 0);
+    for (int64_t n = 0; n < n_ent; ++n)
+      for (int64_t ph = 0; ph < stride; ++ph) {
+        const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
+        const int64_t k = csr.toff[n + 1] - csr.toff[n];
+        pk.off[n * stride + ph + 1] = pk.off[n * stride + ph] + rows * k * Csrc * Rp;
+      }
+    pk.buf.alloc(static_cast<size_t>(pk.off.back()));
+  }
+  PackTransposed(const PackTransposed&) = delete;
+  PackTransposed& operator=(const PackTransposed&) = delete;
+  void operator()(int64_t e, int slot) const {
+    const int64_t n = e / stride, ph = e % stride;
+    const int64_t Rp = stride == 1 ? U : (U - ph + 1) / 2;
+    const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
+    const float** base = bases.get(slot, static_cast<size_t>(std::max<int64_t>(1, csr.max_tdeg * Csrc)));
+    for (int64_t s = 0; s < k; ++s)
+      for (int64_t c = 0; c < Csrc; ++c) base[s * Csrc + c] = group_base(q0 + s, c);
+    pack_groups(pk.buf.data() + pk.off[e], M, k * Csrc * Rp, base, k * Csrc, Rp, mstride, stride == 1 ? 0 : ph,
+                stride == 1 ? 1 : 2);
+  }
+  Phase phase() const { return cpu_tasks::phase(static_cast<int64_t>(pk.off.size()) - 1, *this); }
+};
 
 // Plain pass: entity j's operand is rows [0, M) of the strided view src + off[j]*colw (row stride lda), K_j wide.
-Packs pack_entities(const Csr& csr, int64_t M, const float* src, int64_t lda, int64_t colw) {
+struct PackEntities {
   Packs pk;
-  const int64_t rows = round_up(M, MR);
-  pk.off.assign(static_cast<size_t>(csr.rows + 1), 0);
-  for (int64_t j = 0; j < csr.rows; ++j) pk.off[j + 1] = pk.off[j] + rows * (csr.off[j + 1] - csr.off[j]) * colw;
-  pk.buf.resize(static_cast<size_t>(pk.off.back()));
-  at::parallel_for(0, csr.rows, elem_grain(M * colw * csr.max_deg), [&](int64_t lo, int64_t hi) {
-    for (int64_t j = lo; j < hi; ++j)
-      pack_plain(pk.buf.data() + pk.off[j], M, (csr.off[j + 1] - csr.off[j]) * colw, src + csr.off[j] * colw, lda);
-  });
-  return pk;
-}
+  const Csr& csr;
+  int64_t M;
+  const float* src;
+  int64_t lda, colw;
+  PackEntities(const Csr& csr_, int64_t M_, const float* src_, int64_t lda_, int64_t colw_)
+      : csr(csr_), M(M_), src(src_), lda(lda_), colw(colw_) {
+    const int64_t rows = round_up(M, MR);
+    pk.off.assign(static_cast<size_t>(csr.rows + 1), 0);
+    for (int64_t j = 0; j < csr.rows; ++j) pk.off[j + 1] = pk.off[j] + rows * (csr.off[j + 1] - csr.off[j]) * colw;
+    pk.buf.alloc(static_cast<size_t>(pk.off.back()));
+  }
+  PackEntities(const PackEntities&) = delete;
+  PackEntities& operator=(const PackEntities&) = delete;
+  void operator()(int64_t j, int) const {
+    pack_plain(pk.buf.data() + pk.off[j], M, (csr.off[j + 1] - csr.off[j]) * colw, src + csr.off[j] * colw, lda);
+  }
+  Phase phase() const { return cpu_tasks::phase(csr.rows, *this); }
+};
 
 // Output of a stride-2 transposed pass lives in two phase accumulators; rebuild a padded row of length Lp.
 inline void interleave_row(const float* a0, const float* a1, float* out, int64_t Lp) {
@@ -918,8 +1010,8 @@ inline void interleave_row(const float* a0, const float* a1, float* out, int64_t
 // inputs are `src` rows of the entities that read n.  stride 1: one product over taps u (pointer shift U-1-u);
 // stride 2: one product per output phase over taps u = phase + 2r (pointer shift R-1-r).
 void transposed_products(const Cols& src, int64_t Csrc, const Csr& csr, int64_t n, int64_t b0, int64_t stride,
-                         int64_t U, int64_t Mrows, const Packs& pk, std::vector<const float*>& ptr,
-                         std::vector<float>* acc, int64_t N, int64_t ldacc) {
+                         int64_t U, int64_t Mrows, const Packs& pk, const float** ptr, float* const* acc, int64_t N,
+                         int64_t ldacc) {
   const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0;
   const int64_t R = stride == 1 ? U : (U + 1) / 2;
   for (int64_t ph = 0; ph < stride; ++ph) {
@@ -930,84 +1022,114 @@ void transposed_products(const Cols& src, int64_t Csrc, const Csr& csr, int64_t 
         const float* rowp = src.row(0, c, csr.tent[q0 + s]) + b0 * src.Tq;
         for (int64_t r = 0; r < Rp; ++r) ptr[(s * Csrc + c) * Rp + r] = rowp + (stride == 1 ? (U - 1 - r) : (R - 1 - r));
       }
-    nn_gemm(pk.at(n * stride + ph), Mrows, K, ptr.data(), N, acc[ph].data(), ldacc);
+    nn_gemm(pk.at(n * stride + ph), Mrows, K, ptr, N, acc[ph], ldacc);
   }
 }
 
 void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const float* bias,
              const Scale<float>& sty, const float* scale, float* y) {
   const int64_t U = g.U, h = g.h, Ci = g.Cin, Co = g.Cout;
+  const bool par = worth_threads(g.macs);
   if (g.kind != kUp) {
     const int64_t S = g.kind == kDown ? 2 : 1;
     const int64_t Lp = g.Tin + 2 * h, Tq = (Lp + S - 1) / S;
-    const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, S, h, Lp, Tq, g.reflect, U);
-    const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
+    ColsSrc src;
+    src.src = x;
+    src.B = g.B;
+    src.Ts = g.Tin;
+    src.f = sty;
+    src.F = h;
+    src.Lp = Lp;
+    src.reflect = g.reflect;
+    const ColsBuild xb(src, Ci, g.Ein, S, Tq, U);
+    const PackEntities pe(csr, Co, w, g.nnz * Ci * U, Ci * U);
+    run_phases({xb.phase(), pe.phase()}, par);
+    const Cols& xc = xb.cl;
+    const int64_t nb = batch_tile(g.B, Tq, g.Eout);
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_deg * Ci * U;
-    const Packs pk = pack_entities(csr, Co, w, g.nnz * Ci * U, Ci * U);
-    at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
-      std::vector<float> acc(static_cast<size_t>(rows * ldacc));
-      std::vector<const float*> ptr(static_cast<size_t>(maxK));
-      for (int64_t task = lo; task < hi; ++task) {
-        const int64_t bt = task / g.Eout, j = task % g.Eout;
-        const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
-        const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
-        for (int64_t s = 0; s < k; ++s)
-          for (int64_t c = 0; c < Ci; ++c)
-            for (int64_t u = 0; u < U; ++u)
-              ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
-        nn_gemm(pk.at(j), Co, K, ptr.data(), N, acc.data(), ldacc);
-        for (int64_t bl = 0; bl < nbl; ++bl) {
-          const int64_t b = b0 + bl;
-          for (int64_t o = 0; o < Co; ++o) {
-            const float f = scale ? scale[(b * Co + o) * g.Eout + j] : 1.f;
-            const float bb = bias ? bias[o] : 0.f;
-            const float* src = acc.data() + o * ldacc + bl * Tq;
-            float* dst = y + ((b * Co + o) * g.Eout + j) * g.Tout;
-            for (int64_t t = 0; t < g.Tout; ++t) dst[t] = src[t] * f + bb;
-          }
+    const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.off);
+    SlotScratch<float> accs;
+    SlotScratch<const float*> ptrs;
+    auto task = [&](int64_t t, int slot) {
+      float* acc = accs.get(slot, static_cast<size_t>(rows * ldacc));
+      const float** ptr = ptrs.get(slot, static_cast<size_t>(maxK));
+      const int64_t bt = order[t] / g.Eout, j = order[t] % g.Eout;
+      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
+      const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+      for (int64_t s = 0; s < k; ++s)
+        for (int64_t c = 0; c < Ci; ++c)
+          for (int64_t u = 0; u < U; ++u)
+            ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
+      nn_gemm(pe.pk.at(j), Co, K, ptr, N, acc, ldacc);
+      for (int64_t bl = 0; bl < nbl; ++bl) {
+        const int64_t b = b0 + bl;
+        for (int64_t o = 0; o < Co; ++o) {
+          const float f = scale ? scale[(b * Co + o) * g.Eout + j] : 1.f;
+          const float bb = bias ? bias[o] : 0.f;
+          const float* src_row = acc + o * ldacc + bl * Tq;
+          float* dst = y + ((b * Co + o) * g.Eout + j) * g.Tout;
+          for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = src_row[t2] * f + bb;
         }
       }
-    });
+    };
+    run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
     return;
   }
   // up: fine entity f gathers its coarse sources through the transposed CSR, two output phases
   const int64_t R = (U + 1) / 2, Lpf = g.Tout + 2 * h, Mq = (Lpf + 1) / 2, Tq = Mq + R - 1;
-  const Cols xc = build_cols(x, g.B, Ci, g.Ein, g.Tin, sty, 1, R - 1, Tq, Tq, false, U);
-  const int64_t nb = batch_tile(g.B, Tq, g.Eout), nbt = (g.B + nb - 1) / nb;
-  const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
+  ColsSrc src;
+  src.src = x;
+  src.B = g.B;
+  src.Ts = g.Tin;
+  src.f = sty;
+  src.F = R - 1;
+  src.Lp = Tq;
+  const ColsBuild xb(src, Ci, g.Ein, 1, Tq, U);
   // operand row o, column (s, i, r): w_up[i, pair, o, tap]
-  const Packs pk = pack_transposed(csr, g.Eout, 2, U, Co, Ci, U,
-                                   [&](int64_t q, int64_t i) { return w + (i * g.nnz + csr.tpair[q]) * Co * U; });
-  at::parallel_for(0, nbt * g.Eout, task_grain(nbt * g.Eout, g.macs), [&](int64_t lo, int64_t hi) {
-    std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
-                                 std::vector<float>(static_cast<size_t>(rows * ldacc))};
-    std::vector<const float*> ptr(static_cast<size_t>(std::max<int64_t>(maxK, 1)));
-    std::vector<float> vp(static_cast<size_t>(Lpf)), v(static_cast<size_t>(g.Tout)), vb(static_cast<size_t>(g.Tout));
-    for (int64_t task = lo; task < hi; ++task) {
-      const int64_t bt = task / g.Eout, f = task % g.Eout;
-      const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
-      transposed_products(xc, Ci, csr, f, b0, 2, U, Co, pk, ptr, acc, N, ldacc);
-      for (int64_t bl = 0; bl < nbl; ++bl) {
-        const int64_t b = b0 + bl;
-        for (int64_t o = 0; o < Co; ++o) {
-          const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
-          const float bb = bias ? bias[o] : 0.f;
-          interleave_row(acc[0].data() + o * ldacc + bl * Tq, acc[1].data() + o * ldacc + bl * Tq, vp.data(), Lpf);
-          fold_row<float>(vp.data(), v.data(), g.Tout, h, g.reflect);
-          blur_row<float>(v.data(), vb.data(), g.Tout);
-          float* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
-          for (int64_t t = 0; t < g.Tout; ++t) dst[t] = vb[t] * fs + bb;
-        }
+  auto base = [&](int64_t q, int64_t i) { return w + (i * g.nnz + csr.tpair[q]) * Co * U; };
+  const PackTransposed<decltype(base)> pt(csr, g.Eout, 2, U, Co, Ci, U, base);
+  run_phases({xb.phase(), pt.phase()}, par);
+  const Cols& xc = xb.cl;
+  const int64_t nb = batch_tile(g.B, Tq, g.Eout);
+  const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
+  const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
+  SlotScratch<float> accs, rowbuf;
+  SlotScratch<const float*> ptrs;
+  auto task = [&](int64_t t, int slot) {
+    float* a0 = accs.get(slot, static_cast<size_t>(2 * rows * ldacc));
+    float* const acc[2] = {a0, a0 + rows * ldacc};
+    const float** ptr = ptrs.get(slot, static_cast<size_t>(std::max<int64_t>(maxK, 1)));
+    float* vp = rowbuf.get(slot, static_cast<size_t>(Lpf + 2 * g.Tout));
+    float* v = vp + Lpf;
+    float* vb = v + g.Tout;
+    const int64_t bt = order[t] / g.Eout, f = order[t] % g.Eout;
+    const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
+    transposed_products(xc, Ci, csr, f, b0, 2, U, Co, pt.pk, ptr, acc, N, ldacc);
+    for (int64_t bl = 0; bl < nbl; ++bl) {
+      const int64_t b = b0 + bl;
+      for (int64_t o = 0; o < Co; ++o) {
+        const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
+        const float bb = bias ? bias[o] : 0.f;
+        interleave_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, vp, Lpf);
+        fold_row<float>(vp, v, g.Tout, h, g.reflect);
+        blur_row<float>(v, vb, g.Tout);
+        float* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
+        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = vb[t2] * fs + bb;
       }
     }
-  });
+  };
+  run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
 }
 
-// Input, style and weight gradients.  gyd * gsc: gy * d for conv/down; for up gyd = blur^T(gy) * d on the fine
-// grid (gsc empty).
-void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>& gsc, const float* x, const float* w,
-              const float* style, float* gx, float* gw, float* gs_part, bool direct_gw, float* gw_acc, int64_t wsize) {
+// Input, style and weight gradients.  For conv/down the output gradient is gy * gsc (gsc = d); for up it is
+// blur^T(gy) * gsc on the fine grid, formed while the operand rows are laid out.  gx / gs_part / gw may be null.
+// `prep` and `compute` carry the caller's phases (bias / scale gradients, a BLAS weight gradient, ...), run in the
+// same two regions as this pass's own.
+void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>& gsc, const float* x, const float* w,
+              const float* style, float* gx, float* gw, float* gs_part, std::vector<Phase> prep,
+              std::vector<Phase> compute) {
   const int64_t U = g.U, h = g.h, Ci = g.Cin, Co = g.Cout, Ei = g.Ein, Eo = g.Eout, B = g.B;
+  const bool par = worth_threads(g.macs);
   Scale<float> sty;
   if (style) {
     sty.p = style;
@@ -1020,12 +1142,37 @@ void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>
     finish_input_row<float>(row, x + xo, style ? style[b * Ci + i] : 1.f, gx ? gx + xo : nullptr,
                             gs_part ? gs_part + (n * B + b) * Ci + i : nullptr, L);
   };
+  SlotScratch<float> accs, rowbuf;
+  SlotScratch<const float*> ptrs;
   if (g.kind == kUp) {
-    // gv on the fine grid, read like a down-sampler's input: stride 2, padding per mode
+    // gv = blur^T(gy) * d on the fine grid, read like a down-sampler's input: stride 2, padding per mode
     const int64_t Tc = g.Tin, Lp = g.Tout + 2 * h, Tq = Tc + h;
-    const Cols gvc = build_cols(gyd, B, Co, Eo, g.Tout, Scale<float>{}, 2, h, Lp, Tq, g.reflect, U);
-    const int64_t maxK = csr.max_deg * Co * U, lda = g.nnz * Co * U;
-    auto set_ptrs = [&](std::vector<const float*>& ptr, int64_t c, int64_t b0) {
+    ColsSrc gs;
+    gs.src = gy;
+    gs.B = B;
+    gs.Ts = g.Tout;
+    gs.f = gsc;
+    gs.F = h;
+    gs.Lp = Lp;
+    gs.reflect = g.reflect;
+    gs.blur_adjoint = true;
+    const ColsBuild gvb(gs, Co, Eo, 2, Tq, U);
+    ColsSrc xs;
+    xs.src = x;
+    xs.B = B;
+    xs.Ts = Tc;
+    xs.f = sty;
+    xs.F = 0;
+    xs.Lp = Tc;
+    const ColsBuild xlb(xs, gw ? Ci : 0, gw ? Ei : 0, 1, Tq, U);
+    const int64_t lda = g.nnz * Co * U, maxK = csr.max_deg * Co * U;
+    const PackEntities pe(csr, want_input ? Ci : 0, w, lda, Co * U);
+    prep.push_back(gvb.phase());
+    if (gw) prep.push_back(xlb.phase());
+    if (want_input) prep.push_back(pe.phase());
+    run_phases(prep.data(), prep.size(), par);
+    const Cols& gvc = gvb.cl;
+    auto set_ptrs = [&](const float** ptr, int64_t c, int64_t b0) {
       const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0;
       for (int64_t s = 0; s < k; ++s)
         for (int64_t o = 0; o < Co; ++o)
@@ -1033,109 +1180,135 @@ void backward(const Geo& g, const Csr& csr, const float* gyd, const Scale<float>
             ptr[(s * Co + o) * U + u] = gvc.row(u % 2, o, csr.idx[p0 + s]) + b0 * Tq + u / 2;
       return k * Co * U;
     };
-    if (want_input) {
-      const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
-      const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR);
-      const Packs pk = pack_entities(csr, Ci, w, lda, Co * U);
-      at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
-        std::vector<float> acc(static_cast<size_t>(rows * ldacc));
-        std::vector<const float*> ptr(static_cast<size_t>(maxK));
-        for (int64_t task = lo; task < hi; ++task) {
-          const int64_t bt = task / Ei, c = task % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
-          const int64_t K = set_ptrs(ptr, c, b0);
-          nn_gemm(pk.at(c), Ci, K, ptr.data(), nbl * Tq, acc.data(), ldacc);
-          for (int64_t bl = 0; bl < nbl; ++bl)
-            for (int64_t i = 0; i < Ci; ++i) finish(acc.data() + i * ldacc + bl * Tq, b0 + bl, i, c, Tc);
-        }
-      });
-    }
-    if (gw) {
-      const Cols xl = build_cols(x, B, Ci, Ei, Tc, sty, 1, 0, Tc, Tq, false, U);
-      const int64_t nb = direct_gw ? B : batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
-      const int64_t n_tasks = direct_gw ? Ei : nbt * Ei;
-      at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
-        std::vector<const float*> ptr(static_cast<size_t>(maxK)), lrow(static_cast<size_t>(Ci));
-        float* my = direct_gw ? gw : gw_acc + at::get_thread_num() * wsize;
-        for (int64_t task = lo; task < hi; ++task) {
-          const int64_t c = task % Ei, bt = direct_gw ? 0 : task / Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
-          const int64_t K = set_ptrs(ptr, c, b0);
-          for (int64_t i = 0; i < Ci; ++i) lrow[i] = xl.row(0, i, c) + b0 * Tq;
-          float* C = my + csr.off[c] * Co * U;
-          if (direct_gw)
-            for (int64_t i = 0; i < Ci; ++i) std::fill(C + i * lda, C + i * lda + K, 0.f);
-          nt_gemm(lrow.data(), Ci, ptr.data(), K, nbl * Tq, C, lda);
-        }
-      });
-    }
+    const int64_t nb = batch_tile(B, Tq, Ei);
+    const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR);
+    const std::vector<int64_t> order = want_input ? lpt_tiles(B, nb, Ei, csr.off) : std::vector<int64_t>{};
+    auto input_task = [&](int64_t t, int slot) {
+      float* acc = accs.get(slot, static_cast<size_t>(rows * ldacc));
+      const float** ptr = ptrs.get(slot, static_cast<size_t>(maxK + Ci));
+      const int64_t bt = order[t] / Ei, c = order[t] % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
+      const int64_t K = set_ptrs(ptr, c, b0);
+      nn_gemm(pe.pk.at(c), Ci, K, ptr, nbl * Tq, acc, ldacc);
+      for (int64_t bl = 0; bl < nbl; ++bl)
+        for (int64_t i = 0; i < Ci; ++i) finish(acc + i * ldacc + bl * Tq, b0 + bl, i, c, Tc);
+    };
+    // weight: gW[i, pairs of c, o, u] over the whole batch, rows i split into blocks when entities are few
+    const RowBlocks wb = gw ? weight_blocks(Ei, Ci, csr.off, TM) : RowBlocks{};
+    auto weight_task = [&](int64_t t, int slot) {
+      const float** ptr = ptrs.get(slot, static_cast<size_t>(maxK + Ci));
+      const float** lrow = ptr + maxK;
+      const int64_t c = wb.order[t] / wb.nrb, r0 = (wb.order[t] % wb.nrb) * wb.rb, nr = std::min(wb.rb, Ci - r0);
+      const int64_t K = set_ptrs(ptr, c, 0);
+      for (int64_t i = 0; i < nr; ++i) lrow[i] = xlb.cl.row(0, r0 + i, c);
+      float* C = gw + r0 * lda + csr.off[c] * Co * U;
+      for (int64_t i = 0; i < nr; ++i) std::fill(C + i * lda, C + i * lda + K, 0.f);
+      nt_gemm(lrow, nr, ptr, K, B * Tq, C, lda);
+    };
+    std::vector<Phase> own;
+    if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
+    own.insert(own.end(), compute.begin(), compute.end());
+    if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
+    run_phases(own.data(), own.size(), par);
     return;
   }
   const int64_t S = g.kind == kDown ? 2 : 1;
+  // input gradient: transposed pass over the readers of each input entity; output on the padded domain, then folded
+  const int64_t Lp = g.Tin + 2 * h;
+  const int64_t R = S == 1 ? U : (U + 1) / 2;
+  const int64_t Mq = S == 1 ? Lp : (Lp + 1) / 2;
+  const int64_t Tqi = Mq + R - 1;
+  ColsSrc zs;
+  zs.src = gy;
+  zs.B = B;
+  zs.Ts = g.Tout;
+  zs.f = gsc;
+  zs.F = R - 1;
+  zs.Lp = Tqi;
+  const ColsBuild gzb(zs, want_input ? Co : 0, want_input ? Eo : 0, 1, Tqi, U);
+  // operand row i, column (s, o, r): w[o, pair, i, tap]
+  auto base = [&](int64_t q, int64_t o) { return w + (o * g.nnz + csr.tpair[q]) * Ci * U; };
+  const PackTransposed<decltype(base)> pt(csr, want_input ? Ei : 0, S, U, Ci, Co, U, base);
+  // weight gradient operands: x laid out like the forward's, gy * d in plain rows
+  const int64_t Tqw = (Lp + S - 1) / S;
+  ColsSrc xs;
+  xs.src = x;
+  xs.B = B;
+  xs.Ts = g.Tin;
+  xs.f = sty;
+  xs.F = h;
+  xs.Lp = Lp;
+  xs.reflect = g.reflect;
+  const ColsBuild xcb(xs, gw ? Ci : 0, gw ? Ei : 0, S, Tqw, U);
+  ColsSrc ls;
+  ls.src = gy;
+  ls.B = B;
+  ls.Ts = g.Tout;
+  ls.f = gsc;
+  ls.F = 0;
+  ls.Lp = g.Tout;
+  const ColsBuild glb(ls, gw ? Co : 0, gw ? Eo : 0, 1, Tqw, U);
   if (want_input) {
-    // transposed pass over the readers of each input entity; output on the padded domain, then folded
-    const int64_t Lp = g.Tin + 2 * h;
-    const int64_t R = S == 1 ? U : (U + 1) / 2;
-    const int64_t Mq = S == 1 ? Lp : (Lp + 1) / 2;
-    const int64_t Tq = Mq + R - 1;
-    const Cols gz = build_cols(gyd, B, Co, Eo, g.Tout, gsc, 1, R - 1, Tq, Tq, false, U);
-    const int64_t nb = batch_tile(B, Tq, Ei), nbt = (B + nb - 1) / nb;
-    const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR), maxK = std::max<int64_t>(1, csr.max_tdeg * Co * R);
-    // operand row i, column (s, o, r): w[o, pair, i, tap]
-    const Packs pk = pack_transposed(csr, Ei, S, U, Ci, Co, U,
-                                     [&](int64_t q, int64_t o) { return w + (o * g.nnz + csr.tpair[q]) * Ci * U; });
-    at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
-      std::vector<float> acc[2] = {std::vector<float>(static_cast<size_t>(rows * ldacc)),
-                                   std::vector<float>(static_cast<size_t>(S == 2 ? rows * ldacc : 0))};
-      std::vector<const float*> ptr(static_cast<size_t>(maxK));
-      std::vector<float> gp(static_cast<size_t>(Lp)), row(static_cast<size_t>(g.Tin));
-      for (int64_t task = lo; task < hi; ++task) {
-        const int64_t bt = task / Ei, n = task % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
-        if (csr.toff[n + 1] == csr.toff[n]) {  // nobody reads this entity
-          for (int64_t bl = 0; bl < nbl; ++bl)
-            for (int64_t i = 0; i < Ci; ++i) {
-              std::fill(row.begin(), row.end(), 0.f);
-              finish(row.data(), b0 + bl, i, n, g.Tin);
-            }
-          continue;
-        }
-        transposed_products(gz, Co, csr, n, b0, S, U, Ci, pk, ptr, acc, nbl * Tq, ldacc);
-        for (int64_t bl = 0; bl < nbl; ++bl)
-          for (int64_t i = 0; i < Ci; ++i) {
-            const float* a0 = acc[0].data() + i * ldacc + bl * Tq;
-            if (S == 2) {
-              interleave_row(a0, acc[1].data() + i * ldacc + bl * Tq, gp.data(), Lp);
-              a0 = gp.data();
-            }
-            fold_row<float>(a0, row.data(), g.Tin, h, g.reflect);
-            finish(row.data(), b0 + bl, i, n, g.Tin);
-          }
-      }
-    });
+    prep.push_back(gzb.phase());
+    prep.push_back(pt.phase());
   }
   if (gw) {
-    const int64_t Lp = g.Tin + 2 * h, Tq = (Lp + S - 1) / S;
-    const Cols xc = build_cols(x, B, Ci, Ei, g.Tin, sty, S, h, Lp, Tq, g.reflect, U);
-    const Cols gl = build_cols(gyd, B, Co, Eo, g.Tout, gsc, 1, 0, g.Tout, Tq, false, U);
-    const int64_t nb = direct_gw ? B : batch_tile(B, Tq, Eo), nbt = (B + nb - 1) / nb;
-    const int64_t n_tasks = direct_gw ? Eo : nbt * Eo;
-    const int64_t maxK = csr.max_deg * Ci * U, ldw = g.nnz * Ci * U;
-    at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
-      std::vector<const float*> ptr(static_cast<size_t>(maxK)), lrow(static_cast<size_t>(Co));
-      float* my = direct_gw ? gw : gw_acc + at::get_thread_num() * wsize;
-      for (int64_t task = lo; task < hi; ++task) {
-        const int64_t j = task % Eo, bt = direct_gw ? 0 : task / Eo, b0 = bt * nb, nbl = std::min(nb, B - b0);
-        const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
-        for (int64_t s = 0; s < k; ++s)
-          for (int64_t c = 0; c < Ci; ++c)
-            for (int64_t u = 0; u < U; ++u)
-              ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
-        for (int64_t o = 0; o < Co; ++o) lrow[o] = gl.row(0, o, j) + b0 * Tq;
-        float* C = my + p0 * Ci * U;
-        if (direct_gw)
-          for (int64_t o = 0; o < Co; ++o) std::fill(C + o * ldw, C + o * ldw + K, 0.f);
-        nt_gemm(lrow.data(), Co, ptr.data(), K, nbl * Tq, C, ldw);
-      }
-    });
+    prep.push_back(xcb.phase());
+    prep.push_back(glb.phase());
   }
+  run_phases(prep.data(), prep.size(), par);
+
+  const int64_t nb = batch_tile(B, Tqi, Ei);
+  const int64_t ldacc = round_up(nb * Tqi, NR), rows = round_up(Ci, MR);
+  const int64_t maxKi = std::max<int64_t>(1, csr.max_tdeg * Co * R), maxKw = csr.max_deg * Ci * U;
+  const std::vector<int64_t> order = want_input ? lpt_tiles(B, nb, Ei, csr.toff) : std::vector<int64_t>{};
+  auto input_task = [&](int64_t t, int slot) {
+    float* a0 = accs.get(slot, static_cast<size_t>((S == 2 ? 2 : 1) * rows * ldacc));
+    float* const acc[2] = {a0, S == 2 ? a0 + rows * ldacc : nullptr};
+    const float** ptr = ptrs.get(slot, static_cast<size_t>(std::max(maxKi, maxKw + Co)));
+    float* gp = rowbuf.get(slot, static_cast<size_t>(Lp + g.Tin));
+    float* row = gp + Lp;
+    const int64_t bt = order[t] / Ei, n = order[t] % Ei, b0 = bt * nb, nbl = std::min(nb, B - b0);
+    if (csr.toff[n + 1] == csr.toff[n]) {  // nobody reads this entity
+      for (int64_t bl = 0; bl < nbl; ++bl)
+        for (int64_t i = 0; i < Ci; ++i) {
+          std::fill(row, row + g.Tin, 0.f);
+          finish(row, b0 + bl, i, n, g.Tin);
+        }
+      return;
+    }
+    transposed_products(gzb.cl, Co, csr, n, b0, S, U, Ci, pt.pk, ptr, acc, nbl * Tqi, ldacc);
+    for (int64_t bl = 0; bl < nbl; ++bl)
+      for (int64_t i = 0; i < Ci; ++i) {
+        const float* r0 = acc[0] + i * ldacc + bl * Tqi;
+        if (S == 2) {
+          interleave_row(r0, acc[1] + i * ldacc + bl * Tqi, gp, Lp);
+          r0 = gp;
+        }
+        fold_row<float>(r0, row, g.Tin, h, g.reflect);
+        finish(row, b0 + bl, i, n, g.Tin);
+      }
+  };
+  // weight: gW[o, pairs of j, i, u] over the whole batch, rows o split into blocks when entities are few
+  const int64_t ldw = g.nnz * Ci * U;
+  const RowBlocks wb = gw ? weight_blocks(Eo, Co, csr.off, TM) : RowBlocks{};
+  auto weight_task = [&](int64_t t, int slot) {
+    const float** ptr = ptrs.get(slot, static_cast<size_t>(std::max(maxKi, maxKw + Co)));
+    const float** lrow = ptr + maxKw;
+    const int64_t j = wb.order[t] / wb.nrb, r0 = (wb.order[t] % wb.nrb) * wb.rb, nr = std::min(wb.rb, Co - r0);
+    const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
+    for (int64_t s = 0; s < k; ++s)
+      for (int64_t c = 0; c < Ci; ++c)
+        for (int64_t u = 0; u < U; ++u) ptr[(s * Ci + c) * U + u] = xcb.cl.row(u % S, c, csr.idx[p0 + s]) + u / S;
+    for (int64_t o = 0; o < nr; ++o) lrow[o] = glb.cl.row(0, r0 + o, j);
+    float* C = gw + r0 * ldw + p0 * Ci * U;
+    for (int64_t o = 0; o < nr; ++o) std::fill(C + o * ldw, C + o * ldw + K, 0.f);
+    nt_gemm(lrow, nr, ptr, K, B * Tqw, C, ldw);
+  };
+  std::vector<Phase> own;
+  if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
+  own.insert(own.end(), compute.begin(), compute.end());
+  if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
+  run_phases(own.data(), own.size(), par);
 }
 
 }  // namespace fastk
@@ -1178,65 +1351,45 @@ template <typename T>
 void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, const T* x, const T* w, const T* bias,
                    const T* style, const T* scale, T* gx, T* gw, T* gb, T* gs, T* gd) {
   const int64_t Bq = g.B, Co = g.Cout, Ci = g.Cin, Eo = g.Eout, Ei = g.Ein, U = g.U, h = g.h;
+  const bool par = worth_threads(g.macs);
   const Scale<T> sty = [&] {
     Scale<T> s;
     if (style) { s.p = style; s.sb = Ci; s.sc = 1; s.se = 0; }
     return s;
   }();
   const Scale<T> dsc = scale ? entity_scale<T>(scale, Co, Eo) : Scale<T>{};
+  std::vector<Phase> prep, compute;
 
-  // bias and scale gradients: plain reductions over the output.
-  if (gb) {
-    at::parallel_for(0, Co, elem_grain(Bq * Eo * g.Tout), [&](int64_t lo, int64_t hi) {
-      for (int64_t o = lo; o < hi; ++o) {
-        T acc = T(0);
-        for (int64_t b = 0; b < Bq; ++b) {
-          const T* r = gy + (b * Co + o) * Eo * g.Tout;
-          for (int64_t i = 0; i < Eo * g.Tout; ++i) acc += r[i];
-        }
-        gb[o] = acc;
-      }
-    });
+  // bias and scale gradients: plain reductions over the output, run with the preparation phases.
+  auto bias_task = [&](int64_t o, int) {
+    T acc = T(0);
+    for (int64_t b = 0; b < Bq; ++b) {
+      const T* r = gy + (b * Co + o) * Eo * g.Tout;
+      for (int64_t i = 0; i < Eo * g.Tout; ++i) acc += r[i];
+    }
+    gb[o] = acc;
+  };
+  const int64_t out_rows = Bq * Co * Eo, row_chunk = chunk_items(g.Tout);
+  auto scale_task = [&](int64_t t, int) {  // y = d * z + bias  =>  dL/dd = sum_t gy * (y - bias) / d
+    for (int64_t r = t * row_chunk, end = std::min(out_rows, (t + 1) * row_chunk); r < end; ++r) {
+      const int64_t o = (r / Eo) % Co;
+      const T bb = bias ? bias[o] : T(0);
+      const T* a = gy + r * g.Tout;
+      const T* yv = out + r * g.Tout;
+      T acc = T(0);
+      for (int64_t t2 = 0; t2 < g.Tout; ++t2) acc += a[t2] * (yv[t2] - bb);
+      gd[r] = acc / scale[r];
+    }
+  };
+  if (gb) prep.push_back(phase(Co, bias_task));
+  if (gd) prep.push_back(phase((out_rows + row_chunk - 1) / row_chunk, scale_task));
+  if (!gx && !gw && !gs) {
+    run_phases(prep.data(), prep.size(), par);
+    return;
   }
-  if (gd) {  // y = d * z + bias  =>  dL/dd = sum_t gy * (y - bias) / d
-    at::parallel_for(0, Bq * Co * Eo, elem_grain(g.Tout), [&](int64_t lo, int64_t hi) {
-      for (int64_t r = lo; r < hi; ++r) {
-        const int64_t o = (r / Eo) % Co;
-        const T bb = bias ? bias[o] : T(0);
-        const T* a = gy + r * g.Tout;
-        const T* yv = out + r * g.Tout;
-        T acc = T(0);
-        for (int64_t t = 0; t < g.Tout; ++t) acc += a[t] * (yv[t] - bb);
-        gd[r] = acc / scale[r];
-      }
-    });
-  }
-  if (!gx && !gw && !gs) return;
-
-  const int64_t nthreads = at::get_num_threads();
-  // conv/down weight gradient without thread-local copies when entities alone keep every thread busy
-  const bool direct_gw = g.kind != kUp && (Eo >= 4 * nthreads || nthreads == 1);
-  std::vector<T> gw_acc;
-  if (gw && !direct_gw) gw_acc.assign(static_cast<size_t>(nthreads * g.nnz * Ci * Co * U), T(0));
   std::vector<T> gs_part;
   if (gs) gs_part.assign(static_cast<size_t>(Ei * Bq * Ci), T(0));
-  const int64_t wsize = g.nnz * Ci * Co * U;
 
-  // up: gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); then per coarse entity c the strided panel of gv
-  // feeds both gx'_c = W_c * GV_c and gW_c += X'_c * GV_c^T.
-  std::vector<T> gv;
-  if (g.kind == kUp) {
-    gv.resize(static_cast<size_t>(Bq * Co * Eo * g.Tout));
-    at::parallel_for(0, Bq * Co * Eo, elem_grain(g.Tout), [&](int64_t lo, int64_t hi) {
-      for (int64_t r = lo; r < hi; ++r) {
-        blur_adjoint_row<T>(gy + r * g.Tout, gv.data() + r * g.Tout, g.Tout);
-        if (scale) {
-          const T f = scale[r];
-          for (int64_t t = 0; t < g.Tout; ++t) gv[r * g.Tout + t] *= f;
-        }
-      }
-    });
-  }
   // The fp32 indirect kernels win on the input gradient when there are enough frames (little padding waste).
   // The weight gradient stays on BLAS, whose packed NT product beats our dot-product kernel -- except for narrow
   // layers (GANimator: 3-9 channels per entity), where BLAS gets a 3-9-row product after gathering a panel as
@@ -1245,137 +1398,138 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   if constexpr (std::is_same_v<T, float>) {
     const bool fast_ok = fastk::wanted() && g.Tin >= fastk::kMinFrames;
     fast_weight = gw && fast_ok && (g.kind == kUp ? Ci : Co) <= fastk::kNarrowRows;
-    if (((gx || gs) && fast_ok) || fast_weight) {
-      const bool fin = (gx || gs) && fast_ok;
-      fastk::backward(g, csr, g.kind == kUp ? gv.data() : gy, g.kind == kUp ? Scale<float>{} : dsc, x, w, style,
-                      fin ? gx : nullptr, fast_weight ? gw : nullptr, fin && gs ? gs_part.data() : nullptr,
-                      g.kind != kUp && direct_gw, gw_acc.empty() ? nullptr : gw_acc.data(), wsize);
-      fast_input = fin;
-    }
+    fast_input = (gx || gs) && fast_ok;
   }
   T* const gx_b = fast_input ? nullptr : gx;  // what is left for the BLAS passes
   T* const gs_b = fast_input ? nullptr : gs;
   T* const gw_b = fast_weight ? nullptr : gw;
-  if (!gx_b && !gs_b && !gw_b) {
-  } else if (g.kind == kUp) {
-    const int64_t Tc = g.Tin;
-    const int64_t nb = batch_tile(Bq, Tc, Ei);
-    const int64_t nbt = (Bq + nb - 1) / nb;
-    const int64_t maxK = csr.max_deg * Co * U, cols = nb * Tc;
-    const int64_t lda = g.nnz * Co * U;
-    at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, 2 * g.macs), [&](int64_t lo, int64_t hi) {
-      BlasSequential blas_guard;
-      std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
-      std::vector<T> xs(static_cast<size_t>(gw_b ? Ci * cols : 0));
-      T* my_gw = gw_b ? gw_acc.data() + at::get_thread_num() * wsize : nullptr;
-      for (int64_t task = lo; task < hi; ++task) {
-        const int64_t bt = task / Ei, c = task % Ei;
-        const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * Tc;
-        const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0, K = k * Co * U;
-        gather_strided<T>(panel.data(), N, gv.data(), Co, Eo, g.Tout, csr.idx.data() + p0, k, b0, nbl, Tc, 2, U,
-                          g.reflect, Scale<T>{});
-        if (gx_b || gs_b) {
-          gemm<T>(false, false, Ci, N, K, T(1), w + p0 * Co * U, lda, panel.data(), N, T(0), acc.data(), N);
-          for (int64_t bl = 0; bl < nbl; ++bl) {
-            const int64_t b = b0 + bl;
-            for (int64_t i = 0; i < Ci; ++i) {
-              const int64_t xo = ((b * Ci + i) * Ei + c) * Tc;
-              finish_input_row<T>(acc.data() + i * N + bl * Tc, x + xo, style ? style[b * Ci + i] : T(1),
-                                  gx_b ? gx_b + xo : nullptr, gs_b ? &gs_part[(c * Bq + b) * Ci + i] : nullptr, Tc);
-            }
-          }
-        }
-        if (gw_b) {
-          const int64_t one = c;
-          gather_strided<T>(xs.data(), N, x, Ci, Ei, Tc, &one, 1, b0, nbl, Tc, 1, 1, false, sty);
-          gemm<T>(false, true, Ci, K, N, T(1), xs.data(), N, panel.data(), N, T(1), my_gw + p0 * Co * U, lda);
+  const bool input_b = gx_b || gs_b;
+
+  // ---- BLAS passes, as phases: preparation (transposed weight, up's blurred gradient) and compute tasks
+  SlotScratch<T> panels, accs, aux;
+  // up: gv = blur^T(gy) * d on the fine grid (B, Co, Eo, 2T); per coarse entity c the strided panel of gv
+  // feeds gx'_c = W_c * GV_c and gW_c = X'_c * GV_c^T.
+  Buf<T> gv;
+  const bool need_gv = g.kind == kUp && (input_b || gw_b);
+  if (need_gv) gv.alloc(static_cast<size_t>(out_rows * g.Tout));
+  auto gv_task = [&](int64_t t, int) {
+    for (int64_t r = t * row_chunk, end = std::min(out_rows, (t + 1) * row_chunk); r < end; ++r) {
+      T* dst = gv.data() + r * g.Tout;
+      blur_adjoint_row<T>(gy + r * g.Tout, dst, g.Tout);
+      if (scale) {
+        const T f = scale[r];
+        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] *= f;
+      }
+    }
+  };
+  if (need_gv) prep.push_back(phase((out_rows + row_chunk - 1) / row_chunk, gv_task));
+  // conv/down input gradient reads the weight transposed to (Ci, nnz, Co, U) in transposed pair order
+  Buf<T> wt;
+  const bool need_wt = g.kind != kUp && input_b;
+  if (need_wt) wt.alloc(static_cast<size_t>(Co * g.nnz * Ci * U));
+  auto wt_task = [&](int64_t c1, int) { transpose_weight_row<T>(wt.data(), w, Co, g.nnz, Ci, U, csr.tpair, c1); };
+  if (need_wt) prep.push_back(phase(Ci, wt_task));
+
+  const int64_t stride = g.kind == kDown ? 2 : 1;
+  const int64_t Tc = g.Tin;  // up: coarse frames
+  // input-gradient tiles
+  const int64_t Tp = g.Tin + 2 * h;
+  const int64_t nbi = g.kind == kUp ? batch_tile(Bq, Tc, Ei) : batch_tile(Bq, Tp, Ei);
+  const std::vector<int64_t> iorder =
+      input_b ? lpt_tiles(Bq, nbi, Ei, g.kind == kUp ? csr.off : csr.toff) : std::vector<int64_t>{};
+  auto input_task = [&](int64_t t, int slot) {
+    BlasSequential blas_guard;
+    const int64_t bt = iorder[t] / Ei, n = iorder[t] % Ei;
+    const int64_t b0 = bt * nbi, nbl = std::min(nbi, Bq - b0);
+    if (g.kind == kUp) {
+      const int64_t N = nbl * Tc, lda = g.nnz * Co * U;
+      const int64_t p0 = csr.off[n], k = csr.off[n + 1] - p0, K = k * Co * U;
+      T* panel = panels.get(slot, static_cast<size_t>(csr.max_deg * Co * U * nbi * Tc));
+      T* acc = accs.get(slot, static_cast<size_t>(Ci * nbi * Tc));
+      gather_strided<T>(panel, N, gv.data(), Co, Eo, g.Tout, csr.idx.data() + p0, k, b0, nbl, Tc, 2, U, g.reflect,
+                        Scale<T>{});
+      gemm<T>(false, false, Ci, N, K, T(1), w + p0 * Co * U, lda, panel, N, T(0), acc, N);
+      for (int64_t bl = 0; bl < nbl; ++bl) {
+        const int64_t b = b0 + bl;
+        for (int64_t i = 0; i < Ci; ++i) {
+          const int64_t xo = ((b * Ci + i) * Ei + n) * Tc;
+          finish_input_row<T>(acc + i * N + bl * Tc, x + xo, style ? style[b * Ci + i] : T(1),
+                              gx_b ? gx_b + xo : nullptr, gs_b ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, Tc);
         }
       }
-    });
-  } else {
-    const int64_t stride = g.kind == kDown ? 2 : 1;
-    // Input gradient: for input entity n, G (Ci x nb*Tp) = Wt_n * transposed panel of gy*d over its readers.
-    if (gx_b || gs_b) {
-      const std::vector<T> wt = transpose_weight<T>(w, Co, g.nnz, Ci, U, csr.tpair);
-      const int64_t Tp = g.Tin + 2 * h;
-      const int64_t nb = batch_tile(Bq, Tp, Ei);
-      const int64_t nbt = (Bq + nb - 1) / nb;
-      const int64_t maxK = csr.max_tdeg * Co * U, cols = nb * Tp;
-      const int64_t lda = g.nnz * Co * U;
-      at::parallel_for(0, nbt * Ei, task_grain(nbt * Ei, g.macs), [&](int64_t lo, int64_t hi) {
-        BlasSequential blas_guard;
-        std::vector<T> panel(static_cast<size_t>(maxK * cols)), acc(static_cast<size_t>(Ci * cols));
-        std::vector<T> row(static_cast<size_t>(g.Tin));
-        for (int64_t task = lo; task < hi; ++task) {
-          const int64_t bt = task / Ei, n = task % Ei;
-          const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * Tp;
-          const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0, K = k * Co * U;
-          if (k == 0) {  // nobody reads this entity
-            for (int64_t bl = 0; bl < nbl; ++bl)
-              for (int64_t i = 0; i < Ci; ++i)
-                if (gx_b) {
-                  T* dst = gx_b + (((b0 + bl) * Ci + i) * Ei + n) * g.Tin;
-                  std::fill(dst, dst + g.Tin, T(0));
-                }
-            continue;
-          }
-          gather_transposed<T>(panel.data(), N, gy, Co, Eo, g.Tout, csr.tent.data() + q0, k, b0, nbl, Tp, stride, U,
-                               dsc);
-          gemm<T>(false, false, Ci, N, K, T(1), wt.data() + q0 * Co * U, lda, panel.data(), N, T(0), acc.data(), N);
-          for (int64_t bl = 0; bl < nbl; ++bl) {
-            const int64_t b = b0 + bl;
-            for (int64_t i = 0; i < Ci; ++i) {
-              fold_row<T>(acc.data() + i * N + bl * Tp, row.data(), g.Tin, h, g.reflect);
-              const int64_t xo = ((b * Ci + i) * Ei + n) * g.Tin;
-              finish_input_row<T>(row.data(), x + xo, style ? style[b * Ci + i] : T(1), gx_b ? gx_b + xo : nullptr,
-                                  gs_b ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, g.Tin);
-            }
-          }
-        }
-      });
+      return;
     }
-    // Weight gradient: for row entity j, gW_j += (gy*d)_j (Co x N) * X_j^T (N x K).  With enough entities each
-    // task owns one entity and writes its pairs directly; otherwise tasks split the batch too and accumulate
-    // into thread-local copies.
-    if (gw_b) {
-      const int64_t nb = batch_tile(Bq, g.Tout, direct_gw ? Bq : Eo);
-      const int64_t nbt = (Bq + nb - 1) / nb;
-      const int64_t maxK = csr.max_deg * Ci * U, cols = nb * g.Tout;
-      const int64_t ldw = g.nnz * Ci * U;
-      const int64_t n_tasks = direct_gw ? Eo : nbt * Eo;
-      // Entities differ in neighbour count (work), so a contiguous split of them leaves threads idle; with direct
-      // writes, tasks are visited in a cost-balanced order (bins of equal work, one contiguous run per thread).
-      const std::vector<int64_t> order = direct_gw ? balanced_order(csr.off, Eo, nthreads) : std::vector<int64_t>{};
-      at::parallel_for(0, n_tasks, task_grain(n_tasks, g.macs), [&](int64_t lo, int64_t hi) {
-        BlasSequential blas_guard;
-        std::vector<T> panel(static_cast<size_t>(maxK * cols)), gz(static_cast<size_t>(Co * cols));
-        T* my_gw = direct_gw ? gw_b : gw_acc.data() + at::get_thread_num() * wsize;
-        for (int64_t task = lo; task < hi; ++task) {
-          const int64_t j = direct_gw ? order[task] : task % Eo;
-          const int64_t bt_lo = direct_gw ? 0 : task / Eo, bt_hi = direct_gw ? nbt : bt_lo + 1;
-          for (int64_t bt = bt_lo; bt < bt_hi; ++bt) {
-            const int64_t b0 = bt * nb, nbl = std::min(nb, Bq - b0), N = nbl * g.Tout;
-            const int64_t p0 = csr.off[j], k = csr.off[j + 1] - p0, K = k * Ci * U;
-            gather_strided<T>(panel.data(), N, x, Ci, Ei, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride,
-                              U, g.reflect, sty);
-            const int64_t one = j;
-            gather_strided<T>(gz.data(), N, gy, Co, Eo, g.Tout, &one, 1, b0, nbl, g.Tout, 1, 1, false, dsc);
-            const T beta = (direct_gw && bt == 0) ? T(0) : T(1);
-            gemm<T>(false, true, Co, K, N, T(1), gz.data(), N, panel.data(), N, beta, my_gw + p0 * Ci * U, ldw);
+    // conv/down: for input entity n, G (Ci x nb*Tp) = Wt_n * transposed panel of gy*d over its readers
+    const int64_t N = nbl * Tp, lda = g.nnz * Co * U;
+    const int64_t q0 = csr.toff[n], k = csr.toff[n + 1] - q0, K = k * Co * U;
+    if (k == 0) {  // nobody reads this entity
+      for (int64_t bl = 0; bl < nbl; ++bl)
+        for (int64_t i = 0; i < Ci; ++i)
+          if (gx_b) {
+            T* dst = gx_b + (((b0 + bl) * Ci + i) * Ei + n) * g.Tin;
+            std::fill(dst, dst + g.Tin, T(0));
           }
-        }
-      });
+      return;
+    }
+    T* panel = panels.get(slot, static_cast<size_t>(csr.max_tdeg * Co * U * nbi * Tp));
+    T* acc = accs.get(slot, static_cast<size_t>(Ci * nbi * Tp));
+    T* row = aux.get(slot, static_cast<size_t>(g.Tin));
+    gather_transposed<T>(panel, N, gy, Co, Eo, g.Tout, csr.tent.data() + q0, k, b0, nbl, Tp, stride, U, dsc);
+    gemm<T>(false, false, Ci, N, K, T(1), wt.data() + q0 * Co * U, lda, panel, N, T(0), acc, N);
+    for (int64_t bl = 0; bl < nbl; ++bl) {
+      const int64_t b = b0 + bl;
+      for (int64_t i = 0; i < Ci; ++i) {
+        fold_row<T>(acc + i * N + bl * Tp, row, g.Tin, h, g.reflect);
+        const int64_t xo = ((b * Ci + i) * Ei + n) * g.Tin;
+        finish_input_row<T>(row, x + xo, style ? style[b * Ci + i] : T(1), gx_b ? gx_b + xo : nullptr,
+                            gs_b ? &gs_part[(n * Bq + b) * Ci + i] : nullptr, g.Tin);
+      }
+    }
+  };
+  // Weight-gradient blocks: entity (and row block) tasks over the whole batch, batch tiles accumulated in order.
+  //   conv/down: gW_j[o-rows] = (gy*d)_j (rows x N) * X_j^T (N x K)      up: gW_c[i-rows] = X'_c * GV_c^T
+  const int64_t wrows = g.kind == kUp ? Ci : Co;
+  const int64_t wents = g.kind == kUp ? Ei : Eo;
+  const int64_t wcols_b = g.kind == kUp ? Tc : g.Tout;  // panel columns per batch element
+  const int64_t nbw = batch_tile(Bq, wcols_b, kMinTasks);
+  const RowBlocks wb = gw_b ? weight_blocks(wents, wrows, csr.off, 1) : RowBlocks{};
+  auto weight_task = [&](int64_t t, int slot) {
+    BlasSequential blas_guard;
+    const int64_t e = wb.order[t] / wb.nrb, r0 = (wb.order[t] % wb.nrb) * wb.rb, nr = std::min(wb.rb, wrows - r0);
+    const int64_t p0 = csr.off[e], k = csr.off[e + 1] - p0;
+    const int64_t cin_k = g.kind == kUp ? Co : Ci;  // channels of the panel rows
+    const int64_t K = k * cin_k * U, ldw = g.nnz * cin_k * U;
+    T* panel = panels.get(slot, static_cast<size_t>(csr.max_deg * cin_k * U * nbw * wcols_b));
+    T* lhs = accs.get(slot, static_cast<size_t>(wrows * nbw * wcols_b));
+    T* C = gw_b + r0 * ldw + p0 * cin_k * U;
+    for (int64_t bt = 0; bt * nbw < Bq; ++bt) {
+      const int64_t b0 = bt * nbw, nbl = std::min(nbw, Bq - b0), N = nbl * wcols_b;
+      if (g.kind == kUp) {
+        gather_strided<T>(panel, N, gv.data(), Co, Eo, g.Tout, csr.idx.data() + p0, k, b0, nbl, Tc, 2, U,
+                          g.reflect, Scale<T>{});
+        gather_strided<T>(lhs, N, x, Ci, Ei, Tc, &e, 1, b0, nbl, Tc, 1, 1, false, sty);
+      } else {
+        gather_strided<T>(panel, N, x, Ci, Ei, g.Tin, csr.idx.data() + p0, k, b0, nbl, g.Tout, stride, U,
+                          g.reflect, sty);
+        gather_strided<T>(lhs, N, gy, Co, Eo, g.Tout, &e, 1, b0, nbl, g.Tout, 1, 1, false, dsc);
+      }
+      gemm<T>(false, true, nr, K, N, T(1), lhs + r0 * N, N, panel, N, bt == 0 ? T(0) : T(1), C, ldw);
+    }
+  };
+  if (gw_b) compute.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
+  if (input_b) compute.push_back(phase(static_cast<int64_t>(iorder.size()), input_task));
+
+  bool done = false;
+  if constexpr (std::is_same_v<T, float>) {
+    if (fast_input || fast_weight) {
+      fastk::backward(g, csr, gy, dsc, x, w, style, fast_input ? gx : nullptr, fast_weight ? gw : nullptr,
+                      fast_input && gs ? gs_part.data() : nullptr, std::move(prep), std::move(compute));
+      done = true;
     }
   }
-
-  if (gw && !direct_gw) {
-    at::parallel_for(0, wsize, kSerialElems, [&](int64_t lo, int64_t hi) {
-      for (int64_t i = lo; i < hi; ++i) {
-        T acc = T(0);
-        for (int64_t t = 0; t < nthreads; ++t) acc += gw_acc[t * wsize + i];
-        gw[i] = acc;
-      }
-    });
+  if (!done) {
+    run_phases(prep.data(), prep.size(), par);
+    run_phases(compute.data(), compute.size(), par);
   }
   if (gs) {
     for (int64_t bi = 0; bi < Bq * Ci; ++bi) {
