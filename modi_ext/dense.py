@@ -2,8 +2,9 @@
 
 ``reference`` spells out MoDi's math literally (per-sample modulated weights, one grouped conv over the batch): the
 oracle.  This module computes the same result the way a tuned dense library wants it: the input scaled by the style,
-ONE conv with the masked dense weight shared by the whole batch (``reference``'s unmodulated branch), the output
-scaled by the demodulation coefficients ``d[b, o, j]``.  No ``(B x weight)`` tensor is ever formed, so at MoDi's finest
+ONE conv with the masked dense weight shared by the whole batch (conv/down: a single GEMM over batch x time on the
+time-unfolded input; up: ``reference``'s unmodulated transposed conv), the output scaled by the demodulation
+coefficients ``d[b, o, j]``.  No ``(B x weight)`` tensor is ever formed, so at MoDi's finest
 modulated level this is several times faster than the grouped form.  Plain torch ops only: every order of gradient
 works (R1, path length, WGAN-GP), on any device and dtype torch's convs support.  It is the package's fallback when
 the C++ extension is not built, ``MODI_EXT_IMPL=dense``, and the path ``auto`` measures the kernels against on CUDA.
