@@ -138,7 +138,7 @@ def assert_reads_back(path: Path, b: bvh_io.Bvh, scale: float, tol: float = 1e-5
     return err
 
 
-def _tiny_generator_checkpoint(path: Path, frames: int = 16) -> None:
+def _tiny_generator_checkpoint(path: Path, frames: int = 16, nan: bool = False) -> None:
     """An untrained tiny MoDi generator on the built-in humanoid: enough for every MoDi writing command."""
     from modi.encoder.training import generator_bundle
     from modi.modi_model.config import ModelConfig
@@ -158,6 +158,10 @@ def _tiny_generator_checkpoint(path: Path, frames: int = 16) -> None:
     codec = MotionCodec(rep, Normalizer.fit(raw, skip_entities=rep.contacts), 30.0)
     cfg = ModelConfig(latent_dim=16, n_mlp=2, channels=(8, 8, 8))
     g = Generator(cfg, build_levels(build_hierarchy(sk, feet), cfg, frames), rep.K).eval()
+    if nan:  # a diverged model: every motion it makes is NaN
+        with torch.no_grad():
+            for prm in g.parameters():
+                prm.fill_(float("nan"))
     torch.save(generator_bundle(g, codec), path)
 
 
@@ -351,6 +355,18 @@ def test_refusals_are_one_line_exit_2_and_write_nothing(written, tmp_path, capsy
         assert err and "\n" not in err, (argv, err)
     assert not any((tmp_path / "o").iterdir()) and not (tmp_path / "s").exists()
     assert clip.read_bytes() == before
+
+
+def test_a_model_that_makes_nan_writes_nothing(tmp_path, capsys):
+    ckpt = tmp_path / "nan.pt"
+    _tiny_generator_checkpoint(ckpt, nan=True)
+    for argv in (["generate", str(ckpt), "--n", "3", "--batch", "1", "--out", str(tmp_path / "g"), "--format", "glb"],
+                 ["latent", "mean", str(ckpt), "--out", str(tmp_path / "m"), "--format", "bvh,glb"]):
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert "NaN or inf" in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nan.pt"]
 
 
 def test_save_motion_refuses_nan_before_writing_any_format(tmp_path):

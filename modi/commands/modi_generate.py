@@ -6,7 +6,7 @@ import time
 
 from modi import cli_types as ct
 from modi.errors import UserError
-from modi.io.formats import add_format_options
+from modi.io.formats import add_format_options, check_finite
 from modi.viz import add_view_option
 
 
@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     t1 = time.perf_counter()
     x, codec = generate_tensors(args.ckpt, args.n, seed=args.seed, psi=args.psi, batch=args.batch, model=model)
     t_gen = time.perf_counter() - t1
+    check_finite(x)
     written = []
     for start in range(0, args.n, args.batch):  # decode/write in chunks to bound memory
         written += write_outputs(codec, x[start:start + args.batch], args.out, ik=args.ik, start_index=start,

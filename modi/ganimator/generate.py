@@ -408,6 +408,9 @@ def generate_command(args) -> dict:
         for i in range(args.n):
             samples.append(model.sample(T, 1, fine_noise=args.fine_noise, generator=gen)[0])
         extra["mode"] = "random"
+    from modi.io.formats import check_finite
+
+    check_finite(samples)
     spacing = args.crowd_spacing if args.crowd_spacing is not None else 1.5 * seq.size
     cols = max(1, math.ceil(math.sqrt(len(samples))))
     positions, contact_masks, written = [], [], []

@@ -19,7 +19,8 @@ from typing import Iterator, Mapping, Sequence
 
 from modi.errors import UserError
 
-__all__ = ["FORMATS", "parse_formats", "add_format_options", "requested", "save_motion", "check_motion"]
+__all__ = ["FORMATS", "parse_formats", "add_format_options", "requested", "save_motion", "check_motion",
+           "check_finite"]
 
 FORMATS = {"bvh": ".bvh", "glb": ".glb", "gltf": ".gltf"}
 
@@ -65,7 +66,7 @@ _scale.__name__ = "scale"
 
 def add_format_options(parser: argparse.ArgumentParser) -> None:
     """``--format`` and ``--gltf-scale`` on a command that writes motion."""
-    parser.add_argument("--format", type=parse_formats, default=("bvh",), metavar="LIST",
+    parser.add_argument("--format", type=parse_formats, default="bvh", metavar="LIST",
                         help="motion file formats, a comma list of bvh, glb (binary glTF 2.0), gltf (JSON glTF), "
                              "e.g. bvh,glb")
     parser.add_argument("--gltf-scale", type=_scale, default=None, metavar="S",
@@ -81,6 +82,16 @@ def requested(formats: Sequence[str] | None = None, scale: float | None = None) 
         yield
     finally:
         _CURRENT.reset(token)
+
+
+def check_finite(x, what: str = "the generated motions") -> None:
+    """``UserError`` when a batch (tensor or list of tensors) holds NaN or inf: checked before any file is written,
+    so a broken model leaves no partial output."""
+    import torch
+
+    parts = x if isinstance(x, (list, tuple)) else [x]
+    if not all(bool(torch.isfinite(torch.as_tensor(p)).all()) for p in parts):
+        raise UserError(f"{what} contain NaN or inf (a diverged or corrupt model?); nothing written")
 
 
 def check_motion(bvh, path: str | os.PathLike) -> None:

@@ -61,7 +61,7 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
                    gif: bool = True, size: tuple[int, int] = (520, 400)) -> Crowd:
     """Sample ``k`` variations of the motion of ``w`` and write ``crowd_NN.bvh`` (placed on a grid) plus
     ``crowd.gif`` with every character in one scene. ``include_source`` adds the original motion as ``crowd_00``."""
-    from modi.io.formats import save_motion
+    from modi.io.formats import check_finite, save_motion
     from modi.motion import Motion
     from modi.viz.render import render_positions
 
@@ -70,6 +70,7 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
     if include_source:
         lat = torch.cat([w.unsqueeze(0), lat])
     x = synthesize(g, lat)
+    check_finite(x, "the crowd's motions")
     n = x.shape[0]
     spacing = float(spacing) if spacing is not None else 0.9 * codec.height
     offsets = grid_offsets(n, spacing)

@@ -299,7 +299,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
                   size: tuple[int, int] = (220, 220), view: str | None = "view.html") -> list[Path]:
     """Write each motion as ``{name}.bvh`` (and/or the other ``--format`` formats) and all of them side by side in one
     GIF; returns the motion paths."""
-    from modi.io.formats import save_motion
+    from modi.io.formats import check_finite, save_motion
     from modi.modi_model.sampling import render_gif
 
     out = Path(out_dir)
@@ -307,6 +307,7 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
     x = x.detach().float().cpu()
     if len(names) != x.shape[0]:
         raise ValueError(f"{len(names)} names for {x.shape[0]} motions")
+    check_finite(x, "the synthesised motions")
     paths = []
     for m, name in zip(codec.to_motions(x), names):
         paths.append(save_motion(m.to_bvh(), out / f"{name}.bvh"))
