@@ -101,7 +101,8 @@ def run(device: str, dtype: torch.dtype) -> dict:
         checks["fk"] = lambda: _fk(device, dtype)
     errors: dict[str, str] = {}
     worst: dict[str, float] = {}
-    with torch.enable_grad(), torch.autocast(torch.device(device).type, enabled=False):
+    # first use may come inside no_grad / inference_mode / autocast: the check needs none of them
+    with torch.inference_mode(False), torch.enable_grad(), torch.autocast(torch.device(device).type, enabled=False):
         for op, check in checks.items():
             try:
                 fwd, bwd = check()

@@ -260,6 +260,15 @@ def test_selfcheck_catches_a_raising_kernel_and_wrong_fk(monkeypatch):
 
 
 @needs_ext
+@pytest.mark.parametrize("context", ["no_grad", "inference_mode"])
+def test_selfcheck_passes_when_first_use_is_inside_no_grad(context):
+    p = problem("conv", dtype=torch.float32)
+    with getattr(torch, context)():
+        call(ops, p)
+    assert dispatch._checked[("cpu", "torch.float32")]["ok"], dispatch._checked
+
+
+@needs_ext
 def test_forced_ext_skips_the_selfcheck(monkeypatch):
     monkeypatch.setenv("MODI_EXT_IMPL", "ext")
     monkeypatch.setitem(dispatch.KERNELS, "skeletal_conv", wrong_kernel("skeletal_conv"))
