@@ -198,9 +198,9 @@ def _amp_cast(dev: str, x, weight, bias, style):
     floats = [t for t in (x, weight, bias, style) if isinstance(t, torch.Tensor) and t.is_floating_point()]
     if dev == "cuda":
         target = torch.get_autocast_dtype(dev)
-    else:  # the CPU kernels take float32/float64 only: promote to the widest input dtype
-        target = floats[0].dtype
-        for t in floats[1:]:
+    else:  # the CPU kernels take float32/float64 only: the widest input dtype, at least float32
+        target = torch.float32
+        for t in floats:
             target = torch.promote_types(target, t.dtype)
     cast = lambda t: t.to(target) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
     return cast(x), cast(weight), cast(bias), cast(style)

@@ -96,8 +96,11 @@ def run(device: str, dtype: torch.dtype) -> dict:
     from modi_ext import dispatch
 
     tol = TOL.get(dtype, 1e-4)
-    checks = {f"skeletal_{k}": (lambda k=k: _skeletal(k, device, dtype)) for k in ("conv", "down", "up")}
-    if dispatch.kernels_built(torch.device(device).type, "fk"):
+    dev_type = torch.device(device).type
+    checks = {}
+    if dispatch.kernels_built(dev_type, "skeletal"):
+        checks = {f"skeletal_{k}": (lambda k=k: _skeletal(k, device, dtype)) for k in ("conv", "down", "up")}
+    if dispatch.kernels_built(dev_type, "fk"):
         checks["fk"] = lambda: _fk(device, dtype)
     errors: dict[str, str] = {}
     worst: dict[str, float] = {}

@@ -365,6 +365,10 @@ def test_autocast_bf16_runs_the_modulated_layers(monkeypatch, impl, mode):
     torch.testing.assert_close(y, want, rtol=5e-2, atol=5e-2)  # the style was rounded to bf16 by the affine layer
     (gx,) = torch.autograd.grad(y.sum(), x)
     assert torch.isfinite(gx).all()
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # a bf16 activation from an earlier autocast op
+        y16 = m(x.to(torch.bfloat16), w)
+    assert y16.dtype == torch.float32
+    torch.testing.assert_close(y16, want, rtol=5e-2, atol=5e-2)
 
 
 # ------------------------------------------------------------------------------------------------ fp16 demodulation
