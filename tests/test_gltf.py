@@ -355,6 +355,14 @@ def test_refusals_are_one_line_exit_2_and_write_nothing(written, tmp_path, capsy
         assert err and "\n" not in err, (argv, err)
     assert not any((tmp_path / "o").iterdir()) and not (tmp_path / "s").exists()
     assert clip.read_bytes() == before
+    # a generating command whose output would land on its own input BVH (latent invert writes input.bvh)
+    inv = tmp_path / "inv"
+    inv.mkdir()
+    (inv / "input.bvh").write_bytes(before)
+    assert main(["latent", "invert", str(written["generate"].parent / "tiny.pt"), str(inv / "input.bvh"), "--out",
+                 str(inv), "--steps", "1", "--format", "glb,bvh"]) == 2
+    assert "is an input of this command" in capsys.readouterr().err
+    assert sorted(p.name for p in inv.iterdir()) == ["input.bvh"] and (inv / "input.bvh").read_bytes() == before
 
 
 def test_a_model_that_makes_nan_writes_nothing(tmp_path, capsys):

@@ -29,6 +29,7 @@ FORMATS = {"bvh": ".bvh", "glb": ".glb", "gltf": ".gltf"}
 class _Request:
     formats: tuple[str, ...] = ("bvh",)
     scale: float | None = None
+    inputs: tuple[Path, ...] = ()
     announced: set = field(default_factory=set)
 
 
@@ -74,10 +75,21 @@ def add_format_options(parser: argparse.ArgumentParser) -> None:
                              "and printed)")
 
 
+def _input_files(values) -> tuple[Path, ...]:
+    """The existing files among a command's argument values (strings, or lists of them)."""
+    found = []
+    for v in values:
+        for item in (v if isinstance(v, (list, tuple)) else [v]):
+            if isinstance(item, (str, os.PathLike)) and str(item) and os.path.isfile(item):
+                found.append(Path(item))
+    return tuple(found)
+
+
 @contextmanager
-def requested(formats: Sequence[str] | None = None, scale: float | None = None) -> Iterator[None]:
-    """Within this block :func:`save_motion` writes ``formats`` (default BVH) with glTF ``scale``."""
-    token = _CURRENT.set(_Request(tuple(formats) if formats else ("bvh",), scale))
+def requested(formats: Sequence[str] | None = None, scale: float | None = None, inputs=()) -> Iterator[None]:
+    """Within this block :func:`save_motion` writes ``formats`` (default BVH) with glTF ``scale``, and refuses to
+    write over any of ``inputs`` (argument values; those naming existing files are the command's inputs)."""
+    token = _CURRENT.set(_Request(tuple(formats) if formats else ("bvh",), scale, _input_files(inputs)))
     try:
         yield
     finally:
@@ -126,6 +138,9 @@ def save_motion(bvh, path: str | os.PathLike, *, contacts: Mapping[str, object] 
     blobs = []
     for fmt in formats:
         out = base.parent / (base.name + FORMATS[fmt])
+        for inp in req.inputs:
+            if out.exists() and os.path.samefile(out, inp):
+                raise UserError(f"{out} is an input of this command; refusing to write over it (choose another --out)")
         if fmt == "bvh":
             blobs.append((out, bvh_io.dumps(bvh, precision)))
         else:
