@@ -101,7 +101,7 @@ def _run(argv: list[str] | None) -> int:
     try:
         from modi.io.formats import requested  # --format / --gltf-scale of commands that write motion
 
-        with requested(getattr(args, "format", None), getattr(args, "gltf_scale", None)):
+        with requested(getattr(args, "format", None), getattr(args, "gltf_scale", None), vars(args).values()):
             return int(func(args) or 0)
     except BaseException:
         for root in created:  # a user error found after the output folder was made: leave nothing behind
