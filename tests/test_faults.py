@@ -160,7 +160,7 @@ def _hold_in_other_process(folder: Path, lock_name: str = faults.LOCK_NAME) -> s
 # --------------------------------------------------------------------------------------------- SIGTERM + resume
 def test_modi_sigterm_saves_and_resume_equals_uninterrupted(mdata, tmp_path, capsys):
     rng = random.Random(SEED)
-    iters = ["--iters", "24", "--log-every", "1"]
+    iters = ["--iters", "24", "--log-every", "1", "--ckpt-every", "5"]  # the signal may land in a save
     assert main(_train_argv("modi", tmp_path / "a", mdata, None, None, *iters)) == 0
     proc, err = _start(_train_argv("modi", tmp_path / "b", mdata, None, None, *iters), tmp_path, "b")
     _sigterm_while_stepping(proc, err, tmp_path / "b" / "log.jsonl", rng, 6)
@@ -187,6 +187,35 @@ def test_ganimator_sigterm_saves_and_rerun_equals_uninterrupted(gbvh, tmp_path):
     a, b = _load(tmp_path / "a" / "ganimator.ckpt"), _load(tmp_path / "b" / "ganimator.ckpt")
     diff = _differences(a, b)
     assert not diff, f"seed {SEED}: SIGTERM at block {st['block']} iteration {st['iteration']}: {diff[:5]}"
+
+
+def test_ganimator_sigterm_in_a_blocks_last_iteration_closes_the_block_first(gbvh, tmp_path):
+    """The edge of the random test above, made certain: stopped in the last iteration of block 0, the run saves the
+    block closed (history and all), and the rerun equals an uninterrupted run."""
+    from modi.ganimator.config import preset
+    from modi.ganimator.data import load_sequences
+    from modi.ganimator.training import Trainer, TrainingInterrupted
+
+    cfg = preset("tiny", iterations=4, base_channels=8, d_steps=1, max_levels=4, checkpoint_every=1e9)
+    clips = load_sequences([str(gbvh)], cfg)
+    Trainer(clips, cfg, tmp_path / "a").run(progress=False, log=None)
+    tr = Trainer(clips, cfg, tmp_path / "b")
+    step = tr._iteration
+
+    def last_iteration_signalled(*a):
+        if tr.state["block"] == 0 and tr.state["iteration"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return step(*a)
+
+    tr._iteration = last_iteration_signalled
+    with pytest.raises(TrainingInterrupted) as exc:
+        tr.run(progress=False, log=None)
+    assert exc.value.exit_code == 143
+    st = _load(tmp_path / "b" / "ganimator.ckpt")["state"]
+    assert (st["block"], st["iteration"], len(st["history"])) == (1, 0, 1)
+    Trainer(clips, cfg, tmp_path / "b").run(progress=False, log=None)
+    diff = _differences(_load(tmp_path / "a" / "ganimator.ckpt"), _load(tmp_path / "b" / "ganimator.ckpt"))
+    assert not diff, diff[:5]
 
 
 def test_encoder_sigterm_saves_and_resume_equals_uninterrupted(mdata, gen_ckpt, tmp_path):

@@ -426,6 +426,8 @@ class Trainer:
                     t_block = now
                     self.save()
                     t_save = time.time()
+                if it == budget:  # the block's last iteration: close the block first (its history, its save)
+                    break
                 if max_seconds is not None and now - started > max_seconds:
                     self.state["block_seconds"][b] += now - t_block
                     bar.close()
@@ -434,11 +436,7 @@ class Trainer:
                 if stop:
                     self.state["block_seconds"][b] += now - t_block
                     bar.close()
-                    self.save()
-                    if self.writer is not None:
-                        with faults.output_errors(self.run_dir / "tb"):
-                            self.writer.close()
-                    raise TrainingInterrupted(self.ckpt, stop.signum)
+                    self._stop(stop)
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
             self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
@@ -449,11 +447,25 @@ class Trainer:
             self.save()
             if log:
                 log(f"levels {levels[0]}-{levels[-1]} done in {self.state['block_seconds'][b]:.1f} s")
+            if self.state["block"] < len(self.blocks):
+                if max_seconds is not None and time.time() - started > max_seconds:
+                    return model
+                if stop:
+                    self._stop(stop, save=False)  # just saved
         if self.writer is not None:
             with faults.output_errors(self.run_dir / "tb"):
                 self.writer.close()
         model.trained_levels = model.n_levels
         return model
+
+    def _stop(self, stop: Any, save: bool = True) -> None:
+        """Save (the state is at an iteration boundary), close the event file and raise ``TrainingInterrupted``."""
+        if save:
+            self.save()
+        if self.writer is not None:
+            with faults.output_errors(self.run_dir / "tb"):
+                self.writer.close()
+        raise TrainingInterrupted(self.ckpt, stop.signum)
 
     def _iteration(self, levels: list[int], M: int, n_sub: int, cached_prev: dict) -> dict[str, float]:
         cfg, model = self.cfg, self.model

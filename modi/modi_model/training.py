@@ -592,6 +592,7 @@ class Trainer:
         self._saved_step = self.step
         self.mean_path_length = torch.tensor(float(st.get("mean_path_length", 0.0)), device=self.device)
         self.last_losses = dict(st.get("last_losses", {}))
+        self._latest_reg = {k: v for k, v in self.last_losses.items() if k in ("r1", "path", "path_length")}
         rngs = st.get("rng") or []
         if len(rngs) == self.world:
             rng = rngs[self.rank]
