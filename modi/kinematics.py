@@ -62,7 +62,7 @@ def forward_kinematics(
 
 
 def bvh_global_quats_and_positions(bvh, dtype: torch.dtype = torch.float64) -> tuple[Tensor, Tensor]:
-    """(positions (F,J,3), global quats (F,J,4)) of a :class:`modi.bvh.Bvh`, honouring every position channel."""
+    """(positions (F,J,3), global quats (F,J,4)) of a :class:`modi.io.bvh.Bvh`, honouring every position channel."""
     euler = torch.from_numpy(bvh.euler_degrees()).to(dtype)  # (F, J, 3) each joint in its own order
     orders = bvh.rotation_orders
     quats = torch.empty(euler.shape[:-1] + (4,), dtype=dtype)

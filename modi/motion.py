@@ -114,7 +114,7 @@ class Motion:
     # ------------------------------------------------------------------ BVH
     @classmethod
     def from_bvh(cls, bvh_or_path, dtype: torch.dtype = torch.float64) -> "Motion":
-        """Convert a :class:`modi.bvh.Bvh` (or a path to one) into a Motion.
+        """Convert a :class:`modi.io.bvh.Bvh` (or a path to one) into a Motion.
 
         * rotations: each joint's Euler channels in its own order, made sign-continuous over time
           (first frame with w >= 0); joints without rotation channels get the identity.
@@ -177,7 +177,7 @@ class Motion:
         return cls(skeleton, rotations.to(dtype), torch.from_numpy(root).to(dtype), _snap_fps(b.fps))
 
     def to_bvh(self) -> bvh_io.Bvh:
-        """A :class:`modi.bvh.Bvh`: root with 6 channels (XYZ position + rotation), the others 3 rotation
+        """A :class:`modi.io.bvh.Bvh`: root with 6 channels (XYZ position + rotation), the others 3 rotation
         channels, each in ``skeleton.rotation_orders``."""
         sk = self.skeleton
         orders = sk.rotation_orders or ["ZYX"] * sk.n_joints

@@ -92,7 +92,7 @@ def validate(files, tmp: Path) -> dict[str, dict]:
     script = tmp / "validate.js"
     script.write_text(VALIDATE_JS)
     r = subprocess.run(["node", str(script), *map(str, files)], capture_output=True, text=True, timeout=120,
-                       env={"GLTF_VALIDATOR": str(mod), "PATH": "/usr/bin:/bin"})
+                       env={**os.environ, "GLTF_VALIDATOR": str(mod)})
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
 

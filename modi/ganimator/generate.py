@@ -54,7 +54,7 @@ def fix_contacts(seq: Clip, quats: Tensor, root: Tensor, contacts: Tensor) -> tu
 
 
 def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
-    """A ``modi.bvh.Bvh`` in the *source file's* units (root: 6 channels, other joints: 3 rotation channels)."""
+    """A ``modi.io.bvh.Bvh`` in the *source file's* units (root: 6 channels, other joints: 3 rotation channels)."""
     from modi.io.bvh import Bvh
     from modi.rotations import quat_to_euler
 
