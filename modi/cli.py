@@ -10,7 +10,8 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
   an output folder the command created and left empty when it failed is removed again;
 * Ctrl-C at any moment -- while torch is imported, while parsing, while running -- prints ``modi: interrupted`` and
   exits 130 (``modi train``, ``modi ganimator train`` and ``modi encoder train`` catch it earlier and save a
-  resumable checkpoint; SIGTERM there does the same and exits 143, see ``modi.faults``);
+  resumable checkpoint; SIGTERM there does the same and exits 143, see ``modi.faults``); SIGTERM elsewhere unwinds
+  the same way as Ctrl-C (no temp file left behind) and exits 143;
 * a full disk, a read-only folder, or a run folder another run holds is one line and exit 2 (``modi.faults``);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
@@ -110,8 +111,14 @@ def _run(argv: list[str] | None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from modi.faults import Terminated, terminate_on_sigterm
+
     try:
-        return _run(argv)
+        with terminate_on_sigterm():
+            return _run(argv)
+    except Terminated:
+        print("\nmodi: terminated (SIGTERM)", file=sys.stderr, flush=True)
+        return 143
     except BadArguments as exc:
         print(exc, file=sys.stderr, flush=True)
         return 2

@@ -10,7 +10,8 @@ One place for the things that belong together (issue 22), shared by ``modi train
   append-only logs (a failed append is cut back off), ``output_errors`` for writers a library owns (TensorBoard).
 * ``stop_on_signals``: within a training loop SIGINT and SIGTERM only set a flag; the loop finishes its step, saves
   a resumable checkpoint and stops (exit 130 for Ctrl-C, 143 for SIGTERM, as a shell reports a signal death);
-  ``StopRequest.agreed`` makes every DDP rank stop at the same step.
+  ``StopRequest.agreed`` makes every DDP rank stop at the same step. Outside the loops (``terminate_on_sigterm``,
+  installed by ``modi.cli.main``) SIGTERM unwinds like Ctrl-C, so temp files and locks are cleared; exit 143.
 * ``hold_run_folder``: an ``flock`` on ``RUN/.lock`` for the life of a run. A second run into the folder is refused
   at once, naming the holder; the kernel drops the lock when its process dies, so a killed run never leaves it stuck.
 """
@@ -366,6 +367,29 @@ def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, noti
                 signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL))
 
 
+class Terminated(BaseException):
+    """SIGTERM outside a training loop: unwinds like Ctrl-C (temp files removed, locks released); exit 143.
+    A ``BaseException``, so the ``except Exception`` of a preview writer cannot swallow it."""
+
+
+@contextmanager
+def terminate_on_sigterm() -> Iterator[None]:
+    """Within the block SIGTERM raises :class:`Terminated` instead of killing the process outright (Python's
+    default), so ``finally`` blocks run. Training loops install :func:`stop_on_signals` inside it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_sigterm(signum, frame) -> None:  # noqa: ARG001
+        raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
+
+
 # ============================================================================================ run-folder lock
 LOCK_NAME = ".lock"
 _held: dict[str, list] = {}  # lock file -> [fd, depth]: this process's locks (re-entrant within a process)
@@ -456,4 +480,4 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
 __all__ = ["OutputError", "RunFolderBusy", "atomic_output", "atomic_write", "atomic_torch_save", "atomic_save_npy",
            "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
-           "stop_on_signals", "exit_code", "hold_run_folder", "LOCK_NAME"]
+           "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]

@@ -234,6 +234,19 @@ def test_encoder_sigterm_saves_and_resume_equals_uninterrupted(mdata, gen_ckpt, 
     assert not diff, f"seed {SEED}: SIGTERM at step {step}, resumed encoder differs: {diff[:5]}"
 
 
+def test_sigterm_before_the_first_step_unwinds_cleanly(tmp_path):
+    """SIGTERM while the run is still preparing its data (or just starting to step): exit 143, no traceback, the
+    lock released and removed, no temp file anywhere."""
+    run = tmp_path / "run"
+    proc, err = _start(["train", "procedural", "--out", str(run), *SMALL, "--iters", "5"], tmp_path, "a")
+    _wait_for(lambda: (run / faults.LOCK_NAME).exists(), proc, err, "the run folder's lock")
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=60) == 143
+    text = err.read_text()
+    assert "Traceback" not in text and ("modi: terminated (SIGTERM)" in text or "SIGTERM: stopping" in text), text
+    assert not (run / faults.LOCK_NAME).exists() and not list(tmp_path.rglob(".*.tmp"))
+
+
 def test_ddp_ranks_stop_together_on_one_ranks_sigterm_or_rank0s_full_disk(mdata, tmp_path):
     import torch.multiprocessing as mp
 
