@@ -32,3 +32,4 @@ def one_torch_thread():
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "cuda: needs a CUDA GPU and the CUDA kernels (skipped otherwise)")
+    config.addinivalue_line("markers", "cuda_emulated: the CUDA kernels run on the CPU emulator (modi_ext._C_emu)")
