@@ -100,9 +100,13 @@ SHAPES = [
 
 
 @needs_ext
+@pytest.mark.parametrize("kernel", ["auto", "avx2"])
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("shape", range(len(SHAPES)))
-def test_identical_at_1_2_and_many_threads(kind, shape):
+def test_identical_at_1_2_and_many_threads(kind, shape, kernel, monkeypatch):
+    """kernel "avx2": the AVX2 micro-kernels even where AVX-512 is available (MODI_EXT_CPU_KERNEL=avx2)."""
+    if kernel == "avx2":
+        monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "avx2")
     spec = dict(SHAPES[shape])
     args, kw = _case(kind, 300 + shape, **spec)
     one = _run(kind, ops, args, kw, threads=1)

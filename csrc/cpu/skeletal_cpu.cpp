@@ -575,8 +575,8 @@ inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_
 }
 
 // ================================================================================================ fp32 fast path
-// Indirect GEMM on AVX2/FMA, used for float32 when the CPU has it (MODI_EXT_CPU_KERNEL=blas forces the BLAS
-// path above).  Instead of gathering a (K x N) panel per entity and letting BLAS repack it, every input is laid out
+// Indirect GEMM on AVX2/FMA (AVX-512 variants where the CPU has them), used for float32 when the CPU has AVX2
+// (MODI_EXT_CPU_KERNEL=blas forces the BLAS path above, =avx2 the AVX2 kernels).  Instead of gathering a (K x N) panel per entity and letting BLAS repack it, every input is laid out
 // once per call in "column" form: row (phase, channel, entity) holds all batch elements back to back, each padded
 // in time (zero / reflect, or the front zeros of a transposed conv) and, for stride 2, split into even/odd phases.
 // A time shift u is then just a pointer offset, so an entity's operand is a table of K row pointers, and the
@@ -777,6 +777,129 @@ void nt_edge(const float* const* l, int64_t mr, const float* const* p, int64_t k
 void nt_edge(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
 #endif
 
+// AVX-512 variants of the two kernels (same operands, twice the lanes), used when the CPU has AVX-512F
+// (MODI_EXT_CPU_KERNEL=avx2 keeps the AVX2 ones).  NN: R rows x 48 columns (two NR tiles) per call.
+#if defined(__x86_64__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wuninitialized"  // GCC 12's avx512fintrin.h masked-intrinsic false positive
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
+template <int R>
+__attribute__((target("avx512f"))) void nn512(int64_t K, const float* a, const float* const* ptr, int64_t col,
+                                               float* c, int64_t ldc) {
+  __m512 acc[R][3];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
+  for (int64_t k = 0; k < K; ++k) {
+    const float* p = ptr[k] + col;
+    const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
+    for (int r = 0; r < R; ++r) {
+      const __m512 av = _mm512_set1_ps(a[r]);
+      acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
+      acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
+      acc[r][2] = _mm512_fmadd_ps(av, b2, acc[r][2]);
+    }
+    a += 4;
+  }
+  for (int r = 0; r < R; ++r) {
+    _mm512_storeu_ps(c + r * ldc, acc[r][0]);
+    _mm512_storeu_ps(c + r * ldc + 16, acc[r][1]);
+    _mm512_storeu_ps(c + r * ldc + 32, acc[r][2]);
+  }
+}
+
+__attribute__((target("avx512f"))) inline float hsum512(__m512 v) {
+  __m512 t = _mm512_add_ps(v, _mm512_shuffle_f32x4(v, v, _MM_SHUFFLE(1, 0, 3, 2)));
+  t = _mm512_add_ps(t, _mm512_shuffle_f32x4(t, t, _MM_SHUFFLE(2, 3, 0, 1)));
+  __m128 s = _mm512_castps512_ps128(t);
+  s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+  s = _mm_add_ss(s, _mm_shuffle_ps(s, s, 1));
+  return _mm_cvtss_f32(s);
+}
+
+// 8 rows (two consecutive packed panels a0, a1) x 48 columns: 24 accumulators, half the operand traffic per
+// multiply-add of the 4-row tile (the 4-row kernels are bound by reading the pointer rows, not by the FMAs).
+__attribute__((target("avx512f"))) void nn512x8(int64_t K, const float* a0, const float* a1,
+                                                 const float* const* ptr, int64_t col, float* c, int64_t ldc) {
+  __m512 acc[8][3];
+  for (int r = 0; r < 8; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
+  for (int64_t k = 0; k < K; ++k) {
+    const float* p = ptr[k] + col;
+    const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
+    for (int r = 0; r < 4; ++r) {
+      const __m512 av = _mm512_set1_ps(a0[r]);
+      acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
+      acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
+      acc[r][2] = _mm512_fmadd_ps(av, b2, acc[r][2]);
+    }
+    for (int r = 0; r < 4; ++r) {
+      const __m512 av = _mm512_set1_ps(a1[r]);
+      acc[4 + r][0] = _mm512_fmadd_ps(av, b0, acc[4 + r][0]);
+      acc[4 + r][1] = _mm512_fmadd_ps(av, b1, acc[4 + r][1]);
+      acc[4 + r][2] = _mm512_fmadd_ps(av, b2, acc[4 + r][2]);
+    }
+    a0 += 4;
+    a1 += 4;
+  }
+  for (int r = 0; r < 8; ++r) {
+    _mm512_storeu_ps(c + r * ldc, acc[r][0]);
+    _mm512_storeu_ps(c + r * ldc + 16, acc[r][1]);
+    _mm512_storeu_ps(c + r * ldc + 32, acc[r][2]);
+  }
+}
+
+// NT: C[i][j] += sum_{col in [c0, c0+n)} l[i][col] * p[j][col] for an MT x KT tile, 16 lanes.
+template <int MT, int KT>
+__attribute__((target("avx512f"))) void nt512(const float* const* l, const float* const* p, int64_t c0, int64_t n,
+                                               float* C, int64_t ldc) {
+  __m512 a[MT][KT];
+  for (int i = 0; i < MT; ++i)
+    for (int j = 0; j < KT; ++j) a[i][j] = _mm512_setzero_ps();
+  int64_t c = c0;
+  const int64_t end = c0 + n;
+  for (; c + 16 <= end; c += 16) {
+    __m512 X[MT], Y[KT];
+    for (int i = 0; i < MT; ++i) X[i] = _mm512_loadu_ps(l[i] + c);
+    for (int j = 0; j < KT; ++j) Y[j] = _mm512_loadu_ps(p[j] + c);
+    for (int i = 0; i < MT; ++i)
+      for (int j = 0; j < KT; ++j) a[i][j] = _mm512_fmadd_ps(X[i], Y[j], a[i][j]);
+  }
+  if (c < end) {
+    const __mmask16 m = static_cast<__mmask16>((1u << (end - c)) - 1u);
+    __m512 X[MT], Y[KT];
+    for (int i = 0; i < MT; ++i) X[i] = _mm512_maskz_loadu_ps(m, l[i] + c);
+    for (int j = 0; j < KT; ++j) Y[j] = _mm512_maskz_loadu_ps(m, p[j] + c);
+    for (int i = 0; i < MT; ++i)
+      for (int j = 0; j < KT; ++j) a[i][j] = _mm512_fmadd_ps(X[i], Y[j], a[i][j]);
+  }
+  for (int i = 0; i < MT; ++i)
+    for (int j = 0; j < KT; ++j) C[i * ldc + j] += hsum512(a[i][j]);
+}
+
+void nt512_tile(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n,
+                float* C, int64_t ldc) {
+  using Fn = void (*)(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t);
+  static constexpr Fn table[TM][TK] = {{nt512<1, 1>, nt512<1, 2>, nt512<1, 3>},
+                                       {nt512<2, 1>, nt512<2, 2>, nt512<2, 3>},
+                                       {nt512<3, 1>, nt512<3, 2>, nt512<3, 3>},
+                                       {nt512<4, 1>, nt512<4, 2>, nt512<4, 3>}};
+  table[mr - 1][kr - 1](l, p, c0, n, C, ldc);
+}
+
+#pragma GCC diagnostic pop
+
+inline bool use512() {
+  static const bool cpu = __builtin_cpu_supports("avx512f");
+  if (!cpu) return false;
+  const char* env = std::getenv("MODI_EXT_CPU_KERNEL");
+  return env == nullptr || std::strcmp(env, "avx2") != 0;
+}
+#else
+void nn512x8(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t) {}
+template <int R>
+void nn512(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
+void nt512_tile(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
+inline bool use512() { return false; }
+#endif
+
 // acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
 // columns past N are computed and ignored, rows past M are left untouched).  Column chunks keep the pointed-to data
 // in L2.
@@ -787,14 +910,33 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
     std::fill(acc, acc + panels * MR * ldacc, 0.f);
     return;
   }
-  const int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
+  const bool wide = use512();
+  int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
+  if (wide) chunk = round_up(chunk, 2);
   for (int64_t t0 = 0; t0 < tiles; t0 += chunk) {
     const int64_t t1 = std::min(tiles, t0 + chunk);
     for (int64_t pn = 0; pn < panels; ++pn) {
       const int64_t live = std::min<int64_t>(MR, M - pn * MR);
       const float* ap = apack + pn * K * MR;
       float* cp = acc + pn * MR * ldacc;
-      for (int64_t t = t0; t < t1; ++t) {
+      int64_t t = t0;
+      if (wide && M - pn * MR >= 2 * MR) {  // two full panels at once
+        for (; t + 1 < t1; t += 2) nn512x8(K, ap, ap + K * MR, ptr, t * NR, cp + t * NR, ldacc);
+        for (; t < t1; ++t) {
+          nn_kernel(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+          nn_kernel(K, ap + K * MR, ptr, t * NR, cp + MR * ldacc + t * NR, ldacc);
+        }
+        ++pn;
+        continue;
+      }
+      if (wide)  // pairs of NR tiles on the AVX-512 kernel
+        for (; t + 1 < t1; t += 2) {
+          if (live == 4) nn512<4>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+          else if (live == 3) nn512<3>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+          else if (live == 2) nn512<2>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+          else nn512<1>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
+        }
+      for (; t < t1; ++t) {
         if (live == 4) nn_kernel(K, ap, ptr, t * NR, cp + t * NR, ldacc);
         else if (live == 3) nn_rows<3>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
         else if (live == 2) nn_rows<2>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
@@ -806,14 +948,17 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
 
 // C (M x K, ldc) += L (M pointer rows) * P^T (K pointer rows), contraction over columns [0, N).
 void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K, int64_t N, float* C, int64_t ldc) {
-  const int64_t CH = std::max<int64_t>(64, round_up((320 * 1024) / std::max<int64_t>(1, (K + M) * 4), 8));
+  const bool wide = use512();
+  const int64_t CH = std::max<int64_t>(64, round_up((320 * 1024) / std::max<int64_t>(1, (K + M) * 4), 16));
   for (int64_t c0 = 0; c0 < N; c0 += CH) {
     const int64_t n = std::min(CH, N - c0);
     for (int64_t m0 = 0; m0 < M; m0 += TM) {
       const int64_t mr = std::min(TM, M - m0);
       for (int64_t k0 = 0; k0 < K; k0 += TK) {
         const int64_t kr = std::min(TK, K - k0);
-        if (mr == TM && kr == TK)
+        if (wide)
+          nt512_tile(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
+        else if (mr == TM && kr == TK)
           nt_kernel(l + m0, p + k0, c0, n, C + m0 * ldc + k0, ldc);
         else
           nt_edge(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
