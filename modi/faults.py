@@ -55,9 +55,6 @@ def describe_os_error(exc: OSError, path: str | os.PathLike) -> str:
     return f"cannot write {path}: {exc.strerror or exc}"
 
 
-_describe = describe_os_error  # the name colleagues' code may use
-
-
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
