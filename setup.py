@@ -49,8 +49,9 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
     """Test-only: the csrc/cuda kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
     if _flag("MODI_EXT_EMU") in ("0", "false", "no", "off"):
         return None
-    # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI)
-    flags = ["-O1", "-g0", "-Wno-unknown-pragmas"] + [f for f in cxx_flags if f.startswith("-march")]
+    # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI).
+    # Hidden symbols: its c10::cuda shims must never bind to a CUDA torch's real libc10_cuda.
+    flags = ["-O1", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas"] + [f for f in cxx_flags if f.startswith("-march")]
     return cpp_extension.CppExtension(
         name="modi_ext._C_emu",
         sources=sorted(glob.glob("csrc/emu/*.cpp")) + ["csrc/skeletal_defs.cpp", "csrc/fk_defs.cpp"],

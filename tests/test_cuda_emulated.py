@@ -214,9 +214,12 @@ def check_problem(p: Problem, backward=True, lib="modi_ext_emu"):
     want = p.ref(p.x, p.w, p.b, p.s, p.d)
     close(y, want, p.dtype, f"{p.kind} forward")
     if p.demod:  # the coefficients the test computed are the reference's own demodulation
-        ref_mod = {"conv": reference.skeletal_conv, "down": reference.skeletal_down}.get(p.kind)
-        if ref_mod is not None and p.dtype == torch.float64:
-            full = ref_mod(p.x, p.w, p.b, p.index, p.offsets, p.s, True, p.padding)
+        if p.dtype == torch.float64:
+            if p.kind == "up":
+                full = reference.skeletal_up(p.x, p.w, p.b, p.index, p.offsets, p.n_out, p.s, True, p.padding)
+            else:
+                f = reference.skeletal_conv if p.kind == "conv" else reference.skeletal_down
+                full = f(p.x, p.w, p.b, p.index, p.offsets, p.s, True, p.padding)
             close(y, full, p.dtype, f"{p.kind} forward vs reference demodulate=True")
     if not backward:
         return
@@ -420,7 +423,7 @@ def _build_variant(defect: str):
             csrc / "skeletal_defs.cpp", csrc / "fk_defs.cpp"]
     mod = load(name=f"_C_emu_{defect}", sources=[str(s) for s in srcs], build_directory=str(build),
                extra_include_paths=[str(csrc)], verbose=False,
-               extra_cflags=["-O0", "-g0", "-Wno-unknown-pragmas", "-DMODI_EXT_EMULATE_CUDA",
+               extra_cflags=["-O0", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas", "-DMODI_EXT_EMULATE_CUDA",
                              f"-DMODI_EMU_INJECT={defect}", f"-DMODI_EMU_LIB={lib}"])
     assert mod.INJECTED == defect and mod.LIBRARY == lib
     return lib

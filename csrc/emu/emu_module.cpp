@@ -71,7 +71,8 @@ PyMethodDef kMethods[] = {
 #define MODI_EMU_CAT2(a, b) a##b
 #define MODI_EMU_CAT(a, b) MODI_EMU_CAT2(a, b)
 
-extern "C" PyObject* MODI_EMU_CAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
+// Built with -fvisibility=hidden: PyMODINIT_FUNC keeps the init function exported.
+PyMODINIT_FUNC MODI_EMU_CAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
   static PyModuleDef def = {PyModuleDef_HEAD_INIT, MODI_EMU_STR(TORCH_EXTENSION_NAME),
                             "Test-only: the CUDA kernels run by the CPU emulator", -1, kMethods};
   PyObject* m = PyModule_Create(&def);
