@@ -333,10 +333,10 @@ def test_full_disk_is_one_line_exit_2_and_the_previous_checkpoint_loads(mdata, t
         assert line.startswith(f"modi: error: no space left on the device writing {run / 'checkpoint.pt'}: "), line
         size = (run / "checkpoint.pt").stat().st_size
         m = re.search(r"the checkpoint needs [\d.]+ MB \((\d+) bytes\) free beside the previous one .*, "
-                      r"([\d.]+) (kB|MB) free; ", line)
+                      r"([\d.]+) (bytes|kB|MB|GB|TB) free; ", line)
         assert m and abs(int(m[1]) - size) < 4096, (line, size)  # the new one is the old one's size, give or take
         if mounted:
-            assert float(m[2]) * {"kB": 1e3, "MB": 1e6}[m[3]] < size, line
+            assert float(m[2]) * {"bytes": 1, "kB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12}[m[3]] < size, line
         assert line.endswith("the previous checkpoint (step 2) is intact"), line
         assert _load(run / "checkpoint.pt")["step"] == 2
         assert not list(run.glob(".checkpoint.pt.*")) and not (run / ".lock").exists()
