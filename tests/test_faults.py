@@ -347,6 +347,39 @@ def test_full_disk_is_one_line_exit_2_and_the_previous_checkpoint_loads(mdata, t
         assert _load(run / "checkpoint.pt")["step"] == 2
 
 
+@pytest.mark.parametrize("kind", ["ganimator", "encoder"])
+def test_full_disk_names_the_intact_checkpoint_of_ganimator_and_encoder(kind, mdata, gbvh, gen_ckpt, tmp_path, capsys,
+                                                                        monkeypatch):
+    """ENOSPC injected into the second checkpoint write (the writer's own failure path: a tmpfs per trainer would
+    only repeat the MoDi test): one line naming the intact checkpoint's position, exit 2, and it loads."""
+    made, real_init, real_write = [], faults._Recorder.__init__, faults._Recorder.write
+
+    def init(self, f):
+        real_init(self, f)
+        made.append(self)
+
+    def write(self, b):
+        if self is not made[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, b)
+
+    monkeypatch.setattr(faults._Recorder, "__init__", init)
+    monkeypatch.setattr(faults._Recorder, "write", write)
+    out = tmp_path / ("enc.pt" if kind == "encoder" else "run")
+    extra = ["--iters", "3", "--ckpt-every", "1"] if kind == "encoder" else ["--block-iters", "2"]
+    capsys.readouterr()
+    assert main(_train_argv(kind, out, mdata, gbvh, gen_ckpt, *extra)) == 2
+    line = _one_error_line(capsys.readouterr().err)
+    ckpt = out if kind == "encoder" else out / "ganimator.ckpt"
+    assert line.startswith(f"modi: error: no space left on the device writing {ckpt}: the checkpoint needs "), line
+    where = "step 1" if kind == "encoder" else "block 2/4, iteration 0"
+    assert line.endswith(f"the previous checkpoint ({where}) is intact"), line
+    st = _load(ckpt)
+    assert (st["step"] if kind == "encoder" else (st["state"]["block"], st["state"]["iteration"])) == \
+        (1 if kind == "encoder" else (1, 0))
+    assert not list(ckpt.parent.glob(f".{ckpt.name}.*"))
+
+
 def test_writers_on_a_full_disk_leave_the_previous_file_whole(tmp_path, capsys):
     from torch.utils.tensorboard import SummaryWriter
 
