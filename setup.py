@@ -51,7 +51,8 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
         return None
     # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI).
     # Hidden symbols: its c10::cuda shims must never bind to a CUDA torch's real libc10_cuda.
-    flags = ["-O1", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas"] + [f for f in cxx_flags if f.startswith("-march")]
+    flags = ["-O1", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas"]
+    flags += [f for f in cxx_flags if f.startswith("-march")]
     return cpp_extension.CppExtension(
         name="modi_ext._C_emu",
         sources=sorted(glob.glob("csrc/emu/*.cpp")) + ["csrc/skeletal_defs.cpp", "csrc/fk_defs.cpp"],

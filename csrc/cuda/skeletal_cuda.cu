@@ -335,8 +335,9 @@ __global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const RowArgs<T>
   auto store = [&](int buf) {
 #pragma unroll
     for (int i = 0; i < TL::A_PER; ++i) As[buf][a_k][a_m + i * TL::A_STEP] = ra[i];
+    // MODI_EMU_OFF_BY_ONE is 0 outside the emulator's defect-injection build (cuda_common.cuh)
 #pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n + MODI_EMU_OFF_BY_ONE] = rb[i];  // +0 (see cuda_common)
+    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n + MODI_EMU_OFF_BY_ONE] = rb[i];
   };
 
   const int tx = tid % TL::TX, ty = tid / TL::TX;
