@@ -89,13 +89,15 @@ def _tol(dtype):
     return dict(rtol=1e-4, atol=1e-4) if dtype == torch.float32 else dict(rtol=1e-9, atol=1e-9)
 
 
-# Shapes: the fp32 AVX2 path (>= 16 frames), the BLAS path (few frames, and every fp64 call), MoDi-like batches
-# (batch tiles) and GANimator-like batch 1 with narrow channels (entity tasks only, narrow weight gradient).
+# Shapes: the fp32 indirect kernels (>= 16 frames), the BLAS path (few frames, and every fp64 call), MoDi-like
+# batches (batch tiles), GANimator-like batch 1 with narrow channels (entity tasks only, narrow weight gradient) and
+# wide layers (the AVX-512 weight-gradient kernel where available, BLAS under "avx2").
 SHAPES = [
     dict(n=12, B=5, cin=6, cout=8, T=20, U=3, dtype=torch.float32),
     dict(n=9, B=3, cin=5, cout=12, T=6, U=3, dtype=torch.float32),
     dict(n=10, B=4, cin=4, cout=5, T=9, U=5, dtype=torch.float64),
     dict(n=15, B=1, cin=7, cout=3, T=40, U=5, dtype=torch.float32, padding="reflect"),
+    dict(n=7, B=2, cin=36, cout=40, T=17, U=3, dtype=torch.float32),  # wide: 32-row blocks + remainders
 ]
 
 
