@@ -55,7 +55,7 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
     flags += [f for f in cxx_flags if f.startswith("-march")]
     return cpp_extension.CppExtension(
         name="modi_ext._C_emu",
-        sources=sorted(glob.glob("csrc/emu/*.cpp")) + ["csrc/skeletal_defs.cpp", "csrc/fk_defs.cpp"],
+        sources=sorted(glob.glob("csrc/emu/*.cpp")),  # defs_emu.cpp includes the schemas of csrc/*_defs.cpp
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=[("MODI_EXT_EMULATE_CUDA", "1")],
         extra_compile_args={"cxx": flags},

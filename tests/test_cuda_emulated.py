@@ -419,8 +419,7 @@ def _build_variant(defect: str):
     build = Path(tempfile.gettempdir()) / f"modi_emu_inject_{defect}_{os.getuid()}"
     build.mkdir(exist_ok=True)
     csrc = REPO / "csrc"
-    srcs = [csrc / "emu" / "skeletal_emu.cpp", csrc / "emu" / "cuda_emu.cpp", csrc / "emu" / "emu_module.cpp",
-            csrc / "skeletal_defs.cpp", csrc / "fk_defs.cpp"]
+    srcs = [csrc / "emu" / f for f in ("skeletal_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")]
     mod = load(name=f"_C_emu_{defect}", sources=[str(s) for s in srcs], build_directory=str(build),
                extra_include_paths=[str(csrc)], verbose=False,
                extra_cflags=["-O0", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas", "-DMODI_EXT_EMULATE_CUDA",
