@@ -265,6 +265,21 @@ def test_multi_tile_split_k(kind, dtype):
     check_problem(p)
 
 
+@pytest.mark.parametrize("sms", (1, 1000))
+def test_split_k_by_multiprocessor_count(sms):
+    """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 8 splits with a ragged
+    last one (B*T = 1800, chunks of 240) with 1000 SMs."""
+    p = Problem("conv", "style", "zeros", U=3, bias=False, seed=9, B=2, cin=4, cout=6, T=900, n=3)
+    EMU.set_sm_count(sms)
+    try:
+        before = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel"))
+        check_problem(p)
+        after = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel"))
+    finally:
+        EMU.set_sm_count(108)
+    assert (after > before) == (sms > 1)
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_single_entity_csr(kind):
     for dtype in (torch.float32, torch.float16):

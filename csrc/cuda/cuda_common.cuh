@@ -99,6 +99,9 @@ inline at::ScalarType acc_scalar_type(at::ScalarType t) {
 
 // Multiprocessor count of a device, queried once (a plain attribute query: legal during stream capture).
 inline int sm_count(int device) {
+#ifdef MODI_EXT_EMULATE_CUDA
+  return modi_emu::sm_count();  // settable from the tests (it steers the split-K choice)
+#endif
   static std::atomic<int> cache[64];
   if (device < 0 || device >= 64) return 108;
   int v = cache[device].load(std::memory_order_relaxed);

@@ -61,7 +61,7 @@ PyObject* py_reset_launch_counts(PyObject*, PyObject*) {
 PyMethodDef kMethods[] = {
     {"set_schedule_seed", py_set_seed, METH_O, "Thread/block order: 0 = index order, else a seeded permutation."},
     {"schedule_seed", py_get_seed, METH_NOARGS, "The current schedule seed."},
-    {"set_sm_count", py_set_sm_count, METH_O, "Multiprocessor count the host code sees (cudaDeviceGetAttribute)."},
+    {"set_sm_count", py_set_sm_count, METH_O, "Multiprocessor count the host code sees (cuda::sm_count; default 108)."},
     {"launch_counts", py_launch_counts, METH_NOARGS, "{kernel instantiation: launches} since the last reset."},
     {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters."},
     {nullptr, nullptr, 0, nullptr}};
