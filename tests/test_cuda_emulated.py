@@ -403,6 +403,10 @@ def test_emulator_reports_rule_violations(case, message):
 
 def test_emulator_poisons_shared_memory_and_permutes_threads():
     assert torch.isnan(ops().emu_selftest("unwritten_shared", 32)[:32]).all()
+    det = torch.are_deterministic_algorithms_enabled()
+    assert torch.isnan(ops().emu_selftest("poisoned_empty", 16)).all()  # outputs / workspaces of the host code
+    assert (ops().emu_selftest("poisoned_empty_int", 16) == torch.iinfo(torch.int32).max).all()
+    assert torch.are_deterministic_algorithms_enabled() == det, "the poison scope must restore torch's state"
     results = set()
     for seed in (0,) + SEEDS + (1, 2, 3):
         EMU.set_schedule_seed(seed)

@@ -80,7 +80,11 @@ at::Tensor emu_selftest(c10::string_view name, int64_t threads) {
   float* p = out.data_ptr<float>();
   const unsigned n = static_cast<unsigned>(threads);
   const cudaStream_t stream = nullptr;
-  if (name == "divergent_barrier") {
+  if (name == "poisoned_empty") {  // what the host code's at::empty returns inside an emulated op
+    return at::empty({threads}, at::kFloat);
+  } else if (name == "poisoned_empty_int") {
+    return at::empty({threads}, at::kInt);
+  } else if (name == "divergent_barrier") {
     MODI_LAUNCH(divergent_barrier_kernel, 1, n, 0, stream, p);
   } else if (name == "shared_oob") {
     MODI_LAUNCH(shared_oob_kernel, 1, n, 0, stream, p);
