@@ -213,14 +213,13 @@ def check_problem(p: Problem, backward=True, lib="modi_ext_emu"):
     y = schedules(lambda: (p.forward(lib),))[0]
     want = p.ref(p.x, p.w, p.b, p.s, p.d)
     close(y, want, p.dtype, f"{p.kind} forward")
-    if p.demod:  # the coefficients the test computed are the reference's own demodulation
-        if p.dtype == torch.float64:
-            if p.kind == "up":
-                full = reference.skeletal_up(p.x, p.w, p.b, p.index, p.offsets, p.n_out, p.s, True, p.padding)
-            else:
-                f = reference.skeletal_conv if p.kind == "conv" else reference.skeletal_down
-                full = f(p.x, p.w, p.b, p.index, p.offsets, p.s, True, p.padding)
-            close(y, full, p.dtype, f"{p.kind} forward vs reference demodulate=True")
+    if p.demod and p.dtype == torch.float64:  # the test's coefficients are the reference's own demodulation
+        if p.kind == "up":
+            full = reference.skeletal_up(p.x, p.w, p.b, p.index, p.offsets, p.n_out, p.s, True, p.padding)
+        else:
+            f = reference.skeletal_conv if p.kind == "conv" else reference.skeletal_down
+            full = f(p.x, p.w, p.b, p.index, p.offsets, p.s, True, p.padding)
+        close(y, full, p.dtype, f"{p.kind} forward vs reference demodulate=True")
     if not backward:
         return
     leaves = [t.clone().requires_grad_(True) if t is not None else None for t in (p.x, p.w, p.b, p.s, p.d)]
