@@ -81,7 +81,9 @@ def trained(model, tmp_path_factory):
     g, codec, x = model
     data = split_windows(x, 0.2, seed=0)
     out = tmp_path_factory.mktemp("enc") / "enc.pt"
-    cfg = EncoderTrainConfig(iters=300, batch=16, lr=0.005, eval_every=0, ckpt_every=0)
+    # 300 steps left the encoder within ~2% of the mean-motion baseline, so float rounding of a different kernel
+    # build could flip the comparison; 600 steps give it a margin (L2 0.92-0.95x the baseline on the ext and dense paths)
+    cfg = EncoderTrainConfig(iters=600, batch=16, lr=0.005, eval_every=0, ckpt_every=0)
     res = EncoderTrainer((g, codec, None), data, out, cfg, progress=False).train()
     return res, data, load_encoder(out)
 

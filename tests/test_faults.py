@@ -238,7 +238,8 @@ def test_sigterm_before_the_first_step_unwinds_cleanly(tmp_path):
     """SIGTERM while the run is still preparing its data (or just starting to step): exit 143, no traceback, the
     lock released and removed, no temp file anywhere."""
     run = tmp_path / "run"
-    proc, err = _start(["train", "procedural", "--out", str(run), *SMALL, "--iters", "5"], tmp_path, "a")
+    # a budget it cannot finish before the signal lands (5 iterations could end first on a quick machine)
+    proc, err = _start(["train", "procedural", "--out", str(run), *SMALL, "--iters", "100000"], tmp_path, "a")
     _wait_for(lambda: (run / faults.LOCK_NAME).exists(), proc, err, "the run folder's lock")
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=60) == 143

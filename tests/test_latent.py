@@ -66,8 +66,10 @@ def test_interpolation_endpoints_reproduce_the_endpoint_motions(tiny):
     g, _ = tiny
     wa, wb = space.seed_w(g, [3, 4])
     x = space.synthesize(g, space.interpolation_sequence(wa, wb, 4))
-    torch.testing.assert_close(x[0], space.synthesize(g, wa[None])[0], atol=1e-5, rtol=0)
-    torch.testing.assert_close(x[-1], space.synthesize(g, wb[None])[0], atol=1e-5, rtol=0)
+    # a batch of 4 and a batch of 1 run the kernels on different tiles, so float32 sums differ in the last bits
+    # (outputs reach ~20 here): equal to float32 precision, not bit for bit
+    torch.testing.assert_close(x[0], space.synthesize(g, wa[None])[0], atol=1e-5, rtol=1e-6)
+    torch.testing.assert_close(x[-1], space.synthesize(g, wb[None])[0], atol=1e-5, rtol=1e-6)
     assert (x[2] - x[0]).abs().max() > 1e-3 and (x[2] - x[-1]).abs().max() > 1e-3  # really in between
     # W+ endpoint (different style per layer) with a W endpoint: the pair is lifted to W+
     wp = space.as_wplus(g, wb[None])[0].clone()
@@ -75,8 +77,8 @@ def test_interpolation_endpoints_reproduce_the_endpoint_motions(tiny):
     seq = space.interpolation_sequence(wa, wp, 3)
     assert seq.shape == (4, g.n_latent, g.latent_dim)
     xp = space.synthesize(g, seq)
-    torch.testing.assert_close(xp[0], x[0], atol=1e-5, rtol=0)
-    torch.testing.assert_close(xp[-1], space.synthesize(g, wp[None])[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(xp[0], x[0], atol=1e-5, rtol=1e-6)
+    torch.testing.assert_close(xp[-1], space.synthesize(g, wp[None])[0], atol=1e-5, rtol=1e-6)
 
 
 def test_seed_latents_match_modi_generate(tiny):
