@@ -111,11 +111,14 @@ def _run(argv: list[str] | None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from modi.faults import Terminated, terminate_on_sigterm
+    from modi.faults import Terminated, sigterm_pending, terminate_on_sigterm
 
     try:
         with terminate_on_sigterm():
-            return _run(argv)
+            code = _run(argv)
+            if sigterm_pending() and code == 0:  # signalled, but its Terminated was swallowed on the way
+                raise Terminated()
+            return code
     except Terminated:
         print("\nmodi: terminated (SIGTERM)", file=sys.stderr, flush=True)
         return 143

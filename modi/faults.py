@@ -355,6 +355,8 @@ def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, noti
     if installed:
         old[signal.SIGINT] = signal.signal(signal.SIGINT, on_sigint)
         old[signal.SIGTERM] = signal.signal(signal.SIGTERM, on_sigterm)
+        if sigterm_pending():  # a SIGTERM before the loop whose Terminated was swallowed: stop at the first step
+            on_sigterm(signal.SIGTERM, None)
     try:
         yield stop
     finally:
@@ -369,6 +371,16 @@ class Terminated(BaseException):
     A ``BaseException``, so the ``except Exception`` of a preview writer cannot swallow it."""
 
 
+_sigterm_seen = False
+
+
+def sigterm_pending() -> bool:
+    """True once :func:`terminate_on_sigterm`'s handler ran. An exception raised from a signal handler is lost
+    when it lands in a finaliser or a callback that Python runs with errors ignored ("Exception ignored in ..."),
+    so the process would carry on as if never signalled; training loops and ``modi.cli.main`` check this flag."""
+    return _sigterm_seen
+
+
 @contextmanager
 def terminate_on_sigterm() -> Iterator[None]:
     """Within the block SIGTERM raises :class:`Terminated` instead of killing the process outright (Python's
@@ -378,6 +390,8 @@ def terminate_on_sigterm() -> Iterator[None]:
         return
 
     def on_sigterm(signum, frame) -> None:  # noqa: ARG001
+        global _sigterm_seen
+        _sigterm_seen = True
         raise Terminated()
 
     old = signal.signal(signal.SIGTERM, on_sigterm)
@@ -474,7 +488,7 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
         os.close(fd)
 
 
-__all__ = ["OutputError", "RunFolderBusy", "atomic_output", "atomic_write", "atomic_torch_save", "atomic_save_npy",
+__all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "atomic_write", "atomic_torch_save", "atomic_save_npy",
            "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]

@@ -516,3 +516,23 @@ def test_sigterm_sets_the_flag_a_second_is_ignored_and_handlers_come_back(capsys
     with faults.stop_on_signals("step") as stop:
         signal.raise_signal(signal.SIGINT)
         assert stop.exit_code == 130
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the swallowed Terminated, on purpose
+def test_a_sigterm_swallowed_by_a_finaliser_still_stops_the_run(monkeypatch):
+    """Python drops an exception raised in ``__del__`` ("Exception ignored in ..."): a SIGTERM whose handler runs
+    there must still stop the next training loop at its first step (before this, such a run went on to the end)."""
+    monkeypatch.setattr(faults, "_sigterm_seen", False)
+
+    class SignalsInFinaliser:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(100_000):  # the handler runs between these bytecodes, inside __del__
+                pass
+
+    with faults.terminate_on_sigterm():
+        obj = SignalsInFinaliser()
+        del obj  # the Terminated raised inside __del__ is printed and swallowed
+        assert faults.sigterm_pending()
+        with faults.stop_on_signals("step", notice=False) as stop:
+            assert stop and stop.exit_code == 143
