@@ -160,3 +160,40 @@ def test_fk_identical_at_1_2_and_many_threads(lead):
     for threads in (2, 9):
         for a, b in zip(_fk_run(q, off, parents, root, threads), one):
             assert torch.equal(a, b), f"fk differs between 1 and {threads} threads"
+
+
+def _forward_only(args, threads):
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.no_grad():
+            return ops.skeletal_conv(*args)
+    finally:
+        torch.set_num_threads(old)
+
+
+def _child_conv(args, q):
+    """In a forked child the parent's helper threads do not exist: the kernels must start their own.  (Only the
+    kernel runs here: torch's OpenMP team does not survive fork.)"""
+    q.put(_forward_only(args, 2).numpy())
+
+
+@needs_ext
+def test_kernels_work_in_a_forked_child():
+    import multiprocessing as mp
+    import os
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("fork start method unavailable on this platform")
+    if os.environ.get("MODI_EXT_CPU_POOL") == "omp":
+        pytest.skip("MODI_EXT_CPU_POOL=omp: libgomp's team does not survive fork")
+    args, _ = _case("conv", 500, **SHAPES[0])
+    parent = _forward_only(args, 2)  # the helpers now exist in this process
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_child_conv, args=(args, q))
+    p.start()
+    child = q.get(timeout=60)
+    p.join(60)
+    assert p.exitcode == 0
+    assert torch.equal(torch.from_numpy(child), parent)

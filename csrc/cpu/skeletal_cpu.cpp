@@ -7,9 +7,9 @@
 // in the epilogue.  The GEMM is the BLAS that libtorch ships (sgemm_/dgemm_, single-threaded inside the parallel
 // region), with an ATen fallback when it is not exported; fp32 with AVX2/FMA uses the indirect kernels below.
 //
-// Work distribution (cpu/tasks.h): each call runs at most a preparation region (operand layouts, packed weights,
-// bias / scale gradients) and one compute region (forward tiles; or input-gradient tiles and weight-gradient
-// blocks together).  Tasks are claimed dynamically, largest first, with per-slot scratch; every output element is
+// Work distribution (cpu/tasks.h): each call is one parallel region of two stages, preparation (operand layouts,
+// packed weights, bias / scale gradients) then compute (forward tiles; or input-gradient tiles and weight-gradient
+// blocks together), the second waiting only for claimed preparation tasks.  Tasks are claimed dynamically, largest first, with per-slot scratch; every output element is
 // written by exactly one task, and the tiling depends on the shapes only, so results are the same for any thread
 // count and schedule.  The weight gradient is split by entity (and by output-row block when entities are few)
 // instead of accumulating thread-local copies.
@@ -106,6 +106,8 @@ inline int64_t ceil_div_pos(int64_t a, int64_t b) { return (a + b - 1) / b; }
 using cpu_tasks::phase;
 using cpu_tasks::Phase;
 using cpu_tasks::run_phases;
+using cpu_tasks::run_stages;
+using cpu_tasks::stage;
 
 // Threads only pay off above some work: waking a pool costs microseconds (milliseconds on a loaded machine).
 constexpr double kSerialMacs = 1.0e6;
@@ -579,7 +581,7 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
   Buf<T> wt;
   wt.alloc(static_cast<size_t>(g.Cin * g.nnz * g.Cout * g.U));
   auto tr = [&](int64_t c1, int) { transpose_weight_row<T>(wt.data(), w, g.Cin, g.nnz, g.Cout, g.U, csr.tpair, c1); };
-  run_phases({phase(g.Cout, tr)}, par);
+  const Phase prep[] = {phase(g.Cout, tr)};
   const int64_t Tp = g.Tout + 2 * g.h;
   const int64_t nb = batch_tile(g.B, Tp, g.Eout);
   const int64_t maxK = csr.max_tdeg * g.Cin * g.U, cols = nb * Tp;
@@ -617,7 +619,8 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
       }
     }
   };
-  run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
+  const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
+  run_stages({{prep, 1}, {compute, 1}}, par);
 }
 
 // Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
@@ -1301,7 +1304,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
     src.reflect = g.reflect;
     const ColsBuild xb(src, Ci, g.Ein, S, Tq, U);
     const PackEntities pe(csr, Co, w, g.nnz * Ci * U, Ci * U);
-    run_phases({xb.phase(), pe.phase()}, par);
+    const Phase prep[] = {xb.phase(), pe.phase()};
     const Cols& xc = xb.cl;
     const int64_t nb = batch_tile(g.B, Tq, g.Eout);
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_deg * Ci * U;
@@ -1330,7 +1333,8 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
         }
       }
     };
-    run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
+    const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
+    run_stages({{prep, 2}, {compute, 1}}, par);
     return;
   }
   // up: fine entity f gathers its coarse sources through the transposed CSR, two output phases
@@ -1346,7 +1350,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
   // operand row o, column (s, i, r): w_up[i, pair, o, tap]
   auto base = [&](int64_t q, int64_t i) { return w + (i * g.nnz + csr.tpair[q]) * Co * U; };
   const PackTransposed<decltype(base)> pt(csr, g.Eout, 2, U, Co, Ci, U, base);
-  run_phases({xb.phase(), pt.phase()}, par);
+  const Phase prep[] = {xb.phase(), pt.phase()};
   const Cols& xc = xb.cl;
   const int64_t nb = batch_tile(g.B, Tq, g.Eout);
   const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
@@ -1376,7 +1380,8 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
       }
     }
   };
-  run_phases({phase(static_cast<int64_t>(order.size()), task)}, par);
+  const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
+  run_stages({{prep, 2}, {compute, 1}}, par);
 }
 
 // Input, style and weight gradients.  For conv/down the output gradient is gy * gsc (gsc = d); for up it is
@@ -1430,7 +1435,6 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
     prep.push_back(gvb.phase());
     if (gw) prep.push_back(xlb.phase());
     if (want_input) prep.push_back(pe.phase());
-    run_phases(prep.data(), prep.size(), par);
     const Cols& gvc = gvb.cl;
     auto set_ptrs = [&](const float** ptr, int64_t c, int64_t b0) {
       const int64_t p0 = csr.off[c], k = csr.off[c + 1] - p0;
@@ -1472,7 +1476,7 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
     if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
     own.insert(own.end(), compute.begin(), compute.end());
     if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
-    run_phases(own.data(), own.size(), par);
+    run_stages({stage(prep), stage(own)}, par);
     return;
   }
   const int64_t S = g.kind == kDown ? 2 : 1;
@@ -1519,7 +1523,6 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
     prep.push_back(xcb.phase());
     prep.push_back(glb.phase());
   }
-  run_phases(prep.data(), prep.size(), par);
 
   const int64_t nb = batch_tile(B, Tqi, Ei);
   const int64_t ldacc = round_up(nb * Tqi, NR), rows = round_up(Ci, MR);
@@ -1576,7 +1579,7 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
   if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
   own.insert(own.end(), compute.begin(), compute.end());
   if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
-  run_phases(own.data(), own.size(), par);
+  run_stages({stage(prep), stage(own)}, par);
 }
 
 }  // namespace fastk
@@ -1798,8 +1801,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
     }
   }
   if (!done) {
-    run_phases(prep.data(), prep.size(), par);
-    run_phases(compute.data(), compute.size(), par);
+    run_stages({stage(prep), stage(compute)}, par);
   }
   if (gs) {
     for (int64_t bi = 0; bi < Bq * Ci; ++bi) {

@@ -1,27 +1,41 @@
 // Dynamic task distribution for the CPU kernels.
 //
-// Why not at::parallel_for's static split: it hands every thread one contiguous share up front, so a call lasts as
-// long as the slowest thread's share.  When another process holds a core, the thread on that core runs at half
-// speed (or not at all for a time slice) and every parallel region waits for it; on a quiet machine the same split
-// leaves threads idle whenever tasks differ in cost (entities differ in neighbour count).  Here every thread claims
-// the next unstarted task from one atomic counter until none is left, so a slow thread simply takes fewer tasks and
-// the region ends one task after the last claim.  Tasks are listed largest first (callers order them), which is the
-// classic longest-processing-time rule: the tail is one small task.
+// Why not at::parallel_for: its static split hands every thread one contiguous share up front, and its region ends
+// with a join that waits for every thread to arrive.  When another process holds a core, the thread on that core
+// runs at half speed, or not at all for a scheduler time slice (milliseconds), and every region waits for it; on a
+// quiet machine the same split leaves threads idle whenever tasks differ in cost.  Here:
 //
-// A call may list several independent task lists ("phases") at once: one parallel region, one join, instead of one
-// region per list -- every region costs a wake-up and a join that waits for the slowest thread.
+// * every thread claims the next unstarted task from one atomic counter, so a slow thread takes fewer tasks;
+//   callers list tasks largest first (the longest-processing-time rule: the tail is one small task);
+// * a call is one job of up to four stages (operand layout, then the products that read it): a stage starts when
+//   the earlier stages' claimed tasks are finished -- one wake-up per call, no barrier;
+// * the caller returns when every task is finished.  It never waits for a helper thread that has claimed nothing,
+//   so a helper descheduled by another process's work costs nothing; and helpers sleep when idle instead of
+//   spinning, which lets the OS scheduler treat them as interactive and run them promptly when woken.
 //
-// The thread count is the user's (at::get_num_threads()); only calls below a work threshold run on the calling
-// thread, where a region would cost more than it saves.  Results never depend on which thread runs a task: a task
-// writes its own outputs, and the slot index it receives only selects scratch memory.
+// The helpers are this file's own (at::get_num_threads() - 1 of them, the user's thread count: torch's
+// set_num_threads / --threads); MODI_EXT_CPU_POOL=omp runs jobs on the OpenMP team through at::parallel_for instead
+// (same claiming, but OpenMP's join).  Calls below a work threshold run on the calling thread, where waking helpers
+// costs more than it saves.  Results never depend on which thread runs a task: a task writes its own outputs, and
+// the slot index it receives only selects scratch memory.
 #pragma once
 
 #include <ATen/Parallel.h>
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
 #include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <exception>
 #include <initializer_list>
+#include <memory>
+#include <mutex>
+#include <thread>
+#include <vector>
 
 namespace modi_ext {
 namespace cpu_tasks {
@@ -33,45 +47,222 @@ struct Phase {
   void (*call)(const void*, int64_t, int) = nullptr;
 };
 
-// A phase running f(task, slot); f must outlive the run_phases call that uses it.
+// A phase running f(task, slot); f must outlive the run that uses it.
 template <class F>
 Phase phase(int64_t n, const F& f) {
   return Phase{n, &f, [](const void* c, int64_t t, int s) { (*static_cast<const F*>(c))(t, s); }};
 }
 
-// Slots a task may receive: scratch arrays indexed by slot need this many entries.
-inline int slots() { return at::in_parallel_region() ? 1 : std::max(1, at::get_num_threads()); }
+// Phases whose tasks may start once every task of the previous stage is finished.
+struct Stage {
+  const Phase* phases = nullptr;
+  size_t n = 0;
+};
+inline Stage stage(const std::vector<Phase>& v) { return Stage{v.data(), v.size()}; }
 
-// Run every task of every phase once.  parallel=false (small work) runs them in order on the calling thread.
-inline void run_phases(const Phase* phases, size_t n_phases, bool parallel) {
-  int64_t total = 0;
-  for (size_t i = 0; i < n_phases; ++i) total += phases[i].n;
-  if (total <= 0) return;
-  auto exec = [&](int64_t t, int slot) {
-    for (size_t i = 0; i < n_phases; ++i) {
-      const Phase& p = phases[i];
+inline bool& in_job() {
+  thread_local bool flag = false;
+  return flag;
+}
+
+// Slots a task may receive: scratch arrays indexed by slot need this many entries.
+inline int slots() {
+  return (at::in_parallel_region() || in_job()) ? 1 : std::max(1, at::get_num_threads());
+}
+
+inline void cpu_relax() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_ia32_pause();
+#endif
+}
+
+// One call's tasks, shared (by reference count) between the caller and the helpers that joined it: a helper that
+// wakes late may still read it after the caller returned, but never runs a task then (all are claimed and done).
+struct Job {
+  static constexpr size_t kMaxStages = 4;
+  Stage stages[kMaxStages];
+  int64_t total[kMaxStages] = {0, 0, 0, 0}, end[kMaxStages] = {0, 0, 0, 0};
+  size_t n_stages = 0;
+  int64_t all = 0;
+  int max_helpers = 0;
+  std::atomic<int64_t> next{0};
+  std::atomic<int64_t> done[kMaxStages];
+  std::atomic<int64_t> finished{0};
+  std::mutex m;
+  std::condition_variable cv;
+  bool complete = false;
+  std::exception_ptr error;
+  std::atomic<bool> failed{false};
+
+  Job() {
+    for (auto& d : done) d.store(0, std::memory_order_relaxed);
+  }
+
+  void exec(size_t s, int64_t t, int slot) {
+    const Stage& st = stages[s];
+    for (size_t i = 0; i < st.n; ++i) {
+      const Phase& p = st.phases[i];
       if (t < p.n) {
         p.call(p.ctx, t, slot);
         return;
       }
       t -= p.n;
     }
-  };
-  const int nt = slots();
-  if (!parallel || nt <= 1 || total == 1) {
-    for (int64_t t = 0; t < total; ++t) exec(t, 0);
-    return;
   }
-  std::atomic<int64_t> next{0};
-  // one chunk per thread; inside it, tasks are claimed one at a time
-  at::parallel_for(0, nt, 1, [&](int64_t, int64_t) {
-    const int slot = std::min(at::get_thread_num(), nt - 1);
+
+  // Claim and run tasks until none is left.
+  void work(int slot) {
+    size_t s = 0;
     for (;;) {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
-      if (t >= total) break;
-      exec(t, slot);
+      if (t >= all) return;
+      while (t >= end[s]) ++s;
+      if (s > 0) {
+        // every earlier stage is complete once the previous one is (its tasks waited in turn)
+        for (int spins = 0; done[s - 1].load(std::memory_order_acquire) < total[s - 1]; ++spins) {
+          if (spins < 512)
+            cpu_relax();
+          else
+            std::this_thread::yield();  // the owner of the missing task may be waiting for this core
+        }
+      }
+      if (!failed.load(std::memory_order_relaxed)) {
+        try {
+          exec(s, t - (s > 0 ? end[s - 1] : 0), slot);
+        } catch (...) {
+          std::lock_guard<std::mutex> lk(m);
+          if (!error) error = std::current_exception();
+          failed.store(true, std::memory_order_relaxed);
+        }
+      }
+      done[s].fetch_add(1, std::memory_order_release);
+      if (finished.fetch_add(1, std::memory_order_acq_rel) + 1 == all) {
+        std::lock_guard<std::mutex> lk(m);
+        complete = true;
+        cv.notify_all();
+      }
     }
-  });
+  }
+
+  // The caller: after its own claims, wait for the tasks still running elsewhere (a short spin, then sleep).
+  void wait_complete() {
+    for (int spins = 0; spins < 4096; ++spins) {
+      if (finished.load(std::memory_order_acquire) == all) return;
+      cpu_relax();
+    }
+    std::unique_lock<std::mutex> lk(m);
+    cv.wait(lk, [&] { return complete; });
+  }
+};
+
+// The helper threads.  One per process (re-created in a forked child, where the parent's threads do not exist);
+// one job at a time (a second caller meanwhile runs its job on its own thread).
+class Pool {
+ public:
+  static Pool& get() {
+    static std::mutex create;
+    static Pool* pool = nullptr;
+    std::lock_guard<std::mutex> lk(create);
+    if (pool == nullptr || pool->pid_ != getpid()) pool = new Pool();  // a forked child's copy is abandoned
+    return *pool;
+  }
+
+  // Run `job` with up to job->max_helpers helpers; false if the pool is busy with another caller's job.
+  bool run(const std::shared_ptr<Job>& job) {
+    std::unique_lock<std::mutex> owner(owner_, std::try_to_lock);
+    if (!owner.owns_lock()) return false;
+    grow(job->max_helpers);
+    {
+      std::lock_guard<std::mutex> lk(m_);
+      current_ = job;
+      epoch_.fetch_add(1, std::memory_order_release);
+      if (sleepers_ > 0) cv_.notify_all();
+    }
+    in_job() = true;
+    job->work(0);
+    in_job() = false;
+    job->wait_complete();
+    {
+      std::lock_guard<std::mutex> lk(m_);
+      if (current_ == job) current_.reset();
+    }
+    return true;
+  }
+
+ private:
+  Pool() : pid_(getpid()) {}
+
+  void grow(int n) {
+    while (static_cast<int>(threads_) < n) {
+      const int index = static_cast<int>(threads_++);
+      std::thread([this, index] { loop(index); }).detach();
+    }
+  }
+
+  void loop(int index) {
+    in_job() = true;  // kernels called from a task run serially
+    uint64_t seen = epoch_.load(std::memory_order_acquire);
+    for (;;) {
+      // a short spin catches back-to-back jobs; then sleep, so an idle helper costs nothing
+      for (int spins = 0; spins < 2048 && epoch_.load(std::memory_order_acquire) == seen; ++spins) cpu_relax();
+      std::shared_ptr<Job> job;
+      {
+        std::unique_lock<std::mutex> lk(m_);
+        if (epoch_.load(std::memory_order_relaxed) == seen) {
+          ++sleepers_;
+          cv_.wait(lk, [&] { return epoch_.load(std::memory_order_relaxed) != seen; });
+          --sleepers_;
+        }
+        seen = epoch_.load(std::memory_order_relaxed);
+        job = current_;
+      }
+      if (job && index < job->max_helpers) job->work(index + 1);
+    }
+  }
+
+  const pid_t pid_;
+  std::mutex owner_;  // held by the caller whose job runs
+  std::mutex m_;
+  std::condition_variable cv_;
+  std::atomic<uint64_t> epoch_{0};
+  std::shared_ptr<Job> current_;
+  int sleepers_ = 0;
+  size_t threads_ = 0;
+};
+
+inline bool use_omp_team() {
+  const char* env = std::getenv("MODI_EXT_CPU_POOL");
+  return env != nullptr && std::strcmp(env, "omp") == 0;
+}
+
+// Run the stages' tasks, each exactly once.  parallel=false (small work) runs them in order on the calling thread.
+inline void run_stages(std::initializer_list<Stage> stages, bool parallel) {
+  auto job = std::make_shared<Job>();
+  job->n_stages = std::min(stages.size(), Job::kMaxStages);
+  for (size_t s = 0; s < job->n_stages; ++s) {
+    job->stages[s] = stages.begin()[s];
+    for (size_t i = 0; i < job->stages[s].n; ++i) job->total[s] += job->stages[s].phases[i].n;
+    job->all += job->total[s];
+    job->end[s] = job->all;
+  }
+  if (job->all <= 0) return;
+  const int nt = slots();
+  if (!parallel || nt <= 1 || job->all == 1) {
+    for (size_t s = 0; s < job->n_stages; ++s)
+      for (int64_t t = 0; t < job->total[s]; ++t) job->exec(s, t, 0);
+    return;
+  }
+  job->max_helpers = nt - 1;
+  if (use_omp_team()) {
+    at::parallel_for(0, nt, 1, [&](int64_t, int64_t) { job->work(std::min(at::get_thread_num(), nt - 1)); });
+  } else if (!Pool::get().run(job)) {
+    job->work(0);  // another caller's job holds the helpers
+  }
+  if (job->error) std::rethrow_exception(job->error);
+}
+
+inline void run_phases(const Phase* phases, size_t n_phases, bool parallel) {
+  run_stages({Stage{phases, n_phases}}, parallel);
 }
 
 inline void run_phases(std::initializer_list<Phase> phases, bool parallel) {
