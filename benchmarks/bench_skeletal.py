@@ -28,3 +28,121 @@ def test_skeletal(benchmark, case, impl):
     benchmark.group = case
     benchmark.extra_info.update(_INFO.get(case, {}))
     benchmark(fn)
+
+
+# ---------------------------------------------------------------------------------------------- quiet vs busy
+# python benchmarks/bench_skeletal.py --json benchmarks/results/cpu_busy.json [--repeats 3] [--reps 3]
+#
+# Runs compare.py (each run its own process) on a quiet machine and with one core kept busy (compare --busy 1), at
+# 1 and 2 threads, the four conditions interleaved within every repeat so drift hits them alike, and writes
+# median / min / max over the repeats of each run's medians, side by side, with the issue-23 ratios.
+BUSY_CASES = (r"\.finest\.(fwd|fwd_bwd)$|^skeletal_conv\.finest\.double$|^ganimator_conv\.salsa\.(fwd|fwd_bwd)$"
+              r"|^fk\.")
+CONDITIONS = [(0, 2), (0, 1), (1, 2), (1, 1)]  # (busy cores, threads)
+MODI_FINEST = ["skeletal_conv", "modulated_conv", "scaler_up", "scaler_down", "modulated_up"]
+
+
+def _cond(busy: int, threads: int) -> str:
+    return f"{'busy' if busy else 'quiet'}_{threads}t"
+
+
+def _spread(values: list[float]) -> dict:
+    import statistics
+
+    return {"median": round(statistics.median(values), 4), "min": round(min(values), 4),
+            "max": round(max(values), 4), "runs": len(values)}
+
+
+def _compare_run(root: Path, busy: int, threads: int, only: str, reps: int, out: Path) -> dict:
+    import json
+    import subprocess
+
+    cmd = [sys.executable, str(root / "benchmarks" / "compare.py"), "--threads", str(threads), "--busy", str(busy),
+           "--only", only, "--reps", str(reps), "--min-time", "0", "--json", str(out)]
+    print("#", " ".join(cmd[1:]), flush=True)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return json.loads(out.read_text(encoding="utf-8"))
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return round(a / b, 3) if a is not None and b else None
+
+
+def busy_report(argv: list[str] | None = None) -> int:
+    import argparse
+    import datetime
+    import json
+    import tempfile
+
+    from compare import machine, write_json
+
+    ap = argparse.ArgumentParser(description="quiet vs one-core-busy figures of compare.py cases, 1 and 2 threads")
+    ap.add_argument("--json", type=Path, required=True)
+    ap.add_argument("--repeats", type=int, default=3, help="compare.py runs per condition (spread over runs)")
+    ap.add_argument("--reps", type=int, default=3, help="timed runs per side inside each compare.py run")
+    ap.add_argument("--only", default=BUSY_CASES, help="regex of compare.py cases")
+    ap.add_argument("--root", type=Path, default=Path(__file__).resolve().parents[1],
+                    help="checkout whose compare.py (and extension) runs (default: this one)")
+    args = ap.parse_args(argv)
+    runs: dict[str, list[dict]] = {_cond(*c): [] for c in CONDITIONS}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.repeats):
+            for busy, threads in CONDITIONS:
+                out = Path(tmp) / f"{r}_{busy}_{threads}.json"
+                runs[_cond(busy, threads)].append(_compare_run(args.root, busy, threads, args.only, args.reps, out))
+    names = sorted({n for rs in runs.values() for r in rs for n in r})
+    med: dict[tuple[str, str, str], float] = {}
+    cases: dict[str, dict] = {}
+    for name in names:
+        entry: dict = {}
+        for cond, rs in runs.items():
+            got = [r[name] for r in rs if name in r]
+            if not got:
+                continue
+            entry[cond] = {side: _spread([g[side] for g in got]) for side in ("ext_ms", "ref_ms", "dense_ms")
+                           if all(side in g for g in got)}
+            for side, s in entry[cond].items():
+                med[(name, cond, side)] = s["median"]
+        m = lambda cond, side: med.get((name, cond, side))  # noqa: E731
+        entry["ext_busy_2t_over_busy_1t"] = _ratio(m("busy_2t", "ext_ms"), m("busy_1t", "ext_ms"))
+        entry["ext_slowdown_quiet_to_busy_2t"] = _ratio(m("busy_2t", "ext_ms"), m("quiet_2t", "ext_ms"))
+        entry["ref_slowdown_quiet_to_busy_2t"] = _ratio(m("busy_2t", "ref_ms"), m("quiet_2t", "ref_ms"))
+        entry["speedup_ref_over_ext_quiet_2t"] = _ratio(m("quiet_2t", "ref_ms"), m("quiet_2t", "ext_ms"))
+        entry["ext_scaling_quiet_1t_to_2t"] = _ratio(m("quiet_1t", "ext_ms"), m("quiet_2t", "ext_ms"))
+        cases[name] = entry
+    for name, entry in cases.items():  # backward alone = fwd_bwd - fwd (medians)
+        if name.endswith(".fwd_bwd") and name[:-7] + "fwd" in cases:
+            f = name[:-7] + "fwd"
+            bwd = {c: med[(name, c, "ext_ms")] - med[(f, c, "ext_ms")] for c in ("quiet_1t", "quiet_2t")
+                   if (name, c, "ext_ms") in med and (f, c, "ext_ms") in med}
+            if len(bwd) == 2:
+                entry["ext_backward_ms_quiet"] = {c: round(v, 4) for c, v in bwd.items()}
+                entry["ext_backward_scaling_quiet_1t_to_2t"] = _ratio(bwd["quiet_1t"], bwd["quiet_2t"])
+    targets = {}
+    for op in MODI_FINEST:
+        e = cases.get(f"{op}.finest.fwd_bwd")
+        if e and e["ext_busy_2t_over_busy_1t"] is not None:
+            targets[f"{op}.finest.fwd_bwd busy 2t <= 1.2x busy 1t"] = e["ext_busy_2t_over_busy_1t"] <= 1.2
+            targets[f"{op}.finest.fwd_bwd ext slowdown <= ref slowdown"] = (
+                e["ext_slowdown_quiet_to_busy_2t"] <= e["ref_slowdown_quiet_to_busy_2t"])
+    for kind in ("fwd_bwd", "double"):
+        e = cases.get(f"skeletal_conv.finest.{kind}")
+        if e and e["speedup_ref_over_ext_quiet_2t"] is not None:
+            targets[f"skeletal_conv.finest.{kind} quiet 2t >= 5x ref"] = e["speedup_ref_over_ext_quiet_2t"] >= 5.0
+    e = cases.get("skeletal_conv.finest.fwd_bwd", {})
+    if e.get("ext_backward_scaling_quiet_1t_to_2t") is not None:
+        targets["skeletal_conv.finest backward scaling 1t->2t >= 1.8x"] = e["ext_backward_scaling_quiet_1t_to_2t"] >= 1.8
+    report = {"machine": machine(), "date": datetime.date.today().isoformat(),
+              "command": "python benchmarks/bench_skeletal.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "root": str(args.root), "repeats": args.repeats, "reps_per_run": args.reps,
+              "conditions": {_cond(*c): {"busy_cores": c[0], "threads": c[1]} for c in CONDITIONS},
+              "note": "each figure: median / min / max over `repeats` compare.py runs of that run's median (ms)",
+              "targets": targets, "cases": cases}
+    write_json(args.json, report)
+    for k, v in targets.items():
+        print(f"{'MET ' if v else 'MISS'} {k}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(busy_report())
