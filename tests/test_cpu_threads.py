@@ -197,3 +197,37 @@ def test_kernels_work_in_a_forked_child():
     p.join(60)
     assert p.exitcode == 0
     assert torch.equal(torch.from_numpy(child), parent)
+
+
+@needs_ext
+def test_concurrent_callers_get_the_same_results():
+    """Two Python threads calling the kernels at once (the helpers serve one call at a time; the other runs on its
+    own thread): every result equals the single-caller one."""
+    import threading
+
+    cases = [_case(kind, 600 + i, **SHAPES[0]) for i, kind in enumerate(KINDS)]
+    expected = [_run(kind, ops, args, kw, threads=2) for kind, (args, kw) in zip(KINDS, cases)]
+    results: dict[int, list] = {}
+    errors: list[BaseException] = []
+
+    def worker(w: int) -> None:
+        try:
+            results[w] = [_run(kind, ops, args, kw) for _ in range(3) for kind, (args, kw) in zip(KINDS, cases)]
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        threads = [threading.Thread(target=worker, args=(w,)) for w in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(120)
+    finally:
+        torch.set_num_threads(old)
+    assert not errors, errors
+    for w in range(2):
+        for i, got in enumerate(results[w]):
+            for a, b in zip(got, expected[i % len(KINDS)]):
+                assert torch.equal(a, b)
