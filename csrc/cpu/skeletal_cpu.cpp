@@ -17,6 +17,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <memory>
+#include <mutex>
 #include <numeric>
 #include <vector>
 
@@ -120,13 +121,15 @@ inline int64_t chunk_items(int64_t elems_per_item) {
   return std::max<int64_t>(1, (kSerialElems / 2) / std::max<int64_t>(1, elems_per_item));
 }
 
-// Per-call operand buffers (megabytes) come from a small per-thread cache of freed blocks: a fresh allocation of
-// that size is an mmap whose pages fault in on first touch, every call.
+// Per-call operand buffers and scratch (up to megabytes) come from a small process-wide cache of freed blocks: a
+// fresh allocation of that size is an mmap whose pages fault in on first touch, every call (and page faults from
+// several threads serialise in the kernel).
 class BlockCache {
  public:
   static constexpr size_t kMaxBytes = size_t(64) << 20, kMaxBlocks = 16;
   static std::unique_ptr<char[]> take(size_t bytes, size_t& cap) {
     auto& c = local();
+    std::lock_guard<std::mutex> lk(c.m);
     size_t best = c.blocks.size();
     for (size_t i = 0; i < c.blocks.size(); ++i)
       if (c.blocks[i].cap >= bytes && (best == c.blocks.size() || c.blocks[i].cap < c.blocks[best].cap)) best = i;
@@ -143,6 +146,7 @@ class BlockCache {
   static void give(std::unique_ptr<char[]> p, size_t cap) {
     auto& c = local();
     if (cap > kMaxBytes) return;
+    std::lock_guard<std::mutex> lk(c.m);
     while (!c.blocks.empty() && (c.total + cap > kMaxBytes || c.blocks.size() >= kMaxBlocks)) {
       c.total -= c.blocks.front().cap;  // drop the oldest
       c.blocks.erase(c.blocks.begin());
@@ -157,12 +161,13 @@ class BlockCache {
     size_t cap;
   };
   struct Cache {
+    std::mutex m;
     std::vector<Block> blocks;
     size_t total = 0;
   };
   static Cache& local() {
-    thread_local Cache c;
-    return c;
+    static Cache* c = new Cache();  // never destroyed: helper threads may still return blocks at exit
+    return *c;
   }
 };
 
@@ -182,18 +187,19 @@ struct Buf {
   void release() {
     if (p) BlockCache::give(std::move(p), cap);
     p.reset();
+    cap = 0;
   }
   T* data() const { return reinterpret_cast<T*>(p.get()); }
 };
 
-// Scratch per slot (cpu_tasks::slots()), allocated on first use by the thread that owns the slot.
+// Scratch per slot (cpu_tasks::slots()), taken on first use by the thread that owns the slot.
 template <typename T>
 struct SlotScratch {
-  std::vector<std::vector<T>> v;
+  std::vector<Buf<T>> v;
   SlotScratch() : v(static_cast<size_t>(cpu_tasks::slots())) {}
   T* get(int slot, size_t n) {
-    auto& b = v[static_cast<size_t>(slot)];
-    if (b.size() < n) b.resize(n);
+    Buf<T>& b = v[static_cast<size_t>(slot)];
+    if (b.cap < n * sizeof(T)) b.alloc(n);
     return b.data();
   }
 };
