@@ -203,8 +203,9 @@ class Pool {
     in_job() = true;  // kernels called from a task run serially
     uint64_t seen = epoch_.load(std::memory_order_acquire);
     for (;;) {
-      // a short spin catches back-to-back jobs; then sleep, so an idle helper costs nothing
-      for (int spins = 0; spins < 2048 && epoch_.load(std::memory_order_acquire) == seen; ++spins) cpu_relax();
+      // a short spin (~0.1 ms) catches back-to-back jobs (forward then backward, small layers in a row); then sleep,
+      // so an idle helper costs nothing
+      for (int spins = 0; spins < 8192 && epoch_.load(std::memory_order_acquire) == seen; ++spins) cpu_relax();
       std::shared_ptr<Job> job;
       {
         std::unique_lock<std::mutex> lk(m_);
