@@ -240,9 +240,13 @@ def test_sigterm_before_the_first_step_unwinds_cleanly(tmp_path):
     run = tmp_path / "run"
     # a budget it cannot finish before the signal lands (5 iterations could end first on a quick machine)
     proc, err = _start(["train", "procedural", "--out", str(run), *SMALL, "--iters", "100000"], tmp_path, "a")
-    _wait_for(lambda: (run / faults.LOCK_NAME).exists(), proc, err, "the run folder's lock")
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=60) == 143
+    try:
+        _wait_for(lambda: (run / faults.LOCK_NAME).exists(), proc, err, "the run folder's lock")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 143
+    finally:  # a failed wait must not leave a 100000-step run behind on the CI machine
+        if proc.poll() is None:
+            proc.kill()
     text = err.read_text()
     assert "Traceback" not in text and ("modi: terminated (SIGTERM)" in text or "SIGTERM: stopping" in text), text
     assert not (run / faults.LOCK_NAME).exists() and not list(tmp_path.rglob(".*.tmp"))
