@@ -102,13 +102,16 @@ SHAPES = [
 
 
 @needs_ext
+@pytest.mark.parametrize("pool", ["omp", "own"])
 @pytest.mark.parametrize("kernel", ["auto", "avx2"])
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("shape", range(len(SHAPES)))
-def test_identical_at_1_2_and_many_threads(kind, shape, kernel, monkeypatch):
-    """kernel "avx2": the AVX2 micro-kernels even where AVX-512 is available (MODI_EXT_CPU_KERNEL=avx2)."""
+def test_identical_at_1_2_and_many_threads(kind, shape, kernel, pool, monkeypatch):
+    """kernel "avx2": the AVX2 micro-kernels even where AVX-512 is available (MODI_EXT_CPU_KERNEL=avx2);
+    pool "own": the kernels' own helper threads instead of the OpenMP team (MODI_EXT_CPU_POOL=own)."""
     if kernel == "avx2":
         monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "avx2")
+    monkeypatch.setenv("MODI_EXT_CPU_POOL", pool)
     spec = dict(SHAPES[shape])
     args, kw = _case(kind, 300 + shape, **spec)
     one = _run(kind, ops, args, kw, threads=1)
@@ -179,14 +182,13 @@ def _child_conv(args, q):
 
 
 @needs_ext
-def test_kernels_work_in_a_forked_child():
+def test_kernels_work_in_a_forked_child(monkeypatch):
+    """MODI_EXT_CPU_POOL=own: the kernels' own helper threads (libgomp's team, the default, does not survive fork)."""
     import multiprocessing as mp
-    import os
 
     if "fork" not in mp.get_all_start_methods():
         pytest.skip("fork start method unavailable on this platform")
-    if os.environ.get("MODI_EXT_CPU_POOL") == "omp":
-        pytest.skip("MODI_EXT_CPU_POOL=omp: libgomp's team does not survive fork")
+    monkeypatch.setenv("MODI_EXT_CPU_POOL", "own")
     args, _ = _case("conv", 500, **SHAPES[0])
     parent = _forward_only(args, 2)  # the helpers now exist in this process
     ctx = mp.get_context("fork")

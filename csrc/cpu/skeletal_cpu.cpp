@@ -516,9 +516,11 @@ Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, co
 // allows, tiles as even as the count permits.  Depends on the shapes only (never on the thread count), so the
 // same products are computed whatever the threads.
 int64_t batch_tile(int64_t B, int64_t cols_per_b, int64_t n_entities, int64_t target = 512) {
+  constexpr int64_t kMinCols = 32;  // narrower products waste more in per-call overhead than balance gains
   int64_t nb = std::max<int64_t>(1, target / std::max<int64_t>(1, cols_per_b));
   nb = std::min(nb, B);
-  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < kMinTasks) nb = (nb + 1) / 2;
+  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < kMinTasks && ((nb + 1) / 2) * cols_per_b >= kMinCols)
+    nb = (nb + 1) / 2;
   const int64_t nbt = (B + nb - 1) / nb;
   return (B + nbt - 1) / nbt;
 }
@@ -1771,7 +1773,8 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   const int64_t wents = g.kind == kUp ? Ei : Eo;
   const int64_t wcols_b = g.kind == kUp ? Tc : g.Tout;  // panel columns per batch element
   const int64_t nbw = batch_tile(Bq, wcols_b, kMinTasks);
-  const RowBlocks wb = gw_b ? weight_blocks(wents, wrows, csr.off, 1) : RowBlocks{};
+  // (row blocks of at least 64: every block gathers the whole panel again)
+  const RowBlocks wb = gw_b ? weight_blocks(wents, wrows, csr.off, 64) : RowBlocks{};
   auto weight_task = [&](int64_t t, int slot) {
     BlasSequential blas_guard;
     const int64_t e = wb.order[t] / wb.nrb, r0 = (wb.order[t] % wb.nrb) * wb.rb, nr = std::min(wb.rb, wrows - r0);

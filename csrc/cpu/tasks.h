@@ -9,14 +9,14 @@
 //   callers list tasks largest first (the longest-processing-time rule: the tail is one small task);
 // * a call is one job of up to four stages (operand layout, then the products that read it): a stage starts when
 //   the earlier stages' claimed tasks are finished -- one wake-up per call, no barrier;
-// * the caller returns when every task is finished.  It never waits for a helper thread that has claimed nothing,
-//   so a helper descheduled by another process's work costs nothing; and helpers sleep when idle instead of
-//   spinning, which lets the OS scheduler treat them as interactive and run them promptly when woken.
+// * the threads are torch's OpenMP team (at::parallel_for over one chunk per thread; the user's thread count:
+//   torch.set_num_threads / --threads).  MODI_EXT_CPU_POOL=own runs jobs on this file's own helper threads
+//   instead: the caller then never waits for a helper that has claimed nothing, and helpers sleep when idle.  It
+//   holds up better when another process keeps a core busy for some ops, but on a quiet machine the OpenMP
+//   workers, which spin for milliseconds after every torch op, compete with its helpers for the cores (measured:
+//   benchmarks/results/cpu_busy*.json), so the OpenMP team is the default.
 //
-// The helpers are this file's own (at::get_num_threads() - 1 of them, the user's thread count: torch's
-// set_num_threads / --threads); MODI_EXT_CPU_POOL=omp runs jobs on the OpenMP team through at::parallel_for instead
-// (same claiming, but OpenMP's join).  Calls below a work threshold run on the calling thread, where waking helpers
-// costs more than it saves.  Results never depend on which thread runs a task: a task writes its own outputs, and
+// Calls below a work threshold run on the calling thread, where waking threads costs more than it saves.  Results never depend on which thread runs a task: a task writes its own outputs, and
 // the slot index it receives only selects scratch memory.
 #pragma once
 
@@ -233,7 +233,7 @@ class Pool {
 
 inline bool use_omp_team() {
   const char* env = std::getenv("MODI_EXT_CPU_POOL");
-  return env != nullptr && std::strcmp(env, "omp") == 0;
+  return env == nullptr || std::strcmp(env, "own") != 0;
 }
 
 // Run the stages' tasks, each exactly once.  parallel=false (small work) runs them in order on the calling thread.
