@@ -194,6 +194,14 @@ CASES: list[tuple[str, str]] = [
     ("encoder eval {tiny} --json {tiny}", "refusing to write over an input"),
     ("ganimator evaluate {gan} --json {gan}/ganimator.ckpt", "refusing to write over an input"),
     ("eval train-features {d} --out {out}.pt --json {out}.pt", "is also --out"),
+    # --- glTF export, the viewer and --format
+    ("export gltf {d}/nope.bvh {out}.glb", "no such BVH file"),
+    ("export gltf {clip} {out}.txt", "must end in .glb or .gltf"),
+    ("export gltf {clip} {out}.glb --scale 0", "argument --scale"),
+    ("export gltf {clip} {out}.glb --scale nan", "argument --scale"),
+    ("view {d}/nope.bvh --out {out}.html", "no such file"),
+    ("view {clip} --out {clip}", "the page must end in .html"),
+    ("synth {out} --format bvh,fbx", "unknown format 'fbx'"),
     # --- devices: say which exist
     ("train {d} --out {out} --device gpu7", "devices here: cpu"),
     ("generate {tiny} --out {out} --device cuda:99", "devices here: cpu"),
