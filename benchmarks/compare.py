@@ -21,7 +21,8 @@ built-in fallback otherwise), batch 16, fp32:
                                           5 channels); fwd_bwd also reports backward / forward time of each path
   fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
 
-Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
+Like the ``modi`` command, it imports modi_ext before torch, so OpenMP threads spin briefly before they sleep
+(``modi_ext/omp_wait.py``); every row records the setting as ``omp_wait``.  Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
 the medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
 style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
 ``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against issue 20's targets (dense >= 5x the
@@ -42,10 +43,14 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+# modi_ext before torch, as the ``modi`` command does: it sets the OpenMP spin before libgomp loads
+# (modi_ext/omp_wait.py; GOMP_SPINCOUNT=300000 in the environment measures libgomp's default instead)
+import modi_ext  # noqa: E402
+
+import torch  # noqa: E402
 
 from modi_ext import HAS_EXT  # noqa: E402
 from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv, SkeletalDownsample, SkeletalUpsample  # noqa: E402
@@ -364,7 +369,8 @@ def main(argv: list[str] | None = None) -> int:
     pattern = re.compile(args.only) if args.only else None
     desc = machine()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
-    print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32; {args.clock} clock")
+    omp_wait = modi_ext.omp_wait_policy()
+    print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32; {args.clock} clock; OpenMP wait {omp_wait}")
     print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'ref/dense':>9s} "
           f"{'dense/ext':>9s}")
     results: dict[str, dict] = {}
@@ -380,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
         results[name] = {"ref_ms": round(ref_ms, 4), "ext_ms": round(ext_ms, 4),
                          "speedup": round(ref_ms / ext_ms, 3), "runs": n, "threads": torch.get_num_threads(),
                          "clock": args.clock, "busy": args.busy, "busy_cores": busy_list,
-                         "machine": desc, **info.get(name, {})}
+                         "omp_wait": omp_wait, "machine": desc, **info.get(name, {})}
         extra = ""
         if len(ms) > 2:  # the dense path (modi_ext.dense) as a third side
             results[name].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),

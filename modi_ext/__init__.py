@@ -4,8 +4,20 @@ Sparse-per-entity C++/CUDA kernels registered under ``torch.ops.modi_ext``, a de
 (``modi_ext.dense``: one shared conv, style and demodulation as scales) that is the fallback when the extension is
 not built, and MoDi's literal math (``modi_ext.reference``) as the test oracle.  ``MODI_EXT_IMPL=auto|ext|dense|ref``
 picks the path; ``dispatch_report()`` lists the choices ``auto`` made.  This package never imports ``modi``.
+
+Imported before torch, it first shortens how long idle OpenMP threads spin (``modi_ext.omp_wait``: a busy machine
+otherwise stalls every parallel region); ``omp_wait_policy()`` says which setting this process runs with.
 """
+from modi_ext import omp_wait as _omp_wait
+
+_omp_wait.apply()  # before anything imports torch
+
 from modi_ext._loader import HAS_EXT, LOAD_ERROR, impl_choice
 from modi_ext.dispatch import dispatch_report
 
-__all__ = ["HAS_EXT", "LOAD_ERROR", "impl_choice", "dispatch_report"]
+__all__ = ["HAS_EXT", "LOAD_ERROR", "impl_choice", "dispatch_report", "omp_wait_policy"]
+
+
+def omp_wait_policy() -> str:
+    """The OpenMP wait setting in force, and who chose it (modi_ext, the user, or libgomp's default)."""
+    return _omp_wait.describe()

@@ -108,7 +108,8 @@ SHAPES = [
 @pytest.mark.parametrize("shape", range(len(SHAPES)))
 def test_identical_at_1_2_and_many_threads(kind, shape, kernel, pool, monkeypatch):
     """kernel "avx2": the AVX2 micro-kernels even where AVX-512 is available (MODI_EXT_CPU_KERNEL=avx2);
-    pool "own": the kernels' own helper threads instead of the OpenMP team (MODI_EXT_CPU_POOL=own)."""
+    pool "own": the kernels' own helper threads (the default under modi_ext's short OpenMP spin); "omp": torch's
+    OpenMP team (MODI_EXT_CPU_POOL=omp, the default when torch was imported first)."""
     if kernel == "avx2":
         monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "avx2")
     monkeypatch.setenv("MODI_EXT_CPU_POOL", pool)
@@ -183,7 +184,8 @@ def _child_conv(args, q):
 
 @needs_ext
 def test_kernels_work_in_a_forked_child(monkeypatch):
-    """MODI_EXT_CPU_POOL=own: the kernels' own helper threads (libgomp's team, the default, does not survive fork)."""
+    """MODI_EXT_CPU_POOL=own: the kernels' own helper threads are re-created in a forked child (libgomp's team, the
+    pool used when OpenMP keeps its long spin, does not survive fork)."""
     import multiprocessing as mp
 
     if "fork" not in mp.get_all_start_methods():

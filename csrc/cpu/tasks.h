@@ -9,15 +9,17 @@
 //   callers list tasks largest first (the longest-processing-time rule: the tail is one small task);
 // * a call is one job of up to four stages (operand layout, then the products that read it): a stage starts when
 //   the earlier stages' claimed tasks are finished -- one wake-up per call, no barrier;
-// * the threads are torch's OpenMP team (at::parallel_for over one chunk per thread; the user's thread count:
-//   torch.set_num_threads / --threads).  MODI_EXT_CPU_POOL=own runs jobs on this file's own helper threads
-//   instead: the caller then never waits for a helper that has claimed nothing, and helpers sleep when idle.  It
-//   holds up better when another process keeps a core busy for some ops, but on a quiet machine the OpenMP
-//   workers, which spin for milliseconds after every torch op, compete with its helpers for the cores (measured:
-//   benchmarks/results/cpu_busy*.json), so the OpenMP team is the default.
+// * the threads: MODI_EXT_CPU_POOL=own (the default that modi_ext/omp_wait.py sets when OpenMP threads spin only
+//   briefly) runs jobs on this file's own helper threads: the caller never waits for a helper that has claimed
+//   nothing, and helpers sleep when idle, so with one core busy two threads beat one.  MODI_EXT_CPU_POOL=omp runs
+//   them on torch's OpenMP team (at::parallel_for over one chunk per thread), the choice when libgomp keeps its
+//   default spin of milliseconds after every torch op: its spinning workers would hold the cores the helpers need
+//   (measured: benchmarks/RESULTS.md, "Busy machine").  Both use the user's thread count (torch.set_num_threads).
 //
-// Calls below a work threshold run on the calling thread, where waking threads costs more than it saves.  Results never depend on which thread runs a task: a task writes its own outputs, and
-// the slot index it receives only selects scratch memory.
+// Calls below a work threshold run on the calling thread, where waking threads costs more than it saves.  Results
+// never depend on which thread runs a task: a task writes its own outputs, and the slot index it receives only
+// selects scratch memory.  Every wait spins for a bounded time (microseconds, not a count of pause instructions,
+// whose cost differs tenfold between CPUs) and then sleeps.
 #pragma once
 
 #include <ATen/Parallel.h>
@@ -26,6 +28,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <cstdlib>
@@ -76,6 +79,17 @@ inline void cpu_relax() {
 #endif
 }
 
+// Spin until ready() or about `micros` microseconds have passed; true if ready.
+template <class Ready>
+bool spin_for(int64_t micros, const Ready& ready) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::microseconds(micros);
+  for (int i = 1;; ++i) {
+    if (ready()) return true;
+    cpu_relax();
+    if ((i & 63) == 0 && std::chrono::steady_clock::now() >= deadline) return ready();
+  }
+}
+
 // One call's tasks, shared (by reference count) between the caller and the helpers that joined it: a helper that
 // wakes late may still read it after the caller returned, but never runs a task then (all are claimed and done).
 struct Job {
@@ -88,6 +102,7 @@ struct Job {
   std::atomic<int64_t> next{0};
   std::atomic<int64_t> done[kMaxStages];
   std::atomic<int64_t> finished{0};
+  std::atomic<int> stage_waiters{0};
   std::mutex m;
   std::condition_variable cv;
   bool complete = false;
@@ -117,15 +132,7 @@ struct Job {
       const int64_t t = next.fetch_add(1, std::memory_order_relaxed);
       if (t >= all) return;
       while (t >= end[s]) ++s;
-      if (s > 0) {
-        // every earlier stage is complete once the previous one is (its tasks waited in turn)
-        for (int spins = 0; done[s - 1].load(std::memory_order_acquire) < total[s - 1]; ++spins) {
-          if (spins < 512)
-            cpu_relax();
-          else
-            std::this_thread::yield();  // the owner of the missing task may be waiting for this core
-        }
-      }
+      if (s > 0) wait_stage(s - 1);  // every earlier stage is complete once the previous one is
       if (!failed.load(std::memory_order_relaxed)) {
         try {
           exec(s, t - (s > 0 ? end[s - 1] : 0), slot);
@@ -135,21 +142,30 @@ struct Job {
           failed.store(true, std::memory_order_relaxed);
         }
       }
-      done[s].fetch_add(1, std::memory_order_release);
-      if (finished.fetch_add(1, std::memory_order_acq_rel) + 1 == all) {
+      // seq_cst here and in wait_stage: a waiter's registration and the last completion are ordered either way
+      const bool stage_done = done[s].fetch_add(1, std::memory_order_seq_cst) + 1 == total[s];
+      const bool all_done = finished.fetch_add(1, std::memory_order_acq_rel) + 1 == all;
+      if (all_done || (stage_done && stage_waiters.load(std::memory_order_seq_cst) > 0)) {
         std::lock_guard<std::mutex> lk(m);
-        complete = true;
+        if (all_done) complete = true;
         cv.notify_all();
       }
     }
   }
 
+  // A task of stage s+1 waits for the last tasks of stage s.  Spin briefly (~20 us), then sleep: the thread that
+  // holds the missing task may be descheduled, and on a busy machine a spinning waiter keeps the core it needs.
+  void wait_stage(size_t s) {
+    if (spin_for(20, [&] { return done[s].load(std::memory_order_acquire) >= total[s]; })) return;
+    std::unique_lock<std::mutex> lk(m);
+    stage_waiters.fetch_add(1, std::memory_order_seq_cst);
+    cv.wait(lk, [&] { return done[s].load(std::memory_order_seq_cst) >= total[s]; });
+    stage_waiters.fetch_sub(1, std::memory_order_relaxed);
+  }
+
   // The caller: after its own claims, wait for the tasks still running elsewhere (a short spin, then sleep).
   void wait_complete() {
-    for (int spins = 0; spins < 4096; ++spins) {
-      if (finished.load(std::memory_order_acquire) == all) return;
-      cpu_relax();
-    }
+    if (spin_for(50, [&] { return finished.load(std::memory_order_acquire) == all; })) return;
     std::unique_lock<std::mutex> lk(m);
     cv.wait(lk, [&] { return complete; });
   }
@@ -203,9 +219,9 @@ class Pool {
     in_job() = true;  // kernels called from a task run serially
     uint64_t seen = epoch_.load(std::memory_order_acquire);
     for (;;) {
-      // a short spin (~0.1 ms) catches back-to-back jobs (forward then backward, small layers in a row); then sleep,
+      // a short spin (0.1 ms) catches back-to-back jobs (forward then backward, small layers in a row); then sleep,
       // so an idle helper costs nothing
-      for (int spins = 0; spins < 8192 && epoch_.load(std::memory_order_acquire) == seen; ++spins) cpu_relax();
+      spin_for(100, [&] { return epoch_.load(std::memory_order_acquire) != seen; });
       std::shared_ptr<Job> job;
       {
         std::unique_lock<std::mutex> lk(m_);
@@ -233,7 +249,7 @@ class Pool {
 
 inline bool use_omp_team() {
   const char* env = std::getenv("MODI_EXT_CPU_POOL");
-  return env == nullptr || std::strcmp(env, "own") != 0;
+  return env == nullptr || std::strcmp(env, "own") != 0;  // unset only when loaded without modi_ext's __init__
 }
 
 // Run the stages' tasks, each exactly once.  parallel=false (small work) runs them in order on the calling thread.
