@@ -136,6 +136,7 @@ def busy_report(argv: list[str] | None = None) -> int:
               "command": "python benchmarks/bench_skeletal.py " + " ".join(argv if argv is not None else sys.argv[1:]),
               "root": str(args.root), "repeats": args.repeats, "reps_per_run": args.reps,
               "conditions": {_cond(*c): {"busy_cores": c[0], "threads": c[1]} for c in CONDITIONS},
+              "omp_wait": sorted({row.get("omp_wait", "?") for rs in runs.values() for r in rs for row in r.values()}),
               "note": "each figure: median / min / max over `repeats` compare.py runs of that run's median (ms)",
               "targets": targets, "cases": cases}
     write_json(args.json, report)

@@ -45,9 +45,13 @@ from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-# modi_ext before torch, as the ``modi`` command does: it sets the OpenMP spin before libgomp loads
-# (modi_ext/omp_wait.py; GOMP_SPINCOUNT=300000 in the environment measures libgomp's default instead)
+from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)
+
+# --busy N: the other job runs before this process loads anything, as on a shared machine; then modi_ext before
+# torch, as the ``modi`` command does: it picks the OpenMP spin before libgomp loads (modi_ext/omp_wait.py)
+_EARLY_BUSY = start_early(sys.argv) if __name__ == "__main__" else None
 import modi_ext  # noqa: E402
 
 import torch  # noqa: E402
@@ -281,51 +285,6 @@ def time_all(fns, reps: int, min_time: float, clock: Callable[[], float] = time.
     return [statistics.median(t) * 1e3 for t in times], len(times[0])
 
 
-def _spin(ready, parent: int, core: int | None) -> None:
-    """Busy helper: one pure-Python spinning loop on `core`, until the parent process is gone."""
-    if core is not None:
-        with contextlib.suppress(OSError):
-            os.sched_setaffinity(0, {core})
-    ready.set()
-    while os.getppid() == parent:
-        for _ in range(200_000):
-            pass
-
-
-@contextlib.contextmanager
-def busy_cores(n: int):
-    """Keep `n` cores busy (the last `n` this process may use, one pinned spinning process each) for the block,
-    as another user's job would; yields the cores taken (None: pinning unavailable)."""
-    if n <= 0:
-        yield []
-        return
-    import multiprocessing as mp
-
-    try:
-        allowed = sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        allowed = []
-    cores = allowed[-n:] if len(allowed) >= n else [None] * n
-    ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else None)
-    procs, events = [], []
-    try:
-        for core in cores:
-            ev = ctx.Event()
-            p = ctx.Process(target=_spin, args=(ev, os.getpid(), core), daemon=True)
-            p.start()
-            procs.append(p)
-            events.append(ev)
-        for ev in events:
-            ev.wait(30)
-        time.sleep(0.2)
-        yield cores
-    finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            p.join(5)
-
-
 def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -374,8 +333,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'ref/dense':>9s} "
           f"{'dense/ext':>9s}")
     results: dict[str, dict] = {}
-    busy = contextlib.ExitStack()
-    busy_list = busy.enter_context(busy_cores(args.busy))
+    busy = _EARLY_BUSY or contextlib.ExitStack()
+    busy_list = busy.cores if _EARLY_BUSY else busy.enter_context(busy_cores(args.busy))
     if args.busy:
         print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {busy_list})")
     for name, fns in cases.items():

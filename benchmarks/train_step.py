@@ -4,6 +4,7 @@
     python benchmarks/train_step.py --preset small --sides ref,ext_refgrad,ext --json ...
     python benchmarks/train_step.py --model ganimator --threads 1 --json benchmarks/results/train_step_ganimator.json
     python benchmarks/train_step.py --device cuda --json benchmarks/results/train_step_cuda.json
+    python benchmarks/train_step.py --model ganimator --block 0 --busy 1   # with one core kept busy (compare.py --busy)
 
 Sides (``--sides``, comma separated):
 
@@ -33,11 +34,17 @@ import tempfile
 import time
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)
+
+# --busy N starts the other job first; then modi_ext before torch, as the modi command does (modi_ext/omp_wait.py)
+_EARLY_BUSY = start_early(sys.argv) if __name__ == "__main__" else None
+import modi_ext  # noqa: E402
+
+import torch  # noqa: E402
 
 from compare import forced_env, machine, write_json  # noqa: E402  (benchmarks/compare.py)
 from modi_ext import HAS_EXT  # noqa: E402
@@ -225,6 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--busy", type=int, default=0, metavar="N",
+                    help="keep N cores busy with spinning helper processes while timing (compare.py --busy)")
     args = ap.parse_args(argv)
 
     if not HAS_EXT:
@@ -245,8 +254,13 @@ def main(argv: list[str] | None = None) -> int:
     else:
         desc = machine()
     print(f"# {desc}")
-    body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)
-    res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "model": args.model, **body}
+    with (_EARLY_BUSY or busy_cores(args.busy)) as taken:
+        taken = _EARLY_BUSY.cores if _EARLY_BUSY else taken
+        if args.busy:
+            print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {taken})")
+        body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)
+    res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "model": args.model,
+           "omp_wait": modi_ext.omp_wait_policy(), "busy": args.busy, **body}
     write_json(Path(args.json) if args.json else None, res)
     return 0
 
