@@ -4,10 +4,15 @@ Benchmarks are not tests: they assert nothing about speed.  ``compare.py`` repor
 """
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
-import pytest
+# the environment as the user gave it, before compare.py's import of modi_ext records its own OpenMP-wait decision
+# (MODI_EXT_OMP_WAIT, ...) there: every compare.py run below must look at its own machine (quiet or busy)
+_USER_ENV = dict(os.environ)
+
+import pytest  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -60,7 +65,7 @@ def _compare_run(root: Path, busy: int, threads: int, only: str, reps: int, out:
     cmd = [sys.executable, str(root / "benchmarks" / "compare.py"), "--threads", str(threads), "--busy", str(busy),
            "--only", only, "--reps", str(reps), "--min-time", "0", "--json", str(out)]
     print("#", " ".join(cmd[1:]), flush=True)
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=_USER_ENV)
     return json.loads(out.read_text(encoding="utf-8"))
 
 

@@ -5,8 +5,9 @@ Sparse-per-entity C++/CUDA kernels registered under ``torch.ops.modi_ext``, a de
 not built, and MoDi's literal math (``modi_ext.reference``) as the test oracle.  ``MODI_EXT_IMPL=auto|ext|dense|ref``
 picks the path; ``dispatch_report()`` lists the choices ``auto`` made.  This package never imports ``modi``.
 
-Imported before torch, it first shortens how long idle OpenMP threads spin (``modi_ext.omp_wait``: a busy machine
-otherwise stalls every parallel region); ``omp_wait_policy()`` says which setting this process runs with.
+Imported before torch, it first chooses how long idle OpenMP threads spin (``modi_ext.omp_wait``: short when other
+processes keep a CPU busy, where a long spin stalls every parallel region); ``omp_wait_policy()`` says which setting
+this process runs with.
 """
 from modi_ext import omp_wait as _omp_wait
 
