@@ -92,6 +92,8 @@ def _remove_if_empty(root: Path) -> None:
 
 
 def _run(argv: list[str] | None) -> int:
+    import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
+
     parser = build_parser()
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)

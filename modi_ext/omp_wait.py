@@ -8,7 +8,7 @@ thread it waits for sits descheduled, so parallel regions last scheduler time sl
 slower).  Measured: ``benchmarks/RESULTS.md``, "Busy machine".
 
 libgomp reads the setting once, when ``import torch`` loads it, and cannot be told later, so ``apply()`` decides
-before torch is imported (from ``modi_ext/__init__.py`` and ``modi/__init__.py``, so the ``modi`` command too):
+before torch is imported (from ``modi_ext/__init__.py``; the ``modi`` command imports modi_ext before torch):
 
 * ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY`` set by the user: kept.
 * ``MODI_EXT_OMP_WAIT=short``: ``GOMP_SPINCOUNT=2000`` (20-90 us, depending on the CPU's pause instruction);
@@ -56,7 +56,7 @@ def apply() -> dict:
     elif chosen:
         _state.update(source="user", setting=" ".join(f"{k}={v}" for k, v in chosen.items()))
     elif "torch" in sys.modules:
-        _state.update(source="libgomp default (torch was imported before modi/modi_ext)",
+        _state.update(source="libgomp default (torch was imported before modi_ext)",
                       setting="GOMP_SPINCOUNT=300000")
     else:
         why = f"MODI_EXT_OMP_WAIT={mode}"

@@ -52,9 +52,9 @@ def _run(code: str, **env) -> str:
     return out.stdout.strip().splitlines()[-1]
 
 
-@pytest.mark.parametrize("first", ["modi_ext", "modi"])
+@pytest.mark.parametrize("first", ["import modi_ext", "from modi import cli\ncli.main([])"])  # the library, the CLI
 def test_short_sets_the_spin_before_torch_and_the_own_pool(first):
-    s = json.loads(_run(_REPORT.format(imports=f"import {first}"), MODI_EXT_OMP_WAIT="short"))
+    s = json.loads(_run(_REPORT.format(imports=first), MODI_EXT_OMP_WAIT="short"))
     assert s["source"].startswith("modi_ext") and s["env"] == "2000", s
     assert s["pool"] == "own" and s["cpu_pool"] == "own", s
 
