@@ -21,9 +21,10 @@ built-in fallback otherwise), batch 16, fp32:
                                           5 channels); fwd_bwd also reports backward / forward time of each path
   fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
 
-Like the ``modi`` command, it imports modi_ext before torch, so OpenMP threads spin briefly before they sleep
-(``modi_ext/omp_wait.py``); every row records the setting as ``omp_wait``.  Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike;
-the medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
+Like the ``modi`` command, it imports modi_ext before torch, which picks the OpenMP spin for the machine it sees
+(``modi_ext/omp_wait.py``; ``--busy N`` starts its load first); every row records the setting as ``omp_wait``.
+Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike; the
+medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
 style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
 ``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against issue 20's targets (dense >= 5x the
 grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.

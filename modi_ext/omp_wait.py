@@ -2,10 +2,10 @@
 
 torch's CPU wheels run every parallel op (and these kernels) on one libgomp thread team.  By default libgomp keeps a
 thread that has run out of work spinning for 300,000 iterations (milliseconds) before it sleeps.  On a quiet machine
-that saves a wake-up between back-to-back ops (a GANimator training step, thousands of small ops, runs 25-30% slower
-without it).  When another process holds a core it is the main cost: the spinning thread keeps its core while the
-thread it waits for sits descheduled, so parallel regions last scheduler time slices (the same step ran 3-20x
-slower).  Measured: ``benchmarks/RESULTS.md``, "Busy machine".
+that saves a wake-up between back-to-back ops (a GANimator training step, thousands of small ops, ran 30-45% slower
+with a short spin).  When another process holds a core it is the main cost: the spinning thread keeps its core while
+the thread it waits for sits descheduled, so parallel regions last scheduler time slices (the same step ran 3.5-12x
+slower with the long spin).  Measured: ``benchmarks/RESULTS.md``, "Busy machine".
 
 libgomp reads the setting once, when ``import torch`` loads it, and cannot be told later, so ``apply()`` decides
 before torch is imported (from ``modi_ext/__init__.py``; the ``modi`` command imports modi_ext before torch):
