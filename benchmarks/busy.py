@@ -56,7 +56,12 @@ def busy_cores(n: int):
 
 
 class _Early(contextlib.ExitStack):
-    cores: list = []
+    """The helpers started by ``start_early``; ``with`` it yields their cores, as ``busy_cores`` does."""
+
+    cores: list
+
+    def __enter__(self) -> list:
+        return self.cores
 
 
 def start_early(argv: list[str]) -> _Early | None:

@@ -334,8 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'ref/dense':>9s} "
           f"{'dense/ext':>9s}")
     results: dict[str, dict] = {}
-    busy = _EARLY_BUSY or contextlib.ExitStack()
-    busy_list = busy.cores if _EARLY_BUSY else busy.enter_context(busy_cores(args.busy))
+    busy = contextlib.ExitStack()
+    busy_list = busy.enter_context(_EARLY_BUSY or busy_cores(args.busy))
     if args.busy:
         print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {busy_list})")
     for name, fns in cases.items():

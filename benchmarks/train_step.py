@@ -255,7 +255,6 @@ def main(argv: list[str] | None = None) -> int:
         desc = machine()
     print(f"# {desc}")
     with (_EARLY_BUSY or busy_cores(args.busy)) as taken:
-        taken = _EARLY_BUSY.cores if _EARLY_BUSY else taken
         if args.busy:
             print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {taken})")
         body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)

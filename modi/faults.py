@@ -488,7 +488,7 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
         os.close(fd)
 
 
-__all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "atomic_write", "atomic_torch_save", "atomic_save_npy",
-           "append_line",
+__all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "atomic_write", "atomic_torch_save",
+           "atomic_save_npy", "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]

@@ -312,24 +312,29 @@ def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -
 
 
 # --------------------------------------------------------------------------------------------- full disk
+def _fail_saves_after_the_first(monkeypatch) -> None:
+    """Every checkpoint write after the first fails with ENOSPC, as a disk with room for one copy would."""
+    made, real_init, real_write = [], faults._Recorder.__init__, faults._Recorder.write
+
+    def init(self, f):
+        real_init(self, f)
+        made.append(self)
+
+    def write(self, b):
+        if self is not made[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, b)
+
+    monkeypatch.setattr(faults._Recorder, "__init__", init)
+    monkeypatch.setattr(faults._Recorder, "write", write)
+
+
 def test_full_disk_is_one_line_exit_2_and_the_previous_checkpoint_loads(mdata, tmp_path, capsys, monkeypatch):
     """A 60 MB tmpfs holds one 44 MB checkpoint but not a second copy (root); elsewhere the writer is made to fail
     with ENOSPC on the second save."""
     with _tmpfs(tmp_path / "disk", "60m") as mounted:
         if not mounted:  # every torch save after the first fails as a full disk would
-            made, real_init, real_write = [], faults._Recorder.__init__, faults._Recorder.write
-
-            def init(self, f):
-                real_init(self, f)
-                made.append(self)
-
-            def write(self, b):
-                if self is not made[0]:
-                    raise OSError(errno.ENOSPC, "No space left on device")
-                return real_write(self, b)
-
-            monkeypatch.setattr(faults._Recorder, "__init__", init)
-            monkeypatch.setattr(faults._Recorder, "write", write)
+            _fail_saves_after_the_first(monkeypatch)
         run = tmp_path / "disk" / "run"
         capsys.readouterr()
         rc = main(["train", str(mdata), "--out", str(run), "--iters", "4", "--ckpt-every", "2", *SMALL])
@@ -357,19 +362,7 @@ def test_full_disk_names_the_intact_checkpoint_of_ganimator_and_encoder(kind, md
                                                                         monkeypatch):
     """ENOSPC injected into the second checkpoint write (the writer's own failure path: a tmpfs per trainer would
     only repeat the MoDi test): one line naming the intact checkpoint's position, exit 2, and it loads."""
-    made, real_init, real_write = [], faults._Recorder.__init__, faults._Recorder.write
-
-    def init(self, f):
-        real_init(self, f)
-        made.append(self)
-
-    def write(self, b):
-        if self is not made[0]:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real_write(self, b)
-
-    monkeypatch.setattr(faults._Recorder, "__init__", init)
-    monkeypatch.setattr(faults._Recorder, "write", write)
+    _fail_saves_after_the_first(monkeypatch)
     out = tmp_path / ("enc.pt" if kind == "encoder" else "run")
     extra = ["--iters", "3", "--ckpt-every", "1"] if kind == "encoder" else ["--block-iters", "2"]
     capsys.readouterr()
