@@ -672,6 +672,18 @@ inline bool wanted() {
 inline int64_t round_up(int64_t a, int64_t m) { return (a + m - 1) / m * m; }
 
 #if defined(__x86_64__)
+// The NN kernels read a short strip of a different pointer row at every step: hundreds of streams per product,
+// more than the hardware prefetchers follow, so the loads wait on L2.  Each step asks for the strip that the step
+// kPrefetchSteps ahead will read (finest-level skeletal conv fwd+bwd 8% faster, interleaved A/B; distances 8-32
+// measured alike).
+constexpr int64_t kPrefetchSteps = 16;
+template <int FLOATS>
+inline void prefetch_strip(const float* p) {
+  const char* q = reinterpret_cast<const char*>(p);
+  for (int b = 0; b < FLOATS * 4; b += 64) _mm_prefetch(q + b, _MM_HINT_T0);
+  _mm_prefetch(q + FLOATS * 4 - 1, _MM_HINT_T0);  // the strip is unaligned: its last line
+}
+
 // C[0:4, col:col+24] = sum_k a[k*4 + r] * ptr[k][col : col+24]   (a: one packed 4-row panel)
 __attribute__((target("avx2,fma"))) void nn_kernel(int64_t K, const float* a, const float* const* ptr, int64_t col,
                                                     float* c, int64_t ldc) {
@@ -679,6 +691,7 @@ __attribute__((target("avx2,fma"))) void nn_kernel(int64_t K, const float* a, co
   __m256 c20 = c00, c21 = c00, c22 = c00, c30 = c00, c31 = c00, c32 = c00;
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
+    if (k + kPrefetchSteps < K) prefetch_strip<24>(ptr[k + kPrefetchSteps] + col);
     const __m256 b0 = _mm256_loadu_ps(p), b1 = _mm256_loadu_ps(p + 8), b2 = _mm256_loadu_ps(p + 16);
     __m256 av = _mm256_broadcast_ss(a);
     c00 = _mm256_fmadd_ps(av, b0, c00);
@@ -724,6 +737,7 @@ __attribute__((target("avx2,fma"))) void nn_rows(int64_t K, const float* a, cons
   for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm256_setzero_ps();
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
+    if (k + kPrefetchSteps < K) prefetch_strip<24>(ptr[k + kPrefetchSteps] + col);
     const __m256 b0 = _mm256_loadu_ps(p), b1 = _mm256_loadu_ps(p + 8), b2 = _mm256_loadu_ps(p + 16);
     for (int r = 0; r < R; ++r) {
       const __m256 av = _mm256_broadcast_ss(a + r);
@@ -859,6 +873,7 @@ __attribute__((target("avx512f"))) void nn512(int64_t K, const float* a, const f
   for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
+    if (k + kPrefetchSteps < K) prefetch_strip<48>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
     for (int r = 0; r < R; ++r) {
       const __m512 av = _mm512_set1_ps(a[r]);
@@ -892,6 +907,7 @@ __attribute__((target("avx512f"))) void nn512x8(int64_t K, const float* a0, cons
   for (int r = 0; r < 8; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
+    if (k + kPrefetchSteps < K) prefetch_strip<48>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
     for (int r = 0; r < 4; ++r) {
       const __m512 av = _mm512_set1_ps(a0[r]);
@@ -1003,33 +1019,35 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
     std::fill(acc, acc + panels * MR * ldacc, 0.f);
     return;
   }
-  const bool wide = use512();
-  int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
-  if (wide) chunk = round_up(chunk, 2);
-  for (int64_t t0 = 0; t0 < tiles; t0 += chunk) {
+  int64_t t_first = 0;  // first tile left for the AVX2 loop below
+  if (use512()) {
+    // Pairs of NR tiles (48 columns) outermost, then every panel (two at a time while 8 rows remain).
+    for (int64_t t = 0; t + 1 < tiles; t += 2) {
+      for (int64_t pn = 0; pn < panels; ++pn) {
+        const int64_t live = std::min<int64_t>(MR, M - pn * MR);
+        const float* ap = apack + pn * K * MR;
+        float* cp = acc + pn * MR * ldacc + t * NR;
+        if (M - pn * MR >= 2 * MR) {
+          nn512x8(K, ap, ap + K * MR, ptr, t * NR, cp, ldacc);
+          ++pn;
+          continue;
+        }
+        using Fn = void (*)(int64_t, const float*, const float* const*, int64_t, float*, int64_t);
+        static constexpr Fn rows[4] = {nn512<1>, nn512<2>, nn512<3>, nn512<4>};
+        rows[live - 1](K, ap, ptr, t * NR, cp, ldacc);
+      }
+    }
+    t_first = tiles - tiles % 2;
+  }
+  if (t_first == tiles) return;
+  const int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
+  for (int64_t t0 = t_first; t0 < tiles; t0 += chunk) {
     const int64_t t1 = std::min(tiles, t0 + chunk);
     for (int64_t pn = 0; pn < panels; ++pn) {
       const int64_t live = std::min<int64_t>(MR, M - pn * MR);
       const float* ap = apack + pn * K * MR;
       float* cp = acc + pn * MR * ldacc;
-      int64_t t = t0;
-      if (wide && M - pn * MR >= 2 * MR) {  // two full panels at once
-        for (; t + 1 < t1; t += 2) nn512x8(K, ap, ap + K * MR, ptr, t * NR, cp + t * NR, ldacc);
-        for (; t < t1; ++t) {
-          nn_kernel(K, ap, ptr, t * NR, cp + t * NR, ldacc);
-          nn_kernel(K, ap + K * MR, ptr, t * NR, cp + MR * ldacc + t * NR, ldacc);
-        }
-        ++pn;
-        continue;
-      }
-      if (wide)  // pairs of NR tiles on the AVX-512 kernel
-        for (; t + 1 < t1; t += 2) {
-          if (live == 4) nn512<4>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
-          else if (live == 3) nn512<3>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
-          else if (live == 2) nn512<2>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
-          else nn512<1>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
-        }
-      for (; t < t1; ++t) {
+      for (int64_t t = t0; t < t1; ++t) {
         if (live == 4) nn_kernel(K, ap, ptr, t * NR, cp + t * NR, ldacc);
         else if (live == 3) nn_rows<3>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
         else if (live == 2) nn_rows<2>(K, ap, ptr, t * NR, cp + t * NR, ldacc);
