@@ -931,6 +931,32 @@ __attribute__((target("avx512f"))) void nn512x8(int64_t K, const float* a0, cons
   }
 }
 
+// One NR tile (24 columns: a full and a half-masked vector) for R rows of up to two packed panels (rows 0-3 from
+// a0, 4-7 from a1): the odd last tile of a product, which the 4-row AVX2 kernel would do at half the width.
+template <int R>
+__attribute__((target("avx512f"))) void nn512_tail(int64_t K, const float* a0, const float* a1,
+                                                    const float* const* ptr, int64_t col, float* c, int64_t ldc) {
+  constexpr __mmask16 half = 0x00FF;
+  __m512 acc[R][2];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm512_setzero_ps();
+  for (int64_t k = 0; k < K; ++k) {
+    const float* p = ptr[k] + col;
+    if (k + kPrefetchSteps < K) prefetch_strip<NR>(ptr[k + kPrefetchSteps] + col);
+    const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_maskz_loadu_ps(half, p + 16);
+    for (int r = 0; r < R; ++r) {
+      const __m512 av = _mm512_set1_ps(r < 4 ? a0[r] : a1[r - 4]);
+      acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
+      acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
+    }
+    a0 += 4;
+    a1 += 4;
+  }
+  for (int r = 0; r < R; ++r) {
+    _mm512_storeu_ps(c + r * ldc, acc[r][0]);
+    _mm512_mask_storeu_ps(c + r * ldc + 16, half, acc[r][1]);
+  }
+}
+
 // NT: C[i][j] += sum_{col in [c0, c0+n)} l[i][col] * p[j][col] for an MT x KT tile, 16 lanes.
 template <int MT, int KT>
 __attribute__((target("avx512f"))) void nt512(const float* const* l, const float* const* p, int64_t c0, int64_t n,
@@ -1005,6 +1031,8 @@ template <int R>
 void wg512(int64_t, const float* const*, const float*, float*) {}
 template <int R>
 void nn512(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
+template <int R>
+void nn512_tail(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t) {}
 void nt512_tile(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
 inline bool use512() { return false; }
 #endif
@@ -1019,7 +1047,6 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
     std::fill(acc, acc + panels * MR * ldacc, 0.f);
     return;
   }
-  int64_t t_first = 0;  // first tile left for the AVX2 loop below
   if (use512()) {
     // Pairs of NR tiles (48 columns) outermost, then every panel (two at a time while 8 rows remain).
     for (int64_t t = 0; t + 1 < tiles; t += 2) {
@@ -1037,11 +1064,21 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
         rows[live - 1](K, ap, ptr, t * NR, cp, ldacc);
       }
     }
-    t_first = tiles - tiles % 2;
+    if (tiles % 2) {  // the odd last tile, up to 8 rows per call
+      const int64_t t = tiles - 1;
+      using Fn = void (*)(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t);
+      static constexpr Fn tail[8] = {nn512_tail<1>, nn512_tail<2>, nn512_tail<3>, nn512_tail<4>,
+                                     nn512_tail<5>, nn512_tail<6>, nn512_tail<7>, nn512_tail<8>};
+      for (int64_t pn = 0; pn < panels; pn += 2) {
+        const int64_t live = std::min<int64_t>(2 * MR, M - pn * MR);
+        const float* ap = apack + pn * K * MR;
+        tail[live - 1](K, ap, live > MR ? ap + K * MR : ap, ptr, t * NR, acc + pn * MR * ldacc + t * NR, ldacc);
+      }
+    }
+    return;
   }
-  if (t_first == tiles) return;
   const int64_t chunk = std::max<int64_t>(1, (160 * 1024) / (K * NR * 4));
-  for (int64_t t0 = t_first; t0 < tiles; t0 += chunk) {
+  for (int64_t t0 = 0; t0 < tiles; t0 += chunk) {
     const int64_t t1 = std::min(tiles, t0 + chunk);
     for (int64_t pn = 0; pn < panels; ++pn) {
       const int64_t live = std::min<int64_t>(MR, M - pn * MR);
