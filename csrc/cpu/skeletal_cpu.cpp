@@ -866,30 +866,6 @@ void nt_edge(const float* const*, int64_t, const float* const*, int64_t, int64_t
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wuninitialized"  // GCC 12's avx512fintrin.h masked-intrinsic false positive
 #pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
-template <int R>
-__attribute__((target("avx512f"))) void nn512(int64_t K, const float* a, const float* const* ptr, int64_t col,
-                                               float* c, int64_t ldc) {
-  __m512 acc[R][3];
-  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
-  for (int64_t k = 0; k < K; ++k) {
-    const float* p = ptr[k] + col;
-    if (k + kPrefetchSteps < K) prefetch_strip<48>(ptr[k + kPrefetchSteps] + col);
-    const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
-    for (int r = 0; r < R; ++r) {
-      const __m512 av = _mm512_set1_ps(a[r]);
-      acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
-      acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
-      acc[r][2] = _mm512_fmadd_ps(av, b2, acc[r][2]);
-    }
-    a += 4;
-  }
-  for (int r = 0; r < R; ++r) {
-    _mm512_storeu_ps(c + r * ldc, acc[r][0]);
-    _mm512_storeu_ps(c + r * ldc + 16, acc[r][1]);
-    _mm512_storeu_ps(c + r * ldc + 32, acc[r][2]);
-  }
-}
-
 __attribute__((target("avx512f"))) inline float hsum512(__m512 v) {
   __m512 t = _mm512_add_ps(v, _mm512_shuffle_f32x4(v, v, _MM_SHUFFLE(1, 0, 3, 2)));
   t = _mm512_add_ps(t, _mm512_shuffle_f32x4(t, t, _MM_SHUFFLE(2, 3, 0, 1)));
@@ -899,57 +875,52 @@ __attribute__((target("avx512f"))) inline float hsum512(__m512 v) {
   return _mm_cvtss_f32(s);
 }
 
-// 8 rows (two consecutive packed panels a0, a1) x 48 columns: 24 accumulators, half the operand traffic per
-// multiply-add of the 4-row tile (the 4-row kernels are bound by reading the pointer rows, not by the FMAs).
-__attribute__((target("avx512f"))) void nn512x8(int64_t K, const float* a0, const float* a1,
-                                                 const float* const* ptr, int64_t col, float* c, int64_t ldc) {
-  __m512 acc[8][3];
-  for (int r = 0; r < 8; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
+// R rows (up to 9: 27 accumulators) x 48 columns (two NR tiles).  Row r comes from packed panel r / 4 (panels ps
+// floats apart), so one call covers the last 5-9 rows of a product -- GANimator's 5-9 channels in one pass over the
+// pointer rows instead of a 4- or 8-row pass plus a 1-row pass that is bound by its loads.
+template <int R>
+__attribute__((target("avx512f"))) void nn512rows(int64_t K, const float* a, int64_t ps, const float* const* ptr,
+                                                   int64_t col, float* c, int64_t ldc) {
+  static_assert(R >= 1 && R <= 9, "27 accumulators + 3 operands + 1 broadcast fill the 32 registers");
+  __m512 acc[R][3];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
+  const float* ap[3] = {a, a + ps, a + 2 * ps};
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
     if (k + kPrefetchSteps < K) prefetch_strip<48>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
-    for (int r = 0; r < 4; ++r) {
-      const __m512 av = _mm512_set1_ps(a0[r]);
+    for (int r = 0; r < R; ++r) {
+      const __m512 av = _mm512_set1_ps(ap[r / 4][k * MR + r % 4]);
       acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
       acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
       acc[r][2] = _mm512_fmadd_ps(av, b2, acc[r][2]);
     }
-    for (int r = 0; r < 4; ++r) {
-      const __m512 av = _mm512_set1_ps(a1[r]);
-      acc[4 + r][0] = _mm512_fmadd_ps(av, b0, acc[4 + r][0]);
-      acc[4 + r][1] = _mm512_fmadd_ps(av, b1, acc[4 + r][1]);
-      acc[4 + r][2] = _mm512_fmadd_ps(av, b2, acc[4 + r][2]);
-    }
-    a0 += 4;
-    a1 += 4;
   }
-  for (int r = 0; r < 8; ++r) {
+  for (int r = 0; r < R; ++r) {
     _mm512_storeu_ps(c + r * ldc, acc[r][0]);
     _mm512_storeu_ps(c + r * ldc + 16, acc[r][1]);
     _mm512_storeu_ps(c + r * ldc + 32, acc[r][2]);
   }
 }
 
-// One NR tile (24 columns: a full and a half-masked vector) for R rows of up to two packed panels (rows 0-3 from
-// a0, 4-7 from a1): the odd last tile of a product, which the 4-row AVX2 kernel would do at half the width.
+// One NR tile (24 columns: a full and a half-masked vector) for R rows (up to 9, panels as nn512rows): the odd
+// last tile of a product, which the 4-row AVX2 kernel would do at half the width.
 template <int R>
-__attribute__((target("avx512f"))) void nn512_tail(int64_t K, const float* a0, const float* a1,
-                                                    const float* const* ptr, int64_t col, float* c, int64_t ldc) {
+__attribute__((target("avx512f"))) void nn512_tail(int64_t K, const float* a, int64_t ps, const float* const* ptr,
+                                                    int64_t col, float* c, int64_t ldc) {
   constexpr __mmask16 half = 0x00FF;
   __m512 acc[R][2];
   for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm512_setzero_ps();
+  const float* ap[3] = {a, a + ps, a + 2 * ps};
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
     if (k + kPrefetchSteps < K) prefetch_strip<NR>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_maskz_loadu_ps(half, p + 16);
     for (int r = 0; r < R; ++r) {
-      const __m512 av = _mm512_set1_ps(r < 4 ? a0[r] : a1[r - 4]);
+      const __m512 av = _mm512_set1_ps(ap[r / 4][k * MR + r % 4]);
       acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
       acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
     }
-    a0 += 4;
-    a1 += 4;
   }
   for (int r = 0; r < R; ++r) {
     _mm512_storeu_ps(c + r * ldc, acc[r][0]);
@@ -981,17 +952,31 @@ __attribute__((target("avx512f"))) void nt512(const float* const* l, const float
     for (int i = 0; i < MT; ++i)
       for (int j = 0; j < KT; ++j) a[i][j] = _mm512_fmadd_ps(X[i], Y[j], a[i][j]);
   }
-  for (int i = 0; i < MT; ++i)
-    for (int j = 0; j < KT; ++j) C[i * ldc + j] += hsum512(a[i][j]);
+  if constexpr (KT == 4) {  // four sums of a row at once (13 shuffles / adds instead of four hsum512)
+    for (int i = 0; i < MT; ++i) {
+      const __m512 ab = _mm512_add_ps(_mm512_unpacklo_ps(a[i][0], a[i][1]), _mm512_unpackhi_ps(a[i][0], a[i][1]));
+      const __m512 cd = _mm512_add_ps(_mm512_unpacklo_ps(a[i][2], a[i][3]), _mm512_unpackhi_ps(a[i][2], a[i][3]));
+      // per 128-bit lane: [a, b, c, d] partial sums
+      __m512 t = _mm512_add_ps(_mm512_castpd_ps(_mm512_unpacklo_pd(_mm512_castps_pd(ab), _mm512_castps_pd(cd))),
+                               _mm512_castpd_ps(_mm512_unpackhi_pd(_mm512_castps_pd(ab), _mm512_castps_pd(cd))));
+      t = _mm512_add_ps(t, _mm512_shuffle_f32x4(t, t, _MM_SHUFFLE(1, 0, 3, 2)));
+      t = _mm512_add_ps(t, _mm512_shuffle_f32x4(t, t, _MM_SHUFFLE(2, 3, 0, 1)));
+      float* c = C + i * ldc;
+      _mm_storeu_ps(c, _mm_add_ps(_mm_loadu_ps(c), _mm512_castps512_ps128(t)));
+    }
+  } else {
+    for (int i = 0; i < MT; ++i)
+      for (int j = 0; j < KT; ++j) C[i * ldc + j] += hsum512(a[i][j]);
+  }
 }
 
 void nt512_tile(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n,
                 float* C, int64_t ldc) {
   using Fn = void (*)(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t);
-  static constexpr Fn table[TM][TK] = {{nt512<1, 1>, nt512<1, 2>, nt512<1, 3>},
-                                       {nt512<2, 1>, nt512<2, 2>, nt512<2, 3>},
-                                       {nt512<3, 1>, nt512<3, 2>, nt512<3, 3>},
-                                       {nt512<4, 1>, nt512<4, 2>, nt512<4, 3>}};
+  static constexpr Fn table[4][4] = {{nt512<1, 1>, nt512<1, 2>, nt512<1, 3>, nt512<1, 4>},
+                                     {nt512<2, 1>, nt512<2, 2>, nt512<2, 3>, nt512<2, 4>},
+                                     {nt512<3, 1>, nt512<3, 2>, nt512<3, 3>, nt512<3, 4>},
+                                     {nt512<4, 1>, nt512<4, 2>, nt512<4, 3>, nt512<4, 4>}};
   table[mr - 1][kr - 1](l, p, c0, n, C, ldc);
 }
 
@@ -1026,13 +1011,12 @@ inline bool use512() {
   return env == nullptr || std::strcmp(env, "avx2") != 0;
 }
 #else
-void nn512x8(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t) {}
 template <int R>
 void wg512(int64_t, const float* const*, const float*, float*) {}
 template <int R>
-void nn512(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
+void nn512rows(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t) {}
 template <int R>
-void nn512_tail(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t) {}
+void nn512_tail(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t) {}
 void nt512_tile(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
 inline bool use512() { return false; }
 #endif
@@ -1048,31 +1032,20 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
     return;
   }
   if (use512()) {
-    // Pairs of NR tiles (48 columns) outermost, then every panel (two at a time while 8 rows remain).
-    for (int64_t t = 0; t + 1 < tiles; t += 2) {
-      for (int64_t pn = 0; pn < panels; ++pn) {
-        const int64_t live = std::min<int64_t>(MR, M - pn * MR);
-        const float* ap = apack + pn * K * MR;
-        float* cp = acc + pn * MR * ldacc + t * NR;
-        if (M - pn * MR >= 2 * MR) {
-          nn512x8(K, ap, ap + K * MR, ptr, t * NR, cp, ldacc);
-          ++pn;
-          continue;
-        }
-        using Fn = void (*)(int64_t, const float*, const float* const*, int64_t, float*, int64_t);
-        static constexpr Fn rows[4] = {nn512<1>, nn512<2>, nn512<3>, nn512<4>};
-        rows[live - 1](K, ap, ptr, t * NR, cp, ldacc);
-      }
-    }
-    if (tiles % 2) {  // the odd last tile, up to 8 rows per call
-      const int64_t t = tiles - 1;
-      using Fn = void (*)(int64_t, const float*, const float*, const float* const*, int64_t, float*, int64_t);
-      static constexpr Fn tail[8] = {nn512_tail<1>, nn512_tail<2>, nn512_tail<3>, nn512_tail<4>,
-                                     nn512_tail<5>, nn512_tail<6>, nn512_tail<7>, nn512_tail<8>};
-      for (int64_t pn = 0; pn < panels; pn += 2) {
-        const int64_t live = std::min<int64_t>(2 * MR, M - pn * MR);
-        const float* ap = apack + pn * K * MR;
-        tail[live - 1](K, ap, live > MR ? ap + K * MR : ap, ptr, t * NR, acc + pn * MR * ldacc + t * NR, ldacc);
+    // Pairs of NR tiles (48 columns) outermost; rows 8 at a time while more than 9 remain, then the rest in one
+    // call; the odd last tile alike, at 24 columns.
+    using Fn = void (*)(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t);
+    static constexpr Fn pair[9] = {nn512rows<1>, nn512rows<2>, nn512rows<3>, nn512rows<4>, nn512rows<5>,
+                                   nn512rows<6>, nn512rows<7>, nn512rows<8>, nn512rows<9>};
+    static constexpr Fn tail[9] = {nn512_tail<1>, nn512_tail<2>, nn512_tail<3>, nn512_tail<4>, nn512_tail<5>,
+                                   nn512_tail<6>, nn512_tail<7>, nn512_tail<8>, nn512_tail<9>};
+    const int64_t ps = K * MR;
+    for (int64_t t = 0; t < tiles; t += 2) {
+      const Fn* fns = t + 1 < tiles ? pair : tail;
+      for (int64_t m0 = 0; m0 < M;) {
+        const int64_t R = M - m0 > 9 ? 8 : M - m0;
+        fns[R - 1](K, apack + (m0 / MR) * ps, ps, ptr, t * NR, acc + m0 * ldacc + t * NR, ldacc);
+        m0 += R;
       }
     }
     return;
@@ -1128,13 +1101,19 @@ void wgrad512(const float* const* l, int64_t M, const float* const* p, int64_t K
 // C (M x K, ldc) += L (M pointer rows) * P^T (K pointer rows), contraction over columns [0, N).
 void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K, int64_t N, float* C, int64_t ldc) {
   const bool wide = use512();
-  const int64_t CH = std::max<int64_t>(64, round_up((320 * 1024) / std::max<int64_t>(1, (K + M) * 4), 16));
+  // AVX-512: rows in tiles of at most 4 as even as M allows (9 = 3+3+3, not 4+4+1: a 1-row tile is bound by its
+  // loads) by 4 pointer rows (reduced four at a time), each tile over all the columns (column chunks sized for L2
+  // measured 5-15% slower on GANimator's layers: the reductions cost more than the re-reads save); AVX2: 4 x 3
+  // tiles over column chunks that keep the pointed-to data in L2.
+  const int64_t CH = wide ? std::max<int64_t>(N, 1)
+                          : std::max<int64_t>(64, round_up((320 * 1024) / std::max<int64_t>(1, (K + M) * 4), 16));
+  const int64_t row_tiles = (M + TM - 1) / TM, kt = wide ? 4 : TK;
   for (int64_t c0 = 0; c0 < N; c0 += CH) {
     const int64_t n = std::min(CH, N - c0);
-    for (int64_t m0 = 0; m0 < M; m0 += TM) {
-      const int64_t mr = std::min(TM, M - m0);
-      for (int64_t k0 = 0; k0 < K; k0 += TK) {
-        const int64_t kr = std::min(TK, K - k0);
+    for (int64_t rt = 0, m0 = 0; rt < row_tiles; ++rt) {
+      const int64_t mr = wide ? (M - m0 + (row_tiles - rt) - 1) / (row_tiles - rt) : std::min(TM, M - m0);
+      for (int64_t k0 = 0; k0 < K; k0 += kt) {
+        const int64_t kr = std::min(kt, K - k0);
         if (wide)
           nt512_tile(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
         else if (mr == TM && kr == TK)
@@ -1142,6 +1121,7 @@ void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K,
         else
           nt_edge(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
       }
+      m0 += mr;
     }
   }
 }
