@@ -1022,8 +1022,8 @@ inline bool use512() { return false; }
 #endif
 
 // acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
-// columns past N are computed and ignored, rows past M are left untouched).  Column chunks keep the pointed-to data
-// in L2.
+// columns past N are computed and ignored, rows past M are left untouched).  AVX2: column chunks keep the
+// pointed-to data in L2 (the AVX-512 kernels prefetch it instead).
 void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, int64_t N, float* acc,
              int64_t ldacc) {
   const int64_t panels = (M + MR - 1) / MR, tiles = (N + NR - 1) / NR;
@@ -1542,8 +1542,8 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
   const PackTransposed<decltype(base)> pt(csr, want_input ? Ei : 0, S, U, Ci, Co, U, base);
   // weight gradient operands: x laid out like the forward's, gy * d in plain rows.  Stride 1 with both gradients:
   // the input gradient's layout of gy (U-1 leading zeros per batch element) serves both passes, with x laid out U-1
-  // frames later to match (zeros before), so gy is laid out once instead of twice (3.5 MB at MoDi's finest level;
-  // fwd+bwd 4% faster, interleaved A/B) at (U-1)/(T+U-1) more weight-gradient columns.
+  // frames later to match (zeros before), so gy is laid out once instead of twice (one 3.5 MB pass less at MoDi's
+  // finest level) for (U-1)/(T+2h) more weight-gradient columns.
   const bool shared_gy = S == 1 && want_input && gw;
   const int64_t Tqw = shared_gy ? Tqi : (Lp + S - 1) / S;
   ColsSrc xs;
