@@ -68,12 +68,17 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_output mode must be 'wb' or 'w', not {mode!r}")
     path = Path(path)
+    held = _HeldSignals()  # a signal between creating the temp file and the try below would leave it behind
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    except OSError as exc:
-        raise OutputError(describe_os_error(exc, path), exc.errno) from None
+    except BaseException as exc:
+        held.release()
+        if isinstance(exc, OSError):
+            raise OutputError(describe_os_error(exc, path), exc.errno) from None
+        raise
     try:
         with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as f:
+            held.release()  # a waiting signal lands here: the file is closed and removed below
             yield f
             f.flush()
             os.fsync(f.fileno())
@@ -81,9 +86,11 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
         os.replace(tmp, path)
     except OSError as exc:
         _discard(tmp)
+        held.release()  # (a no-op once released above)
         raise OutputError(describe_os_error(exc, path), exc.errno) from None
     except BaseException:
         _discard(tmp)
+        held.release()
         raise
 
 
@@ -401,6 +408,34 @@ def terminate_on_sigterm() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old if old is not None else signal.SIG_DFL)
 
 
+class _HeldSignals:
+    """SIGINT / SIGTERM arriving between construction and :meth:`release` are recorded instead of handled, then
+    handed to the handlers that were in place, once each, by :meth:`release`. For the few lines where an exception
+    from a handler would land between creating a resource and the ``try`` that removes it. Main thread only
+    (elsewhere Python runs no handlers); a handler of ``SIG_DFL`` gets the signal re-raised, as it would have."""
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self._old: dict[int, Any] = {}
+        self._got: list[int] = []
+        if threading.current_thread() is threading.main_thread():
+            for sig in self._SIGNALS:
+                self._old[sig] = signal.signal(sig, lambda signum, frame: self._got.append(signum))
+
+    def release(self) -> None:
+        old, self._old = self._old, {}
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        for sig in dict.fromkeys(self._got):
+            handler = old.get(sig)
+            if callable(handler):
+                handler(sig, None)
+            elif handler == signal.SIG_DFL or handler is None:
+                signal.raise_signal(sig)
+        self._got = []
+
+
 # ============================================================================================ run-folder lock
 LOCK_NAME = ".lock"
 _held: dict[str, list] = {}  # lock file -> [fd, depth]: this process's locks (re-entrant within a process)
@@ -433,8 +468,6 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
     the holder (pid, host, start time, command). If another process holds it, raise :class:`RunFolderBusy` at
     once naming it. The kernel releases the lock when the process dies, however it dies; the file is removed on a
     clean exit. Re-entrant within one process (a command and the trainer it calls may both take it)."""
-    import fcntl
-
     folder = Path(folder)
     lock = folder / lock_name
     key = os.path.realpath(lock)
@@ -449,6 +482,43 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(describe_os_error(exc, folder), exc.errno) from None
+    # From creating the file to the try that removes it, a SIGTERM (Terminated) or Ctrl-C would leave the file
+    # behind: they wait, and arrive inside the try.
+    held = _HeldSignals()
+    try:
+        fd = _lock_file(lock, folder, what)
+    except BaseException:
+        held.release()
+        raise
+    info = (f"pid={os.getpid()}\nhost={socket.gethostname()}\nstarted={time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+            f"command={_command_line()}\n").encode("utf-8")
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+    except OSError:
+        pass  # a full disk: the lock still works, only the holder's name is missing
+    _held[key] = [fd, 1]
+    try:
+        held.release()
+        yield lock
+    finally:
+        held = _HeldSignals()  # a second signal must not skip the removal either
+        try:
+            _held.pop(key, None)
+            try:
+                os.unlink(lock)  # still holding it: nobody can have locked this file meanwhile
+            except OSError:
+                pass
+            os.close(fd)
+        finally:
+            held.release()
+
+
+def _lock_file(lock: Path, folder: Path, what: str | None) -> int:
+    """The open, exclusively flock-ed descriptor of ``lock`` (created if needed), or RunFolderBusy naming the
+    holder."""
+    import fcntl
+
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
@@ -467,24 +537,7 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
         except FileNotFoundError:
             same = False
         if same:
-            break
-        os.close(fd)
-    info = (f"pid={os.getpid()}\nhost={socket.gethostname()}\nstarted={time.strftime('%Y-%m-%d %H:%M:%S')}\n"
-            f"command={_command_line()}\n").encode("utf-8")
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, info, 0)
-    except OSError:
-        pass  # a full disk: the lock still works, only the holder's name is missing
-    _held[key] = [fd, 1]
-    try:
-        yield lock
-    finally:
-        _held.pop(key, None)
-        try:
-            os.unlink(lock)  # still holding it: nobody can have locked this file meanwhile
-        except OSError:
-            pass
+            return fd
         os.close(fd)
 
 

@@ -252,6 +252,47 @@ def test_sigterm_before_the_first_step_unwinds_cleanly(tmp_path):
     assert not (run / faults.LOCK_NAME).exists() and not list(tmp_path.rglob(".*.tmp"))
 
 
+@pytest.mark.parametrize("sig, exc", [(signal.SIGTERM, faults.Terminated), (signal.SIGINT, KeyboardInterrupt)])
+def test_a_signal_while_the_lock_is_being_taken_still_removes_it(tmp_path, monkeypatch, sig, exc):
+    """The race the test above hit now and then: a signal landing after the lock file is created but before the
+    block that removes it. Sent from inside that window (while the holder's name is written), it waits, unwinds
+    the block before its body runs, and the file is gone."""
+    run = tmp_path / "run"
+    real = faults._command_line
+
+    def signalled() -> str:
+        assert (run / faults.LOCK_NAME).exists()  # the file exists: this is the window
+        os.kill(os.getpid(), sig)
+        return real()
+
+    monkeypatch.setattr(faults, "_command_line", signalled)
+    monkeypatch.setattr(faults, "_sigterm_seen", False)  # the handler sets it for the process: put it back after
+    with pytest.raises(exc):
+        with faults.terminate_on_sigterm(), faults.hold_run_folder(run):
+            pytest.fail("the block ran although a signal was waiting")
+    assert not (run / faults.LOCK_NAME).exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are put back
+
+
+def test_a_sigterm_while_the_temp_file_is_being_made_still_removes_it(tmp_path, monkeypatch):
+    """The same window in atomic_output: a SIGTERM right after the temp file is created waits for the try that
+    removes it; the target keeps its previous content."""
+    target = tmp_path / "out.txt"
+    target.write_text("before")
+    real = faults.tempfile.mkstemp
+
+    def signalled(*args, **kwargs):
+        made = real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return made
+
+    monkeypatch.setattr(faults.tempfile, "mkstemp", signalled)
+    monkeypatch.setattr(faults, "_sigterm_seen", False)
+    with pytest.raises(faults.Terminated), faults.terminate_on_sigterm():
+        faults.atomic_write(target, "after")
+    assert target.read_text() == "before" and sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
 def test_ddp_ranks_stop_together_on_one_ranks_sigterm_or_rank0s_full_disk(mdata, tmp_path):
     import torch.multiprocessing as mp
 
