@@ -424,16 +424,17 @@ class _HeldSignals:
                 self._old[sig] = signal.signal(sig, lambda signum, frame: self._got.append(signum))
 
     def release(self) -> None:
+        """Idempotent: a second call (after a handler raised from the first) does nothing."""
         old, self._old = self._old, {}
+        got, self._got = self._got, []
         for sig, handler in old.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
-        for sig in dict.fromkeys(self._got):
-            handler = old.get(sig)
+        for sig in dict.fromkeys(got):
+            handler = old[sig]
             if callable(handler):
                 handler(sig, None)
             elif handler == signal.SIG_DFL or handler is None:
                 signal.raise_signal(sig)
-        self._got = []
 
 
 # ============================================================================================ run-folder lock

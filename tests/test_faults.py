@@ -288,8 +288,13 @@ def test_a_sigterm_while_the_temp_file_is_being_made_still_removes_it(tmp_path, 
 
     monkeypatch.setattr(faults.tempfile, "mkstemp", signalled)
     monkeypatch.setattr(faults, "_sigterm_seen", False)
-    with pytest.raises(faults.Terminated), faults.terminate_on_sigterm():
-        faults.atomic_write(target, "after")
+    calls = []
+    with faults.terminate_on_sigterm():
+        handler = signal.getsignal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, lambda signum, frame: (calls.append(signum), handler(signum, frame)))
+        with pytest.raises(faults.Terminated):
+            faults.atomic_write(target, "after")
+    assert calls == [signal.SIGTERM]  # delivered once, not again by the cleanup
     assert target.read_text() == "before" and sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
 
 
