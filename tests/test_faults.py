@@ -355,6 +355,12 @@ def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -
         torch.save(out, Path(out_dir) / f"rank{rank}.pt")
     finally:
         dist.destroy_process_group()
+    # Leave without interpreter finalisation: gloo's worker threads can still be torn down there and abort the
+    # process ("terminate called without an active exception", SIGABRT; seen once in CI, pytorch/pytorch#179291
+    # describes the teardown). The ranks' results are saved and closed above.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 # --------------------------------------------------------------------------------------------- full disk
