@@ -20,17 +20,36 @@ from __future__ import annotations
 
 import torch
 
+from modi_ext import eager
+
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2
 _NO_GRADS = [False, False, False, False]
 
 
 def plain_forward(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
                   n_out: int, padding_mode: str) -> torch.Tensor:
-    """``A_W x`` without bias, style or scale, through the registered (autograd-aware) forward op."""
-    if kind == KIND_UP:
-        return torch.ops.modi_ext.skeletal_up(x, weight, None, index, offsets, n_out, None, None, padding_mode)
-    op = torch.ops.modi_ext.skeletal_conv if kind == KIND_CONV else torch.ops.modi_ext.skeletal_down
-    return op(x, weight, None, index, offsets, None, None, padding_mode)
+    """``A_W x`` without bias, style or scale, on the kernels with their autograd (``modi_ext.ops.plain_op``)."""
+    from modi_ext import ops
+
+    return ops.plain_op(kind, x, weight, index, offsets, n_out, padding_mode)
+
+
+def needed(ctx, i: int) -> bool:
+    """Whether the backward running now must produce the gradient of input ``i``.
+
+    ``ctx.needs_input_grad`` only says that the input requires grad.  ``torch.autograd.grad(score, interp,
+    create_graph=True)`` -- the WGAN-GP and R1 -- asks for the input's gradient alone, yet every layer's weight also
+    requires grad: computing (and building the graph of) a weight gradient that the engine then drops cost the
+    GANimator D step a weight-gradient pass per layer.  So ask the engine whether it will run the node that the
+    gradient goes to; when it cannot say (a leaf that ``autograd.grad`` captures, compiled autograd), compute it.
+    """
+    if not ctx.needs_input_grad[i]:
+        return False
+    try:
+        node = ctx.next_functions[i][0]
+        return node is None or bool(torch._C._will_engine_execute_node(node))
+    except (RuntimeError, AttributeError, IndexError):
+        return True
 
 
 def _weight_shape(kind: int, grad: torch.Tensor, x: torch.Tensor, nnz: int, taps: int) -> list[int]:
@@ -38,9 +57,8 @@ def _weight_shape(kind: int, grad: torch.Tensor, x: torch.Tensor, nnz: int, taps
     return [c_in, nnz, c_out, taps] if kind == KIND_UP else [c_out, nnz, c_in, taps]
 
 
-@torch.library.custom_op("modi_ext::skeletal_grad_input", mutates_args=())
-def skeletal_grad_input(grad: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
-                        kind: int, n_out: int, n_in: int, t_in: int, padding_mode: str) -> torch.Tensor:
+def _grad_input_impl(grad: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                     kind: int, n_out: int, n_in: int, t_in: int, padding_mode: str) -> torch.Tensor:
     """``A_W^T grad``: the input gradient of an unmodulated skeletal op, shape ``(B, Cin, n_in, t_in)``."""
     c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
     g = grad.contiguous()
@@ -50,15 +68,8 @@ def skeletal_grad_input(grad: torch.Tensor, weight: torch.Tensor, index: torch.T
                                                 padding_mode, kind, n_out, [True, False, False, False])[0]
 
 
-@skeletal_grad_input.register_fake
-def _(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode):
-    c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
-    return grad.new_empty(grad.shape[0], c_in, n_in, t_in)
-
-
-@torch.library.custom_op("modi_ext::skeletal_grad_weight", mutates_args=())
-def skeletal_grad_weight(grad: torch.Tensor, x: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
-                         kind: int, n_out: int, taps: int, padding_mode: str) -> torch.Tensor:
+def _grad_weight_impl(grad: torch.Tensor, x: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+                      kind: int, n_out: int, taps: int, padding_mode: str) -> torch.Tensor:
     """``d<grad, A_W x>/dW`` in the compact layout of ``W`` (``taps`` = the kernel width U)."""
     g = grad.contiguous()
     w_like = x.new_empty(_weight_shape(kind, g, x, index.shape[0], taps))  # shape only
@@ -66,9 +77,34 @@ def skeletal_grad_weight(grad: torch.Tensor, x: torch.Tensor, index: torch.Tenso
                                                 padding_mode, kind, n_out, [False, True, False, False])[1]
 
 
+skeletal_grad_input = torch.library.custom_op("modi_ext::skeletal_grad_input", mutates_args=())(_grad_input_impl)
+skeletal_grad_weight = torch.library.custom_op("modi_ext::skeletal_grad_weight", mutates_args=())(_grad_weight_impl)
+
+
+@skeletal_grad_input.register_fake
+def _(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode):
+    c_in = weight.shape[0] if kind == KIND_UP else weight.shape[2]
+    return grad.new_empty(grad.shape[0], c_in, n_in, t_in)
+
+
 @skeletal_grad_weight.register_fake
 def _(grad, x, index, offsets, kind, n_out, taps, padding_mode):
     return x.new_empty(_weight_shape(kind, grad, x, index.shape[0], taps))
+
+
+def grad_input(grad, weight, index, offsets, kind: int, n_out: int, n_in: int, t_in: int,
+               padding_mode: str) -> torch.Tensor:
+    """``skeletal_grad_input``, on the eager fast path where it applies (``modi_ext.eager``)."""
+    if eager.usable(grad, weight, index, offsets):
+        return _GradInputEager.apply(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode)
+    return skeletal_grad_input(grad, weight, index, offsets, kind, n_out, n_in, t_in, padding_mode)
+
+
+def grad_weight(grad, x, index, offsets, kind: int, n_out: int, taps: int, padding_mode: str) -> torch.Tensor:
+    """``skeletal_grad_weight``, on the eager fast path where it applies (``modi_ext.eager``)."""
+    if eager.usable(grad, x, index, offsets):
+        return _GradWeightEager.apply(grad, x, index, offsets, kind, n_out, taps, padding_mode)
+    return skeletal_grad_weight(grad, x, index, offsets, kind, n_out, taps, padding_mode)
 
 
 def _grad_input_setup(ctx, inputs, output):
@@ -81,9 +117,9 @@ def _grad_input_backward(ctx, gg):
     grad, weight, index, offsets = ctx.saved_tensors
     kind, n_out, padding_mode = ctx.meta
     gg = gg.contiguous()
-    d_grad = plain_forward(kind, gg, weight, index, offsets, n_out, padding_mode) if ctx.needs_input_grad[0] else None
-    d_weight = (skeletal_grad_weight(grad, gg, index, offsets, kind, n_out, weight.shape[3], padding_mode)
-                if ctx.needs_input_grad[1] else None)
+    d_grad = plain_forward(kind, gg, weight, index, offsets, n_out, padding_mode) if needed(ctx, 0) else None
+    d_weight = (grad_weight(grad, gg, index, offsets, kind, n_out, weight.shape[3], padding_mode)
+                if needed(ctx, 1) else None)
     return d_grad, d_weight, None, None, None, None, None, None, None
 
 
@@ -97,15 +133,18 @@ def _grad_weight_backward(ctx, gg):
     grad, x, index, offsets = ctx.saved_tensors
     kind, n_out, padding_mode = ctx.meta
     gg = gg.contiguous()
-    d_grad = plain_forward(kind, x.contiguous(), gg, index, offsets, n_out, padding_mode) \
-        if ctx.needs_input_grad[0] else None
-    d_x = (skeletal_grad_input(grad, gg, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
-           if ctx.needs_input_grad[1] else None)
+    d_grad = plain_forward(kind, x.contiguous(), gg, index, offsets, n_out, padding_mode) if needed(ctx, 0) else None
+    d_x = (grad_input(grad, gg, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
+           if needed(ctx, 1) else None)
     return d_grad, d_x, None, None, None, None, None, None
 
 
 skeletal_grad_input.register_autograd(_grad_input_backward, setup_context=_grad_input_setup)
 skeletal_grad_weight.register_autograd(_grad_weight_backward, setup_context=_grad_weight_setup)
+_GradInputEager = eager.make_function("skeletal_grad_input_eager", _grad_input_impl, _grad_input_setup,
+                                      _grad_input_backward)
+_GradWeightEager = eager.make_function("skeletal_grad_weight_eager", _grad_weight_impl, _grad_weight_setup,
+                                       _grad_weight_backward)
 
 
 def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Tensor, weight: torch.Tensor,
@@ -127,7 +166,7 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
     gz = gz.contiguous()
     want_x = need["x"] or (need["style"] and style is not None)
     if want_x:
-        gxs = skeletal_grad_input(gz, weight, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
+        gxs = grad_input(gz, weight, index, offsets, kind, n_out, x.shape[2], x.shape[3], padding_mode)
         if style is not None:
             s = style.view(style.shape[0], style.shape[1], 1, 1)
             if need["x"]:
@@ -138,9 +177,9 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
             res["x"] = gxs
     if need["weight"]:
         xs = x * style.view(style.shape[0], style.shape[1], 1, 1) if style is not None else x
-        res["weight"] = skeletal_grad_weight(gz, xs.contiguous(), index, offsets, kind, n_out, weight.shape[3],
+        res["weight"] = grad_weight(gz, xs.contiguous(), index, offsets, kind, n_out, weight.shape[3],
                                              padding_mode)
     return res
 
 
-__all__ = ["skeletal_grad_input", "skeletal_grad_weight", "graph_backward", "plain_forward"]
+__all__ = ["needed", "skeletal_grad_input", "skeletal_grad_weight", "grad_input", "grad_weight", "graph_backward", "plain_forward"]

@@ -47,11 +47,28 @@ class _SkeletalBase(nn.Module):
         scale = fan_in.rsqrt().to(torch.get_default_dtype())
         self.register_buffer("weight_scale", scale, persistent=False)  # (nnz,)
 
+    scale_folded = False  # set by fold_weight_scale(): the stored weight already carries the factor
+
     def _pair_axis_scale(self) -> torch.Tensor:
         return self.weight_scale.to(self.weight.dtype).view(1, -1, 1, 1)
 
+    def fold_weight_scale(self, gain: float = 1.0) -> None:
+        """Switch to a plain parametrisation: multiply the stored weight by its equalised-lr factor (and ``gain``)
+        once, and hand the parameter itself to the op from then on.
+
+        For models trained with plain weights (GANimator): the run-time factor would be a multiply and an autograd
+        node per layer and call, for nothing.  The state is part of the module's construction, not of its
+        ``state_dict``: build the module the same way before loading weights into it.
+        """
+        with torch.no_grad():
+            self.weight.mul_(self._pair_axis_scale() * gain)
+            self.weight_scale.fill_(1.0)
+        self.scale_folded = True
+
     def effective_weight(self) -> torch.Tensor:
         """Compact weight as the op sees it (equalised-lr factor applied)."""
+        if self.scale_folded:
+            return self.weight
         return self.weight * self._pair_axis_scale()
 
 

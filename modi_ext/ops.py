@@ -21,7 +21,7 @@ import weakref
 
 import torch
 
-from modi_ext import dense, dispatch, reference
+from modi_ext import dense, dispatch, eager, reference
 from modi_ext._loader import HAS_EXT
 from modi_ext.dense import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
 from modi_ext.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
@@ -167,6 +167,7 @@ def _check_csr_values(index: torch.Tensor, off: torch.Tensor, n_range: int) -> N
 
 
 _NAMES = {_KIND_CONV: "skeletal_conv", _KIND_DOWN: "skeletal_down", _KIND_UP: "skeletal_up"}
+_EAGER: dict[int, type] = {}  # kind -> the op's plain autograd.Function (modi_ext.eager), filled at registration
 
 
 def _run(kind: int, impl: str, x, weight, bias, index, offsets, n_out: int, style, demodulate: bool,
@@ -179,10 +180,25 @@ def _run(kind: int, impl: str, x, weight, bias, index, offsets, n_out: int, styl
         fn = mod.skeletal_conv if kind == _KIND_CONV else mod.skeletal_down
         return fn(x, weight, bias, index, offsets, style, demodulate, padding_mode)
     scale = demod_scale(weight, index, offsets, style, kind == _KIND_UP, n_out, x.shape[0]) if demodulate else None
-    kernel = dispatch.KERNELS[_NAMES[kind]]
     if kind == _KIND_UP:
-        return kernel(x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
-    return kernel(x, weight, bias, index, offsets, style, scale, padding_mode)
+        args = (x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
+    else:
+        args = (x, weight, bias, index, offsets, style, scale, padding_mode)
+    if kind in _EAGER and eager.usable(x, weight, bias, style, scale, index, offsets):
+        return _EAGER[kind].apply(*args)
+    return dispatch.KERNELS[_NAMES[kind]](*args)
+
+
+def plain_op(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+             n_out: int, padding_mode: str) -> torch.Tensor:
+    """``A_W x`` (no bias, style or scale) on the kernels, differentiable to any order; no argument checks."""
+    if kind == _KIND_UP:
+        args = (x, weight, None, index, offsets, n_out, None, None, padding_mode)
+    else:
+        args = (x, weight, None, index, offsets, None, None, padding_mode)
+    if kind in _EAGER and eager.usable(x, weight, index, offsets):
+        return _EAGER[kind].apply(*args)
+    return getattr(torch.ops.modi_ext, _NAMES[kind])(*args)
 
 
 def _autocast_device(x: torch.Tensor) -> str | None:
@@ -308,6 +324,53 @@ def _out_shape(kind, x, weight, offsets, n_out):
     return (b, weight.shape[0], e_out, t if kind == _KIND_CONV else t // 2)
 
 
+def _autograd_rules(kind: int):
+    """``(setup_context, backward)`` of one op: registered with torch.library and reused by ``modi_ext.eager``."""
+    from modi_ext import gradfix
+    up = kind == _KIND_UP
+
+    def setup_context(ctx, inputs, output):
+        if up:
+            x, weight, bias, index, offsets, n_out, style, scale, padding_mode = inputs
+        else:
+            x, weight, bias, index, offsets, style, scale, padding_mode = inputs
+            n_out = offsets.shape[0] - 1
+        ctx.save_for_backward(x, weight, bias, index, offsets, style, scale, output)
+        ctx.meta = (padding_mode, n_out)
+
+    def backward(ctx, grad):
+        x, weight, bias, index, offsets, style, scale, out = ctx.saved_tensors
+        padding_mode, n_out = ctx.meta
+        want = lambda i: gradfix.needed(ctx, i)  # noqa: E731  (not just requires_grad: what the engine will use)
+        if up:
+            need = dict(x=want(0), weight=want(1), bias=want(2), style=want(6), scale=want(7))
+        else:
+            need = dict(x=want(0), weight=want(1), bias=want(2), style=want(5), scale=want(6))
+        if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
+            if _double_backward_on_reference():
+                res = _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale,
+                                                padding_mode, n_out, need)
+            else:
+                res = gradfix.graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
+                                             padding_mode, n_out, need)
+            gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
+        else:
+            mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]
+            gx, gw, gb, gs, gd = torch.ops.modi_ext.skeletal_backward(
+                grad.contiguous(), out, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
+                n_out, mask)
+            gx = gx if need["x"] else None
+            gw = gw if need["weight"] else None
+            gb = gb if (need["bias"] and bias is not None) else None
+            gs = gs if (need["style"] and style is not None) else None
+            gd = gd if (need["scale"] and scale is not None) else None
+        if up:
+            return gx, gw, gb, None, None, None, gs, gd, None
+        return gx, gw, gb, None, None, gs, gd, None
+
+    return setup_context, backward
+
+
 def _register_ext() -> None:
     from modi_ext import gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
 
@@ -335,53 +398,11 @@ def _register_ext() -> None:
         gd = torch.empty_like(scale) if (scale is not None and output_mask[3]) else x.new_empty(0)
         return gx, gw, gb, gs, gd
 
-    def make_autograd(kind):
-        up = kind == _KIND_UP
-
-        def setup_context(ctx, inputs, output):
-            if up:
-                x, weight, bias, index, offsets, n_out, style, scale, padding_mode = inputs
-            else:
-                x, weight, bias, index, offsets, style, scale, padding_mode = inputs
-                n_out = offsets.shape[0] - 1
-            ctx.save_for_backward(x, weight, bias, index, offsets, style, scale, output)
-            ctx.meta = (padding_mode, n_out)
-
-        def backward(ctx, grad):
-            x, weight, bias, index, offsets, style, scale, out = ctx.saved_tensors
-            padding_mode, n_out = ctx.meta
-            nig = ctx.needs_input_grad
-            if up:
-                need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[6], scale=nig[7])
-            else:
-                need = dict(x=nig[0], weight=nig[1], bias=nig[2], style=nig[5], scale=nig[6])
-            if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
-                if _double_backward_on_reference():
-                    res = _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale,
-                                                    padding_mode, n_out, need)
-                else:
-                    res = gradfix.graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
-                                                 padding_mode, n_out, need)
-                gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
-            else:
-                mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]
-                gx, gw, gb, gs, gd = torch.ops.modi_ext.skeletal_backward(
-                    grad.contiguous(), out, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
-                    n_out, mask)
-                gx = gx if need["x"] else None
-                gw = gw if need["weight"] else None
-                gb = gb if (need["bias"] and bias is not None) else None
-                gs = gs if (need["style"] and style is not None) else None
-                gd = gd if (need["scale"] and scale is not None) else None
-            if up:
-                return gx, gw, gb, None, None, None, gs, gd, None
-            return gx, gw, gb, None, None, gs, gd, None
-
-        return setup_context, backward
-
-    for name, kind in (("skeletal_conv", _KIND_CONV), ("skeletal_down", _KIND_DOWN), ("skeletal_up", _KIND_UP)):
-        setup_context, backward = make_autograd(kind)
+    for kind, name in _NAMES.items():
+        setup_context, backward = _autograd_rules(kind)
         lib.register_autograd(f"modi_ext::{name}", backward, setup_context=setup_context)
+        _EAGER[kind] = eager.make_function(
+            f"{name}_eager", lambda *a, n=name: dispatch.KERNELS[n](*a), setup_context, backward)
 
 
 if HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_conv"):

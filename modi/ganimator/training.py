@@ -484,7 +484,10 @@ class Trainer:
                     for l, fake in zip(levels, fakes):
                         d = model.discs[l]
                         pooled = self.pools[l].query(fake)
-                        loss_d = 0.5 * (d(pooled).mean() - d(reals[l]).mean())
+                        # fake and real through D as one batch (D couples no samples): half the calls
+                        scores = d(torch.cat([pooled, reals[l]]))
+                        n_fake = pooled.shape[0]
+                        loss_d = 0.5 * (scores[:n_fake].mean() - scores[n_fake:].mean())
                         gp = gradient_penalty(d, reals[l], fake)
                         loss = loss + loss_d + cfg.lambda_gp * gp
                         total += float(loss_d.detach())

@@ -1,0 +1,61 @@
+"""The eager fast path: the registered kernels called through plain ``torch.autograd.Function``s.
+
+The ops are registered with ``torch.library`` (schemas in C++, autograd and fake kernels in Python) so that
+``torch.compile``, ``opcheck`` and functorch see well-formed operators.  In eager mode that registration costs a
+dispatcher round trip into Python on every call: the op's Python autograd kernel, ``fill_defaults``, a redispatch,
+and for the Python-defined backward ops (``gradfix``) the ``custom_op`` wrappers -- ~50 us per layer forward and
+backward on the 2-core machine, against ~100-500 us of kernel for GANimator's layers.
+
+Where nothing but plain tensors is involved (no compile, no tracing, no functorch transform, no Python dispatch mode,
+no tensor subclass), ``ops`` and ``gradfix`` call the same kernels through the Functions made here instead: the
+forward runs the kernel below autograd, and the backward is the very ``setup_context`` / ``backward`` pair registered
+for the op, so both paths compute the same gradients of every order.  ``MODI_EXT_EAGER=0`` turns the fast path off
+(every call through the registered ops, as before).
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import torch
+
+_PLAIN = (torch.Tensor, torch.nn.Parameter)
+_below_autograd = torch._C._AutoDispatchBelowAutograd
+
+
+def _enabled() -> bool:
+    return os.environ.get("MODI_EXT_EAGER", "1").strip() != "0"
+
+
+def usable(*tensors) -> bool:
+    """Whether the plain-Function path may run these tensors (``None`` entries allowed)."""
+    if torch.compiler.is_compiling():  # first: dynamo folds it and never traces the checks below
+        return False
+    if torch._C._get_tracing_state() is not None or torch._C._are_functorch_transforms_active():
+        return False
+    if torch._C._len_torch_dispatch_stack() > 0:
+        return False
+    for t in tensors:
+        if t is not None and type(t) not in _PLAIN:
+            return False
+    return _enabled()
+
+
+def make_function(name: str, run: Callable, setup_context: Callable, backward: Callable) -> type:
+    """A ``torch.autograd.Function`` whose forward is ``run(*inputs)`` below autograd and whose backward is the op's
+    registered rule (``setup_context(ctx, inputs, output)``, ``backward(ctx, *grads)``)."""
+
+    def forward(ctx, *inputs):
+        with _below_autograd():
+            out = run(*inputs)
+        setup_context(ctx, inputs, out)
+        return out
+
+    def backward_(ctx, *grads):
+        return backward(ctx, *grads)
+
+    return type(name, (torch.autograd.Function,), {"forward": staticmethod(forward),
+                                                   "backward": staticmethod(backward_)})
+
+
+__all__ = ["usable", "make_function"]
