@@ -9,10 +9,13 @@ handed to the kernel, which applies the style on the input rows and ``d`` on the
 Under ``torch.autocast`` the inputs are cast to one dtype (the autocast dtype on CUDA, where the kernels take half
 types; the widest input dtype elsewhere) and the op runs with autocast off, so standard AMP works.
 
-Autograd goes through ``torch.library.register_autograd``: first-order gradients use the fused C++ backward kernel;
-when a graph of the gradient is requested (``create_graph=True``: R1, path length, WGAN-GP) the backward is built
-from ops that are themselves differentiable (``modi_ext.gradfix``), so every order stays on the sparse kernels.
-``MODI_EXT_DOUBLE=ref`` routes that graph through the dense reference instead (the old behaviour, for comparison).
+Autograd rules are registered with ``torch.library.register_autograd`` (what compile, opcheck and functorch use);
+plain eager calls run the same rules through ``torch.autograd.Function``s that skip the dispatcher's round trip into
+Python (``modi_ext.eager``).  First-order gradients use the fused C++ backward kernel, and only for the inputs whose
+gradient the engine will use (``gradfix.needed``); when a graph of the gradient is requested (``create_graph=True``:
+R1, path length, WGAN-GP) the backward is built from ops that are themselves differentiable (``modi_ext.gradfix``),
+so every order stays on the sparse kernels.  ``MODI_EXT_DOUBLE=ref`` routes that graph through the dense reference
+instead (the old behaviour, for comparison).
 """
 from __future__ import annotations
 

@@ -277,3 +277,70 @@ def test_iterations_help_names_the_coarse_multiplier_and_min_frames_is_the_short
         need = cfg.kernel_size // 2 + 1
         coarsest = lambda m: pyramid_lengths(m, cfg.coarse_ratio, cfg.scale_factor)[0]  # noqa: E731
         assert coarsest(n) >= need and all(coarsest(m) < need for m in range(2, n))
+
+
+# ------------------------------------------------------------------------------------------- D / G building blocks
+
+
+@pytest.mark.parametrize("padding_mode", ["reflect", "replicate", "zeros"])
+@pytest.mark.parametrize("U", [1, 3, 5])
+def test_score_head_is_the_conv1d_it_replaces(padding_mode, U):
+    """The matmul form of D's one-output temporal conv: same values and gradients of every order as nn.Conv1d."""
+    from modi.ganimator.networks import score_head
+
+    g = torch.Generator().manual_seed(U)
+    conv = torch.nn.Conv1d(12, 1, U, padding=U // 2, padding_mode=padding_mode).double()
+    h = torch.randn(3, 12, 9, dtype=torch.float64, generator=g, requires_grad=True)
+    torch.testing.assert_close(score_head(conv, h), conv(h).squeeze(1), rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradgradcheck(lambda h, w, b: score_head(_with(conv, w, b), h),
+                                        (h, conv.weight, conv.bias), eps=1e-6, atol=1e-6)
+
+
+def _with(conv, w, b):
+    """A copy of ``conv`` whose parameters are the given tensors (for gradcheck w.r.t. them)."""
+    c = torch.nn.Conv1d(conv.in_channels, 1, conv.kernel_size[0], padding=conv.padding[0],
+                        padding_mode=conv.padding_mode).double()
+    del c.weight, c.bias
+    c.weight, c.bias = w, b
+    return c
+
+
+def test_score_head_falls_back_for_other_convs():
+    from modi.ganimator.networks import score_head
+
+    conv = torch.nn.Conv1d(6, 1, 3, padding=0)
+    h = torch.randn(2, 6, 10)
+    torch.testing.assert_close(score_head(conv, h), conv(h).squeeze(1))
+
+
+def test_folded_scale_gives_the_plain_weight_to_the_op():
+    from modi_ext.layers import SkeletalConv
+
+    nb = ganimator_neighbors([-1, 0, 1, 0, 3], [2, 4], 2)
+    torch.manual_seed(0)
+    a = SkeletalConv(3, 4, nb, kernel_size=5, padding_mode="reflect", bias=False)
+    b = SkeletalConv(3, 4, nb, kernel_size=5, padding_mode="reflect", bias=False)
+    b.load_state_dict(a.state_dict())
+    expected = a.effective_weight().detach() * 0.5
+    b.fold_weight_scale(0.5)
+    assert b.effective_weight() is b.weight and torch.equal(b.weight_scale, torch.ones_like(b.weight_scale))
+    torch.testing.assert_close(b.weight.detach(), expected, rtol=0, atol=0)
+    x = torch.randn(2, 3, len(nb), 11)
+    torch.testing.assert_close(b(x), 0.5 * a(x), rtol=1e-5, atol=1e-6)
+    # a model built the same way and loaded from a state_dict runs the loaded weight as it is
+    c = SkeletalConv(3, 4, nb, kernel_size=5, padding_mode="reflect", bias=False)
+    c.fold_weight_scale(0.5)
+    c.load_state_dict(b.state_dict())
+    torch.testing.assert_close(c(x), b(x), rtol=0, atol=0)
+
+
+def test_discriminator_scores_each_sample_of_a_batch_alone():
+    """The D step scores fake and real in one batch: D must couple no samples (on the kernels and the reference)."""
+    cfg = tiny_cfg()
+    seq = clip_seq(random_tree(7, random.Random(4)), T=50, seed=4)
+    model = untrained_model([seq], cfg)
+    d = model.discs[-1]
+    L = model.lengths[0][-1]
+    a, b = torch.randn(1, 6, seq.n_entities, L), torch.randn(1, 6, seq.n_entities, L)
+    both = d(torch.cat([a, b]))
+    torch.testing.assert_close(both, torch.cat([d(a), d(b)]), rtol=1e-5, atol=1e-5)

@@ -152,6 +152,15 @@ class FakePool:
         return fake
 
 
+def _adam(params, cfg) -> torch.optim.Adam:
+    """Adam with torch's fused kernel where it has one (CPU, CUDA): GANimator steps an optimiser 7-14 times per
+    iteration over a few small tensors, where the per-tensor loop costs 3x the fused step (~0.4 against 0.12 ms
+    for a discriminator on the 2-core machine).  Same algorithm; a checkpoint keeps the setting it was saved with."""
+    params = list(params)
+    fused = bool(params) and all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
+    return torch.optim.Adam(params, lr=cfg.lr, betas=cfg.betas, fused=fused or None)
+
+
 def gradient_penalty(disc: nn.Module, real: Tensor, fake: Tensor) -> Tensor:
     """WGAN-GP: (||grad D(interp)|| - 1)^2, the norm taken over all channels of each frame."""
     alpha = torch.rand((1,), device=real.device)
@@ -307,8 +316,8 @@ class Trainer:
     def _make_opts(self, l: int) -> None:
         if l not in self.opt_g:
             m = self.model
-            self.opt_g[l] = torch.optim.Adam(m.gens[l].parameters(), lr=self.cfg.lr, betas=self.cfg.betas)
-            self.opt_d[l] = torch.optim.Adam(m.discs[l].parameters(), lr=self.cfg.lr, betas=self.cfg.betas)
+            self.opt_g[l] = _adam(m.gens[l].parameters(), self.cfg)
+            self.opt_d[l] = _adam(m.discs[l].parameters(), self.cfg)
 
     # --------------------------------------------------------------------------------- sampling helpers
 
