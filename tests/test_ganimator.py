@@ -344,3 +344,32 @@ def test_discriminator_scores_each_sample_of_a_batch_alone():
     a, b = torch.randn(1, 6, seq.n_entities, L), torch.randn(1, 6, seq.n_entities, L)
     both = d(torch.cat([a, b]))
     torch.testing.assert_close(both, torch.cat([d(a), d(b)]), rtol=1e-5, atol=1e-5)
+
+
+def test_gradient_penalty_is_the_per_frame_norm_formula():
+    """WGAN-GP as the released code writes it (norm over channels x entities of each frame), zero gradients included."""
+    from modi.ganimator.training import gradient_penalty
+
+    class D(torch.nn.Module):
+        def __init__(self, scale):
+            super().__init__()
+            self.w = torch.nn.Parameter(scale * torch.randn(6, 5, dtype=torch.float64))
+
+        def forward(self, x):
+            return torch.einsum("bcet,ce->bt", x.tanh(), self.w)
+
+    real, fake = torch.randn(2, 1, 6, 5, 7, dtype=torch.float64)
+    for scale in (1.0, 0.0):
+        d = D(scale)
+        torch.manual_seed(0)
+        gp = gradient_penalty(d, real, fake)
+        torch.manual_seed(0)
+        alpha = torch.rand((1,))
+        interp = (alpha * real + (1 - alpha) * fake).requires_grad_(True)
+        (g,) = torch.autograd.grad(d(interp).sum(), interp, create_graph=True)
+        expected = ((g.flatten(1, 2).norm(dim=1) - 1.0) ** 2).mean()
+        torch.testing.assert_close(gp, expected, rtol=1e-12, atol=1e-12)
+        (got_w,) = torch.autograd.grad(gp, d.w)
+        (want_w,) = torch.autograd.grad(expected, d.w)
+        assert torch.isfinite(got_w).all()
+        torch.testing.assert_close(got_w, want_w, rtol=1e-10, atol=1e-12)
