@@ -877,20 +877,24 @@ __attribute__((target("avx512f"))) inline float hsum512(__m512 v) {
 
 // R rows (up to 9: 27 accumulators) x 48 columns (two NR tiles).  Row r comes from packed panel r / 4 (panels ps
 // floats apart), so one call covers the last 5-9 rows of a product -- GANimator's 5-9 channels in one pass over the
-// pointer rows instead of a 4- or 8-row pass plus a 1-row pass that is bound by its loads.
-template <int R>
+// pointer rows instead of a 4- or 8-row pass plus a 1-row pass that is bound by its loads.  Direct: A is read in
+// place, row r at a + r * ps (a row-major weight, no packing pass; each k broadcasts from R rows instead of from
+// one packed group -- the same number of loads).
+template <int R, bool Direct = false>
 __attribute__((target("avx512f"))) void nn512rows(int64_t K, const float* a, int64_t ps, const float* const* ptr,
                                                    int64_t col, float* c, int64_t ldc) {
   static_assert(R >= 1 && R <= 9, "27 accumulators + 3 operands + 1 broadcast fill the 32 registers");
   __m512 acc[R][3];
   for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
   const float* ap[3] = {a, a + ps, a + 2 * ps};
+  const float* ar[R];
+  for (int r = 0; r < R; ++r) ar[r] = a + r * ps;
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
     if (k + kPrefetchSteps < K) prefetch_strip<48>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_loadu_ps(p + 16), b2 = _mm512_loadu_ps(p + 32);
     for (int r = 0; r < R; ++r) {
-      const __m512 av = _mm512_set1_ps(ap[r / 4][k * MR + r % 4]);
+      const __m512 av = _mm512_set1_ps(Direct ? ar[r][k] : ap[r / 4][k * MR + r % 4]);
       acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
       acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
       acc[r][2] = _mm512_fmadd_ps(av, b2, acc[r][2]);
@@ -905,19 +909,21 @@ __attribute__((target("avx512f"))) void nn512rows(int64_t K, const float* a, int
 
 // One NR tile (24 columns: a full and a half-masked vector) for R rows (up to 9, panels as nn512rows): the odd
 // last tile of a product, which the 4-row AVX2 kernel would do at half the width.
-template <int R>
+template <int R, bool Direct = false>
 __attribute__((target("avx512f"))) void nn512_tail(int64_t K, const float* a, int64_t ps, const float* const* ptr,
                                                     int64_t col, float* c, int64_t ldc) {
   constexpr __mmask16 half = 0x00FF;
   __m512 acc[R][2];
   for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm512_setzero_ps();
   const float* ap[3] = {a, a + ps, a + 2 * ps};
+  const float* ar[R];
+  for (int r = 0; r < R; ++r) ar[r] = a + r * ps;
   for (int64_t k = 0; k < K; ++k) {
     const float* p = ptr[k] + col;
     if (k + kPrefetchSteps < K) prefetch_strip<NR>(ptr[k + kPrefetchSteps] + col);
     const __m512 b0 = _mm512_loadu_ps(p), b1 = _mm512_maskz_loadu_ps(half, p + 16);
     for (int r = 0; r < R; ++r) {
-      const __m512 av = _mm512_set1_ps(ap[r / 4][k * MR + r % 4]);
+      const __m512 av = _mm512_set1_ps(Direct ? ar[r][k] : ap[r / 4][k * MR + r % 4]);
       acc[r][0] = _mm512_fmadd_ps(av, b0, acc[r][0]);
       acc[r][1] = _mm512_fmadd_ps(av, b1, acc[r][1]);
     }
@@ -1013,9 +1019,9 @@ inline bool use512() {
 #else
 template <int R>
 void wg512(int64_t, const float* const*, const float*, float*) {}
-template <int R>
+template <int R, bool Direct = false>
 void nn512rows(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t) {}
-template <int R>
+template <int R, bool Direct = false>
 void nn512_tail(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t) {}
 void nt512_tile(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
 inline bool use512() { return false; }
@@ -1065,6 +1071,23 @@ void nn_gemm(const float* apack, int64_t M, int64_t K, const float* const* ptr, 
       }
     }
   }
+}
+
+// AVX-512, M <= kDirectRows: acc (M x ldacc) = A (M rows of K, row r at a + r * lda: the compact weight read in
+// place) * pointer rows, columns [0, N) in tiles of 48 (24 for an odd last one).  No packing pass: with GANimator's
+// 5-9 output channels packing the weight was ~10% of a forward call at 129 frames, done anew on every call.
+constexpr int64_t kDirectRows = 9;
+void nn_gemm_direct(const float* a, int64_t lda, int64_t M, int64_t K, const float* const* ptr, int64_t N,
+                    float* acc, int64_t ldacc) {
+  using Fn = void (*)(int64_t, const float*, int64_t, const float* const*, int64_t, float*, int64_t);
+  static constexpr Fn pair[9] = {nn512rows<1, true>, nn512rows<2, true>, nn512rows<3, true>,
+                                 nn512rows<4, true>, nn512rows<5, true>, nn512rows<6, true>,
+                                 nn512rows<7, true>, nn512rows<8, true>, nn512rows<9, true>};
+  static constexpr Fn tail[9] = {nn512_tail<1, true>, nn512_tail<2, true>, nn512_tail<3, true>,
+                                 nn512_tail<4, true>, nn512_tail<5, true>, nn512_tail<6, true>,
+                                 nn512_tail<7, true>, nn512_tail<8, true>, nn512_tail<9, true>};
+  const int64_t tiles = (N + NR - 1) / NR;
+  for (int64_t t = 0; t < tiles; t += 2) (t + 1 < tiles ? pair : tail)[M - 1](K, a, lda, ptr, t * NR, acc + t * NR, ldacc);
 }
 
 // C (M x K, ldc) = L (M pointer rows) * P^T (K pointer rows) over columns [0, N), AVX-512 only: L is transposed
@@ -1347,7 +1370,8 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
     src.Lp = Lp;
     src.reflect = g.reflect;
     const ColsBuild xb(src, Ci, g.Ein, S, Tq, U);
-    const PackEntities pe(csr, Co, w, g.nnz * Ci * U, Ci * U);
+    const bool direct = Co <= kDirectRows && use512();
+    const PackEntities pe(csr, direct ? 0 : Co, w, g.nnz * Ci * U, Ci * U);
     const Phase prep[] = {xb.phase(), pe.phase()};
     const Cols& xc = xb.cl;
     const int64_t nb = batch_tile(g.B, Tq, g.Eout);
@@ -1365,7 +1389,10 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
         for (int64_t c = 0; c < Ci; ++c)
           for (int64_t u = 0; u < U; ++u)
             ptr[(s * Ci + c) * U + u] = xc.row(u % S, c, csr.idx[p0 + s]) + b0 * Tq + u / S;
-      nn_gemm(pe.pk.at(j), Co, K, ptr, N, acc, ldacc);
+      if (direct)
+        nn_gemm_direct(w + p0 * Ci * U, g.nnz * Ci * U, Co, K, ptr, N, acc, ldacc);
+      else
+        nn_gemm(pe.pk.at(j), Co, K, ptr, N, acc, ldacc);
       for (int64_t bl = 0; bl < nbl; ++bl) {
         const int64_t b = b0 + bl;
         for (int64_t o = 0; o < Co; ++o) {
@@ -1378,7 +1405,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
       }
     };
     const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
-    run_stages({{prep, 2}, {compute, 1}}, par);
+    run_stages({{prep, size_t{direct ? 1u : 2u}}, {compute, 1}}, par);  // direct: no packing phase
     return;
   }
   // up: fine entity f gathers its coarse sources through the transposed CSR, two output phases
