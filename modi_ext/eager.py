@@ -51,11 +51,8 @@ def make_function(name: str, run: Callable, setup_context: Callable, backward: C
         setup_context(ctx, inputs, out)
         return out
 
-    def backward_(ctx, *grads):
-        return backward(ctx, *grads)
-
     return type(name, (torch.autograd.Function,), {"forward": staticmethod(forward),
-                                                   "backward": staticmethod(backward_)})
+                                                   "backward": staticmethod(backward)})
 
 
 __all__ = ["usable", "make_function"]

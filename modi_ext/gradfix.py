@@ -23,7 +23,6 @@ import torch
 from modi_ext import eager
 
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2
-_NO_GRADS = [False, False, False, False]
 
 
 def plain_forward(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,

@@ -183,6 +183,17 @@ def _run(kind: int, impl: str, x, weight, bias, index, offsets, n_out: int, styl
         fn = mod.skeletal_conv if kind == _KIND_CONV else mod.skeletal_down
         return fn(x, weight, bias, index, offsets, style, demodulate, padding_mode)
     scale = demod_scale(weight, index, offsets, style, kind == _KIND_UP, n_out, x.shape[0]) if demodulate else None
+    return _launch(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
+
+
+def plain_op(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
+             n_out: int, padding_mode: str) -> torch.Tensor:
+    """``A_W x`` (no bias, style or scale) on the kernels, differentiable to any order; no argument checks."""
+    return _launch(kind, x, weight, None, index, offsets, n_out, None, None, padding_mode)
+
+
+def _launch(kind: int, x, weight, bias, index, offsets, n_out: int, style, scale, padding_mode: str) -> torch.Tensor:
+    """The kernel call with autograd: the eager Function where it applies, else the registered op."""
     if kind == _KIND_UP:
         args = (x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
     else:
@@ -190,18 +201,6 @@ def _run(kind: int, impl: str, x, weight, bias, index, offsets, n_out: int, styl
     if kind in _EAGER and eager.usable(x, weight, bias, style, scale, index, offsets):
         return _EAGER[kind].apply(*args)
     return dispatch.KERNELS[_NAMES[kind]](*args)
-
-
-def plain_op(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
-             n_out: int, padding_mode: str) -> torch.Tensor:
-    """``A_W x`` (no bias, style or scale) on the kernels, differentiable to any order; no argument checks."""
-    if kind == _KIND_UP:
-        args = (x, weight, None, index, offsets, n_out, None, None, padding_mode)
-    else:
-        args = (x, weight, None, index, offsets, None, None, padding_mode)
-    if kind in _EAGER and eager.usable(x, weight, index, offsets):
-        return _EAGER[kind].apply(*args)
-    return getattr(torch.ops.modi_ext, _NAMES[kind])(*args)
 
 
 def _autocast_device(x: torch.Tensor) -> str | None:
