@@ -5,4 +5,5 @@ namespace modi_ext {
 // Each op family declares its schemas here; called from registration.cpp only.
 void define_skeletal_ops(torch::Library& m);
 void define_fk_ops(torch::Library& m);
+void define_demod_ops(torch::Library& m);
 }  // namespace modi_ext

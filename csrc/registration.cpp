@@ -7,4 +7,5 @@
 TORCH_LIBRARY(modi_ext, m) {
   modi_ext::define_skeletal_ops(m);
   modi_ext::define_fk_ops(m);
+  modi_ext::define_demod_ops(m);
 }

@@ -2,9 +2,10 @@
 
 ``modi_ext.dispatch.route`` picks the path per call (``MODI_EXT_IMPL=auto|ext|dense|ref``; kernels only where this
 build has them for the device, only after their self-check, on CUDA only where measured faster than ``dense``).  On
-the kernel path the demodulation coefficients ``d[b,o,j]`` are computed here with small torch ops (a
-``(B, Cin) x (Cin, Cout*E)`` product of squared weights, never a per-sample weight tensor; ``dense.demod_scale``) and
-handed to the kernel, which applies the style on the input rows and ``d`` on the output rows.
+the kernel path the demodulation coefficients ``d[b,o,j]`` are computed first (a ``(B, Cin) x (Cin, Cout*E)``
+product of squared weights, never a per-sample weight tensor; ``modi_ext.demod``: one C++ call on the CPU, the torch
+ops of ``dense.demod_scale`` elsewhere) and handed to the kernel, which applies the style on the input rows and ``d``
+on the output rows.
 
 Under ``torch.autocast`` the inputs are cast to one dtype (the autocast dtype on CUDA, where the kernels take half
 types; the widest input dtype elsewhere) and the op runs with autocast off, so standard AMP works.
@@ -26,7 +27,7 @@ import torch
 
 from modi_ext import dense, dispatch, eager, reference
 from modi_ext._loader import HAS_EXT
-from modi_ext.dense import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
+from modi_ext.demod import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
 from modi_ext.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
 
 __all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_dense", "demod_scale", "validate_csr"]

@@ -48,7 +48,10 @@ def test_eager_path_equals_the_registered_ops(kind, style, demod, padding, monke
     monkeypatch.setenv("MODI_EXT_EAGER", "0")
     slow = _all_orders(kind, seed, style, demod, padding)
     assert "eager" in fast[3] and "eager" not in slow[3], (fast[3], slow[3])  # each path really ran
-    torch.testing.assert_close(fast[0], slow[0], rtol=0, atol=0)
+    # bitwise, except that with demodulation the eager path takes its coefficients from the C++ op
+    # (modi_ext.demod) and the registered path from torch ops: the same sums in another order
+    tol = 1e-13 if demod else 0.0
+    torch.testing.assert_close(fast[0], slow[0], rtol=tol, atol=tol)
     for a, b in zip(fast[1] + fast[2], slow[1] + slow[2]):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 

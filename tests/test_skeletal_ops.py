@@ -179,6 +179,30 @@ def test_demod_scale_matches_per_sample_weights():
         torch.testing.assert_close(got, want, rtol=1e-10, atol=0)
 
 
+@pytest.mark.parametrize("taps", [1, 3, 5])
+def test_square_segment_sum_matches_autograd_of_the_plain_form(taps):
+    """The demodulation's weight term (a Function with a hand-written backward) against ``w.pow(2).sum(-1)``
+    segment-summed by autograd: values, gradients, and second-order gradients, with an empty segment included."""
+    from modi_ext.dense import segment_sum, square_segment_sum
+
+    g = torch.Generator().manual_seed(taps)
+    n_seg, nnz = 6, 11
+    segment = torch.randint(0, n_seg - 1, (nnz,), generator=g)  # segment n_seg - 1 stays empty
+    w = torch.randn(3, nnz, 4, taps, generator=g, dtype=torch.float64, requires_grad=True)
+    plain = lambda w: segment_sum(w.pow(2).sum(-1), segment, n_seg)  # noqa: E731
+    fused = lambda w: square_segment_sum(w, segment, n_seg)  # noqa: E731
+    torch.testing.assert_close(fused(w), plain(w), rtol=1e-12, atol=0)
+    assert fused(w)[:, -1].abs().max() == 0
+    v = torch.randn(3, n_seg, 4, generator=g, dtype=torch.float64)
+    (gf,) = torch.autograd.grad((fused(w) * v).sum(), w, create_graph=True)
+    (gp,) = torch.autograd.grad((plain(w) * v).sum(), w, create_graph=True)
+    torch.testing.assert_close(gf, gp, rtol=1e-12, atol=0)
+    torch.testing.assert_close(torch.autograd.grad(gf.pow(3).sum(), w)[0], torch.autograd.grad(gp.pow(3).sum(), w)[0],
+                               rtol=1e-12, atol=0)
+    assert torch.autograd.gradcheck(fused, (w,))
+    assert torch.autograd.gradgradcheck(fused, (w,))
+
+
 # ----------------------------------------------------------------------------------------------- ext vs reference
 @needs_ext
 @pytest.mark.parametrize("kind", KINDS)

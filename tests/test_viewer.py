@@ -265,7 +265,9 @@ def test_notebook_iframe_renders_in_chromium(clips, tmp_path):
     nb.write_text("<!DOCTYPE html><html><body><h3>cell output</h3>" + show(str(clips["walk"]))._repr_html_()
                   + "</body></html>", encoding="utf-8")
     png = tmp_path / "nb.png"
-    r = chromium(nb.as_uri(), f"--screenshot={png}", "--window-size=800,600")
+    # the iframe loads after the page's own load event: give the page (virtual) time to draw before the shot, or a
+    # loaded machine photographs an empty frame
+    r = chromium(nb.as_uri(), f"--screenshot={png}", "--window-size=800,600", "--virtual-time-budget=5000")
     assert png.is_file() and not console_errors(r.stderr), r.stderr[-2000:]
     img = np.asarray(Image.open(png).convert("RGB")).astype(np.int16)
     figure = (img.max(-1) - img.min(-1)) > 60
