@@ -15,6 +15,8 @@ built-in fallback otherwise), batch 16, fp32:
   modulated_up.<level>.{fwd,fwd_bwd}      ModulatedSkeletalConv, mode "up", demodulated
   <op>.finest.double                      forward, input gradient with create_graph=True, a scalar of it
                                           (its squared norm, as R1), backward to the input and every parameter
+  {skeletal,modulated}_conv.finest.bwd    the backward alone (input and every parameter), through a graph built
+                                          once and retained
   ganimator_conv.<clip>.{fwd,fwd_bwd,double}  GANimator's finest level (batch 1, kernel 5, reflect, distance-2
                                           neighbours of the real skeleton; ../shared/data needed): Salsa (29
                                           entities, 648 frames, 9 channels) and Crab (63 entities, 384 frames,
@@ -28,6 +30,10 @@ medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_I
 style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
 ``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against issue 20's targets (dense >= 5x the
 grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.
+
+``--thread-ab N`` also times the extension alone at ``--threads`` and at N threads, alternated in blocks of a few
+calls in this process (``--ab-reps`` timed calls each), for thread-scaling figures that machine drift cannot skew:
+``ext_ms_threads`` (median ms per thread count) and ``ext_thread_ratio`` (time at ``--threads`` / time at N).
 """
 from __future__ import annotations
 
@@ -176,6 +182,28 @@ def _double_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], impl
     return tuple(_with_impl(i, body) for i in impls)
 
 
+def _bwd_case(module: torch.nn.Module, inputs: tuple[torch.Tensor, ...], impls=("ref", "ext")):
+    """(ref_fn, ext_fn[, dense_fn]): the backward alone (input + parameters) through a graph retained between calls;
+    each path builds its own graph on its first call."""
+    params = [p for p in module.parameters() if p.requires_grad]
+    x = inputs[0].detach().clone().requires_grad_(True)
+    rest = inputs[1:]
+    graphs: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def make(impl: str):
+        def run():
+            if impl not in graphs:
+                with forced_impl(impl):
+                    y = module(x, *rest)
+                graphs[impl] = (y, torch.randn_like(y))
+            y, grad = graphs[impl]
+            with forced_impl(impl):
+                return torch.autograd.grad(y, [x] + params, grad, retain_graph=True)
+        return run
+
+    return tuple(make(i) for i in impls)
+
+
 GANIMATOR_SHAPES = {  # clip -> (BVH under ../shared/data/bvh/ganimator, channels per entity at the finest level)
     "salsa": ("Joe/Salsa-Dancing-6.bvh", 9),
     "crab": ("Crabnew/Crab-dance-long.bvh", 5),
@@ -238,11 +266,18 @@ def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, di
                 ("modulated_up", ModulatedSkeletalConv(c2, c, STYLE_DIM, pools[lv], 3, mode="up"), (xc, w)),
             ]
         for op, module, inputs in defs:
-            for kind in ("fwd", "fwd_bwd") + (("double",) if lv == 0 else ()):
+            kinds = ("fwd", "fwd_bwd")
+            if lv == 0:
+                kinds += ("double",) + (("bwd",) if op in ("skeletal_conv", "modulated_conv") else ())
+            for kind in kinds:
                 key = f"{op}.{name}.{kind}"
                 impls = ("ref", "ext", "dense")  # dense: one shared conv, style/demod as scales (modi_ext.dense)
-                cases[key] = _double_case(module, inputs, impls) if kind == "double" else \
-                    _case(module, inputs, kind == "fwd_bwd", impls)
+                if kind == "double":
+                    cases[key] = _double_case(module, inputs, impls)
+                elif kind == "bwd":
+                    cases[key] = _bwd_case(module, inputs, impls)
+                else:
+                    cases[key] = _case(module, inputs, kind == "fwd_bwd", impls)
                 info[key] = {"input_shape": list(inputs[0].shape), "entities_out": e, "channels_out": c,
                              "pairs": int(sum(len(r) for r in (nb if op in ("skeletal_conv", "modulated_conv")
                                                            else pools[lv])))}
@@ -286,6 +321,27 @@ def time_all(fns, reps: int, min_time: float, clock: Callable[[], float] = time.
     return [statistics.median(t) * 1e3 for t in times], len(times[0])
 
 
+def time_threads(fn: Callable[[], object], threads: tuple[int, ...], reps: int,
+                 clock: Callable[[], float] = time.perf_counter, block: int = 4) -> tuple[list[float], int]:
+    """([median ms at each thread count], timed runs per count): fn at each thread count in turn, in blocks of
+    `block` timed calls, each block after one untimed call (threads that slept while the other count ran wake up,
+    caches refill), until `reps` timed calls per count; torch's thread count is restored afterwards."""
+    before = torch.get_num_threads()
+    times: list[list[float]] = [[] for _ in threads]
+    try:
+        while len(times[0]) < reps:
+            for n, acc in zip(threads, times):
+                torch.set_num_threads(n)
+                fn()
+                for _ in range(min(block, reps - len(acc))):
+                    t0 = clock()
+                    fn()
+                    acc.append(clock() - t0)
+    finally:
+        torch.set_num_threads(before)
+    return [statistics.median(t) * 1e3 for t in times], len(times[0])
+
+
 def machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -307,6 +363,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None, help="regex: run matching cases only")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="wall: elapsed time; cpu: process CPU time of all threads (robust on a loaded machine)")
+    ap.add_argument("--thread-ab", type=int, default=0, metavar="N",
+                    help="also time the extension at --threads and at N threads, alternated in blocks")
+    ap.add_argument("--ab-reps", type=int, default=40, help="calls per thread count with --thread-ab")
     ap.add_argument("--busy", type=int, default=0, metavar="N",
                     help="keep N cores busy with spinning helper processes while timing (a loaded machine)")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
@@ -352,6 +411,13 @@ def main(argv: list[str] | None = None) -> int:
             results[name].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),
                                  speedup_ext_vs_dense=round(ms[2] / ext_ms, 3))
             extra = f" {ms[2]:10.3f} {ref_ms / ms[2]:8.2f}x {ms[2] / ext_ms:8.2f}x"
+        if args.thread_ab:
+            main_threads = torch.get_num_threads()
+            (at_main, at_other), m = time_threads(fns[1], (main_threads, args.thread_ab), args.ab_reps, clock)
+            results[name].update(ext_ms_threads={str(main_threads): round(at_main, 4),
+                                                 str(args.thread_ab): round(at_other, 4)},
+                                 ext_thread_ratio=round(at_main / at_other, 4), thread_ab_runs=m)
+            extra += f"   ext {main_threads}t {at_main:.3f} / {args.thread_ab}t {at_other:.3f} ms"
         print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x{extra}", flush=True)
     busy.close()
     _backward_over_forward(results)
