@@ -240,3 +240,51 @@ def test_concurrent_callers_get_the_same_results():
         for i, got in enumerate(results[w]):
             for a, b in zip(got, expected[i % len(KINDS)]):
                 assert torch.equal(a, b)
+
+
+def _thread_cpu_sets() -> dict[int, set[int]]:
+    """CPUs each thread of this process may run on (Linux: /proc/self/task/*/status)."""
+    import os
+    from pathlib import Path
+
+    out = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            status = (task / "status").read_text()
+        except OSError:
+            continue  # a thread that just ended
+        for line in status.splitlines():
+            if line.startswith("Cpus_allowed_list:"):
+                cpus: set[int] = set()
+                for part in line.split(":", 1)[1].strip().split(","):
+                    lo, _, hi = part.partition("-")
+                    cpus.update(range(int(lo), int(hi or lo) + 1))
+                out[int(task.name)] = cpus
+    assert os.getpid() in out
+    return out
+
+
+@needs_ext
+def test_helpers_are_kept_off_the_callers_cpu(monkeypatch):
+    """With the kernels' own helpers (the busy-machine pool), each job keeps the helpers off the CPU its caller runs
+    on, so that Linux cannot stack a woken helper beside its caller; MODI_EXT_HELPER_AFFINITY=0 gives them back the
+    whole CPU set.  The results do not change either way."""
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("helper placement is Linux-only (sched_setaffinity)")
+    allowed = os.sched_getaffinity(0)
+    if len(allowed) < 2:
+        pytest.skip(f"this process may use {len(allowed)} CPU; placement needs two")
+    monkeypatch.setenv("MODI_EXT_CPU_POOL", "own")
+    args, _ = _case("conv", 700, n=25, B=16, cin=32, cout=32, T=64, U=3, dtype=torch.float32, demod=False)
+    monkeypatch.delenv("MODI_EXT_HELPER_AFFINITY", raising=False)
+    placed = _forward_only(args, 2)  # a parallel job: the helpers exist and are placed
+    narrowed = [cpus for cpus in _thread_cpu_sets().values() if cpus < allowed and len(cpus) == len(allowed) - 1]
+    assert narrowed, "no helper thread was kept off one CPU"
+    monkeypatch.setenv("MODI_EXT_HELPER_AFFINITY", "0")
+    free = _forward_only(args, 2)
+    assert all(cpus == allowed for cpus in _thread_cpu_sets().values() if cpus <= allowed), \
+        "MODI_EXT_HELPER_AFFINITY=0 left a helper off a CPU"
+    assert torch.equal(placed, free)

@@ -11,8 +11,8 @@
 //   the earlier stages' claimed tasks are finished -- one wake-up per call, no barrier;
 // * the threads: MODI_EXT_CPU_POOL=own (what modi_ext/omp_wait.py sets when OpenMP threads spin only briefly, as
 //   it chooses when another process keeps a CPU busy) runs jobs on this file's own helper threads: the caller never
-//   waits for a helper that has claimed nothing, and helpers sleep when idle, so with one core busy two threads
-//   beat one.  MODI_EXT_CPU_POOL=omp runs them on torch's OpenMP team (at::parallel_for over one chunk per
+//   waits for a helper that has claimed nothing, helpers sleep when idle, and they are kept off the caller's CPU
+//   (Pool::place_helpers), so with one core busy two threads beat one.  MODI_EXT_CPU_POOL=omp runs them on torch's OpenMP team (at::parallel_for over one chunk per
 //   thread), the choice when libgomp keeps its default spin of milliseconds after every torch op: its spinning
 //   workers would hold the cores the helpers need (measured: benchmarks/RESULTS.md, "Busy machine").  Both use the
 //   user's thread count (torch.set_num_threads).
@@ -25,6 +25,8 @@
 
 #include <ATen/Parallel.h>
 
+#include <pthread.h>
+#include <sched.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -197,6 +199,7 @@ class Pool {
     std::unique_lock<std::mutex> owner(owner_, std::try_to_lock);
     if (!owner.owns_lock()) return false;
     grow(job->max_helpers);
+    place_helpers();
     {
       std::lock_guard<std::mutex> lk(m_);
       current_ = job;
@@ -220,8 +223,38 @@ class Pool {
   void grow(int n) {
     while (static_cast<int>(threads_) < n) {
       const int index = static_cast<int>(threads_++);
-      std::thread([this, index] { loop(index); }).detach();
+      std::thread t([this, index] { loop(index); });
+      handles_.push_back(t.native_handle());
+      t.detach();
     }
+  }
+
+  // Keep the helpers off the CPU the caller runs on.  A helper sleeps between jobs, and the caller wakes it.  If
+  // every other CPU is busy then (another process holds it), Linux places the woken thread beside the thread that
+  // woke it: caller and helper share one core, and two threads run no faster than one (measured in
+  // benchmarks/RESULTS.md, "Helpers off the caller's CPU").  Off the caller's CPU, a helper shares a core with the
+  // other process at worst.  The mask is reset only when the caller has moved since the last job (one syscall per
+  // helper then).  MODI_EXT_HELPER_AFFINITY=0 leaves the helpers anywhere in the process's CPU set.
+  void place_helpers() {
+#ifdef __linux__
+    const char* env = std::getenv("MODI_EXT_HELPER_AFFINITY");
+    const bool off = env != nullptr && std::strcmp(env, "0") == 0;
+    int cpu = off ? -1 : sched_getcpu();
+    if (cpu == placed_cpu_ && handles_.size() == placed_n_) return;
+    if (!allowed_ready_) {
+      CPU_ZERO(&allowed_);
+      if (sched_getaffinity(0, sizeof(allowed_), &allowed_) != 0) return;
+      allowed_ready_ = true;
+    }
+    cpu_set_t mask = allowed_;
+    if (cpu >= 0 && CPU_COUNT(&allowed_) >= 2 && CPU_ISSET(cpu, &allowed_))
+      CPU_CLR(cpu, &mask);
+    else
+      cpu = -1;  // nowhere else to go, or no CPU number: the whole set
+    for (pthread_t h : handles_) pthread_setaffinity_np(h, sizeof(mask), &mask);
+    placed_cpu_ = cpu;
+    placed_n_ = handles_.size();
+#endif
   }
 
   void loop(int index) {
@@ -254,6 +287,13 @@ class Pool {
   std::shared_ptr<Job> current_;
   int sleepers_ = 0;
   size_t threads_ = 0;
+  std::vector<pthread_t> handles_;
+#ifdef __linux__
+  cpu_set_t allowed_;  // the CPUs this process may use, read at the first placement
+#endif
+  bool allowed_ready_ = false;
+  int placed_cpu_ = -1;  // the caller's CPU the helpers were kept off at the last placement; -1: none
+  size_t placed_n_ = 0;
 };
 
 inline bool use_omp_team() {
