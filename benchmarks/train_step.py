@@ -14,7 +14,9 @@ Sides (``--sides``, comma separated):
 * ``ext_refgrad``  the C++ kernels for forward and first-order backward, but the graph of a gradient (R1, path
                    length, WGAN-GP) built through the dense reference (``MODI_EXT_DOUBLE=ref``: how the extension
                    worked before ``modi_ext.gradfix``);
-* ``ext``          the kernels for every order.
+* ``ext``          the kernels for every order;
+* ``ext_torchdemod`` as ``ext``, with the demodulation coefficients from torch ops (``MODI_EXT_DEMOD=torch``: how
+                   the extension worked before ``modi_ext.demod``).
 
 MoDi: one trainer per side, identical weights and seeds, on Bandai-Namco-1 (../shared/data) or the procedural clips.
 The sides advance in interleaved chunks of one lazy-regularisation cycle (16 iterations: one R1 step, four path-length
@@ -52,7 +54,8 @@ from modi_ext import HAS_EXT  # noqa: E402
 SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
          "dense": {"MODI_EXT_IMPL": "dense", "MODI_EXT_DOUBLE": "ext"},
          "ext_refgrad": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ref"},
-         "ext": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext"}}
+         "ext": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext"},
+         "ext_torchdemod": {"MODI_EXT_IMPL": "ext", "MODI_EXT_DOUBLE": "ext", "MODI_EXT_DEMOD": "torch"}}
 
 
 def side_env(side: str):

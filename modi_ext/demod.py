@@ -6,9 +6,12 @@ few percent on a quiet machine, and as much as its two convolutions when another
 waits for its slowest thread).  On the CPU, for plain float32/float64 tensors in eager mode (``eager.usable``), the
 forward and the first-order backward here are one task-pool job each (``csrc/cpu/demod_cpu.cpp``).  A backward that
 must itself be differentiable (``create_graph``: path length, R1) is recomputed from the torch form, so every order of
-gradient stays exact.  Everywhere else (CUDA, half precision, compile, ``MODI_EXT_EAGER=0``) it is the torch form.
+gradient stays exact.  Everywhere else (CUDA, half precision, compile, ``MODI_EXT_EAGER=0``) it is the torch form;
+``MODI_EXT_DEMOD=torch`` asks for the torch form everywhere (for comparisons).
 """
 from __future__ import annotations
+
+import os
 
 import torch
 
@@ -65,7 +68,8 @@ def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor
                 up: bool, n_out: int, batch: int) -> torch.Tensor:
     """Demodulation coefficients ``(batch, Cout, E_out)``, as ``dense.demod_scale`` (same arguments and result)."""
     if (weight.device.type == "cpu" and weight.dtype in _CPU_DTYPES and (style is None or style.dtype == weight.dtype)
-            and kernel_available() and eager.usable(weight, style, index, offsets)):
+            and kernel_available() and os.environ.get("MODI_EXT_DEMOD", "auto") != "torch"
+            and eager.usable(weight, style, index, offsets)):
         d = _DemodKernel.apply(weight, style, index, offsets, up, n_out)
         return d if d.shape[0] == batch else d.expand(batch, -1, -1).contiguous()
     return dense.demod_scale(weight, index, offsets, style, up, n_out, batch)

@@ -113,6 +113,9 @@ def test_torch_form_where_the_kernel_does_not_apply(monkeypatch):
     monkeypatch.setenv("MODI_EXT_EAGER", "0")  # the registered path: torch ops only
     assert type(demod.demod_scale(w, index, offsets, s, up, n_out, batch).grad_fn).__name__ != "_DemodKernelBackward"
     monkeypatch.delenv("MODI_EXT_EAGER")
+    monkeypatch.setenv("MODI_EXT_DEMOD", "torch")  # asked for by name
+    assert type(demod.demod_scale(w, index, offsets, s, up, n_out, batch).grad_fn).__name__ != "_DemodKernelBackward"
+    monkeypatch.delenv("MODI_EXT_DEMOD")
     half = demod.demod_scale(w.to(torch.bfloat16), index, offsets, s.detach().to(torch.bfloat16), up, n_out, batch)
     assert half.dtype == torch.bfloat16  # no bfloat16 CPU kernel: the torch form
     assert ops.demod_scale is demod.demod_scale  # the public name is this dispatcher
