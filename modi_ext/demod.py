@@ -29,34 +29,38 @@ def kernel_available() -> bool:
                                                                               "demod_scale_backward")
 
 
-class _DemodKernel(torch.autograd.Function):
+def _run(weight, style, index, offsets, up: bool, n_out: int) -> torch.Tensor:
     """``(Bs, Cout, E_out)`` coefficients from the C++ op; ``Bs`` is the style's batch, 1 without a style."""
+    return torch.ops.modi_ext.demod_scale(weight, style, index, offsets, up, n_out, reference.DEMOD_EPS)
 
-    @staticmethod
-    def forward(ctx, weight, style, index, offsets, up: bool, n_out: int):
-        d = torch.ops.modi_ext.demod_scale(weight, style, index, offsets, up, n_out, reference.DEMOD_EPS)
-        ctx.save_for_backward(weight, style, index, offsets, d)
-        ctx.up, ctx.n_out = up, n_out
-        return d
 
-    @staticmethod
-    def backward(ctx, grad):
-        weight, style, index, offsets, d = ctx.saved_tensors
-        from modi_ext.gradfix import needed
+def _setup_context(ctx, inputs, output) -> None:
+    weight, style, index, offsets, up, n_out = inputs
+    ctx.save_for_backward(weight, style, index, offsets, output)
+    ctx.up, ctx.n_out = up, n_out
 
-        want = (needed(ctx, 0), style is not None and needed(ctx, 1))
-        if not any(want):
-            return None, None, None, None, None, None
-        if torch.is_grad_enabled():  # create_graph: the gradient must have a graph, so take it from the torch form
-            inputs = [t for t, w in zip((weight, style), want) if w]
-            with torch.enable_grad():
-                d_t = _torch_form(weight, style, index, offsets, ctx.up, ctx.n_out)
-                got = iter(torch.autograd.grad(d_t, inputs, grad, create_graph=True))
-            gw, gs = (next(got) if w else None for w in want)
-            return gw, gs, None, None, None, None
-        gw, gs = torch.ops.modi_ext.demod_scale_backward(grad.contiguous(), d, weight, style, index, offsets, ctx.up,
-                                                         ctx.n_out, list(want))
-        return (gw if want[0] else None), (gs if want[1] else None), None, None, None, None
+
+def _backward(ctx, grad):
+    weight, style, index, offsets, d = ctx.saved_tensors
+    from modi_ext.gradfix import needed
+
+    want = (needed(ctx, 0), style is not None and needed(ctx, 1))
+    if not any(want):
+        return None, None, None, None, None, None
+    if torch.is_grad_enabled():  # create_graph: the gradient must have a graph, so take it from the torch form
+        inputs = [t for t, w in zip((weight, style), want) if w]
+        with torch.enable_grad():
+            d_t = _torch_form(weight, style, index, offsets, ctx.up, ctx.n_out)
+            got = iter(torch.autograd.grad(d_t, inputs, grad, create_graph=True))
+        gw, gs = (next(got) if w else None for w in want)
+        return gw, gs, None, None, None, None
+    gw, gs = torch.ops.modi_ext.demod_scale_backward(grad.contiguous(), d, weight, style, index, offsets, ctx.up,
+                                                     ctx.n_out, list(want))
+    return (gw if want[0] else None), (gs if want[1] else None), None, None, None, None
+
+
+# the op below autograd with the rule above, as the skeletal ops' eager Functions (modi_ext.eager)
+_DemodEager = eager.make_function("demod_scale_eager", _run, _setup_context, _backward)
 
 
 def _torch_form(weight, style, index, offsets, up: bool, n_out: int) -> torch.Tensor:
@@ -70,7 +74,7 @@ def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor
     if (weight.device.type == "cpu" and weight.dtype in _CPU_DTYPES and (style is None or style.dtype == weight.dtype)
             and kernel_available() and os.environ.get("MODI_EXT_DEMOD", "auto") != "torch"
             and eager.usable(weight, style, index, offsets)):
-        d = _DemodKernel.apply(weight, style, index, offsets, up, n_out)
+        d = _DemodEager.apply(weight, style, index, offsets, up, n_out)
         return d if d.shape[0] == batch else d.expand(batch, -1, -1).contiguous()
     return dense.demod_scale(weight, index, offsets, style, up, n_out, batch)
 

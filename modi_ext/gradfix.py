@@ -176,9 +176,9 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
             res["x"] = gxs
     if need["weight"]:
         xs = x * style.view(style.shape[0], style.shape[1], 1, 1) if style is not None else x
-        res["weight"] = grad_weight(gz, xs.contiguous(), index, offsets, kind, n_out, weight.shape[3],
-                                             padding_mode)
+        res["weight"] = grad_weight(gz, xs.contiguous(), index, offsets, kind, n_out, weight.shape[3], padding_mode)
     return res
 
 
-__all__ = ["needed", "skeletal_grad_input", "skeletal_grad_weight", "grad_input", "grad_weight", "graph_backward", "plain_forward"]
+__all__ = ["needed", "skeletal_grad_input", "skeletal_grad_weight", "grad_input", "grad_weight", "graph_backward",
+           "plain_forward"]

@@ -54,7 +54,8 @@ Shape check(const at::Tensor& weight, const std::optional<at::Tensor>& style, co
   TORCH_CHECK(weight.dim() == 4, "demod_scale: weight must be (A, nnz, C, U), got ", weight.dim(), " dims");
   TORCH_CHECK(index.scalar_type() == at::kLong && offsets.scalar_type() == at::kLong,
               "demod_scale: index and offsets must be int64");
-  TORCH_CHECK(index.device().is_cpu() && offsets.device().is_cpu(), "demod_scale: index and offsets must be on the CPU");
+  TORCH_CHECK(index.device().is_cpu() && offsets.device().is_cpu(),
+              "demod_scale: index and offsets must be on the CPU");
   TORCH_CHECK(index.dim() == 1 && offsets.dim() == 1 && offsets.numel() >= 2,
               "demod_scale: index must be 1-D and offsets 1-D with at least 2 entries");
   Shape s;

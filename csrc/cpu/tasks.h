@@ -12,10 +12,10 @@
 // * the threads: MODI_EXT_CPU_POOL=own (what modi_ext/omp_wait.py sets when OpenMP threads spin only briefly, as
 //   it chooses when another process keeps a CPU busy) runs jobs on this file's own helper threads: the caller never
 //   waits for a helper that has claimed nothing, helpers sleep when idle, and they are kept off the caller's CPU
-//   (Pool::place_helpers), so with one core busy two threads beat one.  MODI_EXT_CPU_POOL=omp runs them on torch's OpenMP team (at::parallel_for over one chunk per
-//   thread), the choice when libgomp keeps its default spin of milliseconds after every torch op: its spinning
-//   workers would hold the cores the helpers need (measured: benchmarks/RESULTS.md, "Busy machine").  Both use the
-//   user's thread count (torch.set_num_threads).
+//   (Pool::place_helpers), so with one core busy two threads beat one.  MODI_EXT_CPU_POOL=omp runs them on torch's
+//   OpenMP team (at::parallel_for over one chunk per thread), the choice when libgomp keeps its default spin of
+//   milliseconds after every torch op: its spinning workers would hold the cores the helpers need (measured:
+//   benchmarks/RESULTS.md, "Busy machine").  Both use the user's thread count (torch.set_num_threads).
 //
 // Calls below a work threshold run on the calling thread, where waking threads costs more than it saves.  Results
 // never depend on which thread runs a task: a task writes its own outputs, and the slot index it receives only
