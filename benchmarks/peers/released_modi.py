@@ -394,11 +394,21 @@ def trained_checkpoint(args: argparse.Namespace, workdir: Path | str, iters: int
         old_fig = tm.motion2fig
         tm.motion2fig = lambda *a, **k: _NoFigure()
         tm.get_rank = lambda: 0
+        channels = list(getattr(args, "n_channels_max", peer.traits.SkeletonTraits.n_channels_max))
+        old_opts = tm.TrainOptions
+
+        class Options(old_opts):  # their parser, plus the channel widths this harness ran with (saved in args)
+            def after_parse(self, a):
+                a = super().after_parse(a)
+                a.n_channels_max = channels
+                return a
+
+        tm.TrainOptions = Options
         try:
             with _channels(peer, args), contextlib.redirect_stderr(open(os.devnull, "w")):
                 tm.main(argv)
         finally:
-            tm.motion2fig = old_fig
+            tm.motion2fig, tm.TrainOptions = old_fig, old_opts
     ckpt = workdir / "checkpoint" / f"{iters - 1:06d}.pt"
     if not ckpt.is_file():
         raise RuntimeError(f"their train.main wrote no {ckpt}")

@@ -46,6 +46,13 @@ class ModelConfig:
     neighbors: str = "siblings"
     pooling: str = "merge"
     mbstd_group: int = 4
+    # "weight": StyleGAN2 weight demodulation (the paper); "activations": the released code's, each styled conv's
+    # output divided by its standard deviation over entities and frames (what imported released checkpoints use)
+    demodulation: str = "weight"
+    # frames beyond the clip's start at the conv scalers: "adjoint" (modi's up/down ops, each the other's exact
+    # adjoint, read zeros there); "stylegan2" (StyleGAN2's upfirdn padding, the released code's: the generator's
+    # upsampler keeps the transposed conv's first tap and the discriminator's downsampler one more blurred frame)
+    time_padding: str = "adjoint"
 
     def validate(self) -> None:
         if self.scaler not in ("conv", "pool"):
@@ -62,6 +69,10 @@ class ModelConfig:
             raise ValueError(f"model.neighbors must be 'siblings' or 'tree', not {self.neighbors!r}")
         if self.pooling not in ("merge", "released"):
             raise ValueError(f"model.pooling must be 'merge' or 'released', not {self.pooling!r}")
+        if self.demodulation not in ("weight", "activations"):
+            raise ValueError(f"model.demodulation must be 'weight' or 'activations', not {self.demodulation!r}")
+        if self.time_padding not in ("adjoint", "stylegan2"):
+            raise ValueError(f"model.time_padding must be 'adjoint' or 'stylegan2', not {self.time_padding!r}")
 
 
 @dataclass

@@ -274,6 +274,7 @@ def _modconv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, mode: str,
 
     ``per_entity`` gives every entity its own weights with no neighbours (the to-motion 1x1 projection)."""
     k = cfg.kernel_size if kernel_size is None else kernel_size
+    demodulate = demodulate and cfg.demodulation == "weight"  # "activations": StyledConv normalises instead
     if not cfg.skeleton_aware:
         size = (level.n_entities, level.n_frames)
         return PseudoImageConv(cin, cout, k, style_dim=cfg.latent_dim, demodulate=demodulate,
@@ -311,13 +312,29 @@ def _down(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: LevelS
         topo = fine.neighbors if kernel_size > 1 else [[j] for j in range(fine.n_entities)]
         return nn.Sequential(layers.SkeletalConv(cin, cout, topo, kernel_size=kernel_size, bias=False),
                              _SkeletalPoolDown(fine.up_pooling, fine.n_entities))
+    if cfg.time_padding == "stylegan2":  # 2 more zero frames before the blur, the extra coarse frame cropped
+        return nn.Sequential(_Blur(2), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
+                                                                 bias=False), _CropStart(1))
     return nn.Sequential(_Blur(), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
                                                             bias=False))
 
 
 class _Blur(nn.Module):
+    def __init__(self, pad_start: int = 0):
+        super().__init__()
+        self.pad_start = pad_start
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return fir_blur_time(x)
+        return fir_blur_time(F.pad(x, (self.pad_start, 0)) if self.pad_start else x)
+
+
+class _CropStart(nn.Module):
+    def __init__(self, n: int):
+        super().__init__()
+        self.n = n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., self.n:]
 
 
 class _NoStyle(nn.Module):
@@ -336,15 +353,20 @@ class StyledConv(nn.Module):
     The released MoDi has no noise injection (modulated conv + bias + leaky ReLU); StyleGAN2's per-(entity, frame)
     noise is the ``use_noise`` option."""
 
-    def __init__(self, conv: nn.Module, out_ch: int, n_entities: int, n_frames: int, use_noise: bool):
+    def __init__(self, conv: nn.Module, out_ch: int, n_entities: int, n_frames: int, use_noise: bool,
+                 demodulate_activations: bool = False, stylegan2_up: bool = False):
         super().__init__()
         self.conv = conv
+        self.demodulate_activations = demodulate_activations  # released MoDi: out / std over (entities, frames)
+        self.stylegan2_up = stylegan2_up  # upsampler with StyleGAN2's padding: one zero frame in, two frames cropped
         self.noise = NoiseInjection() if use_noise else None
         self.act = FusedLeakyReLU(out_ch)
         self.noise_shape = (n_entities, n_frames)
 
     def forward(self, x: torch.Tensor, w: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-        x = self.conv(x, w)
+        x = self.conv(F.pad(x, (1, 0)), w)[..., 2:] if self.stylegan2_up else self.conv(x, w)
+        if self.demodulate_activations:
+            x = x / x.std((2, 3), keepdim=True)
         if self.noise is not None:
             if noise is None:
                 noise = x.new_empty(x.shape[0], 1, x.shape[2], x.shape[3]).normal_()
@@ -396,9 +418,9 @@ class Generator(nn.Module):
 
         lv0 = self.levels[0]
         self.const = nn.Parameter(torch.randn(1, lv0.channels, lv0.n_entities, lv0.n_frames))
-        noise = cfg.noise_injection
+        noise, act_demod = cfg.noise_injection, cfg.demodulation == "activations"
         self.conv1 = StyledConv(_modconv(cfg, lv0.channels, lv0.channels, lv0, "same"),
-                                lv0.channels, lv0.n_entities, lv0.n_frames, noise)
+                                lv0.channels, lv0.n_entities, lv0.n_frames, noise, act_demod)
         self.to_motion1 = ToMotion(cfg, lv0.channels, out_channels, lv0)
 
         self.blocks = nn.ModuleList()
@@ -407,11 +429,12 @@ class Generator(nn.Module):
         self.n_inplace = n_inplace
         for i in range(1, len(self.levels)):
             prev, lv = self.levels[i - 1], self.levels[i]
+            sg2_up = cfg.time_padding == "stylegan2" and cfg.skeleton_aware and cfg.scaler == "conv"
             convs = [StyledConv(_modconv(cfg, prev.channels, lv.channels, lv, "up"),
-                                lv.channels, lv.n_entities, lv.n_frames, noise)]
+                                lv.channels, lv.n_entities, lv.n_frames, noise, act_demod, sg2_up)]
             for _ in range(n_inplace):
                 convs.append(StyledConv(_modconv(cfg, lv.channels, lv.channels, lv, "same"),
-                                        lv.channels, lv.n_entities, lv.n_frames, noise))
+                                        lv.channels, lv.n_entities, lv.n_frames, noise, act_demod))
             self.blocks.append(nn.ModuleList(convs))
             self.to_motions.append(ToMotion(cfg, lv.channels, out_channels, lv))
         self.n_latent = 2 + (len(self.levels) - 1) * (1 + n_inplace)

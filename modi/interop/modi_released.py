@@ -1,0 +1,265 @@
+"""Convert a checkpoint written by the authors' released MoDi (``train.py``) into a modi run.
+
+The released code stores every skeletal convolution as a dense ``(Cout, Cin, E_out, E_in, U)`` weight times a
+fixed 0/1 mask, with an equalised-lr factor per output entity; modi stores one ``(Cout, Cin, U)`` block per
+(output, input) entity pair that the topology connects. Conversion keeps each pair's *effective* weight
+(weight x mask x factor), so it refuses any weight that is non-zero outside the mask (that value would be
+silently lost) and lists the offending entries.
+
+Topology comes from the masks themselves (the released code derives them from the skeleton; reading them back
+needs neither their code nor their config): each level's neighbours from its in-place convs, the pooling map
+from its upsampling conv, the contact entities' feet from the finest neighbours. Where the released model differs
+from modi's defaults the imported config says so: activation demodulation (``model.demodulation="activations"``),
+the released "tree" neighbours and pooling, and no noise. Two released details modi has no parameter for and
+which the conversion reproduces exactly: the generator's upsampling factor per coarse entity (folded into the
+weights), and the discriminator's 1x1 skip, which reads only one fine entity per coarse one (modi's skip reads the
+whole group: the other pairs are imported as zeros).
+
+Motion layout (entities): the root's rotation, one rotation per bone (the released "edge" rotations), the
+root motion, the contact labels. :func:`edge_skeleton` builds the modi skeleton whose forward kinematics
+reproduces the released BVH output from that layout.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from modi.errors import CheckpointError, UserError
+
+REQUIRED = ("g", "g_ema", "d", "args", "mean_joints", "std_joints")
+
+
+class MaskViolation(CheckpointError):
+    """A released weight is non-zero where its mask is zero (the compact form cannot hold it)."""
+
+
+# --------------------------------------------------------------------------------------------- reading
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The released checkpoint's dict, checked for what conversion needs (as data: see ``released_files``)."""
+    from modi.interop.released_files import load_released_file
+
+    st = load_released_file(path, "released MoDi checkpoint")
+    missing = [k for k in REQUIRED if k not in st]
+    if missing:
+        raise CheckpointError(f"{path}: not a released MoDi checkpoint (missing {', '.join(missing)})")
+    args = st["args"]
+    if not isinstance(args, argparse.Namespace):
+        raise CheckpointError(f"{path}: 'args' is {type(args).__name__}, not their argparse Namespace")
+    if getattr(args, "entity", "Edge") != "Edge":
+        raise CheckpointError(f"{path}: entity {args.entity!r}: only the released 'Edge' (rotation) models import")
+    if not getattr(args, "skeleton", False) or not (getattr(args, "conv3", False) or getattr(args, "conv3fast", False)):
+        kind = "joints_pool" if getattr(args, "joints_pool", False) else "non-skeleton-aware"
+        raise CheckpointError(f"{path}: a {kind} model; only the released --skeleton --conv3/--conv3fast models import")
+    if getattr(args, "rotation_repr", "quaternion") != "quaternion":
+        raise CheckpointError(f"{path}: rotation_repr {args.rotation_repr!r}: only quaternion models import")
+    return st
+
+
+# --------------------------------------------------------------------------------------------- topology
+def _rows(mask: torch.Tensor) -> list[list[int]]:
+    """``mask (E_out, E_in)`` -> for each output entity the input entities it reads, ascending."""
+    return [[int(i) for i in torch.nonzero(mask[j] != 0).flatten()] for j in range(mask.shape[0])]
+
+
+def _entity_mask(mask: torch.Tensor, name: str = "") -> torch.Tensor:
+    """A dense mask (…, Cout, Cin, E_out, E_in, U) reduced to its skeletal pattern: the entity pairs connected for
+    every channel pair and tap (in a released mask, exactly the pairs connected at all; see ``check_masks``)."""
+    m = mask.reshape(-1, *mask.shape[-5:])  # ([1,] Cout, Cin, E_out, E_in, U) -> (n, Cout, Cin, Eo, Ei, U)
+    return (m != 0).all(0).all(0).all(0).all(-1)
+
+
+def n_convs_per_level(args: argparse.Namespace) -> int:
+    return 1 + int(args.n_inplace_conv)
+
+
+def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> list[Any]:
+    """Coarse -> fine ``LevelSpec``s read from the generator's masks and shapes."""
+    from modi.modi_model.networks import LevelSpec
+
+    const = g_sd["input.input"]
+    n_to = len({k.split(".")[1] for k in g_sd if k.startswith("to_xyzs.")})
+    per = n_convs_per_level(args)
+    levels = [LevelSpec(n_entities=int(const.shape[2]), neighbors=_rows(_entity_mask(g_sd["conv1.conv.mask"][0],
+                        "conv1")), up_pooling=None, n_frames=int(const.shape[3]), channels=int(const.shape[1]))]
+    for i in range(1, n_to + 1):
+        up = f"convs.{(i - 1) * per}.conv"
+        same = f"convs.{(i - 1) * per + 1}.conv"
+        up_mask = _entity_mask(g_sd[f"{up}.mask"][0], up)  # (coarse, fine)
+        same_mask = _entity_mask(g_sd[f"{same}.mask"][0], same)
+        levels.append(LevelSpec(n_entities=int(same_mask.shape[0]), neighbors=_rows(same_mask),
+                                up_pooling=_rows(up_mask), n_frames=levels[-1].n_frames * 2,
+                                channels=int(g_sd[f"{same}.weight"].shape[1])))
+    return levels
+
+
+def model_config(args: argparse.Namespace, levels: Sequence[Any]) -> Any:
+    """modi's ModelConfig for a released model (see the module docstring for the named differences)."""
+    from modi.modi_model.config import ModelConfig
+
+    return ModelConfig(latent_dim=int(args.latent), n_mlp=int(args.n_mlp), lr_mlp=0.01,
+                       channels=tuple(lv.channels for lv in levels), kernel_size=3,
+                       n_inplace_convs=int(args.n_inplace_conv), scaler="conv", skeleton_aware=True,
+                       noise_injection=False, neighbors="tree", pooling="released", mbstd_group=4,
+                       demodulation="activations", time_padding="stylegan2")
+
+
+# --------------------------------------------------------------------------------------------- weights
+def check_masks(sd: dict[str, torch.Tensor], where: str) -> None:
+    """Refuse a state dict whose masked weights the compact form cannot hold, naming each offending entry.
+
+    The effective weight is weight x mask. Raw weights where the mask is 0 are dead (multiplied by zero in every
+    forward, so they never receive a gradient: the released code leaves them at their random initial values) and
+    are dropped. What must hold: every mask is 0/1, and wherever weight x mask is non-zero the entity pair is
+    connected for every channel pair and tap (the skeletal pattern a compact pair block stores)."""
+    bad = []
+    for k, mask in sd.items():
+        if not k.endswith(".mask"):
+            continue
+        name = f"{where}.{k[:-5]}.weight"
+        w = sd[k[: -len("mask")] + "weight"]
+        if not bool(((mask == 0) | (mask == 1)).all()):
+            bad.append(f"{name}: its mask holds values other than 0 and 1")
+            continue
+        pattern = _entity_mask(mask)  # (E_out, E_in)
+        inside = pattern[..., None].expand(mask.shape[-3:])
+        stray = (w * mask != 0) & ~inside
+        n = int(stray.sum())
+        if n:
+            idx = tuple(int(i) for i in torch.nonzero(stray)[0])
+            bad.append(f"{name}: {n} non-zero outside its skeletal mask (first at {idx}, "
+                       f"max |w| {float((w * mask)[stray].abs().max()):.3g})")
+    if bad:
+        raise MaskViolation("released weights the compact per-pair form cannot hold: " + "; ".join(bad))
+
+
+def _pairs(mod: Any) -> tuple[list[int], list[int]]:
+    """(row, input entity) of every stored pair of a modi skeletal layer, in storage order."""
+    offsets = mod.offsets.tolist()
+    index = mod.index.tolist()
+    rows = [r for r in range(len(offsets) - 1) for _ in range(offsets[r], offsets[r + 1])]
+    return rows, index
+
+
+def _pair_blocks(w: torch.Tensor, scale: torch.Tensor, rows: list[int], cols: list[int]) -> torch.Tensor:
+    """Effective released blocks ``(Cout, nnz, Cin, U)`` of the pairs (row, col): masked weight x per-row factor
+    (a pair modi stores that the released mask does not connect gets zeros)."""
+    s = scale.reshape(-1).to(torch.float64)  # one factor per released output row (E_out)
+    w = w.to(torch.float64)
+    blocks = [w[:, :, r, c, :] * s[r] for r, c in zip(rows, cols)]
+    return torch.stack(blocks, 1)
+
+
+def _same(mod: Any, w: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """A modi SkeletalConv/SkeletalDownsample weight ``(Cout, nnz, Cin, U)`` with the released effective weight."""
+    rows, cols = _pairs(mod)
+    eff = _pair_blocks(w, scale, rows, cols)
+    return (eff / mod.weight_scale.to(torch.float64).view(1, -1, 1, 1)).to(mod.weight.dtype)
+
+
+def _up(mod: Any, w: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """A modi SkeletalUpsample weight ``(Cin, nnz, Cout, U)`` from the released (Cout, Cin, coarse, fine, U)."""
+    rows, cols = _pairs(mod)
+    eff = _pair_blocks(w, scale, rows, cols)  # (Cout, nnz, Cin, U)
+    eff = eff / mod.weight_scale.to(torch.float64).view(1, -1, 1, 1)
+    return eff.permute(2, 1, 0, 3).contiguous().to(mod.weight.dtype)
+
+
+def _linear(dst: dict, prefix: str, sd: dict, src: str) -> None:
+    dst[f"{prefix}.weight"] = sd[f"{src}.weight"].clone()
+    dst[f"{prefix}.bias"] = sd[f"{src}.bias"].clone()
+
+
+def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
+                      out_channels: int, w_avg: torch.Tensor | None = None) -> Any:
+    """A modi ``Generator`` holding the released generator's function (float32, like the released file)."""
+    from modi.modi_model.networks import Generator
+
+    check_masks(g_sd, "g")
+    cfg = model_config(args, levels)
+    g = Generator(cfg, levels, out_channels)
+    sd: dict[str, torch.Tensor] = {}
+    for i in range(1, int(args.n_mlp) + 1):
+        _linear(sd, f"mapping.net.{i}", g_sd, f"style.{i}")
+    sd["const"] = g_sd["input.input"].clone()
+    sd["w_avg"] = torch.zeros(cfg.latent_dim) if w_avg is None else w_avg.detach().reshape(-1).float()
+
+    def styled(dst: str, src: str, mod: Any, up: bool = False) -> None:
+        w, scale = (g_sd[f"{src}.weight"] * g_sd[f"{src}.mask"])[0], g_sd[f"{src}.scale"][0]
+        sd[f"{dst}.conv.weight"] = _up(mod, w, scale) if up else _same(mod, w, scale)
+        _linear(sd, f"{dst}.affine", g_sd, f"{src}.modulation")
+
+    styled("conv1.conv", "conv1.conv", g.conv1.conv.conv)
+    sd["conv1.act.bias"] = g_sd["conv1.activate.bias"].clone()
+    styled("to_motion1.conv", "to_xyz1.conv", g.to_motion1.conv.conv)
+    sd["to_motion1.bias"] = g_sd["to_xyz1.bias"].clone()
+    per = n_convs_per_level(args)
+    for b, block in enumerate(g.blocks):
+        for j, layer in enumerate(block):
+            src = f"convs.{b * per + j}"
+            styled(f"blocks.{b}.{j}.conv", f"{src}.conv", layer.conv.conv, up=j == 0)
+            sd[f"blocks.{b}.{j}.act.bias"] = g_sd[f"{src}.activate.bias"].clone()
+        styled(f"to_motions.{b}.conv", f"to_xyzs.{b}.conv", g.to_motions[b].conv.conv)
+        sd[f"to_motions.{b}.bias"] = g_sd[f"to_xyzs.{b}.bias"].clone()
+    g.load_state_dict(sd)
+    return g
+
+
+def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
+                          in_channels: int) -> Any:
+    """A modi ``Discriminator`` holding the released discriminator's function."""
+    from modi.modi_model.networks import Discriminator
+
+    check_masks(d_sd, "d")
+    cfg = model_config(args, levels)
+    d = Discriminator(cfg, levels, in_channels)
+    sd: dict[str, torch.Tensor] = {}
+
+    def conv(dst: str, src: str, mod: Any) -> None:
+        sd[dst] = _same(mod, d_sd[f"{src}.weight"] * d_sd[f"{src}.mask"], d_sd[f"{src}.scale"][0, 0])
+
+    conv("from_motion.conv.weight", "convs.0.0", d.from_motion.conv)
+    sd["from_motion.act.bias"] = d_sd["convs.0.1.bias"].clone()
+    n_inplace = int(args.n_inplace_conv)
+    for b, block in enumerate(d.blocks):
+        src = f"convs.{b + 1}"
+        for j in range(n_inplace):
+            conv(f"blocks.{b}.convs.{j}.conv.weight", f"{src}.convs.{j}.0", block.convs[j].conv)
+            sd[f"blocks.{b}.convs.{j}.act.bias"] = d_sd[f"{src}.convs.{j}.1.bias"].clone()
+        conv(f"blocks.{b}.convs.{n_inplace}.conv.1.weight", f"{src}.convs.{n_inplace}.1",
+             block.convs[n_inplace].conv[1])
+        sd[f"blocks.{b}.convs.{n_inplace}.act.bias"] = d_sd[f"{src}.convs.{n_inplace}.2.bias"].clone()
+        conv(f"blocks.{b}.skip.1.weight", f"{src}.skip.1", block.skip[1])
+    conv("final_conv.conv.weight", "final_conv.0", d.final_conv.conv)
+    sd["final_conv.act.bias"] = d_sd["final_conv.1.bias"].clone()
+    for i in (0, 1):
+        _linear(sd, f"final_linear.{i}", d_sd, f"final_linear.{i}")
+    d.load_state_dict(sd)
+    return d
+
+
+def released_gradient(mod: Any, grad_compact: torch.Tensor, dense_shape: Sequence[int], scale: torch.Tensor,
+                      up: bool = False) -> torch.Tensor:
+    """A modi skeletal weight's gradient as the released dense weight's (zero outside the pairs).
+
+    Both parametrise the same effective weight ``w x factor``, so d loss / d w_released = d loss / d w_modi x
+    (released factor / modi factor), pair by pair. ``dense_shape`` is the released (Cout, Cin, E_out, E_in, U)."""
+    rows, cols = _pairs(mod)
+    g = grad_compact.to(torch.float64)
+    if up:
+        g = g.permute(2, 1, 0, 3)  # (Cin, nnz, Cout, U) -> (Cout, nnz, Cin, U)
+    ratio = scale.reshape(-1).to(torch.float64)[rows] / mod.weight_scale.to(torch.float64)
+    g = g * ratio.view(1, -1, 1, 1)
+    out = torch.zeros(tuple(dense_shape), dtype=torch.float64)
+    for p, (r, c) in enumerate(zip(rows, cols)):
+        out[:, :, r, c, :] = g[:, p]
+    return out
+
+
+__all__ = ["MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
+           "convert_generator", "convert_discriminator", "released_gradient"]
