@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+import modi
 from modi import faults
 from modi.errors import CheckpointError, UserError
 from modi.ganimator.config import GanimatorConfig
@@ -101,16 +102,32 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.exit_code = faults.exit_code(signum)
 
 
+# what to do with a checkpoint modi cannot read as data (the authors' runs convert through issue 30's importer)
+_INSTEAD = ("re-train it with 'modi ganimator train', or convert a run of the authors' released code with "
+            "'modi import ganimator-released'")
+
+
 def read_checkpoint(run: str | Path) -> dict:
+    """The checkpoint of a run folder (or ``.ckpt`` file), read as data only (``modi.io.safe_load``): every
+    ``modi.ganimator/1`` file modi has written holds plain containers and tensors; one that names any other code is
+    refused, unrun, with one line."""
+    from modi.io.safe_load import UnreadableFileError, load_data, numpy_data_globals
+
     path = checkpoint_path(run)
     if not path.is_file():
+        if path.parent.is_dir() and (path.parent / "gen000.pt").is_file():
+            raise CheckpointError(f"no GANimator checkpoint at {path}: {path.parent} looks like a run of the authors' "
+                                  "released code; convert it with 'modi import ganimator-released'")
         raise CheckpointError(f"no GANimator checkpoint at {path}")
-    try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # a truncated or foreign file
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc}") from None
+    try:  # numpy arrays are data too (an earlier draft might have stored some)
+        ck = load_data(path, "GANimator checkpoint", allowed=numpy_data_globals(), hint=f"; {_INSTEAD}")
+    except UnreadableFileError as exc:  # a truncated or foreign file
+        raise CheckpointError(f"cannot read checkpoint {path}: {exc.reason}") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
-        raise CheckpointError(f"{path} is not a GANimator checkpoint (format {ck.get('format') if isinstance(ck, dict) else '?'})")
+        found = ck.get("format") if isinstance(ck, dict) else None
+        what = "a MoDi checkpoint: sample it with 'modi generate'" if found == "modi-checkpoint" else _INSTEAD
+        raise CheckpointError(f"{path} is not a GANimator checkpoint (format {found or '?'}, expected {FORMAT}); "
+                              f"{what}")
     return ck
 
 
@@ -270,6 +287,7 @@ class Trainer:
             "rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "cond_source": model_payload(self.cond_source) if self.cond_source is not None else None,
+            "modi_version": modi.__version__,
         }
 
     def save(self) -> None:
