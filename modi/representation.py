@@ -14,7 +14,8 @@ one entity per contact joint. Every entity has ``K`` channels; the shorter ones 
 Root-motion entity channels: ``root="velocity"`` (default; MoDi's choice) stores ``[x[t]-x[t-1], y[t],
 z[t]-z[t-1]]`` -- horizontal displacement per frame in world axes and the absolute height (height does not
 drift and is meaningful on its own); ``x[-1] = z[-1] = 0``, so frame 0 carries the starting ground position and
-a cumulative sum restores the trajectory exactly. ``root="position"`` stores ``[x, y, z]``. Y is up.
+a cumulative sum restores the trajectory exactly. ``root="position"`` stores ``[x, y, z]``. ``root="velocity3"``
+(the released MoDi's ``--use_velocity``, for imported checkpoints) differences all three axes. Y is up.
 Contact entities hold the label (0/1 in data, a logit or probability from a model) in channel 0.
 
 ``leaf_rotations="drop"`` (MoDi's released preprocessing): the local rotation of a joint without children moves no
@@ -37,7 +38,7 @@ from modi.skeleton import Skeleton
 from modi.topology import EntityLayout
 
 ROTATION_WIDTH = {"quat": 4, "6d": 6}
-ROOT_MODES = ("velocity", "position")
+ROOT_MODES = ("velocity", "position", "velocity3")
 LEAF_ROTATIONS = ("keep", "drop")
 
 
@@ -157,6 +158,8 @@ class MotionRepresentation:
         if self.root == "velocity":
             prev = torch.cat([torch.zeros_like(rp[..., :1, :]), rp[..., :-1, :]], dim=-2)
             rm = torch.stack([rp[..., 0] - prev[..., 0], rp[..., 1], rp[..., 2] - prev[..., 2]], dim=-1)
+        elif self.root == "velocity3":
+            rm = rp - torch.cat([torch.zeros_like(rp[..., :1, :]), rp[..., :-1, :]], dim=-2)
         else:
             rm = rp
         out = rot.new_zeros((*lead, T, self.n_entities, K))
@@ -179,6 +182,8 @@ class MotionRepresentation:
         if self.root == "velocity":
             xz = torch.cumsum(rm[..., [0, 2]], dim=-2)
             root = torch.stack([xz[..., 0], rm[..., 1], xz[..., 1]], dim=-1)
+        elif self.root == "velocity3":
+            root = torch.cumsum(rm, dim=-2)
         else:
             root = rm
         contacts = t[..., J + 1:J + 1 + F, 0]

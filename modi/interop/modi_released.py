@@ -261,5 +261,140 @@ def released_gradient(mod: Any, grad_compact: torch.Tensor, dense_shape: Sequenc
     return out
 
 
-__all__ = ["MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
+# --------------------------------------------------------------------------------------------- skeleton and codec
+def edge_skeleton(parents: Sequence[int], offsets: np.ndarray, names: Sequence[str]) -> Any:
+    """The modi skeleton whose joint ``i`` carries released entity ``i``'s rotation.
+
+    Released entity ``i > 0`` is the rotation of the bone from joint ``P[i]`` to ``i`` (``P`` =
+    ``parents_with_root``), composed down the chain; their BVH writer realises it by giving a joint with several
+    children one zero-offset dummy child per bone (``Hips_Spine``, ``Chest_Neck``, ...). Here joint ``i`` sits
+    where bone ``i`` starts: child of joint ``P[i]`` at offset ``offsets[P[i]]`` (zero when ``P[i]`` is the root),
+    and a leaf bone ends in an End Site at ``offsets[i]``. Its forward kinematics is the released BVH's; it has
+    the released BVH's joints except each multi-child joint, whose position its dummies share. Names follow
+    their writer: the joint's own name when the bone is its only one, ``parent_child`` for a dummy."""
+    from modi.skeleton import Skeleton
+
+    P = [int(p) for p in parents]
+    off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
+    names = [str(n) for n in names]
+    n_children = [0] * len(P)
+    for p in P[1:]:
+        n_children[p] += 1
+    out_names, out_off, ends = [names[0]], [off[0]], {}
+    for i in range(1, len(P)):
+        p = P[i]
+        out_names.append(names[p] if n_children[p] == 1 and p != 0 else f"{names[p]}_{names[i]}")
+        out_off.append(off[p] if p != 0 else np.zeros(3))
+        if n_children[i] == 0:
+            ends[i] = off[i].copy()
+    return Skeleton(out_names, P, np.stack(out_off), ends)
+
+
+def joint_of_bone_end(parents: Sequence[int], j: int) -> int:
+    """The edge-skeleton joint at the *end* of released bone ``j`` (where their joint ``j`` is): a child bone's
+    start, or joint ``j`` itself for a leaf (its End Site holds the exact end)."""
+    kids = [i for i, p in enumerate(parents) if p == j]
+    return kids[0] if kids else j
+
+
+def released_codec(motion0: dict, st: dict, feet_entities: Sequence[int], fps: float) -> Any:
+    """modi's ``MotionCodec`` for the released tensor layout: rotations, root motion, contacts, their statistics."""
+    from modi.modi_model.codec import MotionCodec
+    from modi.normalization import Normalizer
+    from modi.representation import MotionRepresentation
+
+    args = st["args"]
+    P = [int(p) for p in np.asarray(motion0["parents_with_root"]).tolist()]
+    offsets = np.concatenate([np.asarray(motion0["offset_root"], dtype=np.float64)[None],
+                              np.asarray(motion0["offsets_no_root"], dtype=np.float64)])
+    sk = edge_skeleton(P, offsets, list(np.asarray(motion0["names_with_root"]).tolist()))
+    if not getattr(args, "glob_pos", False):
+        raise CheckpointError("a released model without --glob_pos (no root-motion entity) is not supported")
+    root = "velocity3" if getattr(args, "use_velocity", False) else "position"
+    feet = [joint_of_bone_end(P, f) for f in feet_entities]
+    rep = MotionRepresentation(sk, feet, rotation="quat", root=root)
+    mean = torch.as_tensor(np.asarray(st["mean_joints"], dtype=np.float64)[0, :, :, 0].T)
+    std = torch.as_tensor(np.asarray(st["std_joints"], dtype=np.float64)[0, :, :, 0].T)
+    if tuple(mean.shape) != (rep.K, rep.n_entities):
+        raise CheckpointError(f"normalisation statistics are {tuple(mean.shape)} (K, E) but the skeleton in --data "
+                              f"gives ({rep.K}, {rep.n_entities}): the data is not the one this model was trained on")
+    return MotionCodec(rep, Normalizer(mean.float(), std.float()), fps)
+
+
+def contact_feet(levels: Sequence[Any], n_rot: int) -> list[int]:
+    """Released bone of each contact entity: its neighbour other than itself at the finest level (their contact
+    entities connect to their foot only)."""
+    fine = levels[-1]
+    out = []
+    for e in range(n_rot + 1, fine.n_entities):
+        other = [n for n in fine.neighbors[e] if n != e]
+        if len(other) != 1 or other[0] >= n_rot:
+            raise CheckpointError(f"contact entity {e}: neighbours {fine.neighbors[e]} are not one foot bone")
+        out.append(other[0])
+    return out
+
+
+def mean_w(g: Any, n: int = 4096, seed: int = 0) -> torch.Tensor:
+    """The centre of W for truncation: the released generate.py's ``mean_latent`` (the mean of ``n`` mapped
+    z), from a fixed seed so an import is reproducible."""
+    z = torch.randn(n, g.latent_dim, generator=torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        return g.mapping(z).mean(0)
+
+
+# --------------------------------------------------------------------------------------------- the run
+def _find_data(data: Path) -> Path:
+    if data.is_file():
+        return data
+    if data.is_dir():
+        found = sorted(data.glob("*.npy"))
+        if len(found) == 1:
+            return found[0]
+        raise UserError(f"--data {data}: expected the released training .npy (edge_rot_*.npy) or a folder with "
+                        f"exactly one .npy, found {len(found)}")
+    raise UserError(f"--data {data}: no such file or folder")
+
+
+def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: float = 30.0) -> Path:
+    """Write ``out/checkpoint.pt``, a modi run holding the released G, EMA G and D; returns its path."""
+    from modi.interop.released_files import load_released_npy
+    from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save
+    from modi.modi_model.config import MoDiConfig
+
+    st = read_checkpoint(ckpt)
+    motions = load_released_npy(_find_data(Path(data)))
+    if motions.ndim != 1 or len(motions) == 0 or not isinstance(motions[0], dict) or \
+            "parents_with_root" not in motions[0]:
+        raise UserError(f"--data {data}: not the released edge-rotation data (no 'parents_with_root' per clip)")
+    args = st["args"]
+    levels = released_levels(st["g_ema"], args)
+    n_rot = len(np.asarray(motions[0]["parents_with_root"]))
+    codec = released_codec(motions[0], st, contact_feet(levels, n_rot) if getattr(args, "foot", False) else [], fps)
+    if codec.n_entities != levels[-1].n_entities:
+        raise CheckpointError(f"the model's finest level has {levels[-1].n_entities} entities, the data's skeleton "
+                              f"{codec.n_entities}: --data is not this model's training data")
+    K = codec.n_channels
+    g = convert_generator(st["g"], args, levels, K)
+    g_ema = convert_generator(st["g_ema"], args, levels, K)
+    w = mean_w(g_ema)
+    g.w_avg.copy_(w)
+    g_ema.w_avg.copy_(w)
+    d = convert_discriminator(st["d"], args, levels, K)
+    cfg = MoDiConfig(model=model_config(args, levels), preset="released-import")
+    cfg.data.n_frames = levels[-1].n_frames
+    cfg.data.fps = float(fps)
+    cfg.train.batch = int(getattr(args, "batch", cfg.train.batch))
+    cfg.validate()
+    state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": cfg.to_dict(),
+             "codec": codec.state_dict(), "skeleton": codec.skeleton.to_dict(),
+             "levels": [lv.to_dict() for lv in levels], "G": g.state_dict(), "G_ema": g_ema.state_dict(),
+             "D": d.state_dict(), "step": 0, "imported_from": {"kind": "modi-released", "path": str(ckpt)}}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "checkpoint.pt"
+    atomic_torch_save(state, path)
+    return path
+
+
+__all__ = ["import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
            "convert_generator", "convert_discriminator", "released_gradient"]

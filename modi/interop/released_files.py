@@ -50,4 +50,70 @@ def load_released_file(path: str | os.PathLike, what: str = "released checkpoint
     return st
 
 
-__all__ = ["ALLOWED_GLOBALS", "load_released_file"]
+class ReleasedQuaternions:
+    """What a pickled ``Motion.Quaternions.Quaternions`` of the released code becomes: its ``qs`` array, no code."""
+
+    def __setstate__(self, state: dict) -> None:
+        self.qs = np.asarray(state.get("qs"), dtype=np.float64)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return self.qs if dtype is None else self.qs.astype(dtype)
+
+
+_NPY_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "_reconstruct"),
+    ("numpy.core.multiarray", "scalar"), ("numpy._core.multiarray", "scalar"),
+    ("numpy", "ndarray"), ("numpy", "dtype"), ("copyreg", "_reconstructor"), ("builtins", "object"),
+}
+
+
+def load_released_npy(path: str | os.PathLike) -> np.ndarray:
+    """A released ``.npy`` of pickled per-clip dicts (their ``preprocess_edges.py`` output), read with a pickle
+    loader that builds only numpy arrays, plain containers and :class:`ReleasedQuaternions`; any other class or
+    function named in the file is refused instead of imported."""
+    import io
+    import pickle
+
+    from numpy.lib import format as npy_format
+
+    p = Path(path)
+
+    class Restricted(pickle.Unpickler):
+        def find_class(self, module: str, name: str) -> Any:
+            if (module, name) in _NPY_GLOBALS:
+                if name == "_reconstruct":
+                    from numpy._core import multiarray
+                    return multiarray._reconstruct
+                if name == "scalar":
+                    from numpy._core import multiarray
+                    return multiarray.scalar
+                import builtins
+                import copyreg
+                return {"ndarray": np.ndarray, "dtype": np.dtype, "_reconstructor": copyreg._reconstructor,
+                        "object": builtins.object}[name]
+            if name == "Quaternions" and module.endswith("Quaternions"):
+                return ReleasedQuaternions
+            if module.startswith("numpy") and name.endswith("DType"):
+                import numpy.dtypes as npd
+                if hasattr(npd, name):
+                    return getattr(npd, name)
+            raise pickle.UnpicklingError(f"refusing {module}.{name}: it is code, not data")
+
+    try:
+        with open(p, "rb") as f:
+            version = npy_format.read_magic(f)
+            read_header = npy_format.read_array_header_1_0 if version == (1, 0) else npy_format.read_array_header_2_0
+            shape, _, dtype = read_header(f)
+            if dtype.hasobject:
+                arr = Restricted(io.BufferedReader(f)).load()
+            else:
+                arr = np.fromfile(f, dtype=dtype).reshape(shape)
+    except FileNotFoundError:
+        raise CheckpointError(f"{p}: no such file") from None
+    except Exception as exc:  # noqa: BLE001 - not an npy, truncated, or holding code we refuse
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"{p}: not a readable released data file ({first[:200]})") from None
+    return np.asarray(arr, dtype=object) if not isinstance(arr, np.ndarray) else arr
+
+
+__all__ = ["ALLOWED_GLOBALS", "load_released_file", "load_released_npy", "ReleasedQuaternions"]
