@@ -359,9 +359,15 @@ def build_dataset(
     cdir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     cache_file = cdir / f"dataset-{key}.pt"
     if cache and cache_file.is_file():
-        try:
-            return _from_state(torch.load(cache_file, map_location="cpu", weights_only=True), from_cache=True)
-        except Exception as exc:  # a corrupt or foreign cache file: rebuild it
+        from modi.io.safe_load import UnsafeFileError, load_data
+
+        try:  # as data only: a cache file naming code was put there by someone else, so say so (exit 2)
+            return _from_state(load_data(cache_file, "dataset cache file",
+                                         hint="; delete it (or pass --no-cache) to rebuild the cache"),
+                               from_cache=True)
+        except UnsafeFileError:
+            raise
+        except Exception as exc:  # a corrupt or stale cache file: rebuild it
             warnings.warn(f"ignoring unreadable dataset cache {cache_file}: {exc}", stacklevel=2)
     with _torch_threads(1):
         ds = _build(files, rels, shas, config, progress)

@@ -84,4 +84,11 @@ class Normalizer:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Normalizer":
-        return cls.from_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        from modi.io.safe_load import load_data
+
+        from modi.errors import CheckpointError
+
+        st = load_data(path, "normaliser file")  # as data only: code in the file is refused unrun
+        if not isinstance(st, dict) or not {"mean", "std"} <= set(st):
+            raise CheckpointError(f"{path}: not a normaliser file (no 'mean' and 'std' tensors)")
+        return cls.from_state_dict(st)

@@ -37,9 +37,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from modi import faults
+from modi import __version__ as modi_version, faults
 from modi.encoder.model import EncoderConfig, MotionEncoder, build_encoder, encode
 from modi.errors import CheckpointError, UserError
+from modi.io.safe_load import load_data
 from modi.latent.space import position_scale
 
 ENCODER_FORMAT = "modi-encoder"
@@ -303,11 +304,7 @@ def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "c
         where = str(p)
         if not p.is_file():
             raise CheckpointError(f"{p}: no such encoder checkpoint")
-        try:
-            st = torch.load(p, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001
-            raise CheckpointError(f"{p}: not a readable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") \
-                from None
+        st = load_data(p, "encoder checkpoint")  # as data only: code in the file is refused unrun
     if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
         hint = " (this is a generator checkpoint; train an encoder with 'modi encoder train')" \
             if isinstance(st, dict) and st.get("format") == "modi-checkpoint" else ""
@@ -506,6 +503,7 @@ class EncoderTrainer:
                     **({"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_available() else {})},
             "data_source": self.data.source, "data_info": self.data.info,
             "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": str(torch.__version__),
+            "modi_version": modi_version,
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -563,10 +561,7 @@ def _option_name(name: str) -> str:
 def _read_resume_checkpoint(p: Path) -> dict[str, Any]:
     if not p.is_file():
         raise CheckpointError(f"{p}: no encoder checkpoint to resume")
-    try:
-        st = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001
-        raise CheckpointError(f"{p}: unreadable encoder checkpoint ({(str(exc).splitlines() or [type(exc).__name__])[0][:200]})") from None
+    st = load_data(p, "encoder checkpoint")  # as data only: code in the file is refused unrun
     if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
         raise CheckpointError(f"{p}: not a MoDi encoder checkpoint")
     return st

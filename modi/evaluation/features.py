@@ -32,7 +32,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from modi import __version__ as modi_version
 from modi.errors import CheckpointError, UserError
+from modi.io.safe_load import load_data
 
 __all__ = [
     "FeatureConfig",
@@ -391,6 +393,7 @@ class FeatureExtractor:
             "mean": torch.from_numpy(self.mean),
             "std": torch.from_numpy(self.std),
             "info": json.loads(json.dumps(self.info)),
+            "modi_version": modi_version,
         }
 
     def save(self, path: str | os.PathLike) -> None:
@@ -406,10 +409,7 @@ def load_extractor(path: str | os.PathLike) -> FeatureExtractor:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"feature extractor not found: {path}")
-    try:
-        st = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 -- any unreadable file is the user's problem here
-        raise CheckpointError(f"{path}: not a readable feature-extractor file ({exc.__class__.__name__}: {exc})") from None
+    st = load_data(path, "feature-extractor file")  # as data only: code in the file is refused unrun
     if not isinstance(st, dict) or st.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a modi feature-extractor file (expected format {FORMAT!r})")
     cfg = dict(st["config"])

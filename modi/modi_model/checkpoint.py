@@ -8,10 +8,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from modi.errors import CheckpointError
 from modi.faults import atomic_torch_save  # the one atomic writer (disk full: one clear line)
+from modi.io.safe_load import load_data
 
 CHECKPOINT_FORMAT = "modi-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -29,14 +28,12 @@ def load_checkpoint(ckpt: str | os.PathLike | dict) -> dict[str, Any]:
             raise CheckpointError(f"{path}: no such checkpoint file")
         if not path.is_file():
             raise CheckpointError(f"{path}: is not a file")
-        try:
-            from torch.torch_version import TorchVersion  # a str subclass early drafts stored; harmless to allow
+        from torch.torch_version import TorchVersion  # a str subclass early drafts stored; harmless to allow
 
-            with torch.serialization.safe_globals([TorchVersion]):
-                st = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - truncated, corrupt, pickle-bearing or non-torch files
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise CheckpointError(f"{path}: not a readable MoDi checkpoint ({first[:200]})") from None
+        # as data only: a file naming any other code is refused unrun (UnsafeFileError, one line)
+        st = load_data(path, "MoDi checkpoint", allowed=[TorchVersion],
+                       hint="; only checkpoints written by 'modi train' load (the authors' released ones convert "
+                            "with 'modi import modi-released')")
     if not isinstance(st, dict) or st.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{where}: not a MoDi checkpoint (no '{CHECKPOINT_FORMAT}' format tag)")
     if int(st.get("version", 0)) > CHECKPOINT_VERSION:

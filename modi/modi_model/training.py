@@ -25,7 +25,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor, nn
 
-from modi import faults
+from modi import __version__ as modi_version, faults
 from modi.errors import CheckpointError, UserError
 from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint
 from modi.modi_model.codec import MotionCodec
@@ -546,6 +546,7 @@ class Trainer:
             "data_summary": _plain(self.data.summary),
             "last_losses": dict(self.last_losses),
             "torch_version": str(torch.__version__),
+            "modi_version": modi_version,  # for 'modi info'
         }
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
