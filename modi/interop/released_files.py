@@ -40,10 +40,13 @@ def load_released_file(path: str | os.PathLike, what: str = "released checkpoint
         with torch.serialization.safe_globals(ALLOWED_GLOBALS):
             st = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupt, truncated, or holding code we refuse to run
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if "Unsupported global" in str(exc):
-            glob = str(exc).split("Unsupported global:", 1)[1].strip().split()[1] if "GLOBAL" in str(exc) else "?"
+        text = str(exc).strip()
+        first = text.splitlines()[0] if text else type(exc).__name__
+        if "Unsupported global" in text:
+            glob = text.split("Unsupported global:", 1)[1].strip().split()[1] if "GLOBAL" in text else "?"
             first = f"it holds {glob}, which is code, not data; refusing to load it"
+        elif "WeightsUnpickler error:" in text:
+            first = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
         raise CheckpointError(f"{p}: not a readable {what} ({first[:200]})") from None
     if not isinstance(st, dict):
         raise CheckpointError(f"{p}: not a {what} (top level is {type(st).__name__}, not a dict)")
