@@ -147,27 +147,27 @@ def _pairs(mod: Any) -> tuple[list[int], list[int]]:
 
 
 def _pair_blocks(w: torch.Tensor, scale: torch.Tensor, rows: list[int], cols: list[int]) -> torch.Tensor:
-    """Effective released blocks ``(Cout, nnz, Cin, U)`` of the pairs (row, col): masked weight x per-row factor
-    (a pair modi stores that the released mask does not connect gets zeros)."""
-    s = scale.reshape(-1).to(torch.float64)  # one factor per released output row (E_out)
+    """Released blocks ``(Cout, nnz, Cin, U)`` of the pairs (row, col) of a masked dense weight (a pair modi
+    stores that the released mask does not connect gets zeros), and each pair's released per-row factor."""
+    s = scale.reshape(-1).to(torch.float64)[rows]  # one factor per released output row (E_out)
     w = w.to(torch.float64)
-    blocks = [w[:, :, r, c, :] * s[r] for r, c in zip(rows, cols)]
-    return torch.stack(blocks, 1)
+    return torch.stack([w[:, :, r, c, :] for r, c in zip(rows, cols)], 1), s
 
 
-def _same(mod: Any, w: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """A modi SkeletalConv/SkeletalDownsample weight ``(Cout, nnz, Cin, U)`` with the released effective weight."""
+def _same(mod: Any, w: torch.Tensor, scale: torch.Tensor, power: int = 1) -> torch.Tensor:
+    """A modi SkeletalConv/SkeletalDownsample weight ``(Cout, nnz, Cin, U)`` from a released masked dense one.
+
+    ``power=1`` (weights): the same effective weight, w_modi = w x released factor / modi factor.
+    ``power=-1`` (gradients of the same loss): g_modi = g x modi factor / released factor."""
     rows, cols = _pairs(mod)
-    eff = _pair_blocks(w, scale, rows, cols)
-    return (eff / mod.weight_scale.to(torch.float64).view(1, -1, 1, 1)).to(mod.weight.dtype)
+    blocks, s_rel = _pair_blocks(w, scale, rows, cols)
+    ratio = (s_rel / mod.weight_scale.to(torch.float64)) ** power
+    return (blocks * ratio.view(1, -1, 1, 1)).to(mod.weight.dtype)
 
 
-def _up(mod: Any, w: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+def _up(mod: Any, w: torch.Tensor, scale: torch.Tensor, power: int = 1) -> torch.Tensor:
     """A modi SkeletalUpsample weight ``(Cin, nnz, Cout, U)`` from the released (Cout, Cin, coarse, fine, U)."""
-    rows, cols = _pairs(mod)
-    eff = _pair_blocks(w, scale, rows, cols)  # (Cout, nnz, Cin, U)
-    eff = eff / mod.weight_scale.to(torch.float64).view(1, -1, 1, 1)
-    return eff.permute(2, 1, 0, 3).contiguous().to(mod.weight.dtype)
+    return _same(mod, w, scale, power).permute(2, 1, 0, 3).contiguous()
 
 
 def _linear(dst: dict, prefix: str, sd: dict, src: str) -> None:
@@ -181,8 +181,16 @@ def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, l
     from modi.modi_model.networks import Generator
 
     check_masks(g_sd, "g")
-    cfg = model_config(args, levels)
-    g = Generator(cfg, levels, out_channels)
+    g = Generator(model_config(args, levels), levels, out_channels)
+    g.load_state_dict(generator_state(g_sd, args, g, w_avg))
+    return g
+
+
+def generator_state(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, g: Any,
+                    w_avg: torch.Tensor | None = None, power: int = 1) -> dict[str, torch.Tensor]:
+    """The state dict of modi generator ``g`` for released generator tensors ``g_sd`` (weights with masks and
+    factors; with ``power=-1``, their gradients in place of the weights: see ``_same``)."""
+    cfg = g.cfg
     sd: dict[str, torch.Tensor] = {}
     for i in range(1, int(args.n_mlp) + 1):
         _linear(sd, f"mapping.net.{i}", g_sd, f"style.{i}")
@@ -191,7 +199,7 @@ def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, l
 
     def styled(dst: str, src: str, mod: Any, up: bool = False) -> None:
         w, scale = (g_sd[f"{src}.weight"] * g_sd[f"{src}.mask"])[0], g_sd[f"{src}.scale"][0]
-        sd[f"{dst}.conv.weight"] = _up(mod, w, scale) if up else _same(mod, w, scale)
+        sd[f"{dst}.conv.weight"] = _up(mod, w, scale, power) if up else _same(mod, w, scale, power)
         _linear(sd, f"{dst}.affine", g_sd, f"{src}.modulation")
 
     styled("conv1.conv", "conv1.conv", g.conv1.conv.conv)
@@ -206,8 +214,7 @@ def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, l
             sd[f"blocks.{b}.{j}.act.bias"] = g_sd[f"{src}.activate.bias"].clone()
         styled(f"to_motions.{b}.conv", f"to_xyzs.{b}.conv", g.to_motions[b].conv.conv)
         sd[f"to_motions.{b}.bias"] = g_sd[f"to_xyzs.{b}.bias"].clone()
-    g.load_state_dict(sd)
-    return g
+    return sd
 
 
 def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
@@ -216,12 +223,19 @@ def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespac
     from modi.modi_model.networks import Discriminator
 
     check_masks(d_sd, "d")
-    cfg = model_config(args, levels)
-    d = Discriminator(cfg, levels, in_channels)
+    d = Discriminator(model_config(args, levels), levels, in_channels)
+    d.load_state_dict(discriminator_state(d_sd, args, d))
+    return d
+
+
+def discriminator_state(d_sd: dict[str, torch.Tensor], args: argparse.Namespace, d: Any,
+                        power: int = 1) -> dict[str, torch.Tensor]:
+    """The state dict of modi discriminator ``d`` for released discriminator tensors (``power`` as in
+    ``generator_state``)."""
     sd: dict[str, torch.Tensor] = {}
 
     def conv(dst: str, src: str, mod: Any) -> None:
-        sd[dst] = _same(mod, d_sd[f"{src}.weight"] * d_sd[f"{src}.mask"], d_sd[f"{src}.scale"][0, 0])
+        sd[dst] = _same(mod, d_sd[f"{src}.weight"] * d_sd[f"{src}.mask"], d_sd[f"{src}.scale"][0, 0], power)
 
     conv("from_motion.conv.weight", "convs.0.0", d.from_motion.conv)
     sd["from_motion.act.bias"] = d_sd["convs.0.1.bias"].clone()
@@ -239,26 +253,7 @@ def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespac
     sd["final_conv.act.bias"] = d_sd["final_conv.1.bias"].clone()
     for i in (0, 1):
         _linear(sd, f"final_linear.{i}", d_sd, f"final_linear.{i}")
-    d.load_state_dict(sd)
-    return d
-
-
-def released_gradient(mod: Any, grad_compact: torch.Tensor, dense_shape: Sequence[int], scale: torch.Tensor,
-                      up: bool = False) -> torch.Tensor:
-    """A modi skeletal weight's gradient as the released dense weight's (zero outside the pairs).
-
-    Both parametrise the same effective weight ``w x factor``, so d loss / d w_released = d loss / d w_modi x
-    (released factor / modi factor), pair by pair. ``dense_shape`` is the released (Cout, Cin, E_out, E_in, U)."""
-    rows, cols = _pairs(mod)
-    g = grad_compact.to(torch.float64)
-    if up:
-        g = g.permute(2, 1, 0, 3)  # (Cin, nnz, Cout, U) -> (Cout, nnz, Cin, U)
-    ratio = scale.reshape(-1).to(torch.float64)[rows] / mod.weight_scale.to(torch.float64)
-    g = g * ratio.view(1, -1, 1, 1)
-    out = torch.zeros(tuple(dense_shape), dtype=torch.float64)
-    for p, (r, c) in enumerate(zip(rows, cols)):
-        out[:, :, r, c, :] = g[:, p]
-    return out
+    return sd
 
 
 # --------------------------------------------------------------------------------------------- skeleton and codec
@@ -397,4 +392,4 @@ def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: 
 
 
 __all__ = ["import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
-           "convert_generator", "convert_discriminator", "released_gradient"]
+           "convert_generator", "convert_discriminator", "generator_state", "discriminator_state"]
