@@ -206,8 +206,11 @@ def load_latent(g: Any, path: str | os.PathLike) -> Tensor:
     if not path.is_file():
         raise UserError(f"{path}: no such latent file")
     try:
-        arr = np.load(path, allow_pickle=False)
+        arr = np.load(path, allow_pickle=False)  # numbers only: a pickled object array could run code
     except Exception as exc:  # noqa: BLE001 - any unreadable file
+        if "allow_pickle" in str(exc):
+            raise UserError(f"{path}: not a .npy latent: it holds objects other than data (pickled Python "
+                            "objects, not numbers); refused without running anything") from None
         raise UserError(f"{path}: not a .npy latent ({exc})") from None
     w = torch.as_tensor(np.asarray(arr, dtype=np.float32))
     if w.ndim in (2, 3) and w.shape[0] == 1:  # a batch of one: (1, D) or (1, L, D)
