@@ -373,3 +373,72 @@ def test_gradient_penalty_is_the_per_frame_norm_formula():
         (want_w,) = torch.autograd.grad(expected, d.w)
         assert torch.isfinite(got_w).all()
         torch.testing.assert_close(got_w, want_w, rtol=1e-10, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------- divergence (issue 32)
+
+
+def _nan_after(monkeypatch, calls: int) -> None:
+    """The gradient penalty turns NaN after ``calls`` calls (one per level of the block per D step)."""
+    import modi.ganimator.training as gt
+
+    real_gp, count = gt.gradient_penalty, [0]
+
+    def gp(*a, **k):
+        count[0] += 1
+        out = real_gp(*a, **k)
+        return out * float("nan") if count[0] > calls else out
+
+    monkeypatch.setattr(gt, "gradient_penalty", gp)
+
+
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+    from modi.ganimator.training import NonFiniteLossError
+
+    cfg = tiny_cfg(iterations=4, max_levels=2, coarse_ratio=0.5)
+    seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8)
+    # the oracle: the same schedule stopped cleanly after 2 iterations
+    Trainer([seq], cfg, tmp_path / "clean").run(progress=False, log=None, max_seconds=0.0)
+    Trainer([seq], cfg, tmp_path / "clean").run(progress=False, log=None, max_seconds=0.0)
+    clean = read_checkpoint(tmp_path / "clean")
+    assert clean["state"]["iteration"] == 2
+    _nan_after(monkeypatch, calls=2 * 2)  # the block has 2 levels: iteration 3's penalty is NaN
+    with pytest.raises(NonFiniteLossError) as info:
+        train([seq], cfg.replace(checkpoint_every=0.0), tmp_path / "bad", progress=False, log=None)
+    msg = str(info.value)
+    assert "\n" not in msg and "non-finite loss (discriminator" in msg and "iteration 3" in msg, msg
+    assert str(tmp_path / "bad" / "ganimator.ckpt") in msg and "iteration 2" in msg, msg
+    kept = read_checkpoint(tmp_path / "bad")
+    assert kept["state"]["iteration"] == 2
+    for g_kept, g_clean in zip(kept["model"]["gens"], clean["model"]["gens"]):
+        for k in g_clean:
+            assert torch.isfinite(g_kept[k]).all() and torch.equal(g_kept[k], g_clean[k]), k
+
+
+def test_non_finite_weights_are_never_saved(tmp_path):
+    from modi.ganimator.training import NonFiniteLossError
+
+    cfg = tiny_cfg(iterations=2, max_levels=2, coarse_ratio=0.5)
+    seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8)
+    trainer = Trainer([seq], cfg, tmp_path / "r")
+    trainer.run(progress=False, log=None, max_seconds=0.0)
+    before = (tmp_path / "r" / "ganimator.ckpt").read_bytes()
+    with torch.no_grad():
+        next(trainer.model.discs[1].parameters())[0] = float("inf")
+    with pytest.raises(NonFiniteLossError, match="non-finite weights \\(discriminator 1\\)"):
+        trainer.save()
+    assert (tmp_path / "r" / "ganimator.ckpt").read_bytes() == before
+
+
+def test_cli_train_on_a_diverging_run_is_one_line_exit_2(tmp_path, monkeypatch, capsys):
+    from modi.cli import main
+    from modi.procedural import write_dataset
+
+    (clip, *_) = write_dataset(tmp_path / "d", n_clips=1, frames=40, seed=0)
+    _nan_after(monkeypatch, calls=0)
+    capsys.readouterr()
+    rc = main(["ganimator", "train", str(clip), "--out", str(tmp_path / "run"), "--preset", "tiny",
+               "--iterations", "2", "--quiet"])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert rc == 2 and len(err) == 1 and "non-finite loss" in err[0] and "nothing was saved" in err[0], err
+    assert not (tmp_path / "run" / "ganimator.ckpt").exists()

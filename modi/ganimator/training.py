@@ -91,6 +91,11 @@ def checkpoint_path(run: str | Path) -> Path:
     return run if run.suffix == ".ckpt" or run.is_file() else run / CHECKPOINT_NAME
 
 
+class NonFiniteLossError(UserError):
+    """A loss (or, at a save, a weight) became NaN/inf: training stops before that optimiser step and writes
+    nothing, so the checkpoint on disk is the last good one (one line from the CLI, exit 2)."""
+
+
 class TrainingInterrupted(KeyboardInterrupt):
     """Ctrl-C or SIGTERM during ``Trainer.run``: the run was checkpointed at an iteration boundary and can be
     resumed; ``exit_code`` is 130 / 143."""
@@ -291,8 +296,26 @@ class Trainer:
         }
 
     def save(self) -> None:
+        m = self.model
+        bad = [f"{kind} {l}" for kind, nets in (("generator", m.gens), ("discriminator", m.discs))
+               for l, net in enumerate(nets) if not all(bool(torch.isfinite(t).all()) for t in net.parameters())]
+        if bad:  # a finite loss can still step to inf weights: never write them over the last good checkpoint
+            self._diverged(f"non-finite weights ({', '.join(bad)}) at the save of {self._position()}")
         atomic_save(self._payload(), self.ckpt, previous=self._saved)
         self._saved = self._position()
+
+    def _diverged(self, what: str) -> None:
+        kept = (f"the last good checkpoint, {self.ckpt} ({self._saved}), is kept" if self._saved is not None
+                else "nothing was saved")
+        raise NonFiniteLossError(f"{what}: GANimator training stopped; {kept}. Try another --seed, or check the "
+                                 "BVH for NaN or huge values")
+
+    def _check_finite(self, loss: Tensor, name: str) -> None:
+        """Before a backward pass: a NaN/inf loss stops the run (see ``NonFiniteLossError``)."""
+        if not bool(torch.isfinite(loss.detach()).all()):
+            n = len(self.blocks)
+            self._diverged(f"non-finite loss ({name}) in block {self.state['block'] + 1}/{n}, "
+                           f"iteration {self.state['iteration'] + 1}")
 
     def _position(self) -> str:
         b, n = self.state["block"], len(self.blocks)
@@ -436,7 +459,13 @@ class Trainer:
             t_save = time.time()
             losses: dict[str, float] = {}
             while self.state["iteration"] < budget:
-                losses = self._iteration(levels, M, n_sub, cached_prev)
+                try:
+                    losses = self._iteration(levels, M, n_sub, cached_prev)
+                except NonFiniteLossError:
+                    bar.close()
+                    if self.writer is not None:
+                        self.writer.close()
+                    raise
                 self.state["iteration"] += 1
                 it = self.state["iteration"]
                 bar.update(1)
@@ -522,6 +551,7 @@ class Trainer:
                         loss = loss + loss_d + cfg.lambda_gp * gp
                         total += float(loss_d.detach())
                         out["gp"] = float(gp.detach())
+                    self._check_finite(loss, f"discriminator, levels {levels[0]}-{levels[-1]}")
                     loss.backward()
                     for l in levels:
                         self.opt_d[l].step()
@@ -542,6 +572,7 @@ class Trainer:
                         loss = loss + adv + cfg.lambda_contact * c
                         g_adv += float(adv.detach())
                         con += float(c.detach())
+                    self._check_finite(loss, f"generator adversarial + contact, levels {levels[0]}-{levels[-1]}")
                     for l in levels:
                         self.opt_g[l].zero_grad(set_to_none=True)
                     loss.backward()
@@ -557,6 +588,7 @@ class Trainer:
                         loss = loss + cfg.lambda_rec * r
                         rec_total += float(r.detach())
                         out[f"rec{l}"] = float(r.detach())
+                    self._check_finite(loss, f"reconstruction, levels {levels[0]}-{levels[-1]}")
                     for l in levels:
                         self.opt_g[l].zero_grad(set_to_none=True)
                     loss.backward()
@@ -587,6 +619,6 @@ def run_summary(run: str | Path) -> dict:
             "history": st["history"], "block_iterations": cfg.block_budgets(len(blocks)), "config": cfg.to_dict()}
 
 
-__all__ = ["Trainer", "TrainingInterrupted", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
+__all__ = ["Trainer", "TrainingInterrupted", "NonFiniteLossError", "train", "load_model", "read_checkpoint", "checkpoint_path", "run_summary", "FakePool",
            "gradient_penalty", "ContactConsistency", "model_payload", "model_from_payload", "atomic_save",
            "blocks_of"]
