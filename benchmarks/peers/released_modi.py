@@ -452,7 +452,27 @@ def write_bvh(peer: types.SimpleNamespace, motion: torch.Tensor, ckpt: dict, sta
     return p.parent / f"0_{p.name}"
 
 
-__all__ = ["PEER", "BANDAI", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "train_module",
+def session_files(root: Path | str, n_bvh: int = 2, iters: int = 2, seed: int = 0) -> types.SimpleNamespace:
+    """The small files equality tests share, made once under ``root`` (a per-session temp dir) and reused:
+    ``data`` (their .npy from ``n_bvh`` Bandai clips), ``args`` (narrow model, released flags), ``init`` (random
+    initialisation) and ``trained`` (after ``iters`` iterations of their train.main)."""
+    require_peer()
+    require_data()
+    root = Path(root)
+    npy = root / "data" / "edge_rot_bandai.npy"
+    if not npy.is_file():
+        prepare_dataset(npy, sorted(require_data().glob("*.bvh"))[:n_bvh])
+    args = make_args(npy)
+    init = root / "init.pt"
+    if not init.is_file():
+        random_init_checkpoint(args, init, seed=seed)
+    trained = root / "train" / "checkpoint" / f"{iters - 1:06d}.pt"
+    if not trained.is_file():
+        trained_checkpoint(args, root / "train", iters=iters, seed=seed)
+    return types.SimpleNamespace(root=root, data=npy, args=args, init=init, trained=trained)
+
+
+__all__ = ["session_files", "PEER", "BANDAI", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "train_module",
            "make_args", "build_models", "motion_statics", "normalisation", "seed_all", "load_released",
            "prepare_dataset", "random_init_checkpoint", "trained_checkpoint", "models_from_checkpoint",
            "write_bvh", "fused_leaky_relu", "FusedLeakyReLU", "upfirdn2d", "SMALL_CHANNELS", "RELEASED_FLAGS"]

@@ -109,6 +109,33 @@ def model_config(args: argparse.Namespace, levels: Sequence[Any]) -> Any:
                        demodulation="activations", time_padding="stylegan2")
 
 
+def released_style_index(n_levels: int, n_inplace: int) -> list[int]:
+    """For each of modi's W+ rows, the released W+ row its layer reads.
+
+    Both give the coarsest conv row 0 and let a level's to-motion share its row with the next level's
+    upsampling conv. Modi then gives every in-place conv a row of its own; the released loop gives the first
+    in-place conv its level's upsampling row again and the next ones the rows after it, so some released rows
+    are never read (3, 6, 9, 12 with two in-place convs). A released W+ ``w`` is modi's ``w[:, index]``."""
+    index = [0, 1]  # coarsest conv; coarsest to-motion = first upsampling conv
+    i = 1  # the released loop's row of this level's upsampling conv
+    for _ in range(1, n_levels):
+        index += [i + j for j in range(n_inplace)]  # in-place convs: rows i, i+1, ... (the first repeats i)
+        i += 1 + n_inplace
+        index.append(i)  # to-motion (and the next upsampling conv): the released i + n_inplace + 1
+    return index
+
+
+def wplus_from_released(wplus: torch.Tensor, index: Sequence[int]) -> torch.Tensor:
+    """A released-layout W+ ``(B, n, D)`` as modi's W+ (see ``released_style_index``)."""
+    return wplus[:, list(index)]
+
+
+def inject_index_from_released(t: int, index: Sequence[int]) -> int:
+    """Style mixing at the released inject index ``t`` (rows >= t take the second latent) is modi's mixing at the
+    first modi row whose released row is >= t (the map is monotone)."""
+    return next(k for k, r in enumerate(index) if r >= t)
+
+
 # --------------------------------------------------------------------------------------------- weights
 def check_masks(sd: dict[str, torch.Tensor], where: str) -> None:
     """Refuse a state dict whose masked weights the compact form cannot hold, naming each offending entry.
@@ -391,5 +418,5 @@ def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: 
     return path
 
 
-__all__ = ["import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
+__all__ = ["released_style_index", "wplus_from_released", "inject_index_from_released", "import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
            "convert_generator", "convert_discriminator", "generator_state", "discriminator_state"]
