@@ -252,11 +252,23 @@ def test_sigterm_before_the_first_step_unwinds_cleanly(tmp_path):
     assert not (run / faults.LOCK_NAME).exists() and not list(tmp_path.rglob(".*.tmp"))
 
 
+@contextmanager
+def _sigint_handler(handler):
+    """SIGINT handled as given for the block, then whatever the process had put back: a background job (``nohup
+    ... &``, a batch queue) starts with SIGINT ignored, an interactive one with Python's ``default_int_handler``."""
+    before = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 @pytest.mark.parametrize("sig, exc", [(signal.SIGTERM, faults.Terminated), (signal.SIGINT, KeyboardInterrupt)])
 def test_a_signal_while_the_lock_is_being_taken_still_removes_it(tmp_path, monkeypatch, sig, exc):
     """The race the test above hit now and then: a signal landing after the lock file is created but before the
     block that removes it. Sent from inside that window (while the holder's name is written), it waits, unwinds
-    the block before its body runs, and the file is gone."""
+    the block before its body runs, and the file is gone. (SIGINT as an interactive process handles it, however
+    this test process was started.)"""
     run = tmp_path / "run"
     real = faults._command_line
 
@@ -267,11 +279,32 @@ def test_a_signal_while_the_lock_is_being_taken_still_removes_it(tmp_path, monke
 
     monkeypatch.setattr(faults, "_command_line", signalled)
     monkeypatch.setattr(faults, "_sigterm_seen", False)  # the handler sets it for the process: put it back after
-    with pytest.raises(exc):
+    with _sigint_handler(signal.default_int_handler):
+        before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        with pytest.raises(exc):
+            with faults.terminate_on_sigterm(), faults.hold_run_folder(run):
+                pytest.fail("the block ran although a signal was waiting")
+        assert not (run / faults.LOCK_NAME).exists()
+        assert {s: signal.getsignal(s) for s in before} == before  # the handlers are put back
+
+
+def test_an_ignored_sigint_while_the_lock_is_being_taken_stays_ignored(tmp_path, monkeypatch):
+    """In a background job SIGINT is ignored: one arriving in the same window is dropped (the block runs), the
+    lock file is still removed after it, and the handler is SIG_IGN again, not Python's default."""
+    run = tmp_path / "run"
+    real = faults._command_line
+
+    def signalled() -> str:
+        os.kill(os.getpid(), signal.SIGINT)
+        return real()
+
+    monkeypatch.setattr(faults, "_command_line", signalled)
+    ran = []
+    with _sigint_handler(signal.SIG_IGN):
         with faults.terminate_on_sigterm(), faults.hold_run_folder(run):
-            pytest.fail("the block ran although a signal was waiting")
-    assert not (run / faults.LOCK_NAME).exists()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are put back
+            ran.append(True)
+        assert ran and not (run / faults.LOCK_NAME).exists()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
 
 
 def test_a_sigterm_while_the_temp_file_is_being_made_still_removes_it(tmp_path, monkeypatch):
