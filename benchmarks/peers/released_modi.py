@@ -415,6 +415,57 @@ def trained_checkpoint(args: argparse.Namespace, workdir: Path | str, iters: int
     return ckpt
 
 
+class _NoContactLoss:
+    """Their ``ContactLabelLoss`` for a model without contact entities (theirs assumes ``--foot`` and fails on
+    other entities' values): zero."""
+
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return pred.new_zeros(())
+
+
+def trained_encoder_checkpoint(generator_ckpt: Path | str, workdir: Path | str, iters: int = 2, n_frames: int = 0,
+                               seed: int = 0, batch: int = 4) -> Path:
+    """Run their ``train_encoder.main`` against ``generator_ckpt`` (a file this harness wrote) for ``iters``
+    iterations, predicting W+ from the first ``n_frames`` frames (0: the whole motion, inversion; their masking
+    with ``n_frames > 0`` fails in their ``ConditionalMask`` unless a ``cond_length`` is passed, which their
+    train_encoder does not); returns its last checkpoint.
+
+    Their loader calls ``torch.load`` with the pre-2.6 default (pickles allowed); it reads only our own file here,
+    so it is given ``weights_only=False`` for that call. Their recorder writes under ``~``: HOME is ``workdir``.
+    For a generator trained without ``--foot`` their contact term is replaced by zero (see ``_NoContactLoss``)."""
+    workdir = Path(workdir)
+    gen_args = load_released(generator_ckpt)["args"]
+    argv = ["--ckpt_existing", str(generator_ckpt), "--path", str(gen_args.path), "--device", "cpu",
+            "--batch", str(batch), "--iter", str(iters), "--report_every", str(iters),
+            "--model_save_path", str(workdir), "--n_latent_predict", "2", "--n_frames", str(n_frames),
+            "--character", getattr(gen_args, "character", "jasper")]
+    seed_all(seed)
+    old_load, old_home = torch.load, os.environ.get("HOME")
+    with peer_runtime() as peer, _bandai_config(peer), _channels(peer, gen_args):
+        train_module(peer)
+        import train_encoder as te
+
+        te.get_rank = lambda: 0
+        old_contact = te.ContactLabelLoss
+        if not getattr(gen_args, "foot", False):  # their contact term reads the last two entities as labels
+            te.ContactLabelLoss = _NoContactLoss
+        torch.load = lambda f, *a, **k: old_load(f, *a, **{**k, "weights_only": False})  # our own file only
+        os.environ["HOME"] = str(workdir)
+        try:
+            with contextlib.redirect_stderr(open(os.devnull, "w")):
+                te.main(argv)
+        finally:
+            torch.load, te.ContactLabelLoss = old_load, old_contact
+            if old_home is None:
+                os.environ.pop("HOME", None)
+            else:
+                os.environ["HOME"] = old_home
+    ckpt = workdir / "checkpoint" / f"{iters - 1:06d}.pt"
+    if not ckpt.is_file():
+        raise RuntimeError(f"their train_encoder.main wrote no {ckpt}")
+    return ckpt
+
+
 def _argv_from_args(args: argparse.Namespace) -> list[str]:
     """Re-express a parsed Namespace as their command line (the flags this harness sets)."""
     argv = ["--path", str(args.path), "--device", "cpu", "--latent", str(args.latent), "--n_mlp", str(args.n_mlp),
@@ -472,7 +523,15 @@ def session_files(root: Path | str, n_bvh: int = 2, iters: int = 2, seed: int = 
     return types.SimpleNamespace(root=root, data=npy, args=args, init=init, trained=trained)
 
 
-__all__ = ["session_files", "PEER", "BANDAI", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "train_module",
+def session_encoder(files: types.SimpleNamespace, iters: int = 2, seed: int = 0) -> Path:
+    """Their encoder trained ``iters`` iterations against ``files.trained`` (made once under ``files.root``)."""
+    ckpt = files.root / "encoder" / "checkpoint" / f"{iters - 1:06d}.pt"
+    if not ckpt.is_file():
+        trained_encoder_checkpoint(files.trained, files.root / "encoder", iters=iters, seed=seed)
+    return ckpt
+
+
+__all__ = ["session_encoder", "session_files", "PEER", "BANDAI", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "train_module",
            "make_args", "build_models", "motion_statics", "normalisation", "seed_all", "load_released",
-           "prepare_dataset", "random_init_checkpoint", "trained_checkpoint", "models_from_checkpoint",
+           "prepare_dataset", "random_init_checkpoint", "trained_checkpoint", "trained_encoder_checkpoint", "models_from_checkpoint",
            "write_bvh", "fused_leaky_relu", "FusedLeakyReLU", "upfirdn2d", "SMALL_CHANNELS", "RELEASED_FLAGS"]

@@ -95,6 +95,14 @@ def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> 
         levels.append(LevelSpec(n_entities=int(same_mask.shape[0]), neighbors=_rows(same_mask),
                                 up_pooling=_rows(up_mask), n_frames=levels[-1].n_frames * 2,
                                 channels=int(g_sd[f"{same}.weight"].shape[1])))
+        groups, n_coarse, n_fine = levels[-1].up_pooling, levels[-2].n_entities, levels[-1].n_entities
+        covered = sorted({e for grp in groups for e in grp})
+        if len(groups) != n_coarse or covered != list(range(n_fine)) or any(not grp for grp in groups):
+            raise CheckpointError(
+                f"{up}: the released pooling map from level {i - 1} ({n_coarse} entities) to level {i} ({n_fine}) "
+                f"has {len(groups)} groups covering {len(covered)} entities, so some entity is never connected "
+                "(the released --foot pooling does this on some skeletons); modi's skeletal layers need every "
+                "entity pooled")
     return levels
 
 
@@ -259,27 +267,35 @@ def discriminator_state(d_sd: dict[str, torch.Tensor], args: argparse.Namespace,
                         power: int = 1) -> dict[str, torch.Tensor]:
     """The state dict of modi discriminator ``d`` for released discriminator tensors (``power`` as in
     ``generator_state``)."""
-    sd: dict[str, torch.Tensor] = {}
-
-    def conv(dst: str, src: str, mod: Any) -> None:
-        sd[dst] = _same(mod, d_sd[f"{src}.weight"] * d_sd[f"{src}.mask"], d_sd[f"{src}.scale"][0, 0], power)
-
-    conv("from_motion.conv.weight", "convs.0.0", d.from_motion.conv)
-    sd["from_motion.act.bias"] = d_sd["convs.0.1.bias"].clone()
-    n_inplace = int(args.n_inplace_conv)
-    for b, block in enumerate(d.blocks):
-        src = f"convs.{b + 1}"
-        for j in range(n_inplace):
-            conv(f"blocks.{b}.convs.{j}.conv.weight", f"{src}.convs.{j}.0", block.convs[j].conv)
-            sd[f"blocks.{b}.convs.{j}.act.bias"] = d_sd[f"{src}.convs.{j}.1.bias"].clone()
-        conv(f"blocks.{b}.convs.{n_inplace}.conv.1.weight", f"{src}.convs.{n_inplace}.1",
-             block.convs[n_inplace].conv[1])
-        sd[f"blocks.{b}.convs.{n_inplace}.act.bias"] = d_sd[f"{src}.convs.{n_inplace}.2.bias"].clone()
-        conv(f"blocks.{b}.skip.1.weight", f"{src}.skip.1", block.skip[1])
-    conv("final_conv.conv.weight", "final_conv.0", d.final_conv.conv)
+    sd = reverse_hierarchy_state(d_sd, d.from_motion.conv, "from_motion", d.blocks, int(args.n_inplace_conv), power)
+    _conv_state(sd, d_sd, "final_conv.conv.weight", "final_conv.0", d.final_conv.conv, power)
     sd["final_conv.act.bias"] = d_sd["final_conv.1.bias"].clone()
     for i in (0, 1):
         _linear(sd, f"final_linear.{i}", d_sd, f"final_linear.{i}")
+    return sd
+
+
+def _conv_state(sd: dict, src_sd: dict, dst: str, src: str, mod: Any, power: int) -> None:
+    sd[dst] = _same(mod, src_sd[f"{src}.weight"] * src_sd[f"{src}.mask"], src_sd[f"{src}.scale"][0, 0], power)
+
+
+def reverse_hierarchy_state(src_sd: dict[str, torch.Tensor], from_motion: Any, from_prefix: str, blocks: Any,
+                            n_inplace: int, power: int = 1) -> dict[str, torch.Tensor]:
+    """The released ``Discriminator``'s input conv (``convs.0``) and residual blocks (``convs.1..``) as modi's
+    (the discriminator's, and the encoder's: the released encoder is that class with a latent head)."""
+    sd: dict[str, torch.Tensor] = {}
+    _conv_state(sd, src_sd, f"{from_prefix}.conv.weight", "convs.0.0", from_motion, power)
+    sd[f"{from_prefix}.act.bias"] = src_sd["convs.0.1.bias"].clone()
+    for b, block in enumerate(blocks):
+        src = f"convs.{b + 1}"
+        for j in range(n_inplace):
+            _conv_state(sd, src_sd, f"blocks.{b}.convs.{j}.conv.weight", f"{src}.convs.{j}.0", block.convs[j].conv,
+                        power)
+            sd[f"blocks.{b}.convs.{j}.act.bias"] = src_sd[f"{src}.convs.{j}.1.bias"].clone()
+        _conv_state(sd, src_sd, f"blocks.{b}.convs.{n_inplace}.conv.1.weight", f"{src}.convs.{n_inplace}.1",
+                    block.convs[n_inplace].conv[1], power)
+        sd[f"blocks.{b}.convs.{n_inplace}.act.bias"] = src_sd[f"{src}.convs.{n_inplace}.2.bias"].clone()
+        _conv_state(sd, src_sd, f"blocks.{b}.skip.1.weight", f"{src}.skip.1", block.skip[1], power)
     return sd
 
 
@@ -379,8 +395,20 @@ def _find_data(data: Path) -> Path:
 
 def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: float = 30.0) -> Path:
     """Write ``out/checkpoint.pt``, a modi run holding the released G, EMA G and D; returns its path."""
+    from modi.modi_model.checkpoint import atomic_torch_save
+
+    state = convert_checkpoint(ckpt, data, fps)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "checkpoint.pt"
+    atomic_torch_save(state, path)
+    return path
+
+
+def convert_checkpoint(ckpt: Path | str, data: Path | str, fps: float = 30.0) -> dict[str, Any]:
+    """The modi checkpoint dict (format ``modi-checkpoint``) of a released MoDi checkpoint and its data."""
     from modi.interop.released_files import load_released_npy
-    from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save
+    from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
     from modi.modi_model.config import MoDiConfig
 
     st = read_checkpoint(ckpt)
@@ -411,12 +439,9 @@ def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: 
              "codec": codec.state_dict(), "skeleton": codec.skeleton.to_dict(),
              "levels": [lv.to_dict() for lv in levels], "G": g.state_dict(), "G_ema": g_ema.state_dict(),
              "D": d.state_dict(), "step": 0, "imported_from": {"kind": "modi-released", "path": str(ckpt)}}
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "checkpoint.pt"
-    atomic_torch_save(state, path)
-    return path
+    return state
 
 
-__all__ = ["released_style_index", "wplus_from_released", "inject_index_from_released", "import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
-           "convert_generator", "convert_discriminator", "generator_state", "discriminator_state"]
+__all__ = ["convert_checkpoint", "released_style_index", "wplus_from_released", "inject_index_from_released", "import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",
+           "convert_generator", "convert_discriminator", "generator_state", "discriminator_state",
+           "reverse_hierarchy_state"]
