@@ -198,7 +198,7 @@ class ReleasedRun:
     def write_bvh(self, path: Path, motion: torch.Tensor) -> Path:
         """Their BVH writer (``MotionData.write``; also writes ``path.contact.npy``)."""
         with peer_runtime():
-            self.motion_data.write(str(path), motion.detach().to(torch.float32))
+            self.motion_data.write(str(path), motion.detach().to(self.dtype))
         return Path(path)
 
     def reals(self) -> list[torch.Tensor]:

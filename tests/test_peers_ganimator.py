@@ -1,0 +1,297 @@
+"""The released GANimator (../shared/peers/ganimator, run on the CPU by benchmarks/peers/released_ganimator.py) is
+the oracle: run folders its own ``train.py`` wrote (random initialisation, and after an iteration per block so no
+weight is at its initial value) are imported with ``modi.interop.ganimator_released.import_checkpoint`` and must
+compute the same thing in float64, on the same noise and data: the training tensor, each level's output, the
+reconstruction, the demo's sample and its BVH, and every loss term and gradient of one D and one G step.
+
+Where modi differs on purpose the test runs both settings and names the difference: a sample whose length is not
+the training clip's has levels on modi's fixed grids (``ceil(N * rate)``) rather than the released pyramid of
+``N``; modi's own BVH loader orders joints as the file does and picks units and feet from the motion.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.peers import released_ganimator as R  # noqa: E402
+from modi.interop import ganimator_released as G  # noqa: E402
+
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
+              pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+              pytest.mark.filterwarnings("ignore::UserWarning")]  # the released sources' torch.cross(x, y)
+TOL = 1e-5
+KINDS = ("init", "trained")
+
+
+def rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    """max |a - b| / max |b|."""
+    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
+    assert a.shape == b.shape, (a.shape, b.shape)
+    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
+
+
+@pytest.fixture(scope="session")
+def released(tmp_path_factory):
+    """Their train.py on the first 120 frames (60 at 30 fps) of the Mixamo walk: 0 and 1 iterations per block."""
+    try:
+        R.require_peer()
+        src = R.require_data()
+    except R.PeerUnavailable as exc:
+        pytest.skip(str(exc))
+    d = tmp_path_factory.getbasetemp() / "released_ganimator"
+    bvh = R.trim_bvh(src, d / "data" / "walk.bvh", 120)
+    torch.set_num_threads(1)
+    return {"bvh": bvh, "init": R.train_released(bvh, d / "init", 0, seed=1),
+            "trained": R.train_released(bvh, d / "trained", 1, seed=2)}
+
+
+@pytest.fixture(scope="session")
+def imported(released, tmp_path_factory):
+    d = tmp_path_factory.getbasetemp() / "imported_ganimator"
+    return {k: G.import_checkpoint(released[k].path, released["bvh"], d / k) for k in KINDS}
+
+
+def _pair(released, imported, kind):
+    """(their run in float64, our model in float64, entity permutation)."""
+    from modi.ganimator.training import load_model
+
+    theirs = R.ReleasedRun(released[kind].path, dtype=torch.float64)
+    ours = load_model(imported[kind]).double()
+    perm = G.entity_perm(ours.n_joints, len(ours.feet))
+    return theirs, ours, perm
+
+
+def _noises(lengths, amps, seed):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.randn(1, 1, L, generator=g, dtype=torch.float64) * float(a) for L, a in zip(lengths, amps)]
+
+
+# --------------------------------------------------------------------------------------------- data and files
+def test_released_files_and_training_moved_every_weight(released):
+    r0, r1 = released["init"], released["trained"]
+    assert sorted(p.name for p in r1.path.glob("gen*.pt")) == [f"gen{i:03d}.pt" for i in range(len(r1.lengths))]
+    for g0, g1 in zip(r0.gens, r1.gens):
+        for (k, a), b in zip(g0.state_dict().items(), g1.state_dict().values()):
+            if k.endswith("mask"):
+                continue
+            w = a != 0  # weights outside the mask stay 0 in both
+            assert bool((a[w] != b[w]).all()), k
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_training_tensor_and_amplitudes_equal(released, imported, kind):
+    """modi's clip of the imported run is their MotionData tensor (joint order, feet, units, labels)."""
+    theirs, ours, perm = _pair(released, imported, kind)
+    assert rel(ours.seqs[0].features.unsqueeze(0), G.to_modi_layout(theirs.motion_data.raw_motion, perm)) <= TOL
+    assert ours.lengths[0] == theirs.lengths
+    assert np.allclose(ours.amps[0], theirs.amps.numpy(), rtol=1e-6)
+    assert rel(ours.z_stars[0], G.to_modi_layout(theirs.z_star, perm)) <= TOL
+    assert [ours.seqs[0].skeleton.names[f] for f in ours.feet] == theirs.motion_data.bvh_file.skeleton.contact_names
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_level_output_equal(released, imported, kind):
+    from modi.ganimator.networks import synthesize
+
+    theirs, ours, perm = _pair(released, imported, kind)
+    noises = _noises(theirs.lengths, theirs.amps, seed=3)
+    their_levels = theirs.level_outputs(noises)
+    with torch.no_grad():
+        our_levels = synthesize(ours.gens, ours.rates[0], ours.lengths[0], [n.view(1, 1, 1, -1) for n in noises],
+                                ours.n_entities)
+    assert len(our_levels) == len(their_levels) == len(theirs.lengths)
+    for l, (a, b) in enumerate(zip(our_levels, their_levels)):
+        assert rel(a, G.to_modi_layout(b, perm)) <= TOL, l
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_reconstruction_equal(released, imported, kind):
+    theirs, ours, perm = _pair(released, imported, kind)
+    assert rel(ours.reconstruct(0), G.to_modi_layout(theirs.reconstruction()[-1], perm)) <= TOL
+
+
+def _bvh_points(path, scale=1.0):
+    from modi.motion import Motion
+
+    m = Motion.from_bvh(path)
+    pos, _ = m.forward_kinematics()
+    return {n: pos[:, j] * scale for j, n in enumerate(m.skeleton.names)}
+
+
+def test_demo_sample_and_its_bvh_equal(released, imported, tmp_path):
+    """Their demo.py sample of the training length (noise at the coarsest level only) = modi's ``sample`` on the
+    same noise; their BVH writer and modi's agree within 1e-5 of body height (theirs in their working units with
+    frame time 1 and XYZ Euler angles, ours in the file's units: compared after modi's scale)."""
+    from modi.ganimator.generate import decode, write_bvh
+
+    theirs, ours, perm = _pair(released, imported, "trained")
+    T = theirs.lengths[-1]
+    levels, z = theirs.demo_sample(T, seed=4)
+    with torch.no_grad():
+        sample = ours.sample(T, noises=[z.view(1, 1, 1, -1)] + [None] * (ours.n_levels - 1))
+    assert rel(sample, G.to_modi_layout(levels[-1], perm)) <= TOL
+    their_bvh = theirs.write_bvh(tmp_path / "theirs.bvh", levels[-1])
+    seq = ours.seqs[0]
+    quats, root, contacts = decode(ours, sample[0])
+    write_bvh(seq, quats, root, tmp_path / "ours.bvh", contacts=contacts)
+    a, b = _bvh_points(tmp_path / "ours.bvh", seq.scale), _bvh_points(their_bvh)
+    assert sorted(a) == sorted(b) == sorted(seq.skeleton.names)
+    height = seq.size
+    assert 1.0 < height < 3.0  # metres: their 1/100 rule for this centimetre rig
+    assert max(float((a[n] - b[n]).abs().max()) for n in a) <= 1e-5 * height
+
+
+def test_sample_of_another_length_named_difference(released, imported):
+    """Both settings: modi's sampler on the released pyramid of N frames equals their demo; modi's default for N
+    frames puts level l on the fixed grid ``ceil(N * rate_l)`` (so a longer output extends a shorter one), which is
+    another pyramid: named here, not hidden."""
+    from modi.ganimator.networks import synthesize
+
+    theirs, ours, perm = _pair(released, imported, "trained")
+    N = 100
+    levels, z = theirs.demo_sample(N, seed=5)
+    their_lengths = [int(x.shape[-1]) for x in levels]
+    rates = [L / their_lengths[-1] for L in their_lengths]
+    with torch.no_grad():
+        mine = synthesize(ours.gens, rates, their_lengths, [z.view(1, 1, 1, -1)] + [None] * (ours.n_levels - 1),
+                          ours.n_entities)
+    assert rel(mine[-1], G.to_modi_layout(levels[-1], perm)) <= TOL
+    grid = ours.level_lengths(N)
+    assert grid != their_lengths and grid[-1] == their_lengths[-1] == N
+
+
+# --------------------------------------------------------------------------------------------- one training step
+@pytest.mark.parametrize("kind", KINDS)
+def test_one_step_losses_and_gradients(released, imported, kind):
+    """Level 1 on a level-0 output: their D step (loss_D, WGAN-GP with the same alpha), G step (adversarial,
+    contact consistency) and reconstruction term equal modi's; so do the discriminator's gradients from the D step
+    and the generator's from the G step (mapped through the same weight layout)."""
+    from modi.ganimator.networks import PatchDiscriminator
+    from modi.ganimator.training import ContactConsistency, gradient_penalty
+
+    theirs, ours, perm = _pair(released, imported, kind)
+    level = 1
+    L1 = theirs.lengths[1]
+    noises = _noises(theirs.lengths, theirs.amps, seed=6)
+    base_rel = torch.nn.functional.interpolate(theirs.level_outputs(noises)[0], size=L1, mode="linear",
+                                               align_corners=False)
+    real_rel = theirs.reals()[level].to(torch.float64)
+    x_rel = base_rel + noises[level]
+    gm = theirs.gan_model(level, seed=7)
+    t = theirs.losses(gm, real_rel, base_rel, gm.gen(x_rel.clone()), seed=8)
+
+    cfg = ours.cfg
+    disc = PatchDiscriminator(ours.neighbors, base_channels=cfg.base_channels, n_layers=cfg.n_layers,
+                              kernel_size=cfg.kernel_size, padding_mode=cfg.padding_mode).double()
+    disc.load_state_dict(G.discriminator_state(gm.disc.state_dict(), disc, perm))
+    gen = ours.gens[level]
+    for p in gen.parameters():
+        p.requires_grad_(True)
+    base = G.to_modi_layout(base_rel, perm)
+    real = G.to_modi_layout(real_rel, perm)
+    fake = gen(G.to_modi_layout(x_rel, perm), base) + base
+    # D step
+    loss_d = 0.5 * (disc(fake.detach()).mean() - disc(real).mean())
+    torch.manual_seed(8)
+    gp = gradient_penalty(disc, real, fake)
+    (loss_d + cfg.lambda_gp * gp).backward()
+    assert rel(loss_d, t["loss_D"]) <= TOL and rel(gp, t["loss_gp"]) <= TOL
+    masks = {k: v for k, v in gm.disc.state_dict().items() if k.endswith("mask")}
+    want = G.discriminator_state({**t["d_grads"], **masks}, disc, perm)
+    for k, p in disc.named_parameters():
+        assert rel(p.grad, want[k]) <= TOL, k
+    # G step
+    for p in disc.parameters():
+        p.requires_grad_(False)
+    adv = -disc(fake).mean()
+    con = ContactConsistency(ours.seqs[0].skeleton, ours.feet, cfg.sixd).double()(fake, 1.0)
+    (adv + cfg.lambda_contact * con).backward()
+    assert rel(adv, t["loss_G"]) <= TOL and rel(con, t["loss_consistency"]) <= TOL
+    masks = {k: v for k, v in gm.gen.state_dict().items() if k.endswith("mask")}
+    want = G.generator_state({**t["g_grads"], **masks}, gen, perm)
+    for k, p in gen.named_parameters():
+        assert rel(p.grad, want[k]) <= TOL, k
+    # reconstruction term (L1 over every channel, padding included)
+    assert rel((fake - real).abs().mean(), t["loss_rec"]) <= TOL
+
+
+# --------------------------------------------------------------------------------------------- end to end
+def test_import_then_generate_equals_their_sample(released, tmp_path):
+    """``modi import ganimator-released`` -> ``modi ganimator generate --format bvh,glb``: the BVH equals their
+    demo's sample for the same coarsest noise (modi's --seed draws it), within 1e-5 of body height."""
+    from modi.cli import main
+    from modi.ganimator.training import load_model
+
+    run = tmp_path / "run"
+    assert main(["import", "ganimator-released", str(released["trained"].path / "gen000.pt"), "--data",
+                 str(released["bvh"]), "--out", str(run)]) == 0
+    out = tmp_path / "gen"
+    assert main(["ganimator", "generate", str(run), "--out", str(out), "--seed", "11", "--no-gif", "--no-view",
+                 "--format", "bvh,glb"]) == 0
+    assert (out / "sample.glb").read_bytes()[:4] == b"glTF"
+    model = load_model(run)
+    theirs = R.ReleasedRun(released["trained"].path, dtype=torch.float64)
+    L0 = theirs.lengths[0]
+    z = torch.randn(1, 1, 1, L0, generator=torch.Generator().manual_seed(11)).to(torch.float64) * float(theirs.amps[0])
+    levels = theirs._draw("random", theirs.lengths, theirs.amps * 0, [z.view(1, 1, -1)])
+    their_bvh = theirs.write_bvh(tmp_path / "theirs.bvh", levels[-1])
+    a, b = _bvh_points(out / "sample.bvh", model.seqs[0].scale), _bvh_points(their_bvh)
+    assert max(float((a[n] - b[n]).abs().max()) for n in b) <= 1e-5 * model.seqs[0].size
+
+
+def test_modi_loader_differs_by_name(released, imported):
+    """Named difference: modi's own loader (``modi ganimator train`` on the same BVH) keeps the file's joint order
+    (spine first) where the released rig table lists the legs first, and detects its own feet."""
+    from modi.ganimator.data import load_sequence
+    from modi.ganimator.training import load_model
+
+    mine = load_sequence(released["bvh"])
+    imp = load_model(imported["trained"]).seqs[0]
+    assert sorted(mine.skeleton.names) == sorted(imp.skeleton.names)
+    assert mine.skeleton.names[1] == "Spine" and imp.skeleton.names[1] == "LeftUpLeg"
+
+
+def test_bad_inputs_are_one_line(released, tmp_path, capsys):
+    from modi.cli import main
+
+    other = R.DATA / "Xia" / "normal.bvh"
+    cases = [
+        ([str(tmp_path / "missing")], "no such"),
+        ([str(released["bvh"].parent)], "not a released GANimator run"),
+    ]
+    if other.is_file():
+        cases.append(([str(released["trained"].path), "--data", str(other)], "does not match the checkpoint"))
+    for i, (argv, text) in enumerate(cases):
+        capsys.readouterr()
+        assert main(["import", "ganimator-released", *argv, "--out", str(tmp_path / f"r{i}")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert text in err and len(err.splitlines()) == 1, err
+
+
+def test_code_in_a_released_file_is_refused(released, tmp_path, capsys):
+    """A gen000.pt that names code (a pickled callable) is refused without running it."""
+    import shutil
+
+    from modi.cli import main
+
+    run = tmp_path / "run"
+    shutil.copytree(released["init"].path, run, ignore=shutil.ignore_patterns("logs"))
+    flag = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (flag,))
+
+    torch.save({"layers.0.0.weight": Payload()}, run / "gen000.pt")
+    assert main(["import", "ganimator-released", str(run), "--data", str(released["bvh"]), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "refused" in err and not flag.exists()
