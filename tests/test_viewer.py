@@ -81,9 +81,13 @@ def test_a_translating_root_link_is_not_drawn_as_a_bone():
     pos[:, 2] = pos[:, 1] + [0, 0.8, 0]
     m = page_data(page_html([from_positions(pos, [-1, 0, 1], ["Root", "Hips", "Head"])]))["motions"][0]
     assert m["hide"] == [0, 1, 0]
-    pos[:, 1] = [0, 0.9, 0]  # the same link with a constant length is a bone
+    pos[:, 1] = [0, 0.9, 0]  # a still clip: the floor root under the hips is still not a bone (Bandai's bows)
     pos[:, 2] = pos[:, 1] + [0, 0.8, 0]
-    assert page_data(page_html([from_positions(pos, [-1, 0, 1])]))["motions"][0]["hide"] == [0, 0, 0]
+    assert page_data(page_html([from_positions(pos, [-1, 0, 1])]))["motions"][0]["hide"] == [0, 1, 0]
+    pos[:, 0] = [0, 0.9, 0]  # a hips root above a foot, rigid links to its children: bones
+    pos[:, 1] = [0.1, 0.0, 0]
+    pos[:, 2] = [0, 1.6, 0]
+    assert page_data(page_html([from_positions(pos, [-1, 0, 0])]))["motions"][0]["hide"] == [0, 0, 0]
 
 
 def test_cli_refuses_bad_input_and_writes_nothing(clips, tmp_path, capsys):

@@ -57,21 +57,10 @@ def _char_index(i: int, part: int) -> int:
 
 
 def _side_of(name: str) -> int:
-    """0 centre, 1 left, 2 right, from common naming styles (LeftArm, lHip, L_Knee, Hand.L, left_foot)."""
-    low = name.lower()
-    if low.startswith("left") or "left" in low:
-        return 1
-    if low.startswith("right") or "right" in low:
-        return 2
-    if name[:1] == "L" and (name[1:2].isupper() or name[1:2] in ("_", ".")) or low.endswith((".l", "_l")):
-        return 1
-    if name[:1] == "R" and (name[1:2].isupper() or name[1:2] in ("_", ".")) or low.endswith((".r", "_r")):
-        return 2
-    if name[:1] == "l" and name[1:2].isupper():
-        return 1
-    if name[:1] == "r" and name[1:2].isupper():
-        return 2
-    return 0
+    """0 centre, 1 left, 2 right (:func:`modi.body.side_of`, shared with the viewer and the glTF export)."""
+    from modi.body import side_of
+
+    return side_of(name)
 
 
 def foot_joints_by_name(names: Sequence[str]) -> list[int]:
@@ -187,10 +176,12 @@ class _Panel:
     """One view: the characters it shows, its camera track and its ground grid."""
 
     def __init__(self, chars: list[int], pos: list[np.ndarray], size: tuple[int, int], fps: float, floor: float,
-                 height: float, azimuth: float, elevation: float, title: str | None, n_frames: int):
+                 height: float, azimuth: float, elevation: float, title: str | None, n_frames: int,
+                 centres: Sequence[int] | None = None):
         self.chars = chars
         w, h = size
-        roots = np.stack([_hold(pos[c][:, 0, :], n_frames) for c in chars])      # (C, T, 3)
+        centres = [0] * len(pos) if centres is None else list(centres)   # the joint each camera follows
+        roots = np.stack([_hold(pos[c][:, centres[c], :], n_frames) for c in chars])      # (C, T, 3)
         centre = roots.mean(0)[:, [0, 2]]
         track = _smooth_track(centre, round(fps))
         if len(chars) > 1:   # crowds: zoom out smoothly as the characters spread apart
@@ -309,23 +300,32 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
     if w < 16 or h < 16:
         raise ValueError(f"size must be at least 16x16 pixels, got {w}x{h}")
 
-    height = max(_body_height(p) for p in pos)
-    floors = [float(p[..., 1].min()) for p in pos]   # the ground: each motion's lowest point (files differ)
+    from modi.body import Body
+
+    bodies = [Body.of(p, par[i], nm[i]) for i, p in enumerate(pos)]   # ground root, sides, fingers, height
+    # each panel frames its own figure: a standing height (never less than the figure's typical extent)
+    heights = [max(b.standing_height, _body_height(p[:, b.body_joints()])) for b, p in zip(bodies, pos)]
+    height = max(heights)
+    floors = [b.floor for b in bodies]   # the ground: each body's lowest point (files differ)
     n_frames = max(len(p) for p in pos)
-    sides = [[_side_of(x) for x in names_i] if names_i else [0] * len(par[i]) for i, names_i in enumerate(nm)]
+    sides = [b.sides if nm[i] else [0] * len(par[i]) for i, b in enumerate(bodies)]
+    drawn = [set(b.bones()) for b in bodies]
+    hidden = [set(b.ground) for b in bodies]
+    small = [b.small for b in bodies]
+    centres = [b.centre for b in bodies]
     con = [None if contacts is None or contacts[i] is None else _hold(np.asarray(contacts[i], bool), n_frames)
            for i in range(n)]
 
     if layout == "grid":
         cols = math.ceil(math.sqrt(n))
         rows = math.ceil(n / cols)
-        panels = [(_Panel([i], pos, (w, h), fps, floors[i], height, azimuth, elevation,
-                          None if titles is None else titles[i], n_frames), (i % cols) * w, (i // cols) * h)
+        panels = [(_Panel([i], pos, (w, h), fps, floors[i], heights[i], azimuth, elevation,
+                          None if titles is None else titles[i], n_frames, centres), (i % cols) * w, (i // cols) * h)
                   for i in range(n)]
         img_size = (cols * w, rows * h)
     else:
         panels = [(_Panel(list(range(n)), pos, (w, h), fps, min(floors), height, azimuth, elevation,
-                          None if titles is None else " | ".join(titles), n_frames), 0, 0)]
+                          None if titles is None else " | ".join(titles), n_frames, centres), 0, 0)]
         img_size = (w, h)
 
     font = ImageFont.load_default()
@@ -356,28 +356,29 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
                 flat[:, 1] = panel.floor
                 sxy, _ = panel.cam.project(flat, target)
                 for j, q in enumerate(par[c]):
-                    if q < 0:
+                    if j not in drawn[c]:   # the root, and the "bone" from a ground root
                         continue
                     if z[j] < panel.cam.near or z[q] < panel.cam.near:
                         continue
-                    bones.append((0.5 * (z[j] + z[q]), xy[q], xy[j], _char_index(k, sides[c][j])))
+                    bones.append((0.5 * (z[j] + z[q]), xy[q], xy[j], _char_index(k, sides[c][j]), small[c][j]))
                     shadows.append((sxy[q], sxy[j]))
                 for j in range(len(par[c])):
-                    if z[j] >= panel.cam.near:
+                    if j not in hidden[c] and z[j] >= panel.cam.near:
                         hit = con[c] is not None and bool(con[c][t, j])
-                        joints.append((z[j], xy[j], _CONTACT if hit else _char_index(k, 0), hit))
+                        joints.append((z[j], xy[j], _CONTACT if hit else _char_index(k, 0), hit, small[c][j]))
             for a, b in shadows:
                 draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=_SHADOW, width=lw + 1)
-            items = [(d, 0, (a, b, col)) for d, a, b, col in bones]
-            items += [(d, 1, (xy, col, hit)) for d, xy, col, hit in joints]
+            items = [(d, 0, (a, b, col, tiny)) for d, a, b, col, tiny in bones]
+            items += [(d, 1, (xy, col, hit, tiny)) for d, xy, col, hit, tiny in joints]
             items.sort(key=lambda it: -it[0])
             for _, kind, data in items:
                 if kind == 0:
-                    a, b, col = data
-                    draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=col, width=lw)
+                    a, b, col, tiny = data
+                    draw.line([(ox + a[0], oy + a[1]), (ox + b[0], oy + b[1])], fill=col,
+                              width=max(1, lw // 2) if tiny else lw)
                 else:
-                    xy, col, hit = data
-                    if not (hit or panel.dots):
+                    xy, col, hit, tiny = data
+                    if not (hit or panel.dots) or (tiny and not hit):   # fingers: thin lines, no dots
                         continue
                     r = max(lw, 2) * (1.6 if hit else 0.8)
                     draw.ellipse([ox + xy[0] - r, oy + xy[1] - r, ox + xy[0] + r, oy + xy[1] + r], fill=col)
@@ -419,11 +420,23 @@ def _distinct(frames: list[Image.Image]) -> list[Image.Image]:
     return out
 
 
+def gif_delays(n: int, fps: float) -> list[int]:
+    """Per-frame GIF delays in centiseconds whose running sum stays within half a centisecond of real time
+    (frame k ends at round(100 (k+1) / fps)); at least 2 cs each, as browsers slow shorter delays to 10 cs."""
+    ends = [round(100.0 * (k + 1) / fps) for k in range(n)]
+    out, prev = [], 0
+    for e in ends:
+        d = max(2, e - prev)
+        out.append(d)
+        prev += d
+    return out
+
+
 def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30.0) -> Path:
     """Write frames as an endlessly looping GIF or (with ffmpeg) an H.264 MP4.
 
-    GIF delays are whole centiseconds, so playback speed is approximate; Pillow merges identical consecutive
-    frames into one longer frame.
+    GIF delays are whole centiseconds: :func:`gif_delays` alternates them (3, 3, 4, ... cs at 30 fps) so the clip
+    keeps real time. Identical consecutive frames are kept apart (:func:`_distinct`) so no delay is merged.
     """
     out = _check_out(out_path)
     if not frames:
@@ -434,7 +447,7 @@ def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30
         frames = _distinct(frames)
         with atomic_output(out, "wb") as fh:
             frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
-                           duration=max(20, round(1000.0 / fps)), loop=0, optimize=False)
+                           duration=[10 * d for d in gif_delays(len(frames), fps)], loop=0, optimize=False)
         return out
     w, h = frames[0].size
     tmp = out.with_name(f".{out.stem}.tmp{os.getpid()}.mp4")  # ffmpeg picks the container by the extension
@@ -498,8 +511,12 @@ def _resample_frames(n_src: int, src_fps: float, fps: float, max_frames: int | N
 def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, fps: float = 30.0,
                size: tuple[int, int] = (320, 320), layout: str = "grid", titles: Sequence[str] | None = None,
                contacts: bool = False, up: str = "y", max_frames: int | None = None,
-               azimuth: float = 35.0, elevation: float = 18.0) -> Path:
-    """Preview one or more BVH files (in real time at ``fps``). Missing files raise ``UserError``."""
+               azimuth: float = 35.0, elevation: float = 18.0, scale: float | None = None) -> Path:
+    """Preview one or more BVH files (in real time at ``fps``), each scaled to metres (``scale``, or its unit
+    guessed from the body size as :func:`modi.io.gltf.guess_unit` does), so a crab in metres stands beside a
+    human in centimetres at their true sizes. Missing files raise ``UserError``."""
+    from modi.io.gltf import guess_unit
+
     from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
 
@@ -520,16 +537,18 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
         if p.suffix.lower() != ".bvh":
             raise UserError(f"{p}: expected a .bvh file")
         b = bvh_io.load(p)
-        xyz = np.asarray(bvh_positions(b), dtype=np.float64)
-        xyz = xyz[_resample_frames(len(xyz), b.fps, fps, max_frames)]
+        xyz = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
+        keep = _resample_frames(len(xyz), b.fps, fps, max_frames)
+        if contacts:   # labelled on the clip's own frames, as the viewer page and the glTF export do
+            from modi.contacts import preview_contacts
+
+            con.append(preview_contacts(xyz, _feet_of(b), b.fps, b.parents, b.names)[keep])
+        xyz = xyz[keep] * (guess_unit(b.skeleton().height()).scale if scale is None else float(scale))
         pos.append(xyz)
         parents.append(list(b.parents))
         names.append(list(b.names))
-        if contacts:
-            feet = _feet_of(b)
-            con.append(foot_contacts(xyz, feet, fps, up=up))
     return render_positions(pos, parents, out, fps=fps, size=size, titles=titles or [p.stem for p in paths],
-                            layout=layout, contacts=con if contacts else None, names=names, up=up,
+                            layout=layout, contacts=con if contacts else None, names=names, up="y",
                             azimuth=azimuth, elevation=elevation)
 
 

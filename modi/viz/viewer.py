@@ -89,9 +89,7 @@ def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
 
 
 def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> ViewMotion:
-    import torch
-
-    from modi.contacts import foot_contacts
+    from modi.contacts import preview_contacts
     from modi.io import bvh as bvh_io
     from modi.kinematics import bvh_positions
     from modi.viz.render import _feet_of
@@ -100,10 +98,8 @@ def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> Vie
     pos = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
     height = b.skeleton().height()
     con = None
-    if contacts:  # the repo's labeller (as for training data), on the ankles and toes
-        feet = _feet_of(b)
-        con = np.zeros(pos.shape[:2], dtype=bool)
-        con[:, feet] = foot_contacts(torch.from_numpy(pos), feet, height, b.fps).numpy() > 0.5
+    if contacts:  # the previews' one rule (modi.contacts.PREVIEW_RULE), as the GIF and the glTF export show
+        con = preview_contacts(pos, _feet_of(b), b.fps, b.parents, b.names)
     if scale is None:
         scale, unit = guess_scale(height)
         note = f"body size {height:.4g} file units looks like {unit}: x {scale:g} to metres (--scale overrides)"
@@ -186,8 +182,8 @@ def as_view_motions(items: Sequence[Any], **kwargs) -> list[ViewMotion]:
 
 # ------------------------------------------------------------------------------------------------ the page
 def _side_codes(names: Sequence[str]) -> list[int]:
-    from modi.viz.render import _side_of
-    return [_side_of(n) for n in names]
+    from modi.body import side_of
+    return [side_of(n) for n in names]
 
 
 def _body_size(p: np.ndarray) -> float:
@@ -203,16 +199,11 @@ def _pack(m: ViewMotion, index: int) -> dict:
     span = float((p.reshape(-1, 3).max(0) - lo).max())
     step = max(span / 65535.0, 1e-9)
     qv = np.clip(np.round((p - lo) / step) - 32768, -32768, 32767).astype("<i2")
-    height = _body_size(p)
-    # a "bone" from the root whose length changes is a translation (e.g. Bandai's floor root -> hips), not a limb
-    hide = [0] * len(m.parents)
-    for j, par in enumerate(m.parents):
-        if par >= 0 and m.parents[par] < 0:
-            length = np.linalg.norm(p[:, j] - p[:, par], axis=-1)
-            hide[j] = int(np.ptp(length) > 0.1 * height)
-    if any(hide):  # such a root is not part of the body: size the body without it
-        body = [j for j in range(p.shape[1]) if not any(h and m.parents[c] == j for c, h in enumerate(hide))]
-        height = _body_size(p[:, body])
+    from modi.body import Body
+
+    body = Body.of(p, m.parents, m.names)  # the same body as the GIF and the glTF: a floor root is no bone
+    hide = [int(par in body.ground) for par in m.parents]
+    height = _body_size(p[:, body.body_joints()])
     d = {"title": m.title, "names": m.names, "parents": m.parents, "side": _side_codes(m.names), "fps": m.fps,
          "frames": int(p.shape[0]), "origin": [float(v) for v in lo], "step": step, "color": index,
          "height": height, "hide": hide, "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
