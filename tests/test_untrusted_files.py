@@ -7,6 +7,7 @@ payload is live); each case then runs a command in-process on such a file and ch
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pickle
 import shlex
@@ -192,3 +193,76 @@ def test_a_planted_normaliser_file_is_refused_unrun(tmp_path):
     good = Normalizer(torch.zeros(2, 1), torch.ones(2, 1))
     good.save(tmp_path / "good.pt")
     assert torch.equal(Normalizer.load(tmp_path / "good.pt").std, torch.ones(2, 1))
+
+
+# ------------------------------------------------------------------------------------------- modi info
+
+
+def _bvh_joints(path: str) -> list[str]:
+    """Joint names straight from the BVH text (the oracle for the skeleton ``info`` reports)."""
+    return [line.split()[1] for line in Path(path).read_text().splitlines() if line.split()[:1] in (["ROOT"], ["JOINT"])]
+
+
+@pytest.fixture(scope="module")
+def trained(work, tmp_path_factory) -> dict[str, str]:
+    w = tmp_path_factory.mktemp("trained")
+    assert main(["ganimator", "train", work["clip"], "--out", str(w / "gan"), "--preset", "tiny", "--iterations", "1",
+                 "--no-joint-reduction", "--quiet"]) == 0
+    assert main(["encoder", "train", work["tiny"], work["d"], "--out", str(w / "enc.pt"), "--iters", "1",
+                 "--batch", "2", "--eval-every", "0", "--quiet", "--no-cache"]) == 0
+    return {"gan": str(w / "gan"), "enc": str(w / "enc.pt")}
+
+
+def _info(capsys, *argv: str) -> dict:
+    capsys.readouterr()
+    assert main(["info", *argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_info_describes_a_ganimator_run_from_its_data(work, trained, capsys):
+    import modi
+
+    d = _info(capsys, trained["gan"])
+    joints = _bvh_joints(work["clip"])
+    assert d["kind"] == "GANimator checkpoint" and d["format"] == "modi.ganimator/1" and d["version"] == 1
+    assert d["skeleton"]["names"] == joints and d["skeleton"]["root"] == joints[0]
+    assert d["config"]["preset"] == "tiny" and d["config"]["iterations"] == 1 and not d["config"]["joint_reduction"]
+    assert d["step"].startswith("fully trained") and d["data"].startswith("0000_walk (40 frames at 30 fps")
+    assert d["modi_version"] == modi.__version__
+    capsys.readouterr()
+    assert main(["info", trained["gan"]]) == 0
+    text = capsys.readouterr().out
+    assert f"written by:  modi {modi.__version__}" in text and f"{len(joints)} joints, root {joints[0]}" in text
+
+
+def test_info_describes_encoder_generator_and_feature_files(work, trained, tmp_path, capsys):
+    from modi.evaluation.features import STGCN, FeatureConfig, FeatureExtractor
+
+    enc = _info(capsys, trained["enc"])
+    assert enc["kind"] == "MoDi encoder checkpoint" and enc["step"] == 1 and enc["data"] == work["d"]
+    assert enc["config"]["train"]["iters"] == 1 and enc["skeleton"]["joints"] == len(_bvh_joints(work["clip"]))
+    gen = _info(capsys, work["tiny"])  # written by a helper that records no version: said so, not guessed
+    assert gen["kind"] == "MoDi generator checkpoint" and gen["step"] == 0 and gen["modi_version"] is None
+    capsys.readouterr()
+    main(["info", work["tiny"]])
+    assert "written by:  not recorded" in capsys.readouterr().out
+    cfg = FeatureConfig(joint_names=["hips", "knee", "foot"], parents=[-1, 0, 1], class_names=["walk", "run"],
+                        channels=[4], strides=[1])
+    FeatureExtractor(cfg, STGCN(cfg), np.zeros(6, np.float32), np.ones(6, np.float32)).save(tmp_path / "f.pt")
+    feat = _info(capsys, str(tmp_path / "f.pt"))
+    assert feat["kind"].startswith("feature-extractor") and feat["skeleton"]["names"] == ["hips", "knee", "foot"]
+    assert feat["config"]["class_names"] == ["walk", "run"] and feat["version"] == 1
+
+
+@pytest.mark.parametrize("content, expected", [(b"", "not a readable modi file"),
+                                               (None, "not a modi checkpoint, encoder or feature-extractor file")])
+def test_info_on_other_files_is_one_line_exit_2(content, expected, tmp_path, capsys):
+    f = tmp_path / "x.pt"
+    if content is None:
+        torch.save({"weights": torch.ones(2)}, f)
+    else:
+        f.write_bytes(content)
+    capsys.readouterr()
+    assert main(["info", str(f)]) == 2
+    err = _one_error_line(capsys)
+    assert expected in err and str(f) in err, err
