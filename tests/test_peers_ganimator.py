@@ -215,12 +215,65 @@ def test_one_step_losses_and_gradients(released, imported, kind):
     con = ContactConsistency(ours.seqs[0].skeleton, ours.feet, cfg.sixd).double()(fake, 1.0)
     (adv + cfg.lambda_contact * con).backward()
     assert rel(adv, t["loss_G"]) <= TOL and rel(con, t["loss_consistency"]) <= TOL
+    # named difference: modi's earlier form (contact_rescale=True) measures velocities per source frame
+    with torch.no_grad():
+        scaled = ContactConsistency(ours.seqs[0].skeleton, ours.feet, cfg.sixd).double()(fake, ours.rates[0][level])
+    assert rel(scaled, t["loss_consistency"]) > 1e-2
     masks = {k: v for k, v in gm.gen.state_dict().items() if k.endswith("mask")}
     want = G.generator_state({**t["g_grads"], **masks}, gen, perm)
     for k, p in gen.named_parameters():
         assert rel(p.grad, want[k]) <= TOL, k
     # reconstruction term (L1 over every channel, padding included)
     assert rel((fake - real).abs().mean(), t["loss_rec"]) <= TOL
+
+
+@pytest.mark.parametrize("masks", ["frozen", "as released"])
+def test_one_training_iteration_of_the_last_block(released, imported, tmp_path, masks):
+    """One iteration of their ``joint_train`` (5 D steps with the WGAN-GP, a G step, a reconstruction step, their
+    Adam) on the finest block against ``Trainer.run`` of the imported run with the same noise and fresh
+    discriminators: the generator's and the discriminator's parameters after it.
+
+    Both settings, named: as released, their D step re-enables gradients on the discriminators' 0/1 masks
+    (``disc_requires_grad_(True)`` sets every parameter, masks included) and their Adam moves the in-mask entries
+    off 1, a second factor modi does not have (its masks are structure). With their masks kept out of training
+    (a harness setting) one iteration is equal; as released the discriminator, and through it the G step, differ."""
+    from modi.ganimator.training import Trainer, blocks_of
+
+    theirs, ours, perm = _pair(released, imported, "trained")
+    blocks = blocks_of(ours.n_levels, ours.cfg.group_size)
+    levels = blocks[-1]
+    cfg = ours.cfg.replace(block_iterations=[0] * (len(blocks) - 1) + [1], checkpoint_every=1e9)
+    gms = theirs.train_iteration(levels, seed=12, disc_seed=13, masks_trainable=masks == "as released")
+    with torch.random.fork_rng(devices=[]):
+        tr = Trainer(ours.seqs, cfg, tmp_path / "run")
+    m = tr.model.double()
+    m.load_state_dict({k: v for k, v in ours.state_dict().items() if not k.startswith("discs.")}, strict=False)
+    m.amps = ours.amps
+    for l in levels:
+        m.discs[l].load_state_dict(G.discriminator_state(theirs.gan_model(l, seed=13 + l).disc.state_dict(),
+                                                         m.discs[l], perm))
+    tr.reals = [[r.double() for r in row] for row in tr.reals]
+    tr.consistency.double()
+    default = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)  # the same noise draws as theirs (float64 in float64 runs)
+    try:
+        torch.manual_seed(12)
+        tr.run(progress=False, log=None)
+    finally:
+        torch.set_default_dtype(default)
+    worst_g = worst_d = 0.0
+    for j, l in enumerate(levels):
+        want_g = G.generator_state(gms[j].gen.state_dict(), m.gens[l], perm)
+        want_d = G.discriminator_state(gms[j].disc.state_dict(), m.discs[l], perm, binary=False)
+        worst_g = max([worst_g] + [rel(p, want_g[k]) for k, p in m.gens[l].named_parameters()])
+        worst_d = max([worst_d] + [rel(p, want_d[k]) for k, p in m.discs[l].named_parameters()])
+        moved = max(float((v - 1).abs()[v != 0].max()) for k, v in gms[j].disc.state_dict().items()
+                    if k.endswith("mask"))
+        assert (moved > 0) == (masks == "as released")
+    if masks == "frozen":
+        assert worst_g <= TOL and worst_d <= TOL
+    else:
+        assert worst_d > TOL and worst_g > TOL
 
 
 # --------------------------------------------------------------------------------------------- end to end
@@ -245,6 +298,17 @@ def test_import_then_generate_equals_their_sample(released, tmp_path):
     their_bvh = theirs.write_bvh(tmp_path / "theirs.bvh", levels[-1])
     a, b = _bvh_points(out / "sample.bvh", model.seqs[0].scale), _bvh_points(their_bvh)
     assert max(float((a[n] - b[n]).abs().max()) for n in b) <= 1e-5 * model.seqs[0].size
+
+
+def test_import_finds_the_bvh_named_in_args_txt(released, tmp_path):
+    """Without --data the BVH is their --bvh_prefix/--bvh_name (here absolute): the same run as with it."""
+    from modi.ganimator.training import load_model
+
+    run = G.import_checkpoint(released["init"].path, None, tmp_path / "run")
+    with_data = G.import_checkpoint(released["init"].path, released["bvh"], tmp_path / "run2")
+    a, b = load_model(run), load_model(with_data)
+    assert torch.equal(a.seqs[0].features, b.seqs[0].features)
+    assert all(torch.equal(x, y) for x, y in zip(a.gens.state_dict().values(), b.gens.state_dict().values()))
 
 
 def test_modi_loader_differs_by_name(released, imported):

@@ -246,5 +246,46 @@ class ReleasedRun:
                 "d_grads": d_grads, "g_grads": g_grads}
 
 
+    def train_iteration(self, levels: Sequence[int], seed: int = 0, disc_seed: int = 0,
+                        masks_trainable: bool = True) -> list[Any]:
+        """One iteration of their ``joint_train`` on the block ``levels`` (which must end at the finest level)
+        from the loaded generators and fresh discriminators (``disc_seed``), after ``torch.manual_seed(seed)``;
+        returns the block's ``GAN_model`` objects after their Adam steps (the loaded generators are not touched).
+
+        ``masks_trainable=False`` keeps their discriminators' 0/1 masks out of training: as released, their
+        ``disc_requires_grad_(True)`` re-enables the masks' gradients too, and their Adam then moves the masks."""
+        import copy
+
+        gens = copy.deepcopy(self.gens)
+        if list(levels)[-1] != len(gens) - 1:
+            raise ValueError("the block must end at the finest level (their noise draws cover the block's levels)")
+        gms = []
+        for level in levels:
+            gm = self.gan_model(level, seed=disc_seed + level)
+            gm.gen = gens[level]
+            gm.optimizerG = torch.optim.Adam(gm.gen.parameters(), lr=self.args.lr_g)
+            gm.optimizerD = torch.optim.Adam(gm.disc.parameters(), lr=self.args.lr_d)
+            if not masks_trainable:
+                def requires(flag: bool, disc: Any = gm.disc) -> None:
+                    for name, p in disc.named_parameters():
+                        if not name.endswith("mask"):
+                            p.requires_grad = flag
+                gm.disc_requires_grad_ = requires
+            gms.append(gm)
+        args = copy.copy(self.args)
+        args.num_iters, args.silent = 1, 1
+        recorder = types.SimpleNamespace(add_scalar=lambda *a, **k: None)
+        default = torch.get_default_dtype()
+        with peer_runtime() as peer:
+            torch.set_default_dtype(self.dtype)  # their zeros and noise draws, in the run's precision
+            _seed(seed)
+            try:
+                peer.architecture.joint_train([self.reals()], gens, gms, [self.lengths], [self.z_star], [self.amps],
+                                              args, recorder, None)
+            finally:
+                torch.set_default_dtype(default)
+        return gms
+
+
 __all__ = ["PEER", "DATA", "WALK", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "trim_bvh",
            "train_released", "ReleasedRun"]

@@ -178,13 +178,17 @@ def to_released_layout(x: Tensor, perm: Sequence[int]) -> Tensor:
     return x.permute(0, 2, 1, 3)[:, inv].reshape(B, E * C, T).contiguous()
 
 
-def entity_adjacency(mask: Tensor, n_entities: int, where: str = "") -> np.ndarray:
-    """``adj[out, in]`` of a released skeleton-conv mask ``(E*Co, E*Ci, U)``; each block must be all 0 or all 1."""
+def entity_adjacency(mask: Tensor, n_entities: int, where: str = "", binary: bool = True) -> np.ndarray:
+    """``adj[out, in]`` of a released skeleton-conv mask ``(E*Co, E*Ci, U)``; each block must be all 0 or all 1
+    (``binary=False``: all 0 or all non-zero; their discriminators' masks drift off 1 in training, see
+    ``benchmarks/peers/released_ganimator.py``)."""
     E = n_entities
     Co, Ci, U = mask.shape[0] // E, mask.shape[1] // E, mask.shape[2]
     if Co * E != mask.shape[0] or Ci * E != mask.shape[1]:
         raise UserError(f"{where}: mask {tuple(mask.shape)} is not split over {E} entities")
     blocks = mask.detach().to(torch.float64).reshape(E, Co, E, Ci, U)
+    if not binary:
+        blocks = (blocks != 0).to(torch.float64)
     lo, hi = blocks.amin(dim=(1, 3, 4)), blocks.amax(dim=(1, 3, 4))
     bad = (lo != hi) | ((hi != 0) & (hi != 1))
     if bool(bad.any()):
@@ -389,7 +393,7 @@ def _convs(body: Any) -> list[tuple[str, Any, str]]:
 
 
 def stack_state(sd: dict[str, Tensor], body: Any, perm: Sequence[int], prefix: str, where: str,
-                first: int = 0) -> dict[str, Tensor]:
+                first: int = 0, binary: bool = True) -> dict[str, Tensor]:
     """modi ``SkeletalStack`` tensors (keys under ``prefix``) for released layers ``layers.{first+i}.0``."""
     out: dict[str, Tensor] = {}
     E = len(perm)
@@ -404,7 +408,7 @@ def stack_state(sd: dict[str, Tensor], body: Any, perm: Sequence[int], prefix: s
         if tuple(w.shape) != (E * co, E * ci, U) or w.shape != mask.shape:
             raise UserError(f"{where}: {key}.weight is {tuple(w.shape)}, expected {(E * co, E * ci, U)} for this "
                             "skeleton and these options")
-        adj = entity_adjacency(mask, E, f"{where}: {key}.mask")
+        adj = entity_adjacency(mask, E, f"{where}: {key}.mask", binary)
         rows, cols = _pairs(conv)
         mine = np.zeros((E, E), dtype=bool)
         mine[p[rows].numpy(), p[cols].numpy()] = True
@@ -428,11 +432,12 @@ def generator_state(sd: dict[str, Tensor], gen: Any, perm: Sequence[int], where:
     return stack_state(sd, gen.body, perm, "body.net.", where)
 
 
-def discriminator_state(sd: dict[str, Tensor], disc: Any, perm: Sequence[int], where: str = "discriminator"
-                        ) -> dict[str, Tensor]:
+def discriminator_state(sd: dict[str, Tensor], disc: Any, perm: Sequence[int], where: str = "discriminator",
+                        binary: bool = True) -> dict[str, Tensor]:
     """The state dict of modi ``PatchDiscriminator`` ``disc`` for a released discriminator (skeleton-aware
-    layers, then a plain temporal conv over ``entity*C + c`` channels; modi's head reads ``c*E + entity``)."""
-    out = stack_state(sd, disc.body, perm, "body.net.", where)
+    layers, then a plain temporal conv over ``entity*C + c`` channels; modi's head reads ``c*E + entity``).
+    ``binary=False`` accepts masks that training moved off 1 (the effective weight ``weight * mask`` is kept)."""
+    out = stack_state(sd, disc.body, perm, "body.net.", where, binary=binary)
     n = len(_convs(disc.body))
     w, b = sd[f"layers.{n}.0.weight"], sd[f"layers.{n}.0.bias"]
     E = len(perm)
