@@ -25,7 +25,8 @@ from modi.interop import modi_released as M  # noqa: E402
 
 pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
               pytest.mark.filterwarnings("ignore::DeprecationWarning"),  # the released sources' old idioms
-              pytest.mark.filterwarnings("ignore::SyntaxWarning")]
+              pytest.mark.filterwarnings("ignore::SyntaxWarning"),
+              pytest.mark.filterwarnings("ignore::RuntimeWarning")]
 TOL = 1e-5
 
 
