@@ -31,17 +31,31 @@ def register(subparsers) -> None:
     e.set_defaults(func=lambda args: (e.print_help(), 2)[1])
     g = esub.add_parser(
         "gltf", help="write a BVH as glTF 2.0 (.glb or .gltf)", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="Write IN.bvh as glTF 2.0: one node per joint (names kept), a skin with a simple box-per-bone "
-                    "mesh, and one animation at the clip's frame rate. glTF is Y-up in metres: the BVH is read as "
-                    "Y-up and its lengths are scaled to metres (the unit is guessed from the body height and printed; "
-                    "--scale overrides). OUT.glb is binary; OUT.gltf is JSON with the buffer embedded (or beside it "
-                    "as OUT.bin with --side-buffer).")
+        description="Write IN.bvh as glTF 2.0: one node per joint (names kept), a skin (Blender: an armature), "
+                    "one animation at the clip's frame rate and the foot contacts as extras. glTF is Y-up in metres: "
+                    "the BVH is read as Y-up (--up z turns a Z-up file) and its lengths are scaled to metres (the unit "
+                    "is guessed from the body size and printed with the standing height; --scale overrides). "
+                    "OUT.glb is binary; OUT.gltf is JSON with the buffer embedded (or beside it as OUT.bin with "
+                    "--side-buffer). Debian's Blender 3.4 imports the file with its default options; set the scene's "
+                    "frame rate to the clip's before importing (Blender resamples keys at the scene rate, 24 fps by "
+                    "default). Contacts: " + _contact_rule() + ".")
     g.add_argument("input", metavar="IN.bvh", help="input BVH file")
     g.add_argument("output", metavar="OUT.glb", type=ct.output_file, help="output .glb or .gltf file")
     g.add_argument("--scale", type=ct.positive_finite_float, default=None,
-                   help="multiply lengths by this to get metres (default: guessed from the body height)")
+                   help="multiply lengths by this to get metres (default: guessed from the body size)")
+    g.add_argument("--up", choices=("y", "z"), default="y", help="the BVH file's up axis")
+    g.add_argument("--mesh", action="store_true",
+                   help="also write a box-per-bone body for viewers that draw no skeleton (Debian's Blender 3.4 "
+                        "then needs Import Shading: Flat or Smooth, its default fails on any mesh)")
+    g.add_argument("--no-contacts", action="store_true", help="do not store foot-contact labels")
     g.add_argument("--side-buffer", action="store_true", help=".gltf only: write the binary buffer as OUT.bin")
     g.set_defaults(func=run_gltf)
+
+
+def _contact_rule() -> str:
+    from modi.contacts import PREVIEW_RULE
+
+    return PREVIEW_RULE
 
 
 def run_gltf(args: argparse.Namespace) -> int:
@@ -63,7 +77,22 @@ def run_gltf(args: argparse.Namespace) -> int:
         ct.refuse_overwrite(out.with_suffix(".bin"), [args.input], "buffer file")
     b = bvh.load(args.input)
     check_motion(b, args.input)
-    unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer)
+    contacts = None
+    if not args.no_contacts:  # the same labels as the GIF and the viewer page (modi.contacts.preview_contacts)
+        import numpy as np
+
+        from modi.contacts import preview_contacts
+        from modi.kinematics import bvh_positions
+        from modi.viz.render import _feet_of
+
+        p = np.asarray(bvh_positions(b), dtype=np.float64)
+        if args.up == "z":
+            p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
+        feet = _feet_of(b)
+        lab = preview_contacts(p, feet, b.fps, b.parents, b.names)
+        contacts = {b.names[f]: lab[:, f] for f in feet}
+    unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer, contacts=contacts, mesh=args.mesh,
+                     up=args.up)
     print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {unit.describe()}")
     return 0
 

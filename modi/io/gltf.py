@@ -1,8 +1,9 @@
 """glTF 2.0 out of a BVH motion (``.glb`` or ``.gltf``), and joint positions back out of a glTF file.
 
 What a file holds: one node per BVH joint (named as the joint, translation = its OFFSET), a skin over those nodes
-with inverse bind matrices for the rest pose, a small mesh bound to the skin (a tapered box per bone, weighted to
-the bone's parent joint, so any viewer shows a body), and one animation: a LINEAR rotation sampler per joint, a
+with inverse bind matrices for the rest pose (Blender makes it an armature), optionally (``mesh=True``) a small mesh
+bound to the skin (a tapered box per bone, weighted to the bone's parent joint, for viewers that draw no skeleton;
+off by default, see :func:`build`), and one animation: a LINEAR rotation sampler per joint, a
 translation sampler for the root (and for any joint whose BVH position channels move), keys at the clip's frame
 times. glTF is Y-up in metres: BVH is read as Y-up (its convention) and lengths are multiplied by ``scale`` (a guess
 from the body height when not given, see :func:`guess_unit`). Contact labels go in the animation's ``extras``.
@@ -47,13 +48,16 @@ class UnitGuess:
 
     scale: float
     unit: str          # "metres", "centimetres", "inches", "millimetres" or "given"
-    height: float      # body height in file units (``Skeleton.height``)
+    height: float      # body size in file units (``Skeleton.height``, a chain length: what the guess uses)
+    standing: float | None = None  # standing height in file units (:class:`modi.body.Body`), what is printed
 
     def describe(self) -> str:
+        shown = self.height if self.standing is None else self.standing
+        what = "body size" if self.standing is None else "standing height"
         if self.unit == "given":
-            return f"lengths x {self.scale:g} to metres (--scale given; body height {self.height * self.scale:.3g} m)"
-        return (f"body height {self.height:.4g} file units looks like {self.unit}: lengths x {self.scale:g} to metres "
-                f"(body {self.height * self.scale:.3g} m; override with --scale)")
+            return f"lengths x {self.scale:g} to metres (--scale given; {what} {shown * self.scale:.3g} m)"
+        return (f"body size {self.height:.4g} file units looks like {self.unit}: lengths x {self.scale:g} to metres "
+                f"({what} {shown * self.scale:.3g} m; override with --scale)")
 
 
 _UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
@@ -70,13 +74,30 @@ def guess_unit(height: float) -> UnitGuess:
     return UnitGuess(scale, unit, h)
 
 
-def _unit_for(bvh, scale: float | None) -> UnitGuess:
+def _body(bvh, up: str = "y"):
+    """The :class:`modi.body.Body` of the clip (ground root, standing height), from its FK positions, Y up."""
+    from modi.body import Body
+    from modi.kinematics import bvh_positions
+
+    p = np.asarray(bvh_positions(bvh), dtype=np.float64)
+    if up == "z":
+        p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
+    return Body.of(p, bvh.parents, bvh.names)
+
+
+def _unit_for(bvh, scale: float | None, up: str = "y") -> UnitGuess:
+    from dataclasses import replace
+
     height = bvh.skeleton().height()
+    try:
+        standing = _body(bvh, up).standing_height
+    except (ValueError, IndexError):
+        standing = None
     if scale is None:
-        return guess_unit(height)
+        return replace(guess_unit(height), standing=standing)
     if not (math.isfinite(scale) and scale > 0):
         raise UserError(f"--scale must be a positive number, got {scale}")
-    return UnitGuess(float(scale), "given", height)
+    return UnitGuess(float(scale), "given", height, standing)
 
 
 # ---------------------------------------------------------------------------------------------- writing
@@ -188,8 +209,16 @@ def _contact_extras(contacts: Mapping[str, np.ndarray] | None, names: Sequence[s
     return {"joints": joints, "labels": labels}
 
 
-def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None) -> tuple[dict, bytes]:
-    """The glTF JSON document (buffer 0 without ``uri``) and its binary buffer for ``bvh`` at ``scale``."""
+def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None, mesh: bool = False,
+          up: str = "y") -> tuple[dict, bytes]:
+    """The glTF JSON document (buffer 0 without ``uri``) and its binary buffer for ``bvh`` at ``scale``.
+
+    ``mesh``: also a box-per-bone body bound to the skin, for viewers that draw no skeleton. Off by default
+    because Debian's Blender 3.4 fails on any mesh with its default import (Shading "Use Normals" reaches
+    ``numpy.bool``, which numpy 1.24 removed); without a mesh it imports the armature and its action.
+    The boxes follow :class:`modi.body.Body`: none on a static ground root or its link to the hips, none for
+    End Sites (leaf joints get a small cube instead, so a head top is not drawn twice).
+    ``up="z"``: the BVH is Z-up; its root is turned -90 degrees about X into glTF's Y-up."""
     from modi.kinematics import forward_kinematics
     import torch
 
@@ -197,27 +226,42 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None) -
     if F < 1:
         raise UserError("the motion has no frames; nothing written")
     quats, trans = _local_motion(bvh)
+    if up == "z":   # (x, y, z) -> (x, z, -y): the root's rotation and translation turn, everything below follows
+        from modi.rotations import quat_mul
+
+        half = math.sqrt(0.5)
+        turn = torch.tensor([half, -half, 0.0, 0.0], dtype=torch.float64)
+        quats[:, 0] = quat_mul(turn.expand(F, 4), torch.from_numpy(quats[:, 0])).numpy()
+        trans = trans.copy()
+        trans[:, 0] = np.stack([trans[:, 0, 0], trans[:, 0, 2], -trans[:, 0, 1]], -1)
+    elif up != "y":
+        raise ValueError(f"up must be 'y' or 'z', got {up!r}")
     trans = trans * scale
     offsets = bvh.offsets * scale
     if not (np.isfinite(quats).all() and np.isfinite(trans).all() and np.isfinite(offsets).all()):
         raise UserError("the motion contains NaN or inf; nothing written")
-    height = bvh.skeleton().height() * scale
     # bind pose: every rotation identity, the root at its OFFSET; the mesh is built in it
     ident = torch.zeros(J, 4, dtype=torch.float64)
     ident[:, 0] = 1.0
     rest, _ = forward_kinematics(ident, torch.from_numpy(offsets), bvh.parents, torch.from_numpy(offsets[0]))
     rest = rest.numpy()
-    seg_a, seg_b, owner = [], [], []
-    for j in range(1, J):
-        seg_a.append(rest[bvh.parents[j]])
-        seg_b.append(rest[j])
-        owner.append(bvh.parents[j])
-    for j, e in sorted(bvh.end_sites.items()):
-        seg_a.append(rest[j])
-        seg_b.append(rest[j] + np.asarray(e) * scale)
-        owner.append(j)
-    pos, nrm, jnt, idx = _bone_boxes(np.array(seg_a).reshape(-1, 3), np.array(seg_b).reshape(-1, 3), owner,
-                                     max(height, 1e-9))
+    pos = nrm = jnt = idx = np.zeros(0)
+    if mesh:
+        body = _body(bvh, up)
+        h = max(body.standing_height * scale, 1e-9)
+        seg_a, seg_b, owner = [], [], []
+        for j in body.bones():
+            seg_a.append(rest[bvh.parents[j]])
+            seg_b.append(rest[j])
+            owner.append(bvh.parents[j])
+        ground = set(body.ground)
+        has_kids = {q for q in bvh.parents if q >= 0}
+        for j in range(J):  # a leaf's tip: a small cube on the joint (End Site offsets are no body part)
+            if j not in has_kids and j not in ground and not bvh.names[j].lower().endswith("end"):
+                seg_a.append(rest[j] - [0.0, 0.03 * h, 0.0])
+                seg_b.append(rest[j] + [0.0, 0.03 * h, 0.0])
+                owner.append(j)
+        pos, nrm, jnt, idx = _bone_boxes(np.array(seg_a).reshape(-1, 3), np.array(seg_b).reshape(-1, 3), owner, h)
 
     b = _Bin()
     nodes: list[dict] = []
@@ -234,14 +278,18 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None) -
             node["children"] = children[j]
         nodes.append(node)
     mesh_node = J
-    nodes.append({"name": "body", "mesh": 0, "skin": 0})
+    if mesh:
+        nodes.append({"name": "body", "mesh": 0, "skin": 0})
 
     ibm = np.zeros((J, 4, 4))
     ibm[:] = np.eye(4)
     ibm[:, :3, 3] = -rest  # bind rotations are identity: the inverse is a translation
     ibm_acc = b.add(ibm.transpose(0, 2, 1).astype(np.float32), "MAT4")  # glTF matrices are column-major
     attrs = {}
-    if len(idx):
+    primitive: dict[str, Any] = {}
+    if not mesh:
+        pass
+    elif len(idx):
         attrs["POSITION"] = b.add(pos.astype(np.float32), "VEC3", _ARRAY_BUFFER, bounds=True)
         attrs["NORMAL"] = b.add(nrm.astype(np.float32), "VEC3", _ARRAY_BUFFER)
         joints = np.zeros((len(jnt), 4), dtype=np.uint8 if J < 256 else np.uint16)
@@ -280,18 +328,19 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None) -
     doc = {
         "asset": {"version": "2.0", "generator": "modi (modi.io.gltf)"},
         "scene": 0,
-        "scenes": [{"name": "motion", "nodes": [0, mesh_node],
+        "scenes": [{"name": "motion", "nodes": [0, mesh_node] if mesh else [0],
                     "extras": {"modi": {"fps": float(bvh.fps), "frames": F, "scale_to_metres": float(scale)}}}],
         "nodes": nodes,
         "skins": [{"name": "skeleton", "joints": list(range(J)), "skeleton": 0, "inverseBindMatrices": ibm_acc}],
-        "meshes": [{"name": "body", "primitives": [primitive]}],
-        "materials": [{"name": "body", "pbrMetallicRoughness": {"baseColorFactor": [0.75, 0.78, 0.85, 1.0],
-                                                                 "metallicFactor": 0.0, "roughnessFactor": 0.8}}],
         "animations": [animation],
         "buffers": [{"byteLength": len(data)}],
         "bufferViews": b.views,
         "accessors": b.accessors,
     }
+    if mesh:
+        doc["meshes"] = [{"name": "body", "primitives": [primitive]}]
+        doc["materials"] = [{"name": "body", "pbrMetallicRoughness": {
+            "baseColorFactor": [0.75, 0.78, 0.85, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.8}}]
     return doc, data
 
 
@@ -304,11 +353,11 @@ def _glb(doc: dict, data: bytes) -> bytes:
             + struct.pack("<II", len(data), _BIN_CHUNK) + data)
 
 
-def dumps(bvh, suffix: str = ".glb", scale: float | None = None, contacts: Mapping[str, np.ndarray] | None = None
-          ) -> tuple[bytes, UnitGuess]:
+def dumps(bvh, suffix: str = ".glb", scale: float | None = None, contacts: Mapping[str, np.ndarray] | None = None,
+          mesh: bool = False, up: str = "y") -> tuple[bytes, UnitGuess]:
     """(file bytes, unit guess): ``.glb`` binary, or ``.gltf`` JSON with the buffer embedded as a data URI."""
-    unit = _unit_for(bvh, scale)
-    doc, data = build(bvh, unit.scale, contacts)
+    unit = _unit_for(bvh, scale, up)
+    doc, data = build(bvh, unit.scale, contacts, mesh, up)
     if suffix == ".glb":
         return _glb(doc, data), unit
     if suffix == ".gltf":
@@ -318,7 +367,7 @@ def dumps(bvh, suffix: str = ".glb", scale: float | None = None, contacts: Mappi
 
 
 def save(bvh, path: str | os.PathLike, scale: float | None = None, contacts: Mapping[str, np.ndarray] | None = None,
-         side_buffer: bool = False) -> UnitGuess:
+         side_buffer: bool = False, mesh: bool = False, up: str = "y") -> UnitGuess:
     """Write ``bvh`` as glTF to ``path`` (``.glb``, or ``.gltf`` with its buffer embedded, or beside it as
     ``NAME.bin`` with ``side_buffer``); every file goes through :func:`modi.faults.atomic_write`."""
     from modi.faults import atomic_write
@@ -328,14 +377,14 @@ def save(bvh, path: str | os.PathLike, scale: float | None = None, contacts: Map
     if suffix not in SUFFIXES:
         raise UserError(f"{path}: a glTF file name ends in .glb or .gltf")
     if side_buffer and suffix == ".gltf":
-        unit = _unit_for(bvh, scale)
-        doc, data = build(bvh, unit.scale, contacts)
+        unit = _unit_for(bvh, scale, up)
+        doc, data = build(bvh, unit.scale, contacts, mesh, up)
         bin_path = path.with_suffix(".bin")
         doc["buffers"][0]["uri"] = bin_path.name
         atomic_write(bin_path, data)
         atomic_write(path, json.dumps(doc, indent=1))
         return unit
-    blob, unit = dumps(bvh, suffix, scale, contacts)
+    blob, unit = dumps(bvh, suffix, scale, contacts, mesh, up)
     atomic_write(path, blob)
     return unit
 
