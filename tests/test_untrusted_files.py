@@ -86,6 +86,24 @@ def test_an_allow_list_admits_exactly_the_named_classes(tmp_path):
     assert not marker.exists()
 
 
+def test_earlier_drafts_data_classes_load_but_object_arrays_do_not(tmp_path):
+    """numpy arrays and scalars and TorchVersion are data (files of earlier drafts may hold them); an object array
+    (pickled Python objects) is not."""
+    from torch.torch_version import TorchVersion
+
+    from modi.io.safe_load import earlier_modi_globals
+
+    f = tmp_path / "old.pt"
+    torch.save({"a": np.arange(3.0), "n": np.int64(7), "torch_version": TorchVersion("2.1.0")}, f)
+    st = load_data(f, allowed=earlier_modi_globals())
+    assert np.array_equal(st["a"], np.arange(3.0)) and st["n"] == 7 and st["torch_version"] == "2.1.0"
+    marker = tmp_path / "MARKER"
+    torch.save({"a": np.array([_Payload(marker)], dtype=object)}, tmp_path / "obj.pt")
+    with pytest.raises(UnsafeFileError):
+        load_data(tmp_path / "obj.pt", allowed=earlier_modi_globals())
+    assert not marker.exists()
+
+
 # ------------------------------------------------------------------------------------------- every reading command
 
 

@@ -99,10 +99,10 @@ _KINDS = {"modi-checkpoint": _modi, "modi-encoder": _encoder, "modi-features-v1"
 
 def describe(path: str | Path) -> dict[str, Any]:
     """The description ``modi info`` prints, from the file's data alone (``UserError`` for anything else)."""
-    from modi.io.safe_load import load_data
+    from modi.io.safe_load import earlier_modi_globals, load_data
 
     p = _resolve(Path(path))
-    st = load_data(p, "modi file")
+    st = load_data(p, "modi file", allowed=earlier_modi_globals())
     fmt = st.get("format") if isinstance(st, dict) else None
     if fmt not in _KINDS:
         raise UserError(f"{p}: not a modi checkpoint, encoder or feature-extractor file"

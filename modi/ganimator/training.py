@@ -116,7 +116,7 @@ def read_checkpoint(run: str | Path) -> dict:
     """The checkpoint of a run folder (or ``.ckpt`` file), read as data only (``modi.io.safe_load``): every
     ``modi.ganimator/1`` file modi has written holds plain containers and tensors; one that names any other code is
     refused, unrun, with one line."""
-    from modi.io.safe_load import UnreadableFileError, load_data, numpy_data_globals
+    from modi.io.safe_load import UnreadableFileError, earlier_modi_globals, load_data
 
     path = checkpoint_path(run)
     if not path.is_file():
@@ -124,8 +124,8 @@ def read_checkpoint(run: str | Path) -> dict:
             raise CheckpointError(f"no GANimator checkpoint at {path}: {path.parent} looks like a run of the authors' "
                                   "released code; convert it with 'modi import ganimator-released'")
         raise CheckpointError(f"no GANimator checkpoint at {path}")
-    try:  # numpy arrays are data too (an earlier draft might have stored some)
-        ck = load_data(path, "GANimator checkpoint", allowed=numpy_data_globals(), hint=f"; {_INSTEAD}")
+    try:
+        ck = load_data(path, "GANimator checkpoint", allowed=earlier_modi_globals(), hint=f"; {_INSTEAD}")
     except UnreadableFileError as exc:  # a truncated or foreign file
         raise CheckpointError(f"cannot read checkpoint {path}: {exc.reason}") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:

@@ -50,6 +50,14 @@ def numpy_data_globals() -> list:
             (multiarray.scalar, "numpy.core.multiarray.scalar")]
 
 
+def earlier_modi_globals() -> list:
+    """Data classes that files written by earlier modi drafts may hold: ``TorchVersion`` (a ``str`` subclass)
+    and numpy arrays and scalars; every modi reader allows them."""
+    from torch.torch_version import TorchVersion
+
+    return [TorchVersion, *numpy_data_globals()]
+
+
 def refused_global(exc: BaseException) -> str | None:
     """The global a weights-only load refused (``posix.system``), or None when it failed for another reason."""
     text = str(exc)
@@ -98,4 +106,4 @@ def load_data(path: str | os.PathLike, what: str = "modi file", allowed: Iterabl
         raise UnreadableFileError(f"{p}: not a readable {what} ({reason})", p, reason) from None
 
 
-__all__ = ["load_data", "numpy_data_globals", "refused_global", "UnsafeFileError", "UnreadableFileError"]
+__all__ = ["load_data", "numpy_data_globals", "earlier_modi_globals", "refused_global", "UnsafeFileError", "UnreadableFileError"]

@@ -10,7 +10,7 @@ from typing import Any
 
 from modi.errors import CheckpointError
 from modi.faults import atomic_torch_save  # the one atomic writer (disk full: one clear line)
-from modi.io.safe_load import load_data
+from modi.io.safe_load import earlier_modi_globals, load_data
 
 CHECKPOINT_FORMAT = "modi-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -28,10 +28,9 @@ def load_checkpoint(ckpt: str | os.PathLike | dict) -> dict[str, Any]:
             raise CheckpointError(f"{path}: no such checkpoint file")
         if not path.is_file():
             raise CheckpointError(f"{path}: is not a file")
-        from torch.torch_version import TorchVersion  # a str subclass early drafts stored; harmless to allow
-
-        # as data only: a file naming any other code is refused unrun (UnsafeFileError, one line)
-        st = load_data(path, "MoDi checkpoint", allowed=[TorchVersion],
+        # as data only (plus TorchVersion, a str subclass early drafts stored): a file naming any other code is
+        # refused unrun (UnsafeFileError, one line)
+        st = load_data(path, "MoDi checkpoint", allowed=earlier_modi_globals(),
                        hint="; only checkpoints written by 'modi train' load (the authors' released ones convert "
                             "with 'modi import modi-released')")
     if not isinstance(st, dict) or st.get("format") != CHECKPOINT_FORMAT:
