@@ -74,6 +74,11 @@ def _noises(lengths, amps, seed):
     return [torch.randn(1, 1, L, generator=g, dtype=torch.float64) * float(a) for L, a in zip(lengths, amps)]
 
 
+# other rigs (random initialisation): a 120 fps rig scaled by their 0.14 rule with every joint kept, and a crab
+# whose six leg tips carry contacts at their 0.006 threshold
+RIGS = {"xia": ("Xia/normal.bvh", 240), "crab": ("Crabnew/Crab-dance-long.bvh", 60)}
+
+
 # --------------------------------------------------------------------------------------------- data and files
 def test_released_files_and_training_moved_every_weight(released):
     r0, r1 = released["init"], released["trained"]
@@ -115,6 +120,30 @@ def test_every_level_output_equal(released, imported, kind):
 @pytest.mark.parametrize("kind", KINDS)
 def test_reconstruction_equal(released, imported, kind):
     theirs, ours, perm = _pair(released, imported, kind)
+    assert rel(ours.reconstruct(0), G.to_modi_layout(theirs.reconstruction()[-1], perm)) <= TOL
+
+
+@pytest.mark.parametrize("rig", sorted(RIGS))
+def test_other_rigs_data_levels_and_reconstruction_equal(released, rig, tmp_path):
+    from modi.ganimator.networks import synthesize
+    from modi.ganimator.training import load_model
+
+    path, n = RIGS[rig]
+    if not (R.DATA / path).is_file():
+        pytest.skip(f"{R.DATA / path} not found (../shared/data)")
+    bvh = R.trim_bvh(R.DATA / path, tmp_path / "data" / Path(path).name, n)
+    R.train_released(bvh, tmp_path / "theirs", 0, seed=14)
+    theirs = R.ReleasedRun(tmp_path / "theirs", dtype=torch.float64)
+    ours = load_model(G.import_checkpoint(tmp_path / "theirs", bvh, tmp_path / "ours")).double()
+    perm = G.entity_perm(ours.n_joints, len(ours.feet))
+    assert ours.seqs[0].skeleton.names == theirs.motion_data.bvh_file.skeleton.names
+    assert rel(ours.seqs[0].features.unsqueeze(0), G.to_modi_layout(theirs.motion_data.raw_motion, perm)) <= TOL
+    noises = _noises(theirs.lengths, theirs.amps, seed=15)
+    with torch.no_grad():
+        mine = synthesize(ours.gens, ours.rates[0], ours.lengths[0], [z.view(1, 1, 1, -1) for z in noises],
+                          ours.n_entities)
+    for l, (a, b) in enumerate(zip(mine, theirs.level_outputs(noises))):
+        assert rel(a, G.to_modi_layout(b, perm)) <= TOL, l
     assert rel(ours.reconstruct(0), G.to_modi_layout(theirs.reconstruction()[-1], perm)) <= TOL
 
 

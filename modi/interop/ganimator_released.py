@@ -297,14 +297,16 @@ def real_pyramid_of(features: Tensor, lengths: Sequence[int]) -> list[Tensor]:
     return [resample(features, L, T / L) if L != T else features.clone() for L in lengths]
 
 
-def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float) -> Any:
-    """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels)."""
+def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float,
+               raw: Any = None) -> Any:
+    """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels);
+    ``raw``: the BVH already read (``read_clip``)."""
     from modi.ganimator.data import (Sequence as Clip, _permute_clip, body_height, contact_labels,
                                      motion_to_features, read_clip, subset_clip)
     from modi.kinematics import forward_kinematics
     from modi.skeleton import Skeleton, strip_namespace
 
-    raw = read_clip(bvh)
+    raw = read_clip(bvh) if raw is None else raw
     sub = subset_clip(raw, sorted(order))
     srt = sorted(order)
     clip = _permute_clip(sub, [srt.index(j) for j in order])
@@ -331,12 +333,15 @@ THRESHOLDS = (0.018, 0.006)
 
 
 def match_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], lengths: Sequence[int],
-               amps: Sequence[float]) -> Any:
+               amps: Sequence[float], raw: Any = None) -> Any:
     """The clip whose pyramid reproduces the checkpoint's amplitudes (units and contact threshold)."""
+    from modi.ganimator.data import read_clip
+
+    raw = read_clip(bvh) if raw is None else raw
     best, best_err = None, math.inf
     for scale in SCALES:
         for th in (THRESHOLDS if feet else THRESHOLDS[:1]):
-            clip = build_clip(bvh, order, feet, scale, th)
+            clip = build_clip(bvh, order, feet, scale, th, raw)
             if clip.n_frames != lengths[-1]:
                 raise UserError(f"{bvh}: {clip.n_frames} frames at {clip.fps:g} fps, but the checkpoint's finest "
                                 f"level has {lengths[-1]}; pass the BVH the model was trained on")
@@ -502,13 +507,14 @@ def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str,
     from modi.ganimator.data import read_clip
     from modi.joint_reduction import reduce_joints
 
-    sk = read_clip(bvh).skeleton
+    raw = read_clip(bvh)
+    sk = raw.skeleton
     names = [strip_namespace(n) for n in sk.names]
     cands = [reduce_joints(sk)] if args["joint_reduction"] else []
     cands.append(list(range(sk.n_joints)))
     order, feet = match_skeleton(sk.parents, names, adj, int(args["neighbour_dist"]), cands)
     return {"run": run, "args": args, "sds": sds, "z_star": z_star.detach(), "amps": amps_row, "bvh": bvh,
-            "order": order, "feet": feet, "E": E}
+            "order": order, "feet": feet, "E": E, "raw": raw}
 
 
 def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str) -> Path:
@@ -528,14 +534,15 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     # level lengths: the released pyramid of the clip (checked against z* and the number of generator files)
     from modi.ganimator.data import pyramid_lengths
 
-    probe = build_clip(r["bvh"], r["order"], r["feet"], 1.0, THRESHOLDS[0])
-    lengths = pyramid_lengths(probe.n_frames, _fraction(args["ratio"]), float(args["scaling_rate"]))
+    raw = r["raw"]
+    n_frames = len(range(0, raw.rotations.shape[0], released_stride(raw.fps)))
+    lengths = pyramid_lengths(n_frames, _fraction(args["ratio"]), float(args["scaling_rate"]))
     if int(args["num_stages_limit"]) != -1:
         lengths = lengths[: int(args["num_stages_limit"])]
     if len(lengths) != len(sds) or lengths[0] != r["z_star"].shape[-1]:
         raise UserError(f"{run}: {len(sds)} levels with a coarsest of {r['z_star'].shape[-1]} frames, but the BVH "
                         f"{r['bvh']} gives levels {lengths}; pass the BVH the model was trained on")
-    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"])
+    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"], raw)
     cfg = config_for(args, clip, len(sds))
     got, _ = sequence_pyramid([clip], cfg)
     if got[0] != lengths:
