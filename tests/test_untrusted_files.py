@@ -183,6 +183,18 @@ def test_a_planted_file_is_refused_unrun_by_every_reading_command(line, work, tm
     assert "objects other than data" in err and str(tmp_path / "shared") in err, err
 
 
+@pytest.mark.parametrize("line", ["import modi-released {evil} --data {d} --out {out}",
+                                  "import encoder-released {evil} --generator {evil} --data {d} --out {out}"])
+def test_a_planted_released_checkpoint_is_refused_unrun(line, work, tmp_path, capsys):
+    """``modi import`` reads the authors' files with their classes allowed (issue 30); code is still refused."""
+    marker = tmp_path / "MARKER"
+    evil = _plant(tmp_path / "shared" / "released.pt", marker, outer={"args": argparse.Namespace(lr=0.1)})
+    capsys.readouterr()
+    rc = main(shlex.split(line.format(evil=evil, out=tmp_path / "out", **work)))
+    err = _one_error_line(capsys)
+    assert not marker.exists() and rc == 2 and str(evil) in err, (rc, err)
+
+
 def test_a_planted_dataset_cache_is_refused_unrun(work, tmp_path, capsys):
     cache = tmp_path / "cache"
     assert main(["data", "info", work["d"], "--window", "16", "--cache-dir", str(cache)]) == 0
