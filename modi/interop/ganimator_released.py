@@ -237,8 +237,8 @@ def _released_neighbours(parents: Sequence[int], feet: Sequence[int], distance: 
     return out
 
 
-def match_skeleton(parents: Sequence[int], names: Sequence[str], adj: np.ndarray, distance: int,
-                   candidates: Sequence[Sequence[int]]) -> tuple[list[int], list[int]]:
+def match_skeleton(parents: Sequence[int], adj: np.ndarray, distance: int, candidates: Sequence[Sequence[int]]
+                   ) -> tuple[list[int], list[int]]:
     """(joint order as file indices, feet as indices into that order) reproducing the mask adjacency ``adj``."""
     E = adj.shape[0]
     tried = []
@@ -279,22 +279,17 @@ def released_stride(fps: float) -> int:
     return stride
 
 
-def _amplitudes(features: Tensor, lengths: Sequence[int]) -> list[float]:
-    from modi.ganimator.data import resample
+def _amplitudes(clip: Any, lengths: Sequence[int]) -> list[float]:
+    """Each level's noise amplitude as their ``train.py`` sets it: the RMS of what upsampling the coarser real
+    level misses (of the whole level at level 0)."""
+    from modi.ganimator.data import real_pyramid, resample
 
-    reals = real_pyramid_of(features, lengths)
+    reals = real_pyramid(clip, lengths)
     out = []
     for i, r in enumerate(reals):
         prev = torch.zeros_like(r) if i == 0 else resample(reals[i - 1], lengths[i], lengths[i - 1] / lengths[i])
         out.append(float(((r - prev) ** 2).mean().sqrt()))
     return out
-
-
-def real_pyramid_of(features: Tensor, lengths: Sequence[int]) -> list[Tensor]:
-    from modi.ganimator.data import resample
-
-    T = features.shape[-1]
-    return [resample(features, L, T / L) if L != T else features.clone() for L in lengths]
 
 
 def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float,
@@ -345,7 +340,7 @@ def match_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], lengths: Se
             if clip.n_frames != lengths[-1]:
                 raise UserError(f"{bvh}: {clip.n_frames} frames at {clip.fps:g} fps, but the checkpoint's finest "
                                 f"level has {lengths[-1]}; pass the BVH the model was trained on")
-            mine = _amplitudes(clip.features, lengths)
+            mine = _amplitudes(clip, lengths)
             err = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(mine, amps))
             if err < best_err:
                 best, best_err = clip, err
@@ -419,6 +414,7 @@ def stack_state(sd: dict[str, Tensor], body: Any, perm: Sequence[int], prefix: s
         mine[p[rows].numpy(), p[cols].numpy()] = True
         if not np.array_equal(mine, adj):
             raise UserError(f"{where}: {key}.mask connects other entities than this skeleton's neighbourhoods")
+        # their forward multiplies by the mask, so a weight outside it never acted: the product is the weight
         wr = (w.detach() * mask.detach()).reshape(E, co, E, ci, U)
         blocks = wr[p[rows], :, p[cols]]  # (nnz, co, ci, U)
         out[f"{prefix}{cname}.weight"] = blocks.permute(1, 0, 2, 3).contiguous().to(conv.weight.dtype)
@@ -477,8 +473,6 @@ def config_for(args: dict, clip: Any, n_levels: int) -> Any:
 
 def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str, Any]:
     """Everything of a released run, matched to its BVH: options, clip, entity order, tensors (no model yet)."""
-    from modi.skeleton import strip_namespace
-
     run = find_run(ckpt)
     args = read_args(run)
     try:
@@ -509,10 +503,9 @@ def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str,
 
     raw = read_clip(bvh)
     sk = raw.skeleton
-    names = [strip_namespace(n) for n in sk.names]
     cands = [reduce_joints(sk)] if args["joint_reduction"] else []
     cands.append(list(range(sk.n_joints)))
-    order, feet = match_skeleton(sk.parents, names, adj, int(args["neighbour_dist"]), cands)
+    order, feet = match_skeleton(sk.parents, adj, int(args["neighbour_dist"]), cands)
     return {"run": run, "args": args, "sds": sds, "z_star": z_star.detach(), "amps": amps_row, "bvh": bvh,
             "order": order, "feet": feet, "E": E, "raw": raw}
 
