@@ -46,8 +46,9 @@ def files(tmp_path_factory):
     return f
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def peer():
+    """Their modules, importable (and torch's CUDA calls mapped to the CPU) for this module's tests only."""
     try:
         R.require_peer()
     except R.PeerUnavailable as exc:

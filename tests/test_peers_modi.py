@@ -44,8 +44,9 @@ def files(tmp_path_factory):
         pytest.skip(str(exc))
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def peer():
+    """Their modules, importable (and torch's CUDA calls mapped to the CPU) for this module's tests only."""
     try:
         R.require_peer()
     except R.PeerUnavailable as exc:
@@ -364,6 +365,43 @@ def test_g_step_losses_and_gradients(files, peer):
     _grads_equal(g, state, rg, "g(path, detached mean)")
     differs = max(rel(released_grads[n], p.grad) for n, p in rg.named_parameters() if n in released_grads)
     assert differs > TOL  # the released (non-detached) gradients are another function
+
+
+def test_g_step_foot_terms_equal(files, peer):
+    """The two foot terms of their G step with --foot (``g_foot_contact_loss_v2``: sigmoid contact x ankle speed
+    per frame; ``g_encourage_contact``) against modi's released forms (``foot_contact_speed_loss`` on
+    ``codec.ankles``, ``foot_touch_loss``) and their weights, on their --foot data with contact channels
+    perturbed off the labels. (A --foot generator on this skeleton does not import: see the README.)"""
+    from modi.interop.released_files import load_released_npy
+    from modi.modi_model import losses
+    from modi.modi_model.config import TrainConfig
+
+    args = R.make_args(files.data, feet=True)
+    ckpt = files.root / "init_foot.pt"
+    if not ckpt.is_file():
+        R.random_init_checkpoint(args, ckpt)
+    ck = R.load_released(ckpt)
+    statics = R.motion_statics(peer, args)
+    data, norm = R.normalisation(peer, args, statics)
+    x = torch.from_numpy(np.ascontiguousarray(data[:4])).double().transpose(1, 2).contiguous()
+    n_feet = len(statics.foot_indexes[-1])
+    assert n_feet == 2 and x.shape[2] == 24
+    x[:, 0, -n_feet:] += torch.randn(4, n_feet, x.shape[-1], generator=torch.Generator().manual_seed(11),
+                                     dtype=torch.float64)
+    tm = R.train_module(peer)
+    nd = {"std": torch.from_numpy(norm["std"]).double(), "mean": torch.from_numpy(norm["mean"]).double()}
+    theirs_fc = tm.g_foot_contact_loss_v2(x, statics, nd, args.glob_pos, args.use_velocity)
+    theirs_touch = tm.g_encourage_contact(x)
+
+    codec = M.released_codec(load_released_npy(files.data)[0], ck, statics.foot_indexes[-1], 30.0)
+    codec.normalizer.mean, codec.normalizer.std = codec.normalizer.mean.double(), codec.normalizer.std.double()
+    foot_pos, contact = codec.foot_terms(x, codec.ankles)
+    ours_fc = losses.foot_contact_speed_loss(foot_pos, contact)
+    ours_touch = losses.foot_touch_loss(contact)
+    assert rel(ours_fc, theirs_fc) <= TOL and rel(ours_touch, theirs_touch) <= TOL
+    tc = TrainConfig()
+    assert (tc.contact_loss, tc.contact_weight, tc.touch_weight) == \
+        ("released", args.g_foot_reg_weight, args.g_encourage_contact_weight)
 
 
 # --------------------------------------------------------------------------------------------- BVH and CLI

@@ -122,6 +122,7 @@ def _op_module() -> types.ModuleType:
 
 # --------------------------------------------------------------------------------------------- loading the peer
 _PEER_MODULES: dict[str, types.ModuleType] = {}
+_ACTIVE: list[types.SimpleNamespace] = []  # the namespace of the peer_runtime block in force, if any
 _NUMPY_ALIASES = {"int": int, "float": float, "bool": bool, "object": object, "complex": complex, "str": str}
 
 
@@ -149,7 +150,11 @@ def _cpu(v: Any) -> Any:
 
 @contextlib.contextmanager
 def peer_runtime() -> Iterator[types.SimpleNamespace]:
-    """Make the released modules importable and CPU-safe for the duration of the block; yields them."""
+    """Make the released modules importable and CPU-safe for the duration of the block; yields them.
+    Re-entrant: a nested block reuses the outer one's state and leaves it in place."""
+    if _ACTIVE:
+        yield _ACTIVE[-1]
+        return
     root = require_peer()
     saved = {n: m for n, m in sys.modules.items() if _is_peer_module(n) and n not in _PEER_MODULES}
     for n in saved:
@@ -194,8 +199,10 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
         ns = types.SimpleNamespace(gan=gan, motion_class=motion_class, traits=traits, pre_run=pre_run,
                                    data=data_utils, preprocess=preprocess, BVH=BVH, Animation=Animation,
                                    Quaternions=Quaternions, root=root)
+        _ACTIVE.append(ns)
         yield ns
     finally:
+        _ACTIVE.clear()
         torch.Tensor.cuda, torch.cuda.synchronize = old_cuda, old_sync  # type: ignore[method-assign]
         torch.Tensor.to = old_to  # type: ignore[method-assign]
         if not had_user:
