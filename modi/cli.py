@@ -56,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
         register = getattr(module, "register", None)
         if register is not None:
             register(sub)
+    from modi.cli_types import use_help_formatter
+
+    use_help_formatter(parser)  # no "(default: None)" in any help
     return parser
 
 

@@ -232,3 +232,30 @@ __all__ = ["int_range", "positive_int", "nonneg_int", "seed_int", "threads_int",
            "nonneg_finite_float", "fps_float", "lr_float", "probability", "minutes_float", "angle_float",
            "available_devices", "device_type", "device", "device_or_auto", "output_dir", "output_file",
            "input_file", "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLES", "MAX_FRAMES"]
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """``(default: X)`` after an option's help, except where it says nothing: no default (None, False for a flag)
+    or a help text that already states its default in words."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if action.default in (None, False, argparse.SUPPRESS) or "default" in text.lower() or "%(default)" in text:
+            return text
+        return super()._get_help_string(action)
+
+
+def use_help_formatter(parser: argparse.ArgumentParser) -> None:
+    """Give ``parser`` and every sub-command parser under it :class:`HelpFormatter` (in place of argparse's
+    ``ArgumentDefaultsHelpFormatter``, which prints "(default: None)")."""
+    stack, seen = [parser], set()
+    while stack:
+        p = stack.pop()
+        if id(p) in seen:
+            continue
+        seen.add(id(p))
+        if p.formatter_class is argparse.ArgumentDefaultsHelpFormatter:
+            p.formatter_class = HelpFormatter
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                stack.extend(action.choices.values())

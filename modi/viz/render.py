@@ -21,17 +21,11 @@ from modi.errors import UserError
 _BG, _GRID, _GRID_MAJOR, _SHADOW, _TEXT, _CONTACT, _BORDER = range(7)
 _BASE_COLORS = [(247, 247, 244), (214, 214, 210), (185, 185, 180), (208, 208, 204), (40, 40, 40), (225, 40, 40),
                 (150, 150, 150)]
-# per character: (centre, left, right)
-_CHAR_COLORS = [
-    ((40, 60, 110), (30, 110, 220), (235, 120, 30)),
-    ((35, 95, 55), (40, 160, 90), (160, 60, 170)),
-    ((95, 55, 35), (200, 110, 50), (60, 140, 170)),
-    ((80, 40, 100), (140, 80, 200), (200, 170, 30)),
-    ((20, 90, 100), (30, 170, 180), (210, 80, 110)),
-    ((100, 90, 30), (170, 150, 40), (70, 90, 200)),
-    ((90, 30, 50), (190, 60, 90), (60, 160, 110)),
-    ((60, 60, 60), (110, 110, 110), (180, 120, 60)),
-]
+# per character: (centre, left, right); left is always blue and right always orange (the viewer page's legend)
+_LEFT_RGB, _RIGHT_RGB = (30, 110, 220), (235, 120, 30)
+_CHAR_COLORS = [(c, _LEFT_RGB, _RIGHT_RGB) for c in (
+    (40, 60, 110), (35, 95, 55), (95, 55, 35), (80, 40, 100), (20, 90, 100), (100, 90, 30), (90, 30, 50),
+    (60, 60, 60))]
 _FOV = math.radians(40.0)
 _FOOT_WORDS = ("foot", "toe", "ankle", "heel")
 

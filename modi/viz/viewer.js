@@ -30,7 +30,8 @@
       for (var k = 0; k < con.length; k++) con[k] = (bits[k >> 3] >> (7 - (k & 7))) & 1;
     }
     return {title: m.title, names: m.names, parents: m.parents, side: m.side, hide: m.hide, fps: m.fps, T: m.frames,
-            J: m.names.length, pos: pos, con: con, off: [0, 0, 0], color: D.colors[m.color % D.colors.length]};
+            J: m.names.length, pos: pos, con: con, off: [0, 0, 0], color: D.colors[m.color % D.colors.length],
+            height: m.height, small: m.small || [], duration: (m.frames - 1) / m.fps};
   });
   var fpsMaster = Math.max.apply(null, motions.map(function (m) { return m.fps; }));
   var nFrames = 1 + Math.round(Math.max.apply(null, motions.map(function (m) {
@@ -38,6 +39,7 @@
   var hMax = Math.max.apply(null, D.motions.map(function (m) { return m.height; }));
 
   function frameOf(m, f) { return Math.min(m.T - 1, Math.round(f / fpsMaster * m.fps)); }
+  function ended(m, f) { return f / fpsMaster > m.duration + 0.5 / m.fps; }  // holds its last pose from then
   function joint(m, t, j) {
     var i = (t * m.J + j) * 3;
     return [m.pos[i] + m.off[0], m.pos[i + 1], m.pos[i + 2] + m.off[2]];
@@ -59,17 +61,29 @@
     m.centre = Math.max(0, m.hide.indexOf(1));  // the hips when the root is a floor marker, else the root
     m.marker = m.hide.map(function () { return 0; });
     m.hide.forEach(function (h, j) { if (h) m.marker[m.parents[j]] = 1; });
+    // a cell's follow camera: the centre joint's ground track averaged over a second (no per-step sway)
+    var k = Math.max(1, Math.round(0.5 * m.fps)), cx = [], cz = [];
+    for (var t = 0; t < m.T; t++) { var i = (t * m.J + m.centre) * 3; cx.push(m.pos[i]); cz.push(m.pos[i + 2]); }
+    m.track = [];
+    for (t = 0; t < m.T; t++) {
+      var a = Math.max(0, t - k), b = Math.min(m.T - 1, t + k), sx = 0, sz = 0;
+      for (var u = a; u <= b; u++) { sx += cx[u]; sz += cz[u]; }
+      m.track.push([sx / (b - a + 1), sz / (b - a + 1)]);
+    }
   });
-  function applyLayout(kind) {
-    var n = motions.length, cols = Math.ceil(Math.sqrt(n)), sp = hMax;
-    motions.forEach(function (m) {
-      sp = Math.max(sp, 1.15 * (m.bounds[1][0] - m.bounds[0][0]), 1.15 * (m.bounds[1][2] - m.bounds[0][2]));
-    });
-    motions.forEach(function (m, i) {
-      if (kind === 'scene' || n === 1) { m.off = [0, 0, 0]; return; }
-      var b = m.bounds, r = Math.floor(i / cols), c = i % cols;
-      m.off = [c * sp - (b[0][0] + b[1][0]) / 2, 0, r * sp - (b[0][2] + b[1][2]) / 2];
-    });
+  // small multiples (side by side): one cell per motion, each with its own camera; one motion is one cell too,
+  // unless it is shown with a still camera (follow off), which frames the ground it covers instead
+  function cellMode() { return layoutSel.value === 'grid' && (motions.length > 1 || followBox.checked); }
+  var cells = {cols: 1, rows: 1, w: 1, h: 1};
+  function layoutCells() {  // small multiples: the column count that gives each figure the most height
+    var n = motions.length, best = -1;
+    for (var c = 1; c <= n; c++) {
+      var r = Math.ceil(n / c), w = W / c, h = H / r, score = Math.min(h, 1.6 * w);
+      if (score > best + 1e-9) { best = score; cells = {cols: c, rows: r, w: w, h: h}; }
+    }
+  }
+  function applyLayout() {  // one scene: every motion where it is; small multiples: each cell follows its figure
+    motions.forEach(function (m) { m.off = [0, 0, 0]; });
     box = [[Infinity, 0, Infinity], [-Infinity, hMax, -Infinity]];
     motions.forEach(function (m) {
       for (var k = 0; k < 3; k += 2) {
@@ -110,6 +124,7 @@
     cam.target = [(box[0][0] + box[1][0]) / 2, 0.45 * box[1][1], (box[0][2] + box[1][2]) / 2];
     cam.home = cam.target.slice();
     fitDistance();
+    cam.dist0 = cam.dist;
     cam.az = num('az', 35) * Math.PI / 180;
     cam.el = num('el', 18) * Math.PI / 180;
   }
@@ -172,6 +187,90 @@
     }
     ctx.stroke();
   }
+  function drawGridAround(target, radius, step) {
+    var x0 = Math.floor((target[0] - radius) / step) * step, x1 = Math.ceil((target[0] + radius) / step) * step;
+    var z0 = Math.floor((target[2] - radius) / step) * step, z1 = Math.ceil((target[2] + radius) / step) * step;
+    for (var x = x0; x <= x1 + 1e-9; x += step) line([x, 0, z0], [x, 0, z1], D.style.grid, 1);
+    for (var z = z0; z <= z1 + 1e-9; z += step) line([x0, 0, z], [x1, 0, z], D.style.grid, 1);
+  }
+  function cellDistance(m, travel) {  // the figure fills ~70 % of its cell's height (90 % of its width at most)
+    var th = 2 * Math.tan(FOV / 2), aspect = cells.w / cells.h, wide = Math.max(0.8 * m.height, travel);
+    return Math.max(m.height / (0.7 * th), wide / (0.9 * th * aspect)) + 0.3 * m.height;
+  }
+  var cellView = [];  // per motion: the view its cell was drawn with (for hover and screenOf)
+  function drawFigure(m, mi, P, t, bones, scale) {
+    for (var j = 0; j < m.J; j++) {  // floor shadow first: it lies under everything
+      var p = m.parents[j];
+      if (p >= 0 && !m.hide[j]) line([P[p][0], 0, P[p][2]], [P[j][0], 0, P[j][2]], D.style.shadow, 3);
+    }
+    for (j = 0; j < m.J; j++) {
+      var c = toCam(P[j]);
+      var on = m.con ? m.con[t * m.J + j] === 1 : false;
+      if (on) ring(P[j], 0.04 * scale, D.style.contactRing);
+      if (c[2] > NEAR && !m.marker[j]) drawn.push({m: mi, j: j, s: project(c), on: on, depth: c[2], ox: view.ox,
+                                                   oy: view.oy, small: m.small[j] === 1});
+      p = m.parents[j];
+      if (p >= 0 && !m.hide[j]) bones.push({a: P[p], b: P[j], color: m.color[m.side[j]],
+                                            depth: (toCam(P[p])[2] + c[2]) / 2, small: m.small[j] === 1});
+    }
+  }
+  function drawBones(bones, scale) {
+    bones.sort(function (a, b) { return b.depth - a.depth; });
+    bones.forEach(function (b) {
+      var w = Math.max(1.5, Math.min(9, 0.035 * scale * view.fpx / Math.max(b.depth, NEAR)));
+      line(b.a, b.b, b.color, b.small ? Math.max(1, 0.4 * w) : w);
+    });
+  }
+  function drawJoints(list, scale) {
+    list.forEach(function (d) {
+      var m = motions[d.m], r = Math.max(1.5, Math.min(7, 0.02 * scale * view.fpx / d.depth)) * (d.on ? 1.8 : 1);
+      if (d.small && !d.on) r = Math.max(0.8, 0.35 * r);  // fingers: small, a hand is not a blob
+      ctx.fillStyle = d.on ? D.style.contact : m.color[m.side[d.j]];
+      ctx.beginPath(); ctx.arc(d.s[0], d.s[1], r, 0, 2 * Math.PI); ctx.fill();
+    });
+  }
+  function label(m, x, y, maxw) {  // the motion's title, and whether it has ended (it then holds its last pose)
+    var text = m.title + (ended(m, frame) ? ' · ended (last pose held)' : '');
+    while (text.length > 1 && ctx.measureText(text).width > maxw) text = text.slice(0, -2) + '…';
+    ctx.fillStyle = ended(m, frame) ? '#8a8a8a' : D.style.text;
+    ctx.fillText(text, x, y);
+  }
+  function drawCells() {
+    layoutCells();
+    drawn = [];
+    cellView = [];
+    var W0 = W, H0 = H, zoom = cam.dist / cam.dist0;
+    ctx.font = '12px sans-serif'; ctx.textAlign = 'left';
+    motions.forEach(function (m, mi) {
+      var c = mi % cells.cols, r = Math.floor(mi / cells.cols), x0 = Math.round(c * cells.w),
+          y0 = Math.round(r * cells.h), w = Math.round((c + 1) * cells.w) - x0, h = Math.round((r + 1) * cells.h) - y0;
+      var t = frameOf(m, frame), tr = m.track[t], b = m.bounds;
+      if (!followBox.checked) tr = [(b[0][0] + b[1][0]) / 2, (b[0][2] + b[1][2]) / 2];  // a still cell camera
+      ctx.save();
+      ctx.beginPath(); ctx.rect(x0, y0, w, h); ctx.clip();
+      ctx.translate(x0, y0);
+      W = w; H = h;
+      var dist = cam.dist;
+      cam.dist = cellDistance(m, followBox.checked ? 0 : Math.max(b[1][0] - b[0][0], b[1][2] - b[0][2])) * zoom;
+      var target = [tr[0] + cam.target[0] - cam.home[0], 0.45 * m.height + cam.target[1] - cam.home[1],
+                    tr[1] + cam.target[2] - cam.home[2]];
+      setupView(target);
+      view.ox = x0; view.oy = y0;
+      cellView[mi] = {eye: view.eye, f: view.f, r: view.r, u: view.u, fpx: view.fpx, W: w, H: h, ox: x0, oy: y0};
+      drawGridAround(target, 2.5 * m.height, niceStep(m.height / 2));
+      var P = [], bones = [], first = drawn.length;
+      for (var j = 0; j < m.J; j++) P.push(joint(m, t, j));
+      drawFigure(m, mi, P, t, bones, m.height);
+      drawBones(bones, m.height);
+      drawJoints(drawn.slice(first), m.height);
+      cam.dist = dist;
+      ctx.strokeStyle = '#c8c8c2'; ctx.lineWidth = 1; ctx.strokeRect(0.5, 0.5, w - 1, h - 1);
+      label(m, 6, 15, w - 12);
+      ctx.restore();
+      drawn.slice(first).forEach(function (d) { d.s = [d.s[0] + x0, d.s[1] + y0]; });
+    });
+    W = W0; H = H0;
+  }
   function draw() {
     var dpr = window.devicePixelRatio || 1;
     W = stage.clientWidth; H = stage.clientHeight;
@@ -180,48 +279,27 @@
     }
     ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
     ctx.fillStyle = D.style.background; ctx.fillRect(0, 0, W, H);
+    if (cellMode()) { drawCells(); finishDraw(); return; }
     var target = cam.target;
     if (followBox.checked) {  // the group's centre, shifted by any pan since the reset
       var g = groupCentre(frame);
       target = [g[0] + cam.target[0] - cam.home[0], cam.target[1], g[1] + cam.target[2] - cam.home[2]];
     }
     setupView(target);
+    view.ox = view.oy = 0;
     drawGrid();
     var bones = [];
     drawn = [];
     motions.forEach(function (m, mi) {
       var t = frameOf(m, frame), P = [];
       for (var j = 0; j < m.J; j++) P.push(joint(m, t, j));
-      for (j = 0; j < m.J; j++) {  // floor shadow first: it lies under everything
-        var p = m.parents[j];
-        if (p >= 0 && !m.hide[j]) line([P[p][0], 0, P[p][2]], [P[j][0], 0, P[j][2]], D.style.shadow, 3);
-      }
-      for (j = 0; j < m.J; j++) {
-        var c = toCam(P[j]);
-        var on = m.con ? m.con[t * m.J + j] === 1 : false;
-        if (on) ring(P[j], 0.04 * hMax, D.style.contactRing);
-        if (c[2] > NEAR && !m.marker[j]) drawn.push({m: mi, j: j, s: project(c), on: on, depth: c[2]});
-        p = m.parents[j];
-        if (p >= 0 && !m.hide[j]) bones.push({a: P[p], b: P[j], color: m.color[m.side[j]], depth: (toCam(P[p])[2] + c[2]) / 2});
-      }
+      drawFigure(m, mi, P, t, bones, hMax);
     });
-    bones.sort(function (a, b) { return b.depth - a.depth; });
-    bones.forEach(function (b) {
-      line(b.a, b.b, b.color, Math.max(1.5, Math.min(9, 0.035 * hMax * view.fpx / Math.max(b.depth, NEAR))));
-    });
-    drawn.forEach(function (d) {
-      var m = motions[d.m], r = Math.max(1.5, Math.min(7, 0.02 * hMax * view.fpx / d.depth)) * (d.on ? 1.8 : 1);
-      ctx.fillStyle = d.on ? D.style.contact : m.color[m.side[d.j]];
-      ctx.beginPath(); ctx.arc(d.s[0], d.s[1], r, 0, 2 * Math.PI); ctx.fill();
-    });
-    if (layoutSel.value === 'grid' && motions.length > 1) {
-      ctx.fillStyle = D.style.text; ctx.font = '12px sans-serif'; ctx.textAlign = 'center';
-      motions.forEach(function (m) {
-        var b = m.bounds, c = toCam([(b[0][0] + b[1][0]) / 2 + m.off[0], 1.12 * b[1][1],
-                                     (b[0][2] + b[1][2]) / 2 + m.off[2]]);
-        if (c[2] > NEAR) { var s = project(c); ctx.fillText(m.title, s[0], s[1]); }
-      });
-    }
+    drawBones(bones, hMax);
+    drawJoints(drawn, hMax);
+    finishDraw();
+  }
+  function finishDraw() {
     if (hover) {
       var hd = pick(hover[0], hover[1]);
       if (hd) {
@@ -233,7 +311,10 @@
       } else tip.style.display = 'none';
     }
     scrub.value = frame;
-    frameLabel.textContent = 'frame ' + frame + ' / ' + (nFrames - 1) + ' \u00b7 ' + (frame / fpsMaster).toFixed(2) + ' s';
+    var m0 = motions[0];  // the frame number is the first motion's; the time is everyone's
+    frameLabel.textContent = 'frame ' + frameOf(m0, frame) + ' / ' + (m0.T - 1) + ' \u00b7 ' +
+        (frame / fpsMaster).toFixed(2) + ' s';
+    legendEnded();
   }
   function pick(x, y) {  // nearest drawn joint within 10 px, the front one on ties
     var best = null, bd = 100;
@@ -262,7 +343,7 @@
   scrub.addEventListener('input', function () { setPlaying(false); seek(parseInt(scrub.value, 10)); });
   speedSel.addEventListener('change', function () { speed = parseFloat(speedSel.value); });
   layoutSel.addEventListener('change', function () { applyLayout(layoutSel.value); resetCamera(); draw(); });
-  followBox.addEventListener('change', function () { fitDistance(); draw(); });
+  followBox.addEventListener('change', function () { fitDistance(); cam.dist0 = cam.dist; draw(); });
   window.addEventListener('keydown', function (e) {
     if (/^(BUTTON|INPUT|SELECT)$/.test(e.target.tagName)) return;  // the control handles its own keys
     if (e.key === ' ') { setPlaying(!playing); e.preventDefault(); }
@@ -308,33 +389,63 @@
     var opt = document.createElement('option'); opt.value = opt.textContent = String(speed);
     speedSel.appendChild(opt); speedSel.value = String(speed);
   }
-  motions.forEach(function (m) {
+  var legendItems = [];
+  [['left', D.colors[0][1]], ['right', D.colors[0][2]], ['contact', D.style.contact]].forEach(function (e) {
+    var item = document.createElement('span'), sw = document.createElement('i');
+    sw.style.background = e[1]; item.appendChild(sw);
+    item.appendChild(document.createTextNode(e[0]));
+    item.className = 'key';
+    legend.appendChild(item);
+  });
+  motions.forEach(function (m) {  // the motions' own colours (hidden in small multiples: each cell is labelled)
     var item = document.createElement('span'), sw = document.createElement('i');
     sw.style.background = m.color[0]; item.appendChild(sw);
     item.appendChild(document.createTextNode(m.title));
+    item.className = 'motion';
     legend.appendChild(item);
+    legendItems.push(item);
   });
+  function legendEnded() {  // in the legend too: a clip that has ended is greyed (it holds its last pose)
+    legendItems.forEach(function (item, i) {
+      item.style.display = cellMode() ? 'none' : '';
+      item.style.color = ended(motions[i], frame) ? '#9a9a9a' : '';
+      item.title = ended(motions[i], frame) ? 'ended: holds its last pose' : '';
+    });
+  }
   applyLayout(layoutSel.value);
-  // follow by default when the motions cover much more ground than a body (long walks); ?follow=0/1 decides
-  followBox.checked = q.get('follow') === '1' || (q.get('follow') !== '0' &&
-      Math.max(box[1][0] - box[0][0], box[1][2] - box[0][2]) > 4 * hMax);
+  // follow by default side by side (each cell frames its figure), and in one scene when the motions cover much
+  // more ground than a body (long walks); ?follow=0/1 decides
+  followBox.checked = q.get('follow') === '1' || (q.get('follow') !== '0' && (layoutSel.value === 'grid' ||
+      Math.max(box[1][0] - box[0][0], box[1][2] - box[0][2]) > 4 * hMax));
   resetCamera();
   setPlaying(q.get('paused') !== '1');
-  seek(num('frame', 0));
+  if (q.get('t') !== null) seek(Math.round(num('t', 0) * fpsMaster));       // ?t=SECONDS, every clip at that time
+  else seek(Math.round(num('frame', 0) / motions[0].fps * fpsMaster));     // ?frame=N: the first motion's frame N
+  function screenOf(mi, j) {  // where joint j of motion mi is drawn (CSS px), in its cell in small multiples
+    var m = motions[mi], keep = {eye: view.eye, f: view.f, r: view.r, u: view.u, fpx: view.fpx}, W0 = W, H0 = H;
+    var cv = cellMode() ? cellView[mi] : null;
+    if (cv) { view.eye = cv.eye; view.f = cv.f; view.r = cv.r; view.u = cv.u; view.fpx = cv.fpx; W = cv.W; H = cv.H; }
+    var s = project(toCam(joint(m, frameOf(m, frame), j)));
+    if (cv) s = [s[0] + cv.ox, s[1] + cv.oy];
+    view.eye = keep.eye; view.f = keep.f; view.r = keep.r; view.u = keep.u; view.fpx = keep.fpx; W = W0; H = H0;
+    return [s[0], s[1]];
+  }
   var probe = q.get('probe');  // "M,J": pick at joint J of motion M, as the mouse would (a test hook)
   if (probe) {
-    var mj = probe.split(',').map(Number), m0 = motions[mj[0]];
-    var s = project(toCam(joint(m0, frameOf(m0, frame), mj[1]))), hit = pick(s[0], s[1]);
+    var mj = probe.split(',').map(Number), s = screenOf(mj[0], mj[1]), hit = pick(s[0], s[1]);
     document.body.setAttribute('data-probe', hit ? motions[hit.m].names[hit.j] : '');
   }
   window.modiViewer = {  // for scripts and tests: the viewer's state, and where a joint is drawn (CSS px)
     state: function () {
       return {frame: frame, frames: nFrames, playing: playing, speed: speed, az: cam.az, el: cam.el,
-              dist: cam.dist, follow: followBox.checked, layout: layoutSel.value};
+              dist: cam.dist, follow: followBox.checked, layout: layoutSel.value, t: frame / fpsMaster,
+              frame0: frameOf(motions[0], frame), cells: cellMode() ? [cells.cols, cells.rows] : null,
+              ended: motions.map(function (m) { return ended(m, frame); })};
     },
-    screenOf: function (mi, j) {
-      var m = motions[mi], s = project(toCam(joint(m, frameOf(m, frame), j)));
-      return [s[0], s[1]];
+    screenOf: screenOf,
+    cellsBox: function () {  // per motion in small multiples: [x, y, w, h] of its cell (CSS px)
+      if (!cellMode()) return null;
+      return motions.map(function (m, mi) { var c = cellView[mi]; return [c.ox, c.oy, c.W, c.H]; });
     }
   };
   document.body.setAttribute('data-status', 'ready');

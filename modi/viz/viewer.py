@@ -23,11 +23,9 @@ import numpy as np
 from modi.errors import UserError
 
 INPUT_SUFFIXES = (".bvh", ".glb", ".gltf")
-_COLORS = [  # per motion: (centre, left, right), as in the GIF previews
-    ("#283c6e", "#1e6edc", "#eb781e"), ("#235f37", "#28a05a", "#a03caa"), ("#5f3723", "#c86e32", "#3c8caa"),
-    ("#502864", "#8c50c8", "#c8aa1e"), ("#145a64", "#1eaab4", "#d2506e"), ("#645a1e", "#aa9628", "#465ac8"),
-    ("#5a1e32", "#be3c5a", "#3ca06e"), ("#3c3c3c", "#6e6e6e", "#b4783c"),
-]
+_LEFT, _RIGHT = "#1e6edc", "#eb781e"  # one meaning everywhere (page legend, GIF): left blue, right orange
+_COLORS = [(c, _LEFT, _RIGHT) for c in (  # per motion: (centre, left, right), as in the GIF previews
+    "#283c6e", "#235f37", "#5f3723", "#502864", "#145a64", "#645a1e", "#5a1e32", "#3c3c3c")]
 _STYLE = {"background": "#f7f7f4", "grid": "#d0d0cb", "shadow": "rgba(0,0,0,0.13)", "contact": "#e12828",
           "contactRing": "rgba(225,40,40,0.45)",
           "text": "#282828"}
@@ -206,7 +204,7 @@ def _pack(m: ViewMotion, index: int) -> dict:
     height = _body_size(p[:, body.body_joints()])
     d = {"title": m.title, "names": m.names, "parents": m.parents, "side": _side_codes(m.names), "fps": m.fps,
          "frames": int(p.shape[0]), "origin": [float(v) for v in lo], "step": step, "color": index,
-         "height": height, "hide": hide, "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
+         "height": height, "hide": hide, "small": [int(x) for x in body.small], "pos": base64.b64encode(qv.tobytes()).decode("ascii"),
          "contacts": None}
     if m.contacts is not None and m.contacts.any():
         d["contacts"] = base64.b64encode(np.packbits(m.contacts.reshape(-1)).tobytes()).decode("ascii")
@@ -222,10 +220,10 @@ html,body{margin:0;height:100%;background:#f7f7f4;font:13px sans-serif;color:#28
 #stage{position:relative;height:calc(100% - 40px)}#view{display:block;width:100%;height:100%;cursor:grab}
 #tip{position:absolute;display:none;background:#282828;color:#fff;padding:2px 6px;border-radius:3px;
 pointer-events:none;white-space:nowrap}
-#legend{position:absolute;left:8px;top:6px;pointer-events:none}#legend span{margin-right:12px}
+#legend{white-space:nowrap;flex-shrink:0;font-size:12px}#legend span{margin-right:10px}
 #legend i{display:inline-block;width:10px;height:10px;margin-right:4px;border-radius:2px}
 #bar{height:40px;display:flex;align-items:center;gap:10px;padding:0 10px;background:#e9e9e4;box-sizing:border-box}
-#bar label{white-space:nowrap}#scrub{flex:1;min-width:80px}#frame{min-width:150px;white-space:nowrap;font-variant-numeric:tabular-nums}#hint{color:#777;white-space:nowrap;overflow:hidden}
+#bar label{white-space:nowrap}#scrub{flex:1;min-width:80px}#frame{min-width:175px;white-space:nowrap;font-variant-numeric:tabular-nums}#hint{color:#777;white-space:nowrap;overflow:hidden}
 """
 
 
@@ -251,12 +249,12 @@ def page_html(motions: Sequence[ViewMotion], title: str = "modi view", layout: s
         f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(title)}</title>'
         f'<meta name="viewport" content="width=device-width,initial-scale=1"><style>{_CSS}</style>'
         f"<script>{guard}</script></head><body>"
-        '<div id="stage"><canvas id="view"></canvas><div id="legend"></div><div id="tip"></div></div>'
+        '<div id="stage"><canvas id="view"></canvas><div id="tip"></div></div>'
         '<div id="bar"><button id="play">pause</button><input id="scrub" type="range" min="0" max="0" value="0">'
         f'<span id="frame"></span><label>speed <select id="speed">{speeds}</select></label>'
         '<label>layout <select id="layout"><option value="grid">side by side</option>'
         '<option value="scene">one scene</option></select></label>'
-        '<label><input id="follow" type="checkbox"> follow</label>'
+        '<label><input id="follow" type="checkbox"> follow</label><span id="legend"></span>'
         '<span id="hint">drag: orbit &middot; shift-drag: pan &middot; wheel: zoom'
         "</span></div>"
         f'<script type="application/json" id="modi-data">{blob}</script>'
