@@ -133,7 +133,7 @@ def _text(d: dict[str, Any]) -> str:
              else "not recorded (written before modi recorded its version)")
     if d.get("torch_version"):
         wrote += f", torch {d['torch_version']}"
-    rows = [("file", d["file"]), ("kind", d["kind"]), ("format", f"{d['format']} (version {d['version']})"),
+    rows = [("file", d["file"]), ("kind", d["kind"]), ("format", f"{d['format']} (version {d['version'] if d['version'] is not None else 'not recorded'})"),
             ("step", d["step"]),
             ("skeleton", f"{sk['joints']} joints, root {sk['root']}: {names}" if sk else "not recorded"),
             ("data", d.get("data") or "not recorded"), ("written by", wrote)]
