@@ -201,8 +201,6 @@ def test_weight_outside_the_mask_is_refused(files, tmp_path):
 
 def test_code_in_a_released_file_is_refused(files, tmp_path, capsys):
     """Files from others are data: a checkpoint or data file naming a function is refused, never run."""
-    import pickle
-
     from modi.cli import main
     from modi.errors import CheckpointError
     from modi.interop.released_files import load_released_npy
@@ -224,7 +222,6 @@ def test_code_in_a_released_file_is_refused(files, tmp_path, capsys):
     with pytest.raises(CheckpointError, match="refusing builtins.print"):
         load_released_npy(npy)
     assert "ran" not in capsys.readouterr().out
-    del pickle
 
 
 # --------------------------------------------------------------------------------------------- discriminator
@@ -288,10 +285,11 @@ def test_d_step_losses_and_gradients(files, peer):
     # named difference: modi's skips store the whole pooling group (imported as zeros); their gradients are not
     # zero, so training an imported model moves them where the released code cannot
     assert extra == [f"blocks.{b}.skip.1.weight" for b in range(len(d.blocks))]
-    # R1, lazily every d_reg_every steps (their step 0 applies it; so does modi's trainer, same interval)
-    from modi.interop.modi_released import model_config  # noqa: F401  (config of the import)
-    cfg_train_every = 16
-    assert args.d_reg_every == cfg_train_every and args.r1 == 10
+    # R1, lazily every d_reg_every steps (their step 0 applies it, as modi's trainer does), same weighting
+    from modi.modi_model.config import TrainConfig
+
+    tc = TrainConfig()
+    assert (args.d_reg_every, args.r1) == (tc.d_reg_every, tc.r1_gamma)
     for module in (rd, d):
         module.zero_grad()
     x = real.clone().requires_grad_(True)
@@ -332,6 +330,11 @@ def test_g_step_losses_and_gradients(files, peer):
     assert _grads_equal(g, state, rg, "g") == []
 
     zp = z[: max(1, args.batch // args.path_batch_shrink)]
+    from modi.modi_model.config import TrainConfig
+
+    tc = TrainConfig()  # the lazy interval, weight and batch shrink modi's trainer uses are theirs
+    assert (args.g_reg_every, args.path_regularize, args.path_batch_shrink) == \
+        (tc.g_reg_every, tc.path_weight, tc.path_batch_shrink)
     weight = args.path_regularize * args.g_reg_every
     rg.zero_grad()
     fake_t, lat_t, _ = rg([zp], return_latents=True)

@@ -13,7 +13,8 @@ from modi's defaults the imported config says so: activation demodulation (``mod
 the released "tree" neighbours and pooling, and no noise. Two released details modi has no parameter for and
 which the conversion reproduces exactly: the generator's upsampling factor per coarse entity (folded into the
 weights), and the discriminator's 1x1 skip, which reads only one fine entity per coarse one (modi's skip reads the
-whole group: the other pairs are imported as zeros).
+whole group: the other pairs are imported as zeros). Their generator loop reads its W+ rows in another order
+(``released_style_index``); with one W per sample, as in sampling, the rows are all equal and nothing changes.
 
 Motion layout (entities): the root's rotation, one rotation per bone (the released "edge" rotations), the
 root motion, the contact labels. :func:`edge_skeleton` builds the modi skeleton whose forward kinematics
@@ -22,7 +23,6 @@ reproduces the released BVH output from that layout.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from pathlib import Path
 from typing import Any, Sequence
