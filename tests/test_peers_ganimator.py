@@ -89,6 +89,11 @@ def test_released_files_and_training_moved_every_weight(released):
                 continue
             w = a != 0  # weights outside the mask stay 0 in both
             assert bool((a[w] != b[w]).all()), k
+    # their own training moved every discriminator mask off 0/1 (named in the one-iteration test)
+    assert len(r1.trained_discs) == len(r1.lengths)
+    for d in r1.trained_discs:
+        masks = [v for k, v in d.state_dict().items() if k.endswith("mask")]
+        assert masks and all(float((m - 1).abs()[m != 0].max()) > 1e-5 for m in masks)
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -44,9 +44,21 @@ class PeerUnavailable(RuntimeError):
     """The released sources or the BVH data are not beside the repository."""
 
 
+THIRD_PARTY = ("tqdm", "matplotlib", "torch.utils.tensorboard")  # what their train.py / models import
+
+
 def require_peer() -> Path:
     if not (PEER / "models" / "gan1d.py").is_file():
         raise PeerUnavailable(f"the authors' GANimator sources are not at {PEER} (../shared/peers/ganimator)")
+    import importlib.util
+
+    for name in THIRD_PARTY:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except ImportError:
+            found = False
+        if not found:
+            raise PeerUnavailable(f"the authors' GANimator imports {name}, which is not installed")
     return PEER
 
 
