@@ -360,10 +360,17 @@ def test_modi_loader_differs_by_name(released, imported):
 def test_bad_inputs_are_one_line(released, tmp_path, capsys):
     from modi.cli import main
 
+    import shutil
+
     other = R.DATA / "Xia" / "normal.bvh"
+    cond = tmp_path / "conditional"
+    shutil.copytree(released["init"].path, cond, ignore=shutil.ignore_patterns("logs"))
+    (cond / "args.txt").write_text((cond / "args.txt").read_text().strip() + " --conditional_generator=1")
     cases = [
         ([str(tmp_path / "missing")], "no such"),
         ([str(released["bvh"].parent)], "not a released GANimator run"),
+        ([str(cond), "--data", str(released["bvh"])], "--conditional_generator=1"),
+        ([str(released["init"].path), "--data", str(tmp_path)], "no walk.bvh in this folder"),
     ]
     if other.is_file():
         cases.append(([str(released["trained"].path), "--data", str(other)], "does not match the checkpoint"))

@@ -44,7 +44,8 @@ _DEFAULTS: dict[str, Any] = {
     "nearest_interpolation": 0, "multiple_sequences": 0, "num_stages_limit": -1, "full_zstar": 1,
     "bvh_prefix": "./data/", "bvh_name": "dance", "D_fact": 5, "G_fact": 1, "lr_g": 1e-4, "shared_lr": 1e-4,
     "num_iters": 15000, "lambda_gp": 1.0, "lambda_rec": 50.0, "lambda_consistency": 5.0, "group_size": 2,
-    "gan_mode": "wgan-gp", "rec_loss_type": "L1", "no_noise": 0, "slerp": 0,
+    "gan_mode": "wgan-gp", "rec_loss_type": "L1", "no_noise": 0, "slerp": 0, "requires_noise_amp": 1,
+    "correct_zstar_gen": 0,
 }
 
 # options whose other values give a model modi does not reproduce: (name, required value, what it is)
@@ -54,7 +55,9 @@ _REQUIRED = [("skeleton_aware", 1, "skeleton-aware convolutions"), ("repr", "rep
              ("use_factor_channel_list", 0, "the default channel widths"), ("full_noise", 0, "shared noise"),
              ("nearest_interpolation", 0, "linear upsampling"), ("multiple_sequences", 0, "one training clip"),
              ("conditional_generator", 0, "an unconditional generator"), ("full_zstar", 1, "per-channel z*"),
-             ("no_noise", 0, "noise"), ("slerp", 0, "linear resampling")]
+             ("no_noise", 0, "noise"), ("slerp", 0, "linear resampling"),
+             ("requires_noise_amp", 1, "data-derived noise amplitudes"),
+             ("correct_zstar_gen", 0, "z* as saved (theirs rescales it after saving)")]
 
 
 # ------------------------------------------------------------------------------------------- the run folder
