@@ -328,7 +328,7 @@ def test_import_then_generate_equals_their_sample(released, tmp_path):
     theirs = R.ReleasedRun(released["trained"].path, dtype=torch.float64)
     L0 = theirs.lengths[0]
     z = torch.randn(1, 1, 1, L0, generator=torch.Generator().manual_seed(11)).to(torch.float64) * float(theirs.amps[0])
-    levels = theirs._draw("random", theirs.lengths, theirs.amps * 0, [z.view(1, 1, -1)])
+    levels = theirs.draw("random", theirs.lengths, theirs.amps * 0, [z.view(1, 1, -1)])
     their_bvh = theirs.write_bvh(tmp_path / "theirs.bvh", levels[-1])
     a, b = _bvh_points(out / "sample.bvh", model.seqs[0].scale), _bvh_points(their_bvh)
     assert max(float((a[n] - b[n]).abs().max()) for n in b) <= 1e-5 * model.seqs[0].size

@@ -178,8 +178,9 @@ class ReleasedRun:
             md.begin_pos = md.begin_pos.to(dtype)
 
     # ---------------------------------------------------------------------------------------- generation
-    def _draw(self, mode: str, lengths: Sequence[int], amps: Any, given_noise: Sequence[Any] | None = None
-              ) -> list[torch.Tensor]:
+    def draw(self, mode: str, lengths: Sequence[int], amps: Any, given_noise: Sequence[Any] | None = None
+             ) -> list[torch.Tensor]:
+        """Their ``draw_example`` (mode ``random`` / ``rec``) on the loaded generators: each level's output."""
         with peer_runtime() as peer, torch.no_grad():
             return peer.architecture.draw_example(self.gens, mode, self.z_star, list(lengths), amps, 1, self.args,
                                                   all_img=True, conds=None, full_noise=self.args.full_noise,
@@ -187,11 +188,11 @@ class ReleasedRun:
 
     def level_outputs(self, noises: Sequence[torch.Tensor]) -> list[torch.Tensor]:
         """Each level's output ``(1, E*6, L)`` for the given per-level noise ``(1, 1, L)`` (already scaled)."""
-        return self._draw("random", self.lengths, self.amps, [n.to(self.dtype) for n in noises])
+        return self.draw("random", self.lengths, self.amps, [n.to(self.dtype) for n in noises])
 
     def reconstruction(self) -> list[torch.Tensor]:
         """Each level's output from their fixed noise z* (their ``rec`` mode)."""
-        return self._draw("rec", self.lengths + [1], self.amps)
+        return self.draw("rec", self.lengths + [1], self.amps)
 
     def demo_sample(self, target_len: int, seed: int = 0) -> tuple[list[torch.Tensor], torch.Tensor]:
         """Their ``demo.py`` random sample of ``target_len`` frames: noise at the coarsest level only.
@@ -205,7 +206,7 @@ class ReleasedRun:
         z = z * self.amps[0]
         amps2 = self.amps.clone()
         amps2[1:] = 0
-        return self._draw("random", lengths, amps2, [z]), z
+        return self.draw("random", lengths, amps2, [z]), z
 
     def write_bvh(self, path: Path, motion: torch.Tensor) -> Path:
         """Their BVH writer (``MotionData.write``; also writes ``path.contact.npy``)."""

@@ -428,7 +428,8 @@ def stack_state(sd: dict[str, Tensor], body: Any, perm: Sequence[int], prefix: s
 
 def generator_state(sd: dict[str, Tensor], gen: Any, perm: Sequence[int], where: str = "generator"
                     ) -> dict[str, Tensor]:
-    """The state dict of modi ``LevelGenerator`` ``gen`` for a released level generator's ``state_dict``."""
+    """The state dict of modi ``LevelGenerator`` ``gen`` for a released level generator's ``state_dict``
+    (linear in the tensors: their gradients, with the masks, map to modi's gradients the same way)."""
     n = len(_convs(gen.body))
     extra = sorted(k for k in sd if not re.fullmatch(rf"layers\.[0-{n - 1}]\.0\.(weight|mask|bias)", k))
     if extra:
