@@ -225,8 +225,9 @@ def test_code_in_a_released_file_is_refused(files, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------------------------- discriminator
-def test_discriminator_scores_equal(files, peer):
-    ck, (rg, rd, rge), (g, d, ge), _ = _pair(files, peer)
+@pytest.mark.parametrize("kind", ["init", "trained"])
+def test_discriminator_scores_equal(files, peer, kind):
+    ck, (rg, rd, rge), (g, d, ge), _ = _pair(files, peer, kind)
     real = _real_batch(peer, files)
     z = torch.randn(4, ck["args"].latent, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     with torch.no_grad():
