@@ -25,7 +25,7 @@ _BASE_COLORS = [(247, 247, 244), (214, 214, 210), (185, 185, 180), (208, 208, 20
 _LEFT_RGB, _RIGHT_RGB = (30, 110, 220), (235, 120, 30)
 _CHAR_COLORS = [(c, _LEFT_RGB, _RIGHT_RGB) for c in (
     (40, 60, 110), (35, 95, 55), (95, 55, 35), (80, 40, 100), (20, 90, 100), (100, 90, 30), (90, 30, 50),
-    (60, 60, 60))]
+    (140, 30, 90))]  # no grey: a figure never reads as text
 _FOV = math.radians(40.0)
 _FOOT_WORDS = ("foot", "toe", "ankle", "heel")
 

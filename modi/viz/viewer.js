@@ -62,13 +62,18 @@
     m.marker = m.hide.map(function () { return 0; });
     m.hide.forEach(function (h, j) { if (h) m.marker[m.parents[j]] = 1; });
     // a cell's follow camera: the centre joint's ground track averaged over a second (no per-step sway)
-    var k = Math.max(1, Math.round(0.5 * m.fps)), cx = [], cz = [];
-    for (var t = 0; t < m.T; t++) { var i = (t * m.J + m.centre) * 3; cx.push(m.pos[i]); cz.push(m.pos[i + 2]); }
+    // (x, z, and y above the clip's median: a jump lifts the camera with the body)
+    var k = Math.max(1, Math.round(0.25 * m.fps)), cx = [], cz = [], cy = [];
+    for (var t = 0; t < m.T; t++) {
+      var i = (t * m.J + m.centre) * 3;
+      cx.push(m.pos[i]); cy.push(m.pos[i + 1]); cz.push(m.pos[i + 2]);
+    }
+    var ymid = cy.slice().sort(function (p, r) { return p - r; })[Math.floor(m.T / 2)];
     m.track = [];
     for (t = 0; t < m.T; t++) {
-      var a = Math.max(0, t - k), b = Math.min(m.T - 1, t + k), sx = 0, sz = 0;
-      for (var u = a; u <= b; u++) { sx += cx[u]; sz += cz[u]; }
-      m.track.push([sx / (b - a + 1), sz / (b - a + 1)]);
+      var a = Math.max(0, t - k), b = Math.min(m.T - 1, t + k), sx = 0, sz = 0, sy = 0;
+      for (var u = a; u <= b; u++) { sx += cx[u]; sz += cz[u]; sy += cy[u]; }
+      m.track.push([sx / (b - a + 1), sz / (b - a + 1), Math.max(0, sy / (b - a + 1) - ymid)]);
     }
   });
   // small multiples (side by side): one cell per motion, each with its own camera; one motion is one cell too,
@@ -252,7 +257,8 @@
       W = w; H = h;
       var dist = cam.dist;
       cam.dist = cellDistance(m, followBox.checked ? 0 : Math.max(b[1][0] - b[0][0], b[1][2] - b[0][2])) * zoom;
-      var target = [tr[0] + cam.target[0] - cam.home[0], 0.45 * m.height + cam.target[1] - cam.home[1],
+      var lift = followBox.checked ? m.track[t][2] : 0;
+      var target = [tr[0] + cam.target[0] - cam.home[0], 0.45 * m.height + lift + cam.target[1] - cam.home[1],
                     tr[1] + cam.target[2] - cam.home[2]];
       setupView(target);
       view.ox = x0; view.oy = y0;

@@ -25,7 +25,7 @@ from modi.errors import UserError
 INPUT_SUFFIXES = (".bvh", ".glb", ".gltf")
 _LEFT, _RIGHT = "#1e6edc", "#eb781e"  # one meaning everywhere (page legend, GIF): left blue, right orange
 _COLORS = [(c, _LEFT, _RIGHT) for c in (  # per motion: (centre, left, right), as in the GIF previews
-    "#283c6e", "#235f37", "#5f3723", "#502864", "#145a64", "#645a1e", "#5a1e32", "#3c3c3c")]
+    "#283c6e", "#235f37", "#5f3723", "#502864", "#145a64", "#645a1e", "#5a1e32", "#8c1e5a")]
 _STYLE = {"background": "#f7f7f4", "grid": "#d0d0cb", "shadow": "rgba(0,0,0,0.13)", "contact": "#e12828",
           "contactRing": "rgba(225,40,40,0.45)",
           "text": "#282828"}
