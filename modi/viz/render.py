@@ -378,6 +378,12 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
                     draw.ellipse([ox + xy[0] - r, oy + xy[1] - r, ox + xy[0] + r, oy + xy[1] + r], fill=col)
             if panel.title:
                 draw.text((ox + 6, oy + 4), panel.title, fill=_TEXT, font=font)
+            if panel is panels[0][0] and any(any(s) for s in sides):   # the side legend, once per image
+                x = ox + 6
+                for word, col in (("left", _char_index(0, 1)), ("right", _char_index(0, 2))) + (
+                        (("contact", _CONTACT),) if contacts is not None else ()):
+                    draw.text((x, oy + h - 14), word, fill=col, font=font)
+                    x += int(draw.textlength(word + "  ", font=font))
             if layout == "grid" and n > 1:
                 draw.rectangle([0, 0, w - 1, h - 1], outline=_BORDER)
             if canvas is not img:
