@@ -111,11 +111,12 @@ def _floor_root_walk(T: int = 40) -> tuple[np.ndarray, list[int], list[str]]:
 
 
 def _figure_pixels(frame: Image.Image, x0: int = 0, y0: int = 0, w: int | None = None, h: int | None = None):
-    """(ys, xs) of the character-coloured pixels (bones and joints) of a palette frame, in one panel."""
+    """(ys, xs) of the character-coloured pixels (bones and joints) of a palette frame, in one panel (less its
+    legend line)."""
     a = np.asarray(frame)
     w = a.shape[1] if w is None else w
     h = a.shape[0] if h is None else h
-    a = a[y0:y0 + h, x0:x0 + w]
+    a = a[y0:y0 + h - 16, x0:x0 + w]   # not the bottom line: the side legend is written there in the same colours
     lo = len(R._BASE_COLORS)
     return np.nonzero((a >= lo) & (a < lo + 3 * len(R._CHAR_COLORS)))
 
