@@ -74,9 +74,10 @@ def _noises(lengths, amps, seed):
     return [torch.randn(1, 1, L, generator=g, dtype=torch.float64) * float(a) for L, a in zip(lengths, amps)]
 
 
-# other rigs (random initialisation): a 120 fps rig scaled by their 0.14 rule with every joint kept, and a crab
-# whose six leg tips carry contacts at their 0.006 threshold
-RIGS = {"xia": ("Xia/normal.bvh", 240), "crab": ("Crabnew/Crab-dance-long.bvh", 60)}
+# other rigs (random initialisation): a 120 fps rig scaled by their 0.14 rule with every joint kept, a crab whose
+# six leg tips carry contacts at their 0.006 threshold, and a Mixamo rig whose eyes their table leaves out
+RIGS = {"xia": ("Xia/normal.bvh", 240), "crab": ("Crabnew/Crab-dance-long.bvh", 60),
+        "mixamo-eyes": ("Malcolm/Gangnam-Style.bvh", 120)}
 
 
 # --------------------------------------------------------------------------------------------- data and files
@@ -372,8 +373,12 @@ def test_bad_inputs_are_one_line(released, tmp_path, capsys):
         ([str(cond), "--data", str(released["bvh"])], "--conditional_generator=1"),
         ([str(released["init"].path), "--data", str(tmp_path)], "no walk.bvh in this folder"),
     ]
-    if other.is_file():
-        cases.append(([str(released["trained"].path), "--data", str(other)], "does not match the checkpoint"))
+    if other.is_file():  # another rig
+        cases.append(([str(released["trained"].path), "--data", str(other)], "pass the BVH the model was trained on"))
+    salsa = R.DATA / "Joe" / "Salsa-Dancing-6.bvh"
+    if salsa.is_file():  # the same rig and length, another motion: caught by the amplitudes
+        same_rig = R.trim_bvh(salsa, tmp_path / "salsa.bvh", 120)
+        cases.append(([str(released["trained"].path), "--data", str(same_rig)], "noise amplitudes"))
     for i, (argv, text) in enumerate(cases):
         capsys.readouterr()
         assert main(["import", "ganimator-released", *argv, "--out", str(tmp_path / f"r{i}")]) == 2

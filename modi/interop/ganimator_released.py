@@ -25,7 +25,7 @@ import math
 import re
 import shlex
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -240,16 +240,30 @@ def _released_neighbours(parents: Sequence[int], feet: Sequence[int], distance: 
     return out
 
 
-def match_skeleton(parents: Sequence[int], adj: np.ndarray, distance: int, candidates: Sequence[Sequence[int]]
+def joint_subsets(parents: Sequence[int], bases: Sequence[Sequence[int]], max_drop: int = 3
+                  ) -> Iterator[list[int]]:
+    """Candidate joint sets: each base (modi's reduction, every joint), then each base without 1..``max_drop`` of
+    its leaves (their rig tables also leave out e.g. a Mixamo character's eyes)."""
+    for base in bases:
+        yield sorted(base)
+    for k in range(1, max_drop + 1):
+        for base in bases:
+            kept = set(base)
+            leaves = [j for j in sorted(base) if j != min(base) and not any(parents[c] == j for c in kept)]
+            for drop in itertools.combinations(leaves, k):
+                yield sorted(kept - set(drop))
+
+
+def match_skeleton(parents: Sequence[int], adj: np.ndarray, distance: int, candidates: Iterable[Sequence[int]]
                    ) -> tuple[list[int], list[int]]:
     """(joint order as file indices, feet as indices into that order) reproducing the mask adjacency ``adj``."""
     E = adj.shape[0]
-    tried = []
+    tried = set()
     for subset in candidates:
         J = len(subset)
         C = E - 1 - J
-        tried.append(f"{J} joints")
-        if C < 0:
+        tried.add(J)
+        if C < 0 or not all(int(adj[:J, J + k].sum()) == 1 for k in range(C)):
             continue
         for order in _preorders(parents, sorted(subset)):
             pos = {j: i for i, j in enumerate(order)}
@@ -266,8 +280,9 @@ def match_skeleton(parents: Sequence[int], adj: np.ndarray, distance: int, candi
             if all(set(np.nonzero(adj[e])[0].tolist()) == want[e] for e in range(E)):
                 return list(order), feet
     raise UserError(f"the BVH's skeleton does not match the checkpoint: its masks connect {E} entities (joints, "
-                    f"contacts, root motion), and no depth-first order of the BVH's joints ({', '.join(tried)}; "
-                    "reduced or all) reproduces them; pass the BVH the model was trained on")
+                    f"contacts, root motion), and no depth-first order of the BVH's joints (sets of "
+                    f"{', '.join(map(str, sorted(tried)))} joints) reproduces them; pass the BVH the model was "
+                    "trained on")
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -509,7 +524,7 @@ def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str,
     sk = raw.skeleton
     cands = [reduce_joints(sk)] if args["joint_reduction"] else []
     cands.append(list(range(sk.n_joints)))
-    order, feet = match_skeleton(sk.parents, adj, int(args["neighbour_dist"]), cands)
+    order, feet = match_skeleton(sk.parents, adj, int(args["neighbour_dist"]), joint_subsets(sk.parents, cands))
     return {"run": run, "args": args, "sds": sds, "z_star": z_star.detach(), "amps": amps_row, "bvh": bvh,
             "order": order, "feet": feet, "E": E, "raw": raw}
 
@@ -562,5 +577,5 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
 
 
 __all__ = ["import_checkpoint", "read_released", "find_run", "read_args", "read_generators", "entity_perm",
-           "to_modi_layout", "to_released_layout", "entity_adjacency", "match_skeleton", "build_clip",
-           "match_clip", "released_stride", "generator_state", "discriminator_state", "config_for"]
+           "to_modi_layout", "to_released_layout", "entity_adjacency", "joint_subsets", "match_skeleton",
+           "build_clip", "match_clip", "released_stride", "generator_state", "discriminator_state", "config_for"]
