@@ -12,42 +12,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from modi.errors import CheckpointError
+from modi.io.safe_load import load_data, numpy_data_globals
 
 
-def _numpy_globals() -> list:
-    """numpy's array-reconstruction globals under their numpy 2 names and the numpy 1 names old files carry."""
-    from numpy._core import multiarray
-
-    dtypes = [type(np.dtype(t)) for t in ("float64", "float32", "int64", "int32", "bool", "uint8")]
-    out: list = [multiarray._reconstruct, np.ndarray, np.dtype, *dtypes, multiarray.scalar]
-    out += [(multiarray._reconstruct, "numpy.core.multiarray._reconstruct"),
-            (multiarray.scalar, "numpy.core.multiarray.scalar")]
-    return out
-
-
-ALLOWED_GLOBALS = [argparse.Namespace, *_numpy_globals()]
+ALLOWED_GLOBALS = [argparse.Namespace, *numpy_data_globals()]
 
 
 def load_released_file(path: str | os.PathLike, what: str = "released checkpoint") -> dict[str, Any]:
-    """A released checkpoint's top-level dict; one ``CheckpointError`` line for anything unreadable or foreign."""
+    """A released checkpoint's top-level dict, read as data through :func:`modi.io.safe_load.load_data` with
+    exactly the classes their ``train.py`` pickles allowed; one ``CheckpointError`` line for anything else."""
     p = Path(path)
-    if not p.is_file():
-        raise CheckpointError(f"{p}: no such {what} file")
-    try:
-        with torch.serialization.safe_globals(ALLOWED_GLOBALS):
-            st = torch.load(p, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - corrupt, truncated, or holding code we refuse to run
-        text = str(exc).strip()
-        first = text.splitlines()[0] if text else type(exc).__name__
-        if "Unsupported global" in text:
-            glob = text.split("Unsupported global:", 1)[1].strip().split()[1] if "GLOBAL" in text else "?"
-            first = f"it holds {glob}, which is code, not data; refusing to load it"
-        elif "WeightsUnpickler error:" in text:
-            first = text.split("WeightsUnpickler error:", 1)[1].strip().splitlines()[0]
-        raise CheckpointError(f"{p}: not a readable {what} ({first[:200]})") from None
+    st = load_data(p, what, allowed=ALLOWED_GLOBALS)
     if not isinstance(st, dict):
         raise CheckpointError(f"{p}: not a {what} (top level is {type(st).__name__}, not a dict)")
     return st
