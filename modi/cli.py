@@ -142,6 +142,12 @@ def main(argv: list[str] | None = None) -> int:
                 FileExistsError: "already exists", PermissionError: "permission denied"}.get(type(exc))
         _say(f"{exc.filename}: {what or exc.strerror}" if exc.filename else str(exc))
         return 2
+    except BrokenPipeError:  # `modi info RUN | head`: the reader left; say nothing, as a shell tool killed by SIGPIPE
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        except OSError:
+            pass
+        return 141
     except MemoryError:
         _say("out of memory: ask for fewer or shorter motions, or a smaller --batch")
         return 2

@@ -462,3 +462,18 @@ def test_argument_types():
         with pytest.raises(argparse.ArgumentTypeError):
             parse(text)
     assert ct.device("cpu") == "cpu" and ct.device_or_auto("auto") == "auto"
+
+
+def test_a_reader_that_leaves_early_is_not_an_error(tmp_path):
+    """`modi info RUN | head -1`: the reader closes the pipe; modi says nothing on stderr and exits as a shell tool
+    killed by SIGPIPE would (141), instead of 'modi: error: Broken pipe'."""
+    child = ("import sys; import modi.commands.procedural as p\n"
+             "p.run = lambda args: [print('x' * 1000, flush=True) for _ in range(10000)]\n"
+             "from modi.cli import main; sys.exit(main(['synth', sys.argv[1]]))\n")
+    proc = subprocess.Popen([sys.executable, "-c", child, str(tmp_path / "out")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=_ctrl_c_env())
+    assert proc.stdout.readline().startswith(b"xxx")
+    proc.stdout.close()  # what `head -1` does after its line
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert err == ""
