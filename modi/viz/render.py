@@ -63,26 +63,15 @@ def foot_joints_by_name(names: Sequence[str]) -> list[int]:
 
 
 def foot_contacts(positions: np.ndarray, feet: Sequence[int], fps: float, up: str = "y",
-                  height_frac: float = 0.06, speed_frac: float = 0.35) -> np.ndarray:
-    """(T, J) bool: a foot joint is in contact when it is low (within ``height_frac`` × body height of the lowest
-    point of the clip) and slow (below ``speed_frac`` × body height per second). Thresholds scale with the body
-    so they work in cm, m or inches."""
+                  parents: Sequence[int] | None = None, names: Sequence[str] | None = None) -> np.ndarray:
+    """(T, J) bool contact labels by the one rule every preview uses (:func:`modi.contacts.preview_contacts`:
+    low above the floor and slow, in standing heights, short runs removed), for ``up`` = "y" or "z" data."""
+    from modi.contacts import preview_contacts
+
     p = _to_y_up(np.asarray(positions, dtype=np.float64), up)
     if p.ndim != 3 or p.shape[-1] != 3:
         raise ValueError(f"positions must be (T, J, 3), got {p.shape}")
-    t, j = p.shape[:2]
-    h = _body_height(p)
-    floor = p[..., 1].min()
-    vel = np.zeros((t, j))
-    if t > 1:
-        v = np.linalg.norm(np.diff(p, axis=0), axis=-1) * fps
-        vel[1:] = v
-        vel[0] = v[0]
-    out = np.zeros((t, j), dtype=bool)
-    feet = list(feet)
-    if feet:
-        out[:, feet] = (p[:, feet, 1] < floor + height_frac * h) & (vel[:, feet] < speed_frac * h)
-    return out
+    return preview_contacts(p, feet, fps, parents, names)
 
 
 def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
