@@ -16,7 +16,6 @@ on, and they disagreed. :class:`Body` decides once, from joint names and positio
 """
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from typing import Sequence
@@ -29,7 +28,6 @@ SIDE_NAMES = ("centre", "left", "right")
 _FINGER = re.compile(r"thumb|index|middle|ring|pinky|pinkie|little|finger", re.I)
 _HEAD = re.compile(r"head", re.I)
 _TOKENS = re.compile(r"[_.\s\-]+")
-_UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
 
 
 def side_of(name: str) -> int:
@@ -65,10 +63,11 @@ def is_finger(name: str) -> bool:
 
 
 def metres_scale(height: float) -> float:
-    """File units to metres: the unit (m, in, cm, mm) that makes a body of ``height`` closest to 1.7 m (log scale);
-    the same guess as :func:`modi.io.gltf.guess_unit`."""
-    h = float(height) if math.isfinite(height) and height > 0 else 1.0
-    return min(_UNITS, key=lambda u: abs(math.log(h * u[1] / 1.7)))[1]
+    """File units to metres for a body of ``height`` file units: :func:`modi.io.gltf.guess_unit`'s guess (the unit
+    among m, in, cm and mm that makes it closest to 1.7 m), the one every preview and export uses."""
+    from modi.io.gltf import guess_unit
+
+    return guess_unit(height).scale
 
 
 def _children(parents: Sequence[int]) -> list[list[int]]:

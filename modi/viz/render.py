@@ -285,7 +285,14 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
 
     from modi.body import Body
 
+    from modi.body import metres_scale
+
     bodies = [Body.of(p, par[i], nm[i]) for i, p in enumerate(pos)]   # ground root, sides, fingers, height
+    # every motion in metres (a crab in m beside a human in cm): the scene layout compares true sizes
+    scales = [metres_scale(b.standing_height) for b in bodies]
+    if any(s != 1.0 for s in scales):
+        pos = [p * s for p, s in zip(pos, scales)]
+        bodies = [Body.of(p, par[i], nm[i]) for i, p in enumerate(pos)]
     # each panel frames its own figure: a standing height (never less than the figure's typical extent)
     heights = [max(b.standing_height, _body_height(p[:, b.body_joints()])) for b, p in zip(bodies, pos)]
     height = max(heights)
