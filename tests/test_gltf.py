@@ -19,6 +19,7 @@ from modi.io import bvh as bvh_io
 from modi.io import gltf
 from modi.io.formats import save_motion
 from modi.kinematics import bvh_positions
+from modi.procedural import generate_clip
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -397,3 +398,42 @@ def test_unit_guess_is_printed_once_per_command(tmp_path, capsys):
     assert main(["synth", str(tmp_path / "t"), "--n", "1", "--frames", "8", "--format", "glb", "--gltf-scale",
                  "0.5"]) == 0
     assert "x 0.5 to metres" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------------------------------ what users see
+
+
+def test_mesh_has_no_end_site_boxes_nor_ground_root_plank(shared_data):
+    """Mixamo: the mesh top is the head top (no End Site box doubling the head); Bandai: no vertex is skinned to
+    the static floor root (its 'bone' to the hips is a translation)."""
+    joe = shared_data / "bvh" / REAL["mixamo"][0]
+    bandai = shared_data / "bvh" / REAL["bandai"][0]
+    if not joe.is_file() or not bandai.is_file():
+        pytest.skip("Mixamo or Bandai clip absent from ../shared/data")
+    b = bvh_io.load(joe)
+    doc, data = gltf.build(b, 0.01, mesh=True)
+    prim = doc["meshes"][0]["primitives"][0]["attributes"]
+    top = doc["accessors"][prim["POSITION"]]["max"][1]
+    ident = torch.zeros(b.n_joints, 4, dtype=torch.float64)
+    ident[:, 0] = 1.0
+    from modi.kinematics import forward_kinematics
+
+    off = torch.from_numpy(b.offsets * 0.01)
+    rest = forward_kinematics(ident, off, b.parents, off[0])[0].numpy()
+    assert top <= rest[:, 1].max() + 0.02, (top, rest[:, 1].max())   # within 2 cm of the head-top joint
+    bb = bvh_io.load(bandai)
+    doc, data = gltf.build(bb, 0.01, mesh=True)
+    joints = gltf._accessor(doc, [data], doc["meshes"][0]["primitives"][0]["attributes"]["JOINTS_0"])
+    assert bb.names[0] == "joint_Root" and not (joints[:, 0] == 0).any()
+    assert "meshes" not in gltf.build(bb, 0.01)[0]   # the default file has no mesh (Blender 3.4's default import)
+
+
+def test_up_z_turns_the_file_into_y_up(tmp_path):
+    path = tmp_path / "walk.bvh"
+    generate_clip("walk", 20, 30.0, rng=4).save(path)
+    b = bvh_io.load(path)
+    assert main(["export", "gltf", "--up", "z", "--scale", "1", str(path), str(tmp_path / "z.glb")]) == 0
+    _, _, pos, _, _ = gltf.load_positions(tmp_path / "z.glb")
+    ref = bvh_positions(b)
+    turned = np.stack([ref[..., 0], ref[..., 2], -ref[..., 1]], -1)    # Z-up (x, y, z) -> Y-up (x, z, -y)
+    assert np.abs(pos - turned).max() < 1e-4 * np.abs(ref).max()
