@@ -98,11 +98,15 @@ def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> Vie
     con = None
     if contacts:  # the previews' one rule (modi.contacts.PREVIEW_RULE), as the GIF and the glTF export show
         con = preview_contacts(pos, _feet_of(b), b.fps, b.parents, b.names)
+    from modi.body import Body
+
+    standing = Body.of(pos, b.parents, b.names).standing_height
     if scale is None:
         scale, unit = guess_scale(height)
-        note = f"body size {height:.4g} file units looks like {unit}: x {scale:g} to metres (--scale overrides)"
+        note = (f"body size {height:.4g} file units looks like {unit}: x {scale:g} to metres, standing height "
+                f"{standing * scale:.3g} m (--scale overrides)")
     else:
-        note = f"x {scale:g} to metres (--scale)"
+        note = f"x {scale:g} to metres (--scale), standing height {standing * scale:.3g} m"
     return ViewMotion(path.stem, list(b.names), list(b.parents), pos * scale, b.fps, con, note)
 
 
