@@ -72,7 +72,7 @@ def _layers(g, d):
     """Every layer type the drop-in replaces, by name: generator (modulated) and discriminator (conv, scaler)."""
     return {"modulated in place (3 taps)": g.conv1.conv, "modulated upsampling": g.convs[0].conv,
             "modulated to-motion (1x1)": g.to_xyz1.conv, "conv 1x1 (from motion)": d.convs[0],
-            "conv in place (3 taps)": d.convs[1].convs[0], "scaler: blur + 3-tap stride 2": d.convs[1].convs[1],
+            "conv in place (3 taps)": d.convs[1].convs[0], "scaler: blur + 3-tap stride 2": d.convs[1].convs[-1],
             "scaler: blur + 1x1 stride 2 (skip)": d.convs[1].skip, "final conv (+ stddev channel)": d.final_conv}
 
 
