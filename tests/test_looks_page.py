@@ -21,17 +21,25 @@ WIDTH, HEIGHT = 1000, 700   # the window; the canvas is what the page reports (a
 KINDS = ("walk", "run", "jump", "wave", "squat", "idle")
 
 
-def _shot(url: str, png) -> tuple[np.ndarray, str]:
-    """(the canvas's pixels, the DOM) of the page at ``url``; the page ran without a script error."""
-    from PIL import Image
+_CMD = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--no-first-run", "--hide-scrollbars", f"--window-size={WIDTH},{HEIGHT}"]
 
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-           "--disable-component-update", "--no-first-run", "--hide-scrollbars", f"--window-size={WIDTH},{HEIGHT}"]
-    r = subprocess.run(cmd + [f"--screenshot={png}", url], capture_output=True, text=True, timeout=90)
-    assert png.is_file(), r.stderr[-1500:]
-    dom = subprocess.run(cmd + ["--dump-dom", url], capture_output=True, text=True, timeout=90).stdout
+
+def _dom(url: str) -> str:
+    """The page's DOM once its script ran, which it did without an error."""
+    dom = subprocess.run([CHROMIUM, *_CMD, "--dump-dom", url], capture_output=True, text=True, timeout=90).stdout
     body = re.search(r"<body([^>]*)>", dom).group(1)
     assert 'data-status="ready"' in body and "data-errors" not in body, body
+    return dom
+
+
+def _shot(url: str, png) -> tuple[np.ndarray, str]:
+    """(the canvas's pixels, the DOM) of the page at ``url``."""
+    from PIL import Image
+
+    r = subprocess.run([CHROMIUM, *_CMD, f"--screenshot={png}", url], capture_output=True, text=True, timeout=90)
+    assert png.is_file(), r.stderr[-1500:]
+    dom = _dom(url)
     img = np.asarray(Image.open(png).convert("RGB")).astype(np.int16)
     return img[:img.shape[0] - 40], dom   # the canvas: all but the 40 px control bar
 
@@ -92,12 +100,15 @@ def test_time_sync_across_frame_rates_and_the_ended_mark(tmp_path):
     generate_clip("wave", 60, 60.0, rng=2).save(b)       # 1 s at 60 fps
     page = tmp_path / "view.html"
     page.write_text(page_html([load_motion(a), load_motion(b)]), encoding="utf-8")
-    _, dom = _shot(f"{page.as_uri()}?frame=15&paused=1", tmp_path / "f.png")
+    dom = _dom(f"{page.as_uri()}?frame=15&paused=1")
     assert re.search(r'id="frame"[^>]*>frame 15 / 59 \u00b7 0\.50 s', dom), "?frame=N is the first motion's"
-    _, dom = _shot(f"{page.as_uri()}?t=1.5&paused=1", tmp_path / "t.png")
+    assert 'title="ended: holds its last pose"' not in dom
+    dom = _dom(f"{page.as_uri()}?t=1.5&paused=1")
     assert re.search(r'id="frame"[^>]*>frame 45 / 59 \u00b7 1\.50 s', dom), "?t=SECONDS"
+    ended = re.findall(r'<span class="motion"[^>]*title="ended: holds its last pose"[^>]*>.*?</i>([^<]*)</span>', dom)
+    assert ended == ["b60"], ended   # the 1 s clip has ended at 1.5 s, the 2 s one has not
     # the same first-motion frame shows the same time whatever else is on the page
     page1 = tmp_path / "one.html"
     page1.write_text(page_html([load_motion(a)]), encoding="utf-8")
-    _, dom1 = _shot(f"{page1.as_uri()}?frame=15&paused=1", tmp_path / "g.png")
+    dom1 = _dom(f"{page1.as_uri()}?frame=15&paused=1")
     assert re.search(r'id="frame"[^>]*>frame 15 / 59 \u00b7 0\.50 s', dom1)
