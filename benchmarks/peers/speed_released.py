@@ -71,6 +71,8 @@ def worker_theirs(npy: Path, batch: int, iters: int, patched: bool, workdir: Pat
         tm = R.train_module(peer)
         channels = list(peer.traits.SkeletonTraits.n_channels_max)  # their paper widths
         args = R.make_args(npy, feet=True, channels=channels, extra=("--batch", str(batch)))
+        statics = R.motion_statics(peer, args)
+        entities = [int(n) for n in peer.traits.SkeletonAwareFastConvTraits.n_joints(statics)]
         old_sample, old_acc, old_save = tm.sample_data, tm.accumulate, torch.save
 
         def sample_data(loader):
@@ -93,7 +95,7 @@ def worker_theirs(npy: Path, batch: int, iters: int, patched: bool, workdir: Pat
     total = time.perf_counter() - t_setup
     times = [e - s for s, e in zip(starts, ends)]
     return {"iters": [{"i": i, "kind": kind(i), "s": t} for i, t in enumerate(times)],
-            "wall_s": total, "channels": channels, "batch": batch}
+            "wall_s": total, "channels": channels[-len(entities):], "entities_per_level": entities, "batch": batch}
 
 
 def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: Path, timeout: float) -> dict:
@@ -109,10 +111,15 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
                           timeout=timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"modi train failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
+    from modi.modi_model.checkpoint import load_checkpoint
+
+    levels = load_checkpoint(out / "checkpoint.pt")["levels"]  # what it trained: entities and widths per level
     steps = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines() if line.strip()]
     steps = [s for s in steps if "sec_per_iter" in s]
     return {"iters": [{"i": int(s["step"]) - 1, "kind": kind(int(s["step"]) - 1), "s": float(s["sec_per_iter"])}
-                      for s in steps], "wall_s": time.perf_counter() - t0, "batch": batch}
+                      for s in steps], "wall_s": time.perf_counter() - t0, "batch": batch,
+            "entities_per_level": [int(lv["n_entities"]) for lv in levels],
+            "channels": [int(lv["channels"]) for lv in levels]}
 
 
 def _pinned(cmd: list[str], core: int | None) -> list[str]:
@@ -185,6 +192,9 @@ def markdown(result: dict[str, Any]) -> str:
         rng = f"{a['range_s'][0]:.2f}–{a['range_s'][1]:.2f}" if a["range_s"] else "—"
         med = f"{a['median_s']:.2f}" if a["median_s"] is not None else "—"
         lines.append(f"| {a['label']} | {med} | {rng} | {kinds} |")
+    for arm, reps in result["runs"].items():
+        if reps and "entities_per_level" in reps[0]:
+            lines.append(f"\n{arm}: entities per level {reps[0]['entities_per_level']}, widths {reps[0]['channels']}")
     for name, r in s["ratios"].items():
         met = {True: "met", False: "NOT met", None: "n/a (smoke)"}[r["goal_met"]]
         lines.append(f"\n{name}: **{r['median']:.1f}×** (per rep {r['range'][0]:.1f}–{r['range'][1]:.1f}×; goal ≥ "
