@@ -247,3 +247,19 @@ def test_weight_outside_the_mask_is_refused_naming_the_entries(peer, data):
         g2.load_state_dict(sd2)
     # their dead entries (random values where the mask is 0, as every checkpoint of theirs has) are fine
     g2.load_state_dict(g.state_dict())
+
+
+def test_speed_harness_cycles_follow_their_lazy_intervals_and_modis(peer, data):
+    """speed_released times whole cycles and files iterations by kind: both must follow their train.py's
+    defaults (R1 when i % d_reg_every == 0, path length when i % g_reg_every == 0) and modi's TrainConfig."""
+    import math
+
+    from benchmarks.peers import speed_released as S
+    from modi.modi_model.config import TrainConfig
+
+    args = R.make_args(data)
+    assert S.CYCLE == math.lcm(args.d_reg_every, args.g_reg_every)
+    assert (TrainConfig().d_reg_every, TrainConfig().g_reg_every) == (args.d_reg_every, args.g_reg_every)
+    for i in range(2 * S.CYCLE):
+        r1, path = i % args.d_reg_every == 0, i % args.g_reg_every == 0
+        assert S.kind(i) == ("r1+path" if r1 and path else "path" if path else "r1" if r1 else "plain")
