@@ -1,16 +1,20 @@
 """One command that validates modi_ext on a real GPU and records what it measured.
 
-    python -m modi_ext.validate [--json FILE] [--budget SECONDS] [--emulated] [--dry-run]
+    python -m modi_ext.validate [--json FILE] [--budget SECONDS] [--emulated] [--dry-run] [--allow-skip]
 
 What the CPU-only CI cannot prove (real concurrency, the hardware's own numerics, speed) is checked here, each step a
-subprocess with its own timeout so the whole run fits ``--budget`` (default 470 s: under 8 minutes on one H100/H200):
+subprocess in its own process group with its own timeout so the whole run fits ``--budget`` (default 600 s: 10
+minutes on one H100/H200).  A preflight first fails in one line when there is no GPU, torch has no CUDA, the built
+extension has no CUDA kernels, or nvcc's CUDA major differs from torch's.  The report is ``ok`` only when every step
+ran and passed; a skipped step makes it ``incomplete`` (exit 1) unless ``--allow-skip``:
 
 1. ``dispatch``   first-use self-check of the kernels in fp32/bf16/fp16 and ``auto``'s ext-vs-dense choice on MoDi's
                   finest-level shapes (``modi_ext.dispatch_report()``);
 2. ``cuda_tests`` ``pytest tests/test_cuda_ops.py`` (every op against the float64 reference, gradcheck, opcheck, half
                   precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated`` suite;
-3. ``sanitizer_*`` ``compute-sanitizer`` racecheck / synccheck / initcheck over one small call of every kernel, forward
-                  and backward (skipped, saying so, when the tool is not on PATH);
+3. ``sanitizer_*`` ``compute-sanitizer`` memcheck / racecheck / synccheck / initcheck over one small call of every
+                  kernel, forward and backward, filtered to modi_ext's kernels, with torch's caching allocator off
+                  (the tool is looked for on PATH, in ``$CUDA_HOME/bin`` and in pip's ``nvidia`` package folders);
 4. ``compare_fp32`` / ``compare_bf16``  ``benchmarks/compare.py --device cuda``: reference vs dense vs kernels;
 5. ``train_step`` ``benchmarks/train_step.py --device cuda --preset paper``: seconds per MoDi training step on the
                   ref, dense and ext paths.
@@ -25,6 +29,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -33,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_BUDGET_S = 470.0
+DEFAULT_BUDGET_S = 600.0  # the whole command: ten minutes on one H100/H200
 SUBSET = "finest|level1|fk"  # benchmark cases: the levels that dominate a training step, and FK
 
 
@@ -43,13 +48,49 @@ class Step:
     cmd: list[str]
     timeout_s: float
     needs: list[Path] = field(default_factory=list)  # files that must exist (a source checkout)
-    tool: str | None = None  # an executable that must be on PATH
+    tool: str | None = None  # an executable that must be found (see ``find_sanitizer``)
+    env: dict = field(default_factory=dict)  # extra environment for this step
     result_json: Path | None = None  # a file the step writes, loaded into the report
 
 
 def gpu_slug(name: str) -> str:
     """'NVIDIA H200' -> 'nvidia_h200' (the results file name)."""
     return re.sub(r"[^a-z0-9]+", "_", name.lower()).strip("_") or "gpu"
+
+
+SANITIZER = "compute-sanitizer"
+SANITIZER_TOOLS = ("memcheck", "racecheck", "synccheck", "initcheck")
+KERNEL_FILTER = "kns=modi_ext"  # mangled names of our kernels hold the namespace; a cuBLAS report is not ours
+
+
+def sanitizer_dirs(env: dict | None = None, site_dirs: list[Path] | None = None) -> list[Path]:
+    """Where compute-sanitizer may live: PATH, ``$CUDA_HOME/bin`` (and CUDA_PATH), /usr/local/cuda/bin, and the
+    ``nvidia/*/bin`` folders of pip's CUDA packages beside torch (``nvidia-cuda-sanitizer-api`` ships it there)."""
+    env = os.environ if env is None else env
+    dirs = [Path(d) for d in env.get("PATH", "").split(os.pathsep) if d]
+    for var in ("CUDA_HOME", "CUDA_PATH"):
+        if env.get(var):
+            dirs += [Path(env[var]) / "bin", Path(env[var]) / "compute-sanitizer"]
+    dirs.append(Path("/usr/local/cuda/bin"))
+    if site_dirs is None:
+        import site
+
+        site_dirs = [Path(p) for p in site.getsitepackages() + [site.getusersitepackages()]]
+    for sp in site_dirs:
+        nv = sp / "nvidia"
+        if nv.is_dir():
+            for pkg in sorted(nv.iterdir()):
+                dirs += [pkg / "bin", pkg / "compute-sanitizer"]
+    return dirs
+
+
+def find_sanitizer(env: dict | None = None, site_dirs: list[Path] | None = None) -> str | None:
+    """The first executable ``compute-sanitizer`` in ``sanitizer_dirs``, or None."""
+    for d in sanitizer_dirs(env, site_dirs):
+        exe = d / SANITIZER
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return str(exe)
+    return None
 
 
 def plan(work: Path, emulated: bool = False) -> list[Step]:
@@ -65,10 +106,12 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
     if emulated:
         steps.append(Step("emulated_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m",
                                              "cuda_emulated", str(ROOT / "tests")], 120, needs=[ROOT / "tests"]))
-    for tool in ("racecheck", "synccheck", "initcheck"):
-        steps.append(Step(f"sanitizer_{tool}", ["compute-sanitizer", "--tool", tool, "--error-exitcode", "1", py,
-                                                "-m", "modi_ext.validate", "--payload", "kernels"], 40,
-                          tool="compute-sanitizer"))
+    for tool in SANITIZER_TOOLS:
+        extra = ["--leak-check", "full"] if tool == "memcheck" else []
+        steps.append(Step(f"sanitizer_{tool}", [SANITIZER, "--tool", tool, *extra, "--kernel-name", KERNEL_FILTER,
+                                                "--error-exitcode", "1", py, "-m", "modi_ext.validate", "--payload",
+                                                "kernels"], 40,
+                          tool=SANITIZER, env={"PYTORCH_NO_CUDA_MEMORY_CACHING": "1"}))
     for dt, t in (("fp32", 65), ("bf16", 45)):
         out = work / f"compare_{dt}.json"
         steps.append(Step(f"compare_{dt}", [py, str(bench / "compare.py"), "--device", "cuda", "--dtype", dt, "--reps",
@@ -86,18 +129,18 @@ def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
     missing = [str(p) for p in step.needs if not p.exists()]
     if missing:
         return {"status": "skipped", "reason": f"not found: {', '.join(missing)} (run from a source checkout)"}
-    if step.tool and shutil.which(step.tool) is None:
-        return {"status": "skipped", "reason": f"{step.tool} not on PATH (CUDA toolkit)"}
+    cmd = list(step.cmd)
+    if step.tool:
+        exe = find_sanitizer(env) if step.tool == SANITIZER else shutil.which(step.tool)
+        if exe is None:
+            return {"status": "skipped", "reason": f"{step.tool} not on PATH, $CUDA_HOME/bin or pip's nvidia "
+                                                   "folders (pip install nvidia-cuda-sanitizer-api, or a CUDA toolkit)"}
+        cmd[0] = exe
     if timeout_s < 5:
         return {"status": "skipped", "reason": "time budget spent"}
+    env = dict(os.environ if env is None else env, **step.env)
     t0 = time.perf_counter()
-    try:
-        r = subprocess.run(step.cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, env=env)
-        rc, out, timed_out = r.returncode, (r.stdout or "") + (r.stderr or ""), False
-    except subprocess.TimeoutExpired as exc:
-        rc, timed_out = None, True
-        out = "".join(x.decode(errors="replace") if isinstance(x, bytes) else (x or "")
-                      for x in (exc.stdout, exc.stderr))
+    rc, out, timed_out = run_group(cmd, timeout_s, env)
     res = {"status": "timeout" if timed_out else ("pass" if rc == 0 else "fail"), "rc": rc,
            "seconds": round(time.perf_counter() - t0, 2), "timeout_s": round(timeout_s, 1), "tail": out[-3000:]}
     if step.result_json is not None and step.result_json.is_file():
@@ -106,6 +149,32 @@ def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
         except (OSError, ValueError) as exc:
             res["result_error"] = str(exc)
     return res
+
+
+def run_group(cmd: list[str], timeout_s: float, env: dict | None = None) -> tuple[int | None, str, bool]:
+    """Run ``cmd`` in a new session (its own process group) and kill the whole group on timeout: under the
+    sanitizer the traced python is a grandchild, which ``subprocess.run(timeout=)`` would leave on the GPU."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            start_new_session=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout_s)
+        return proc.returncode, out or "", False
+    except subprocess.TimeoutExpired:
+        _kill_group(proc.pid)
+        out, _ = proc.communicate()
+        return None, out or "", True
+    finally:
+        if proc.poll() is None:
+            _kill_group(proc.pid)
+            proc.wait()
+        _kill_group(proc.pid)  # a grandchild that outlived a finished child
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
 
 
 # ---------------------------------------------------------------------------------------------------------- payloads
@@ -209,12 +278,100 @@ def no_gpu_message() -> str | None:
             "nothing was validated -- run this on a machine with an NVIDIA GPU")
 
 
+def nvcc_version(nvcc: str | None = None) -> str | None:
+    """'12.4' from ``nvcc --version`` ($CUDA_HOME/bin/nvcc, else PATH), or None when there is no nvcc."""
+    if nvcc is None:
+        home = os.environ.get("CUDA_HOME") or os.environ.get("CUDA_PATH")
+        cand = Path(home) / "bin" / "nvcc" if home else None
+        nvcc = str(cand) if cand is not None and cand.is_file() else shutil.which("nvcc")
+    if nvcc is None:
+        return None
+    try:
+        out = subprocess.run([nvcc, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    m = re.search(r"release (\d+\.\d+)", out)
+    return m.group(1) if m else None
+
+
+def preflight_message(gpu_visible: bool, torch_cuda: str | None, torch_version: str, cuda_kernels: bool,
+                      nvcc: str | None) -> str | None:
+    """The one line that says why nothing can be validated, or None when the run can start.  Pure (the facts come
+    in as arguments) so every message is tested on a CPU machine."""
+    if torch_cuda is None:
+        return (f"validate: torch {torch_version} is a CPU-only build, so no GPU can be used -- install a CUDA build "
+                "of torch (https://pytorch.org/get-started/locally/) on a machine with an NVIDIA GPU")
+    if not gpu_visible:
+        return (f"validate: no GPU is visible (torch.cuda.is_available() is False; torch {torch_version} is a CUDA "
+                f"{torch_cuda} build) -- check nvidia-smi and CUDA_VISIBLE_DEVICES")
+    if nvcc is not None and nvcc.split(".")[0] != torch_cuda.split(".")[0]:
+        return (f"validate: nvcc is CUDA {nvcc} but torch was built with CUDA {torch_cuda}; the extension must be "
+                f"compiled by the same major version -- install CUDA toolkit {torch_cuda.split('.')[0]}.x and point "
+                "CUDA_HOME at it")
+    if not cuda_kernels:
+        how = ("rebuild with `pip install -e .` (nvcc and CUDA_HOME present)" if nvcc else
+               f"no nvcc found to build them: install CUDA toolkit {torch_cuda.split('.')[0]}.x and set CUDA_HOME, "
+               "then `pip install -e .`")
+        return f"validate: the built modi_ext extension has no CUDA kernels for this GPU -- {how}"
+    return None
+
+
+def _cuda_kernels_run() -> bool:
+    """Whether the built extension registered CUDA kernels and one of them runs on this GPU's arch (a build for
+    another arch fails with 'no kernel image is available')."""
+    import torch
+
+    from modi_ext import dispatch
+
+    if not (dispatch.kernels_built("cuda") and dispatch.kernels_built("cuda", "fk")):
+        return False
+    saved = os.environ.get("MODI_EXT_IMPL")
+    try:
+        _payload_kernels("cuda")
+    except RuntimeError as exc:
+        if "kernel image" in str(exc):
+            return False
+        raise
+    finally:  # the payload forces 'ext'; the steps inherit this process's environment
+        if saved is None:
+            os.environ.pop("MODI_EXT_IMPL", None)
+        else:
+            os.environ["MODI_EXT_IMPL"] = saved
+    torch.cuda.synchronize()
+    return True
+
+
+def preflight() -> str | None:
+    """Gather the facts on this machine and return ``preflight_message`` for them."""
+    import torch
+
+    gpu = torch.cuda.is_available()
+    kernels = gpu and torch.version.cuda is not None and _cuda_kernels_run()
+    return preflight_message(gpu, torch.version.cuda, torch.__version__, kernels,
+                             nvcc_version() if torch.version.cuda else None)
+
+
+def verdict(steps: dict, allow_skip: bool = False) -> tuple[str, list[str]]:
+    """'ok' only when every step ran and passed; 'fail' when one failed or timed out; else 'incomplete' (a skipped
+    step checked nothing).  Returns the verdict and the reasons."""
+    failed = [f"{n}: {r['status']}" for n, r in steps.items() if r["status"] in ("fail", "timeout")]
+    if failed:
+        return "fail", failed
+    skipped = [f"{n}: skipped ({r.get('reason', '')})" for n, r in steps.items() if r["status"] != "pass"]
+    if skipped and not allow_skip:
+        return "incomplete", skipped
+    if not steps:
+        return "incomplete", ["no step ran"]
+    return "ok", skipped
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m modi_ext.validate", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, default=None, help="results file (default benchmarks/results/cuda_<gpu>.json)")
     ap.add_argument("--budget", type=float, default=DEFAULT_BUDGET_S, help="seconds for all steps together")
     ap.add_argument("--emulated", action="store_true", help="also run the cuda_emulated suite (CPU-bound)")
     ap.add_argument("--dry-run", action="store_true", help="list the steps and their timeouts, run nothing")
+    ap.add_argument("--allow-skip", action="store_true", help="report ok even when a step could not run")
     ap.add_argument("--payload", choices=("kernels", "dispatch"), help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)
@@ -233,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{s.name:18s} {s.timeout_s:5.0f} s  {' '.join(s.cmd)}")
             print(f"{'total':18s} {total:5.0f} s  (budget {args.budget:.0f} s)")
             return 0
-        why = no_gpu_message()
+        why = preflight()
         if why is not None:
             print(why, file=sys.stderr)
             return 2
@@ -248,7 +405,8 @@ def _validate(steps: list[Step], args: argparse.Namespace) -> int:
     report = {"gpu": p.name, "sms": p.multi_processor_count, "memory_gib": round(p.total_memory / 2**30, 1),
               "torch": torch.__version__, "cuda": torch.version.cuda, "date": datetime.date.today().isoformat(),
               "budget_s": args.budget, "steps": {}}
-    deadline = time.perf_counter() + args.budget
+    t_start = time.perf_counter()
+    deadline = t_start + args.budget
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     for step in steps:
         left = deadline - time.perf_counter()
@@ -257,11 +415,13 @@ def _validate(steps: list[Step], args: argparse.Namespace) -> int:
         print(f"{step.name:18s} {res['status']:8s} {res.get('seconds', 0):7.1f} s  {res.get('reason', '')}",
               flush=True)
         _write_atomic(path, json.dumps(report, indent=2, default=str) + "\n")  # partial results survive a kill
-    failed = [n for n, r in report["steps"].items() if r["status"] in ("fail", "timeout")]
-    report["ok"] = not failed
+    report["verdict"], report["reasons"] = verdict(report["steps"], args.allow_skip)
+    report["ok"] = report["verdict"] == "ok"
+    report["total_s"] = round(time.perf_counter() - t_start, 1)
     _write_atomic(path, json.dumps(report, indent=2, default=str) + "\n")
-    print(f"wrote {path}" + (f"; failed: {', '.join(failed)}" if failed else "; every step that ran passed"))
-    return 1 if failed else 0
+    print(f"wrote {path}; {report['verdict']} in {report['total_s']:.0f} s"
+          + (f": {'; '.join(report['reasons'])}" if report["reasons"] else ""))
+    return 0 if report["ok"] else 1
 
 
 if __name__ == "__main__":

@@ -509,7 +509,7 @@ def test_validate_without_a_gpu_says_so_and_fails(tmp_path):
     r = subprocess.run([sys.executable, "-m", "modi_ext.validate", "--json", str(out)], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 2
-    assert "no GPU is visible" in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert ("no GPU is visible" in r.stderr or "CPU-only build" in r.stderr) and r.stderr.count("\n") == 1, r.stderr
     assert not out.exists()
 
 
@@ -523,7 +523,7 @@ def test_validate_dry_run_lists_every_step_within_budget(capsys):
         assert name in text
     assert "--device cuda" in text and "test_cuda_ops.py" in text and "--preset paper" in text
     steps = validate.plan(__import__("pathlib").Path("/nonexistent"))
-    assert sum(s.timeout_s for s in steps) <= validate.DEFAULT_BUDGET_S <= 8 * 60
+    assert sum(s.timeout_s for s in steps) <= validate.DEFAULT_BUDGET_S <= 10 * 60
     assert all(s.needs or s.tool or s.name == "dispatch" for s in steps)
 
 
