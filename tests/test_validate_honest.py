@@ -144,3 +144,17 @@ def test_timeout_kills_the_grandchild_too(tmp_path):
     else:
         os.kill(pid, 9)
         pytest.fail("the grandchild outlived the step's timeout")
+
+
+# ------------------------------------------------------------------------------------------------ fk under ext
+def test_fk_under_ext_raises_on_a_device_without_fk_kernels(monkeypatch):
+    import torch
+
+    from modi_ext import dispatch
+    from modi_ext.fk import fk
+
+    monkeypatch.setenv("MODI_EXT_IMPL", "ext")
+    monkeypatch.setattr(dispatch, "kernels_built", lambda dev, family="skeletal": False)
+    q = torch.tensor([[[1.0, 0.0, 0.0, 0.0]] * 2])
+    with pytest.raises(RuntimeError, match="no CPU FK kernels"):
+        fk(q, torch.ones(2, 3), [-1, 0], torch.zeros(1, 3))
