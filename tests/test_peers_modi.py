@@ -483,3 +483,4 @@ def test_import_errors_are_one_line(files, tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and text in err[0], err
+

@@ -163,12 +163,14 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
     sys.modules.setdefault("op", op)
     sys.modules.setdefault("op.fused_act", op.fused_act_module)
     sys.modules.setdefault("op.upfirdn2d", op.upfirdn2d_module)
+    stubbed = []  # removed again at the end: sklearn, for one, takes any 'pandas' in sys.modules for the real one
     for name in ("cv2", "pandas"):  # imported at module level for drawing / bone-length tables we never call
         if name not in sys.modules:
             try:
                 __import__(name)
             except ImportError:
                 sys.modules[name] = _stub(name)
+                stubbed.append(name)
     for k, v in _NUMPY_ALIASES.items():
         if k not in np.__dict__:
             setattr(np, k, v)
@@ -179,6 +181,7 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
             ut = _stub("numpy.core.umath_tests")
             ut.matrix_multiply = np.matmul
             sys.modules["numpy.core.umath_tests"] = ut
+            stubbed.append("numpy.core.umath_tests")
     sys.path.insert(0, str(root))
     had_user = "USER" in os.environ
     os.environ.setdefault("USER", "modi")  # their evaluation config formats a path with $USER at import
@@ -211,6 +214,8 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
         for n in [n for n in sys.modules if _is_peer_module(n)]:
             _PEER_MODULES[n] = sys.modules.pop(n)
         sys.modules.update(saved)
+        for n in stubbed:
+            sys.modules.pop(n, None)
 
 
 def train_module(peer: types.SimpleNamespace) -> types.ModuleType:
