@@ -20,6 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from peers_support import rel  # noqa: E402
 from benchmarks.peers import released_modi as R  # noqa: E402
 from modi.interop import encoder_released as E  # noqa: E402
 from modi.interop import modi_released as M  # noqa: E402
@@ -31,9 +32,6 @@ pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
 TOL = 1e-5
 
 
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.detach().double(), b.detach().double()
-    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
 
 
 @pytest.fixture(scope="session")

@@ -21,6 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from peers_support import rel  # noqa: E402
 from benchmarks.peers import released_ganimator as R  # noqa: E402
 from modi.interop import ganimator_released as G  # noqa: E402
 
@@ -31,11 +32,6 @@ TOL = 1e-5
 KINDS = ("init", "trained")
 
 
-def rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    """max |a - b| / max |b|."""
-    a, b = a.detach().to(torch.float64), b.detach().to(torch.float64)
-    assert a.shape == b.shape, (a.shape, b.shape)
-    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
 
 
 @pytest.fixture(scope="session")
