@@ -196,6 +196,25 @@ def test_streaming_appends_never_change_emitted_frames():
 # ------------------------------------------------------------------------------------------- checkpoints
 
 
+def test_progress_file_follows_the_schedule(tmp_path):
+    """RUN/progress.json is what front ends (the Blender add-on) poll: paused mid-block it says where the run is,
+    finished it says done with every iteration counted."""
+    import json
+
+    cfg = tiny_cfg(iterations=3, max_levels=3, coarse_ratio=0.4)
+    seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8)
+    trainer = Trainer([seq], cfg, tmp_path / "r")
+    trainer.run(progress=False, log=None, max_seconds=0.0)
+    p = json.loads((tmp_path / "r" / "progress.json").read_text())
+    total = sum(cfg.block_budgets(len(trainer.blocks)))
+    assert (p["state"], p["block"], p["iteration"], p["done_iterations"]) == ("paused", 1, 1, 1)
+    assert p["total_iterations"] == total and p["blocks"] == len(trainer.blocks) and p["eta_s"] > 0
+    Trainer([seq], cfg, tmp_path / "r").run(progress=False, log=None)
+    p = json.loads((tmp_path / "r" / "progress.json").read_text())
+    assert p["state"] == "done" and p["done_iterations"] == p["total_iterations"] == total and p["eta_s"] is None
+
+
+
 def test_checkpoint_round_trip_and_exact_resume(tmp_path):
     cfg = tiny_cfg(iterations=3, max_levels=3, coarse_ratio=0.4)
     seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8)

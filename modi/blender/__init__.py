@@ -1,103 +1,60 @@
-"""modi add-on for Blender: runs the user's own ``modi`` command in a background process (torch never enters
-Blender's Python) and polls it with a timer so the UI keeps running. Errors come back as one report line."""
+"""modi add-on for Blender: learn an armature's action with GANimator, generate variations as new actions on the
+same armature, and sample MoDi checkpoints -- by running the user's own ``modi`` command in the background (torch
+never enters Blender's Python). Found in View3D > Sidebar > modi; progress also shows in the status bar."""
 bl_info = {
     "name": "modi motion generation",
     "author": "modi",
-    "version": (0, 1, 0),
+    "version": (0, 2, 0),
     "blender": (3, 4, 0),
     "location": "View3D > Sidebar > modi",
-    "description": "Learn an action with GANimator and generate variations, via the modi command",
+    "description": "Learn an action with GANimator, generate variations, sample MoDi, via the modi command",
     "category": "Animation",
 }
 
-import os
 import shutil
-import signal
-import subprocess
-import tempfile
 
 import bpy
 
-_RUN = {"proc": None, "out": None, "log": None, "ticks": 0, "status": ""}
-
-
-def _prefs(context):
-    return context.preferences.addons[__name__].preferences
+from . import operators
+from .operators import STATE, status_line
 
 
 class ModiPreferences(bpy.types.AddonPreferences):
-    bl_idname = __name__
+    bl_idname = __package__
     modi_path: bpy.props.StringProperty(name="modi command", subtype="FILE_PATH",
-                                        default=shutil.which("modi") or "modi")
+                                        default=shutil.which("modi") or "modi",
+                                        description="the modi executable of your Python environment")
 
     def draw(self, context):
         self.layout.prop(self, "modi_path")
 
 
-def _one_line(text: str) -> str:
-    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
-    return lines[-1] if lines else "modi failed without a message"
-
-
-class MODI_OT_learn(bpy.types.Operator):
-    """Export the selected armature's action to BVH and train GANimator on it in the background"""
-    bl_idname = "modi.learn"
-    bl_label = "Learn action (GANimator)"
-    preset: bpy.props.EnumProperty(items=[(p, p, "") for p in ("tiny", "fast", "paper")], default="fast")
-    out_dir: bpy.props.StringProperty(name="run folder", default="")
-
-    def execute(self, context):
-        obj = context.active_object
-        if obj is None or obj.type != "ARMATURE":
-            self.report({"ERROR"}, "select an armature with an action")
-            return {"CANCELLED"}
-        exe = _prefs(context).modi_path
-        if not (shutil.which(exe) or os.access(exe, os.X_OK)):
-            self.report({"ERROR"}, f"modi command not found: {exe!r} (set it in the add-on preferences)")
-            return {"CANCELLED"}
-        out = self.out_dir or tempfile.mkdtemp(prefix="modi_run_")
-        os.makedirs(out, exist_ok=True)
-        bvh = os.path.join(out, "source.bvh")
-        bpy.ops.export_anim.bvh(filepath=bvh, root_transform_only=False)
-        log = open(os.path.join(out, "modi.log"), "w")
-        _RUN.update(proc=subprocess.Popen([exe, "ganimator", "train", bvh, "--out", out, "--preset", self.preset],
-                                          stdout=log, stderr=subprocess.STDOUT),
-                    out=out, log=log.name, ticks=0, status="training")
-        bpy.app.timers.register(_poll, first_interval=0.5)
-        return {"FINISHED"}
-
-
-def _poll():
-    _RUN["ticks"] += 1
-    proc = _RUN["proc"]
-    if proc is None:
-        return None
-    rc = proc.poll()
-    try:
-        with open(_RUN["log"]) as f:
-            last = _one_line(f.read())
-    except OSError:
-        last = ""
-    if rc is None:
-        _RUN["status"] = last
-        return 0.5
-    _RUN["status"] = "done" if rc == 0 else f"modi exited {rc}: {last}"
-    _RUN["proc"] = None
-    return None
-
-
-class MODI_OT_cancel(bpy.types.Operator):
-    """Stop training: SIGTERM makes modi save a resumable checkpoint"""
-    bl_idname = "modi.cancel"
-    bl_label = "Cancel training"
-
-    def execute(self, context):
-        proc = _RUN["proc"]
-        if proc is None:
-            self.report({"WARNING"}, "no training is running")
-            return {"CANCELLED"}
-        proc.send_signal(signal.SIGTERM)
-        return {"FINISHED"}
+class ModiSettings(bpy.types.PropertyGroup):
+    run_dir: bpy.props.StringProperty(name="Run", subtype="DIR_PATH",
+                                      description="GANimator run folder (Learn fills it in)")
+    preset: bpy.props.EnumProperty(name="Preset", default="fast", items=[
+        ("tiny", "tiny", "a smoke test: seconds"), ("fast", "fast", "the CPU schedule: minutes"),
+        ("paper", "paper", "the published schedule: hours")])
+    iterations: bpy.props.IntProperty(name="Iterations", default=0, min=0,
+                                      description="iterations per block of levels (0: the preset's)")
+    n: bpy.props.IntProperty(name="Variations", default=4, min=1, max=256)
+    frames: bpy.props.IntProperty(name="Frames", default=0, min=0, description="0: the learned action's length")
+    seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
+    contact_cleanup: bpy.props.BoolProperty(name="Foot contact cleanup", default=False,
+                                            description="pin feet with IK where contacts are predicted")
+    mode: bpy.props.EnumProperty(name="Mode", default="random", items=[
+        ("random", "random", "unconditional variations"),
+        ("keyframes", "key frames", "follow the coarse poses of another action on this armature"),
+        ("trajectory", "trajectory", "follow another action's root path (trajectory-conditioned runs)")])
+    condition_action: bpy.props.StringProperty(name="Action", description="the action with the key frames or path")
+    modi_checkpoint: bpy.props.StringProperty(name="Checkpoint", subtype="FILE_PATH")
+    modi_n: bpy.props.IntProperty(name="Motions", default=4, min=1, max=64)
+    psi: bpy.props.FloatProperty(name="Truncation (psi)", default=1.0, min=-2.0, max=2.0, subtype="FACTOR")
+    modi_seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
+    interp_from: bpy.props.IntProperty(name="From seed", default=0, min=0)
+    interp_to: bpy.props.IntProperty(name="To seed", default=1, min=0)
+    interp_steps: bpy.props.IntProperty(name="Steps", default=4, min=1, max=32)
+    spacing: bpy.props.FloatProperty(name="Spacing", default=2.0, min=0.0, description="X offset between armatures")
 
 
 class MODI_PT_panel(bpy.types.Panel):
@@ -107,21 +64,72 @@ class MODI_PT_panel(bpy.types.Panel):
     bl_category = "modi"
 
     def draw(self, context):
-        col = self.layout.column()
-        col.operator(MODI_OT_learn.bl_idname)
-        col.operator(MODI_OT_cancel.bl_idname)
-        if _RUN["status"]:
-            col.label(text=_RUN["status"][:80])
+        s = context.scene.modi
+        lay = self.layout
+        running = STATE["job"] is not None and STATE["job"].poll() is None
+        line = status_line()
+        if line:
+            box = lay.box()
+            box.label(text=line[:120], icon="SORTTIME" if running else "INFO")
+            if running:
+                box.operator("modi.cancel", icon="CANCEL")
+        col = lay.column(align=True)
+        col.label(text="GANimator: learn the active action")
+        col.prop(s, "preset")
+        col.prop(s, "iterations")
+        row = col.row(align=True)
+        row.enabled = not running
+        row.operator("modi.learn", icon="PLAY")
+        row.operator("modi.resume", icon="FILE_REFRESH")
+        col = lay.column(align=True)
+        col.label(text="Variations on the active armature")
+        col.prop(s, "run_dir")
+        col.prop(s, "n")
+        col.prop(s, "frames")
+        col.prop(s, "seed")
+        col.prop(s, "contact_cleanup")
+        col.prop(s, "mode")
+        if s.mode != "random":
+            col.prop_search(s, "condition_action", bpy.data, "actions")
+        sub = col.row()
+        sub.enabled = not running
+        sub.operator("modi.generate", icon="ARMATURE_DATA")
+        col = lay.column(align=True)
+        col.label(text="MoDi: sample a checkpoint")
+        col.prop(s, "modi_checkpoint")
+        col.prop(s, "modi_n")
+        col.prop(s, "psi", slider=True)
+        col.prop(s, "modi_seed")
+        col.prop(s, "spacing")
+        sub = col.row()
+        sub.enabled = not running
+        sub.operator("modi.sample_modi", text="Sample", icon="OUTLINER_OB_ARMATURE").interpolate = False
+        col.prop(s, "interp_from")
+        col.prop(s, "interp_to")
+        col.prop(s, "interp_steps")
+        sub = col.row()
+        sub.enabled = not running
+        sub.operator("modi.sample_modi", text="Interpolate", icon="IPO_EASE_IN_OUT").interpolate = True
 
 
-_CLASSES = (ModiPreferences, MODI_OT_learn, MODI_OT_cancel, MODI_PT_panel)
+def _statusbar(self, context):
+    job = STATE["job"]
+    if job is not None and job.poll() is None:
+        self.layout.label(text="modi " + job.status()[:100], icon="SORTTIME")
+
+
+_CLASSES = (ModiPreferences, ModiSettings, *operators.CLASSES, MODI_PT_panel)
 
 
 def register():
     for c in _CLASSES:
         bpy.utils.register_class(c)
+    bpy.types.Scene.modi = bpy.props.PointerProperty(type=ModiSettings)
+    bpy.types.STATUSBAR_HT_header.append(_statusbar)
 
 
 def unregister():
+    bpy.types.STATUSBAR_HT_header.remove(_statusbar)
+    del bpy.types.Scene.modi
     for c in reversed(_CLASSES):
         bpy.utils.unregister_class(c)

@@ -85,7 +85,8 @@ def register(subparsers) -> None:
                    help="with --trajectory: feed the trajectory in segments of this many frames (streaming API)")
     g.add_argument("--ik", action="store_true", help="fix foot sliding with IK where contacts are predicted")
     g.add_argument("--fine-noise", action="store_true", help="random noise at every level (default: coarsest only)")
-    g.add_argument("--crowd-spacing", type=ct.positive_finite_float, default=None, help="grid spacing of a crowd (default: 1.5 x body size)")
+    g.add_argument("--crowd-spacing", type=ct.nonneg_finite_float, default=None,
+                   help="grid spacing of a crowd (default: 1.5 x body size; 0: every motion at its own start)")
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
     g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
     add_format_options(g)

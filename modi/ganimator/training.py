@@ -10,7 +10,8 @@ The checkpoint is one file (written atomically) holding the config, the clips in
 noise amplitudes, ``z*``, every network and optimiser, the fake pools, the RNG state and the position in the
 schedule, so ``train`` on the same run directory resumes exactly where it stopped, and ``generate`` needs
 nothing else. Ctrl-C and SIGTERM finish the iteration and save (``modi.faults``); the run folder is locked
-meanwhile, and ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations.
+meanwhile, ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations, and ``progress.json`` (rewritten
+atomically at most once a second) says where the schedule stands, for front ends such as the Blender add-on.
 """
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ from modi.skeleton import Skeleton
 FORMAT = "modi.ganimator/1"
 CHECKPOINT_NAME = "ganimator.ckpt"
 LOG_EVERY = 10  # iterations between lines of RUN/log.jsonl
+PROGRESS_NAME = "progress.json"  # RUN/progress.json: block, iteration, totals, ETA, state (see Trainer._progress)
 
 
 # ------------------------------------------------------------------------------------------- (de)serialising
@@ -457,7 +459,9 @@ class Trainer:
                        desc=f"levels {levels[0]}-{levels[-1]} / {model.n_levels}", leave=True, mininterval=2.0)
             t_block = time.time()
             t_save = time.time()
+            first_it = self.state["iteration"]
             losses: dict[str, float] = {}
+            self._progress("training", force=True)
             while self.state["iteration"] < budget:
                 try:
                     losses = self._iteration(levels, M, n_sub, cached_prev)
@@ -469,6 +473,7 @@ class Trainer:
                 self.state["iteration"] += 1
                 it = self.state["iteration"]
                 bar.update(1)
+                self._progress("training", block_rate=(time.time() - t_block) / max(1, it - first_it))
                 if it % LOG_EVERY == 0 or it == budget:
                     faults.append_line(self.run_dir / "log.jsonl", json.dumps(
                         {"block": b, "iteration": it, **{k: round(float(v), 6) for k, v in losses.items()}}))
@@ -491,6 +496,7 @@ class Trainer:
                     self.state["block_seconds"][b] += now - t_block
                     bar.close()
                     self.save()
+                    self._progress("paused", force=True)
                     return model
                 if stop:
                     self.state["block_seconds"][b] += now - t_block
@@ -508,6 +514,7 @@ class Trainer:
                 log(f"levels {levels[0]}-{levels[-1]} done in {self.state['block_seconds'][b]:.1f} s")
             if self.state["block"] < len(self.blocks):
                 if max_seconds is not None and time.time() - started > max_seconds:
+                    self._progress("paused", force=True)
                     return model
                 if stop:
                     self._stop(stop, save=False)  # just saved
@@ -515,12 +522,40 @@ class Trainer:
             with faults.output_errors(self.run_dir / "tb"):
                 self.writer.close()
         model.trained_levels = model.n_levels
+        self._progress("done", force=True)
         return model
+
+    def _progress(self, state: str, block_rate: float | None = None, force: bool = False) -> None:
+        """Rewrite ``RUN/progress.json`` (atomically, at most once a second unless ``force``): the block and
+        iteration, the totals, and an ETA from the current block's seconds per iteration (finer blocks cost more,
+        so it is an estimate). A failed write is not worth stopping a run for: progress is advisory."""
+        now = time.time()
+        if block_rate is not None:
+            self._block_rate = block_rate
+        if not force and now - getattr(self, "_progress_at", 0.0) < 1.0:
+            return
+        self._progress_at = now
+        budgets = self.cfg.block_budgets(len(self.blocks))
+        b = min(self.state["block"], len(self.blocks) - 1)
+        done_iters = sum(budgets[:self.state["block"]]) + (self.state["iteration"] if state != "done" else 0)
+        rate = getattr(self, "_block_rate", None)
+        levels = self.blocks[b]
+        info = {"state": state, "block": b + 1, "blocks": len(self.blocks), "levels": [levels[0], levels[-1]],
+                "n_levels": self.model.n_levels, "iteration": self.state["iteration"] if state != "done" else
+                budgets[b], "iterations": budgets[b], "done_iterations": done_iters,
+                "total_iterations": sum(budgets),
+                "eta_s": None if rate is None or state == "done" else round(rate * (sum(budgets) - done_iters), 1),
+                "time": round(now, 3)}
+        try:
+            faults.atomic_write(self.run_dir / PROGRESS_NAME, json.dumps(info) + "\n")
+        except (OSError, faults.OutputError):
+            pass
 
     def _stop(self, stop: Any, save: bool = True) -> None:
         """Save (the state is at an iteration boundary), close the event file and raise ``TrainingInterrupted``."""
         if save:
             self.save()
+        self._progress("stopped", force=True)
         if self.writer is not None:
             with faults.output_errors(self.run_dir / "tb"):
                 self.writer.close()

@@ -1,0 +1,330 @@
+"""The add-on's operators: Learn / Resume / Cancel (GANimator training), Generate (variations as actions on the
+same armature), Sample MoDi (armatures from a MoDi checkpoint), all through the user's ``modi`` command.
+
+Each operator starts one background ``modi`` process and is modal on a window timer, so Blender's UI keeps
+running; under ``blender -b`` (no event loop) it waits for the process instead, so scripts work the same way. A
+failure of any kind ends the operator with ``CANCELLED`` and one line in the report area.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+import shutil
+import tempfile
+
+import bpy
+
+from . import jobs, rig_io
+
+ADDON = __package__
+# the running job (one at a time) and the last outcome, for the panel, the status bar and scripts
+STATE = {"job": None, "last": "", "result": None}
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+class Refused(Exception):
+    """An operator cannot start; the message is its one report line."""
+
+
+def modi_command(context) -> str:
+    prefs = context.preferences.addons[ADDON].preferences
+    exe = bpy.path.abspath(prefs.modi_path.strip()) if prefs.modi_path.strip() else ""
+    found = shutil.which(exe) if exe else None
+    if not found and exe and os.path.isfile(exe) and os.access(exe, os.X_OK):
+        found = exe
+    if not found:
+        raise Refused(f"modi command not found: {exe or '(empty)'!r}; set its path in the modi add-on's "
+                      "preferences (the output of 'which modi' in your environment)")
+    return found
+
+
+def active_armature(context, need_action: bool = True):
+    obj = context.active_object
+    if obj is None or obj.type != "ARMATURE":
+        raise Refused("select an armature" + (" with an action" if need_action else ""))
+    if need_action and (obj.animation_data is None or obj.animation_data.action is None):
+        raise Refused(f"armature {obj.name!r} has no action to learn (import or key one first)")
+    return obj
+
+
+def frame_span(action) -> tuple[int, int]:
+    lo, hi = action.frame_range
+    return int(round(lo)), int(round(hi))
+
+
+def scene_fps(scene) -> float:
+    return scene.render.fps / scene.render.fps_base
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_") or "motion"
+
+
+def runs_root() -> str:
+    """Run folders go beside the saved .blend (``//modi_runs``), else into the system's temp folder."""
+    if bpy.data.filepath:
+        return bpy.path.abspath("//modi_runs")
+    return os.path.join(tempfile.gettempdir(), "modi_runs")
+
+
+def new_folder(root: str, stem: str) -> str:
+    os.makedirs(root, exist_ok=True)
+    for k in range(1, 10000):
+        path = os.path.join(root, f"{_slug(stem)}_{k:03d}")
+        try:
+            os.mkdir(path)
+            return path
+        except FileExistsError:
+            continue
+    raise Refused(f"{root}: no free run folder name")
+
+
+def export_action(obj, scene, action, path: str) -> int:
+    """Export ``action`` played on ``obj`` (restoring the armature's own action afterwards)."""
+    keep = obj.animation_data.action
+    obj.animation_data.action = action
+    try:
+        lo, hi = frame_span(action)
+        return rig_io.export_action_bvh(obj, scene, path, lo, hi)
+    finally:
+        obj.animation_data.action = keep
+
+
+def _redraw() -> None:
+    wm = bpy.context.window_manager
+    for win in getattr(wm, "windows", []):
+        for area in win.screen.areas:
+            area.tag_redraw()
+
+
+def status_line() -> str:
+    job = STATE["job"]
+    return job.status() if job is not None and job.poll() is None else STATE["last"]
+
+
+# ------------------------------------------------------------------------------------------------- the modal base
+class _ModiJob:
+    """Start a job, poll it modally (UI) or wait for it (``blender -b``), then ``finish`` on success."""
+
+    def start(self, context, job: jobs.Job, finish=None):
+        STATE["job"] = job
+        STATE["last"] = job.status()
+        self._job, self._finish = job, finish
+        if bpy.app.background:
+            job.wait()
+            return self.end(context)
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.25, window=context.window)
+        wm.modal_handler_add(self)
+        _redraw()
+        return {"RUNNING_MODAL"}
+
+    def modal(self, context, event):
+        if event.type == "TIMER":
+            _redraw()
+            if self._job.poll() is not None:
+                context.window_manager.event_timer_remove(self._timer)
+                return self.end(context)
+        return {"PASS_THROUGH"}
+
+    def end(self, context):
+        job = self._job
+        STATE["job"] = None
+        if job.returncode != 0:
+            return self.refuse(job.outcome(), "WARNING" if job.returncode == jobs.SIGTERM_EXIT else "ERROR")
+        try:
+            message = self._finish(context) if self._finish else job.outcome()
+        except (rig_io.RigError, Refused, RuntimeError, OSError) as e:
+            return self.refuse(str(e).splitlines()[0] if str(e) else e.__class__.__name__)
+        STATE["last"] = message
+        STATE["result"] = ("FINISHED", message)
+        self.report({"INFO"}, message)
+        _redraw()
+        return {"FINISHED"}
+
+    def refuse(self, message: str, level: str = "ERROR"):
+        message = " ".join(message.split())  # one line, whatever the source
+        STATE["last"] = message
+        STATE["result"] = ("CANCELLED", message)
+        self.report({level}, message)
+        _redraw()
+        return {"CANCELLED"}
+
+    def busy(self) -> bool:
+        job = STATE["job"]
+        return job is not None and job.poll() is None
+
+
+def _run_train(op, context, run: str, source: str):
+    s = context.scene.modi
+    argv = [modi_command(context), "ganimator", "train", source, "--out", run, "--preset", s.preset,
+            "--fps", str(max(1, int(round(scene_fps(context.scene)))))]
+    if s.iterations > 0:
+        argv += ["--iterations", str(s.iterations)]
+    job = jobs.Job("training", argv, os.path.join(run, "modi_train.log"),
+                   progress_path=os.path.join(run, "progress.json"), env=jobs.modi_env())
+    s.run_dir = run
+    return op.start(context, job, lambda ctx: f"trained: {run}")
+
+
+class MODI_OT_learn(_ModiJob, bpy.types.Operator):
+    """Export the active armature's action and train GANimator on it in the background"""
+    bl_idname = "modi.learn"
+    bl_label = "Learn Action"
+
+    def execute(self, context):
+        if self.busy():
+            return self.refuse("modi is already running (Cancel it first)")
+        try:
+            modi_command(context)  # fail before exporting anything
+            obj = active_armature(context)
+            action = obj.animation_data.action
+            run = new_folder(runs_root(), f"{obj.name}_{action.name}")
+            source = os.path.join(run, "source.bvh")
+            export_action(obj, context.scene, action, source)
+            return _run_train(self, context, run, source)
+        except (Refused, rig_io.RigError, RuntimeError, OSError) as e:
+            return self.refuse(str(e))
+
+
+class MODI_OT_resume(_ModiJob, bpy.types.Operator):
+    """Continue the run folder's training where it stopped"""
+    bl_idname = "modi.resume"
+    bl_label = "Resume Training"
+
+    def execute(self, context):
+        if self.busy():
+            return self.refuse("modi is already running")
+        run = bpy.path.abspath(context.scene.modi.run_dir)
+        source = os.path.join(run, "source.bvh")
+        if not os.path.isfile(source):
+            return self.refuse(f"{run or '(no run folder)'}: not a run the add-on started (no source.bvh)")
+        try:
+            return _run_train(self, context, run, source)
+        except (Refused, RuntimeError, OSError) as e:
+            return self.refuse(str(e))
+
+
+class MODI_OT_cancel(bpy.types.Operator):
+    """Stop the running modi command (training saves a resumable checkpoint first)"""
+    bl_idname = "modi.cancel"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        job = STATE["job"]
+        if job is None or not job.cancel():
+            self.report({"WARNING"}, "modi is not running")
+            return {"CANCELLED"}
+        STATE["last"] = f"{job.kind}: stopping (saving the checkpoint)"
+        return {"FINISHED"}
+
+
+class MODI_OT_generate(_ModiJob, bpy.types.Operator):
+    """Generate variations from the trained run, each a new action on the active armature"""
+    bl_idname = "modi.generate"
+    bl_label = "Generate Variations"
+
+    def execute(self, context):
+        if self.busy():
+            return self.refuse("modi is already running")
+        s = context.scene.modi
+        try:
+            exe = modi_command(context)
+            obj = active_armature(context, need_action=False)
+            run = bpy.path.abspath(s.run_dir)
+            if not os.path.isfile(os.path.join(run, "ganimator.ckpt")):
+                raise Refused(f"{run or '(no run folder)'}: no trained run here (Learn an action first)")
+            out = new_folder(os.path.join(run, "variations"), f"seed{s.seed}")
+            argv = [exe, "ganimator", "generate", run, "--out", out, "--n", str(s.n), "--seed", str(s.seed),
+                    "--no-gif", "--no-view", "--crowd-spacing", "0"]
+            if s.frames > 0:
+                argv += ["--frames", str(s.frames)]
+            if s.contact_cleanup:
+                argv.append("--ik")
+            if s.mode != "random":
+                action = bpy.data.actions.get(s.condition_action)
+                if action is None:
+                    raise Refused(f"choose the action that holds the {s.mode} (not found: {s.condition_action!r})")
+                cond = os.path.join(out, f"{s.mode}.bvh")
+                export_action(obj, context.scene, action, cond)
+                argv += [f"--{s.mode}", cond]
+        except (Refused, rig_io.RigError, RuntimeError, OSError) as e:
+            return self.refuse(str(e))
+        base = obj.animation_data.action.name if obj.animation_data and obj.animation_data.action else obj.name
+        seed, start = s.seed, context.scene.frame_start
+        job = jobs.Job("generating", argv, os.path.join(out, "modi_generate.log"), env=jobs.modi_env())
+
+        def finish(ctx):
+            files = sorted(glob.glob(os.path.join(out, "sample*.bvh")))
+            if not files:
+                raise Refused(f"{out}: modi wrote no BVH")
+            made = []
+            for i, path in enumerate(files):
+                act = rig_io.action_from_bvh(obj, rig_io.read_bvh(path), f"{base}.modi.s{seed:04d}.{i:03d}", start)
+                act["modi_bvh"] = path  # the file it came from
+                made.append(act.name)
+            if obj.animation_data is None:
+                obj.animation_data_create()
+            obj.animation_data.action = bpy.data.actions[made[0]]
+            return f"{len(made)} new action(s) on {obj.name}: {made[0]}" + (f" .. {made[-1]}" if len(made) > 1 else "")
+
+        return self.start(context, job, finish)
+
+
+class MODI_OT_sample_modi(_ModiJob, bpy.types.Operator):
+    """Sample a MoDi checkpoint (seeds with truncation, or an interpolation) as armatures with actions"""
+    bl_idname = "modi.sample_modi"
+    bl_label = "Sample MoDi"
+
+    interpolate: bpy.props.BoolProperty(name="Interpolate", default=False)
+
+    def execute(self, context):
+        if self.busy():
+            return self.refuse("modi is already running")
+        s = context.scene.modi
+        try:
+            exe = modi_command(context)
+            ckpt = bpy.path.abspath(s.modi_checkpoint)
+            if not os.path.isfile(ckpt):
+                raise Refused(f"{ckpt or '(no checkpoint)'}: choose a MoDi checkpoint ('modi train' writes one)")
+            out = new_folder(os.path.join(os.path.dirname(ckpt), "blender_samples"),
+                             "interp" if self.interpolate else f"psi{s.psi:.2f}_seed{s.modi_seed}")
+        except (Refused, OSError) as e:
+            return self.refuse(str(e))
+        if self.interpolate:
+            argv = [exe, "latent", "interpolate", ckpt, "--from", str(s.interp_from), "--to", str(s.interp_to),
+                    "--steps", str(s.interp_steps), "--format", "glb", "--no-view", "--out", out]
+        else:
+            argv = [exe, "generate", ckpt, "--n", str(s.modi_n), "--psi", f"{s.psi:g}", "--seed", str(s.modi_seed),
+                    "--format", "glb", "--gif-max", "0", "--no-view", "--out", out]
+        job = jobs.Job("sampling", argv, os.path.join(out, "modi_sample.log"), env=jobs.modi_env())
+        spacing = s.spacing
+        label = "interp" if self.interpolate else f"psi{s.psi:g}.s{s.modi_seed:04d}"
+
+        def finish(ctx):
+            files = sorted(glob.glob(os.path.join(out, "**", "*.glb"), recursive=True))
+            if not files:
+                raise Refused(f"{out}: modi wrote no glTF")
+            made = []
+            for i, path in enumerate(files):
+                before = set(bpy.data.objects)
+                bpy.ops.import_scene.gltf(filepath=path)
+                new = [o for o in bpy.data.objects if o not in before]
+                arms = [o for o in new if o.type == "ARMATURE"]
+                if not arms:
+                    raise Refused(f"{path}: no armature in the file")
+                roots = [o for o in new if o.parent is None]
+                for o in roots:
+                    o.location.x += i * spacing
+                arm = arms[0]
+                arm.name = f"modi.{label}.{i:03d}"
+                arm["modi_glb"] = path
+                made.append(arm.name)
+            return f"{len(made)} MoDi armature(s): {made[0]}" + (f" .. {made[-1]}" if len(made) > 1 else "")
+
+        return self.start(context, job, finish)
+
+
+CLASSES = (MODI_OT_learn, MODI_OT_resume, MODI_OT_cancel, MODI_OT_generate, MODI_OT_sample_modi)
+__all__ = ["STATE", "CLASSES", "status_line", "Refused"]

@@ -1,0 +1,246 @@
+"""Runs inside Blender (``blender -b --python tests/blender_driver.py -- CONFIG.json``, or with a window under
+xvfb): installs the add-on zip with Blender's own operators, imports a BVH with Blender's importer, then runs the
+steps CONFIG names and writes what it saw to CONFIG["out"] (JSON, plus .npy joint positions) for the pytest side
+to check. Nothing here decides pass or fail; it only records.
+
+Steps (each records the operator's return set and ``STATE["result"]``, the add-on's one-line outcome):
+  learn, generate     Learn the imported action; Generate variations (positions of every new action dumped)
+  generate_keyframes  Generate following the source action's key frames, with foot-contact cleanup
+  generate_bad_ckpt   Generate from a copy of the run whose checkpoint is junk (a failing modi command)
+  broken_path         Learn with the modi path pointing nowhere
+  sample_modi         Sample a MoDi checkpoint (CONFIG["modi_ckpt"]); sample_modi_interpolate: between two seeds
+  gui_cancel_resume   (needs a window) modal Learn, a counter timer ticking meanwhile, Cancel mid-training,
+                      Resume to the end
+"""
+import builtins
+import json
+import os
+import shutil
+import sys
+import time
+import traceback
+
+import bpy
+import numpy as np
+
+CFG = json.loads(open(sys.argv[sys.argv.index("--") + 1]).read())
+OUT = CFG["out"]
+REC = {"blender": bpy.app.version_string, "steps": {}}
+
+# Debian's Blender 3.4 BVH importer opens its file with mode 'rU', which Python 3.11 removed: map it to 'r'.
+_open = builtins.open
+builtins.open = lambda f, mode="r", *a, **k: _open(f, mode.replace("U", ""), *a, **k)
+
+
+def save():
+    with _open(os.path.join(OUT, "record.json"), "w") as fh:
+        json.dump(REC, fh, indent=1)
+
+
+def state():
+    from modi_blender import operators
+    return operators.STATE
+
+
+def call(op, **kw):
+    """Run an operator; from a script Blender raises an ERROR report as RuntimeError (the UI shows a report)."""
+    try:
+        ret = sorted(op(**kw))
+        raised = None
+    except RuntimeError as e:
+        ret, raised = None, str(e)
+    res = state()["result"]
+    return {"ret": ret, "raised": raised, "result": list(res) if res else None}
+
+
+def dump_positions(obj, action, tag):
+    """Every frame of ``action`` on ``obj``: the world head of each pose bone (Blender's own evaluation)."""
+    scene = bpy.context.scene
+    obj.animation_data.action = action
+    lo, hi = (int(round(v)) for v in action.frame_range)
+    names = [b.name for b in obj.pose.bones]
+    pos = np.zeros((hi - lo + 1, len(names), 3))
+    for f in range(lo, hi + 1):
+        scene.frame_set(f)
+        for j, pb in enumerate(obj.pose.bones):
+            pos[f - lo, j] = tuple(obj.matrix_world @ pb.head)
+    np.save(os.path.join(OUT, f"{tag}.npy"), pos)
+    return {"names": names, "frames": hi - lo + 1, "npy": f"{tag}.npy"}
+
+
+def setup():
+    bpy.ops.preferences.addon_install(filepath=CFG["zip"])
+    bpy.ops.preferences.addon_enable(module="modi_blender")
+    bpy.context.preferences.addons["modi_blender"].preferences.modi_path = CFG["modi"]
+    for o in list(bpy.data.objects):
+        bpy.data.objects.remove(o)
+    bpy.ops.import_anim.bvh(filepath=CFG["bvh"], update_scene_fps=True, update_scene_duration=True)
+    arm = [o for o in bpy.data.objects if o.type == "ARMATURE"][0]
+    bpy.context.view_layer.objects.active = arm
+    arm.select_set(True)
+    s = bpy.context.scene.modi
+    s.preset, s.iterations = "tiny", CFG.get("iterations", 2)
+    REC["armature"] = arm.name
+    REC["source_action"] = arm.animation_data.action.name
+    REC["source_frames"] = int(round(arm.animation_data.action.frame_range[1] - arm.animation_data.action.frame_range[0])) + 1
+    return arm
+
+
+def step_learn(arm):
+    r = call(bpy.ops.modi.learn)
+    r["run_dir"] = bpy.path.abspath(bpy.context.scene.modi.run_dir)
+    return r
+
+
+def step_generate(arm, mode="random"):
+    s = bpy.context.scene.modi
+    s.n, s.frames, s.seed = CFG["n"], CFG["frames"], CFG["seed"]
+    s.mode, s.contact_cleanup = mode, mode != "random"
+    s.condition_action = REC["source_action"]
+    before = set(a.name for a in bpy.data.actions)
+    r = call(bpy.ops.modi.generate)
+    new = sorted(a.name for a in bpy.data.actions if a.name not in before)
+    r["new_actions"] = new
+    r["active_action"] = arm.animation_data.action.name
+    r["dumps"] = {}
+    for i, name in enumerate(new):
+        act = bpy.data.actions[name]
+        d = dump_positions(arm, act, f"{mode}{i}")
+        d["bvh"] = act.get("modi_bvh")
+        d["fake_user"] = act.use_fake_user
+        d["users_armature"] = arm.animation_data.action.name == name
+        r["dumps"][name] = d
+    return r
+
+
+def step_generate_bad_ckpt(arm):
+    s = bpy.context.scene.modi
+    good = bpy.path.abspath(s.run_dir)
+    bad = os.path.join(OUT, "bad_run")
+    shutil.copytree(good, bad, ignore=shutil.ignore_patterns("variations"))
+    with _open(os.path.join(bad, "ganimator.ckpt"), "wb") as fh:
+        fh.write(b"this is not a checkpoint")
+    s.run_dir = bad
+    try:
+        return call(bpy.ops.modi.generate)
+    finally:
+        s.run_dir = good
+
+
+def step_broken_path(arm):
+    prefs = bpy.context.preferences.addons["modi_blender"].preferences
+    keep, prefs.modi_path = prefs.modi_path, "/nonexistent/modi"
+    runs = sorted(os.listdir(state_runs_root())) if os.path.isdir(state_runs_root()) else []
+    try:
+        r = call(bpy.ops.modi.learn)
+    finally:
+        prefs.modi_path = keep
+    r["new_run_folders"] = sorted(set(os.listdir(state_runs_root())) - set(runs)) if os.path.isdir(state_runs_root()) else []
+    return r
+
+
+def state_runs_root():
+    from modi_blender import operators
+    return operators.runs_root()
+
+
+def step_sample_modi(arm, interpolate=False):
+    s = bpy.context.scene.modi
+    s.modi_checkpoint, s.modi_n, s.psi, s.modi_seed = CFG["modi_ckpt"], CFG["modi_n"], 0.7, 3
+    s.interp_from, s.interp_to, s.interp_steps = 1, 2, CFG["modi_n"]
+    before = set(o.name for o in bpy.data.objects)
+    r = call(bpy.ops.modi.sample_modi, interpolate=interpolate)
+    new = [o for o in bpy.data.objects if o.name not in before]
+    r["new_armatures"] = sorted(o.name for o in new if o.type == "ARMATURE")
+    r["animated"] = sorted(o.name for o in new if o.type == "ARMATURE" and o.animation_data and o.animation_data.action)
+    r["x"] = sorted(round(o.matrix_world.translation.x, 4) for o in new if o.parent is None)
+    return r
+
+
+STEPS = {"learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
+         "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
+         "broken_path": step_broken_path, "sample_modi": step_sample_modi,
+         "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True)}
+
+
+# ---------------------------------------------------------------------------------------------- the GUI run
+def gui_cancel_resume(arm):
+    """Drive the modal operators from a timer, as a user's clicks would, while the event loop runs."""
+    win = bpy.context.window_manager.windows[0]
+    area = max(win.screen.areas, key=lambda a: a.width * a.height)
+    g = {"phase": "start", "ticks": 0, "ticks_training": 0, "t0": time.time(), "events": []}
+    REC["steps"]["gui_cancel_resume"] = g
+
+    def op(fn, **kw):
+        with bpy.context.temp_override(window=win, area=area, region=area.regions[-1]):
+            return sorted(fn(**kw))
+
+    def progress():
+        try:
+            with _open(os.path.join(bpy.path.abspath(bpy.context.scene.modi.run_dir), "progress.json")) as fh:
+                return json.load(fh)
+        except (OSError, ValueError):
+            return None
+
+    def tick():
+        g["ticks"] += 1
+        st = state()
+        job = st["job"]
+        running = job is not None and job.poll() is None
+        try:
+            if g["phase"] == "start":
+                g["learn_ret"] = op(bpy.ops.modi.learn)
+                g["phase"] = "training"
+            elif g["phase"] == "training":
+                if running:
+                    g["ticks_training"] += 1
+                    g.setdefault("training_since", time.time())
+                    p = progress()
+                    g["status_seen"] = job.status()
+                    if p and p.get("state") == "training" and p.get("done_iterations", 0) >= CFG["cancel_after"]:
+                        g["progress_at_cancel"] = p
+                        g["cancel_ret"] = op(bpy.ops.modi.cancel)
+                        g["phase"] = "cancelling"
+                elif st["job"] is None:
+                    g["phase"], g["error"] = "done", f"training ended before cancel: {st['result']}"
+            elif g["phase"] == "cancelling" and st["job"] is None:
+                g["after_cancel"] = list(st["result"])
+                g["progress_after_cancel"] = progress()
+                run = bpy.path.abspath(bpy.context.scene.modi.run_dir)
+                g["ckpt_after_cancel"] = os.path.isfile(os.path.join(run, "ganimator.ckpt"))
+                g["resume_ret"] = op(bpy.ops.modi.resume)
+                g["phase"] = "resuming"
+            elif g["phase"] == "resuming" and running:
+                g.setdefault("resume_ticks", []).append(round(time.time(), 3))
+            elif g["phase"] == "resuming" and st["job"] is None:
+                g["after_resume"] = list(st["result"])
+                g["progress_after_resume"] = progress()
+                g["phase"] = "done"
+        except Exception:
+            g["error"] = traceback.format_exc()
+            g["phase"] = "done"
+        if g["phase"] == "done" or time.time() - g["t0"] > CFG.get("gui_timeout", 240):
+            g["seconds"] = round(time.time() - g["t0"], 1)
+            save()
+            bpy.ops.wm.quit_blender()
+            return None
+        return 0.1
+
+    bpy.app.timers.register(tick, first_interval=1.0)
+
+
+try:
+    ARM = setup()
+    for name in CFG["steps"]:
+        if name == "gui_cancel_resume":
+            gui_cancel_resume(ARM)
+            break  # the event loop takes over; the timer saves and quits
+        t = time.time()
+        REC["steps"][name] = STEPS[name](ARM)
+        REC["steps"][name]["seconds"] = round(time.time() - t, 2)
+        save()
+except Exception:
+    REC["error"] = traceback.format_exc()
+save()
+if bpy.app.background:
+    sys.exit(0)
