@@ -153,7 +153,8 @@ def step_sample_modi(arm, interpolate=False):
     new = [o for o in bpy.data.objects if o.name not in before]
     r["new_armatures"] = sorted(o.name for o in new if o.type == "ARMATURE")
     r["animated"] = sorted(o.name for o in new if o.type == "ARMATURE" and o.animation_data and o.animation_data.action)
-    r["x"] = sorted(round(o.matrix_world.translation.x, 4) for o in new if o.parent is None)
+    r["x"] = sorted(round(o.matrix_world.translation.x, 4) for o in new if o.type == "ARMATURE")
+    r["other_objects"] = sorted(f"{o.type}:{o.name}" for o in new if o.type != "ARMATURE")
     return r
 
 

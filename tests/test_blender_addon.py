@@ -1,6 +1,7 @@
 """The modi Blender add-on in Debian's Blender 3.4, driven through its operators (tests/blender_driver.py runs
 inside Blender and records; this side checks): the zip installed with Blender's own operators, a real BVH imported
-with Blender's importer, Learn -> Generate with the variations' joint world positions (Blender's own pose
+with Blender's importer (in Debian's Blender 3.4 and in PyPI's bpy 4.x, each in its own process and venv),
+Learn -> Generate with the variations' joint world positions (Blender's own pose
 evaluation) equal to ``modi export-positions`` of the BVH modi wrote, key-frame generation, MoDi sampling, one-line
 failures with CANCELLED, and -- with a real window under xvfb -- the modal operator leaving the event loop running
 while it trains, Cancel saving a resumable run and Resume finishing it. ``modi blender install`` installs into a
@@ -26,8 +27,23 @@ BLENDER = shutil.which("blender")
 XVFB = shutil.which("xvfb-run")
 TOL = 1e-4  # of body height
 
-pytestmark = pytest.mark.skipif(BLENDER is None, reason="blender not on PATH (Debian package 'blender', with "
-                                                        "'python3-numpy'; .ci/install_tools installs them)")
+# PyPI's bpy (Blender 4.x as a Python module) in a venv of its own: torch and bpy never share one
+BPY_VENV = Path(os.environ.get("MODI_BPY_VENV", Path.home() / ".cache" / "modi" / "bpy-venv"))
+BPY_PYTHON = BPY_VENV / "bin" / "python"
+NO_BLENDER = "blender not on PATH (Debian package 'blender', with 'python3-numpy'; .ci/install_tools installs them)"
+NO_BPY = (f"no Python with PyPI's bpy 4.x at {BPY_PYTHON} (set MODI_BPY_VENV; .ci/install_tools makes it: "
+          f"python3 -m venv VENV && VENV/bin/pip install 'bpy>=4.2,<5')")
+needs_blender = pytest.mark.skipif(BLENDER is None, reason=NO_BLENDER)
+
+
+@pytest.fixture(params=["blender", "bpy"], ids=["debian-blender-3.4", "pypi-bpy-4.x"])
+def runner(request) -> str:
+    """Which Blender runs the headless tests: Debian's executable, or PyPI's bpy module in its own venv."""
+    if request.param == "blender" and BLENDER is None:
+        pytest.skip(NO_BLENDER)
+    if request.param == "bpy" and not BPY_PYTHON.is_file():
+        pytest.skip(NO_BPY)
+    return request.param
 
 
 def _bvh() -> Path:
@@ -48,9 +64,10 @@ def addon_zip(tmp_path_factory) -> Path:
     return z
 
 
-def _blender(tmp: Path, addon_zip: Path, steps: list[str], gui: bool = False, timeout: int = 300, **cfg) -> dict:
-    """Run the driver in a fresh Blender whose home and temp folder are ``tmp`` (run folders land in
-    ``tmp/modi_runs``); returns its record."""
+def _blender(tmp: Path, addon_zip: Path, steps: list[str], gui: bool = False, timeout: int = 300,
+             runner: str = "blender", **cfg) -> dict:
+    """Run the driver in a fresh Blender (``runner``: Debian's ``blender``, or ``bpy`` for PyPI's module) whose home
+    and temp folder are ``tmp`` (run folders land in ``tmp/modi_runs``); returns its record."""
     out = tmp / "rec"
     out.mkdir()
     conf = {"out": str(out), "zip": str(addon_zip), "modi": this_modi(), "bvh": str(_bvh()), "steps": steps,
@@ -58,7 +75,9 @@ def _blender(tmp: Path, addon_zip: Path, steps: list[str], gui: bool = False, ti
     (tmp / "cfg.json").write_text(json.dumps(conf))
     env = {**blender_env(), "HOME": str(tmp / "home"), "TMPDIR": str(tmp)}
     cmd = [BLENDER, "--factory-startup", "--python", str(DRIVER), "--", str(tmp / "cfg.json")]
-    if gui:
+    if runner == "bpy":
+        cmd = [str(BPY_PYTHON), str(DRIVER), "--", str(tmp / "cfg.json")]
+    elif gui:
         cmd = [XVFB, "-a", "-s", "-screen 0 1280x720x24", *cmd]
     else:
         cmd.insert(1, "-b")
@@ -99,9 +118,10 @@ def _one_line_cancel(step: dict) -> str:
 
 
 # ------------------------------------------------------------------------------------------ headless (blender -b)
-def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip):
+def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     rec = _blender(tmp_path, addon_zip, ["learn", "generate", "generate_keyframes", "generate_bad_ckpt",
-                                         "broken_path"])
+                                         "broken_path"], runner=runner)
+    assert rec["blender"].startswith("3.4" if runner == "blender" else "4."), rec["blender"]
     st = rec["steps"]
     learn = st["learn"]
     assert learn["ret"] == ["FINISHED"] and learn["result"][0] == "FINISHED", learn
@@ -153,8 +173,8 @@ def modi_checkpoint(tmp_path_factory) -> Path:
     return run / "checkpoint.pt"
 
 
-def test_sample_modi_imports_armatures(tmp_path, addon_zip, modi_checkpoint):
-    rec = _blender(tmp_path, addon_zip, ["sample_modi", "sample_modi_interpolate"],
+def test_sample_modi_imports_armatures(tmp_path, addon_zip, modi_checkpoint, runner):
+    rec = _blender(tmp_path, addon_zip, ["sample_modi", "sample_modi_interpolate"], runner=runner,
                    modi_ckpt=str(modi_checkpoint), modi_n=3)
     s = rec["steps"]["sample_modi"]
     assert s["ret"] == ["FINISHED"], s
@@ -168,6 +188,7 @@ def test_sample_modi_imports_armatures(tmp_path, addon_zip, modi_checkpoint):
 
 
 # ------------------------------------------------------------------------------------------ a real window (xvfb)
+@needs_blender
 @pytest.mark.skipif(XVFB is None, reason="xvfb-run not on PATH (Debian packages 'xvfb' and 'xauth')")
 def test_modal_training_keeps_the_ui_running_cancel_saves_and_resume_finishes(tmp_path, addon_zip):
     rec = _blender(tmp_path, addon_zip, ["gui_cancel_resume"], gui=True, timeout=400, iterations=8,
@@ -193,6 +214,7 @@ def test_modal_training_keeps_the_ui_running_cancel_saves_and_resume_finishes(tm
 
 
 # ------------------------------------------------------------------------------------------ modi blender install
+@needs_blender
 def test_install_enables_the_addon_with_this_environments_modi(tmp_path):
     env = {**blender_env(), "HOME": str(tmp_path)}
     p = subprocess.run([sys.executable, "-m", "modi", "blender", "install", "--blender", BLENDER],
