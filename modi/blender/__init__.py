@@ -12,6 +12,7 @@ bl_info = {
 }
 
 import shutil
+import textwrap
 
 import bpy
 
@@ -70,19 +71,22 @@ class MODI_PT_panel(bpy.types.Panel):
         line = status_line()
         if line:
             box = lay.box()
-            box.label(text=line[:120], icon="SORTTIME" if running else "INFO")
+            # labels do not wrap: break the line to the sidebar's width (about 7 px a character)
+            width = max(20, int(context.region.width / (7 * context.preferences.system.ui_scale)) - 4)
+            for k, text in enumerate(textwrap.wrap(line, width)[:6]):
+                box.label(text=text, icon=("SORTTIME" if running else "INFO") if k == 0 else "BLANK1")
             if running:
                 box.operator("modi.cancel", icon="CANCEL")
         col = lay.column(align=True)
-        col.label(text="GANimator: learn the active action")
+        col.label(text="Learn the active action", icon="ACTION")
         col.prop(s, "preset")
         col.prop(s, "iterations")
         row = col.row(align=True)
         row.enabled = not running
-        row.operator("modi.learn", icon="PLAY")
-        row.operator("modi.resume", icon="FILE_REFRESH")
+        row.operator("modi.learn", text="Learn", icon="PLAY")
+        row.operator("modi.resume", text="Resume", icon="FILE_REFRESH")
         col = lay.column(align=True)
-        col.label(text="Variations on the active armature")
+        col.label(text="Variations (new actions)", icon="ARMATURE_DATA")
         col.prop(s, "run_dir")
         col.prop(s, "n")
         col.prop(s, "frames")
@@ -93,9 +97,9 @@ class MODI_PT_panel(bpy.types.Panel):
             col.prop_search(s, "condition_action", bpy.data, "actions")
         sub = col.row()
         sub.enabled = not running
-        sub.operator("modi.generate", icon="ARMATURE_DATA")
+        sub.operator("modi.generate", text="Generate", icon="PLAY")
         col = lay.column(align=True)
-        col.label(text="MoDi: sample a checkpoint")
+        col.label(text="MoDi checkpoint", icon="OUTLINER_OB_ARMATURE")
         col.prop(s, "modi_checkpoint")
         col.prop(s, "modi_n")
         col.prop(s, "psi", slider=True)
@@ -112,12 +116,6 @@ class MODI_PT_panel(bpy.types.Panel):
         sub.operator("modi.sample_modi", text="Interpolate", icon="IPO_EASE_IN_OUT").interpolate = True
 
 
-def _statusbar(self, context):
-    job = STATE["job"]
-    if job is not None and job.poll() is None:
-        self.layout.label(text="modi " + job.status()[:100], icon="SORTTIME")
-
-
 _CLASSES = (ModiPreferences, ModiSettings, *operators.CLASSES, MODI_PT_panel)
 
 
@@ -125,11 +123,9 @@ def register():
     for c in _CLASSES:
         bpy.utils.register_class(c)
     bpy.types.Scene.modi = bpy.props.PointerProperty(type=ModiSettings)
-    bpy.types.STATUSBAR_HT_header.append(_statusbar)
 
 
 def unregister():
-    bpy.types.STATUSBAR_HT_header.remove(_statusbar)
     del bpy.types.Scene.modi
     for c in reversed(_CLASSES):
         bpy.utils.unregister_class(c)

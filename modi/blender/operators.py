@@ -98,6 +98,13 @@ def _redraw() -> None:
             area.tag_redraw()
 
 
+def _status_bar(context, text) -> None:
+    """The status bar's text while a job runs (what modal tools use; None gives the bar back)."""
+    ws = getattr(context, "workspace", None)
+    if ws is not None:
+        ws.status_text_set(text)
+
+
 def status_line() -> str:
     job = STATE["job"]
     return job.status() if job is not None and job.poll() is None else STATE["last"]
@@ -122,8 +129,10 @@ class _ModiJob:
 
     def modal(self, context, event):
         if event.type == "TIMER":
+            done = self._job.poll() is not None
+            _status_bar(context, None if done else "modi " + self._job.status())
             _redraw()
-            if self._job.poll() is not None:
+            if done:
                 context.window_manager.event_timer_remove(self._timer)
                 return self.end(context)
         return {"PASS_THROUGH"}
@@ -165,7 +174,7 @@ def _run_train(op, context, run: str, source: str):
     job = jobs.Job("training", argv, os.path.join(run, "modi_train.log"),
                    progress_path=os.path.join(run, "progress.json"), env=jobs.modi_env())
     s.run_dir = run
-    return op.start(context, job, lambda ctx: f"trained: {run}")
+    return op.start(context, job, lambda ctx: f"trained: {os.path.basename(run)}")
 
 
 class MODI_OT_learn(_ModiJob, bpy.types.Operator):
