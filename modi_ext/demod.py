@@ -16,6 +16,7 @@ import os
 import torch
 
 from modi_ext import dense, eager, reference
+from modi_ext.eager import needed
 from modi_ext._loader import HAS_EXT
 
 __all__ = ["demod_scale", "kernel_available"]
@@ -42,8 +43,6 @@ def _setup_context(ctx, inputs, output) -> None:
 
 def _backward(ctx, grad):
     weight, style, index, offsets, d = ctx.saved_tensors
-    from modi_ext.gradfix import needed
-
     want = (needed(ctx, 0), style is not None and needed(ctx, 1))
     if not any(want):
         return None, None, None, None, None, None

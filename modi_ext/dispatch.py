@@ -24,20 +24,14 @@ from typing import Callable
 
 import torch
 
+from modi_ext import selfcheck
 from modi_ext._loader import HAS_EXT, requested_impl, warn_not_built
+from modi_ext.kernels import KERNELS, _built, device_key, kernels_built
 
-__all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS"]
+__all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
 
-_FAMILY_OPS = {"skeletal": ("skeletal_conv", "skeletal_down", "skeletal_up", "skeletal_backward"),
-               "fk": ("fk", "fk_backward")}
-
-# The kernels every path calls, by name.  A test hook: replace an entry (then ``reset()``) to inject a wrong kernel.
-KERNELS: dict[str, Callable] = {
-    "skeletal_conv": lambda *a: torch.ops.modi_ext.skeletal_conv(*a),
-    "skeletal_down": lambda *a: torch.ops.modi_ext.skeletal_down(*a),
-    "skeletal_up": lambda *a: torch.ops.modi_ext.skeletal_up(*a),
-    "fk": lambda *a: torch.ops.modi_ext.fk(*a),
-}
+# ``KERNELS`` (modi_ext.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry (then
+# ``reset()``) to inject a wrong kernel.
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
 
@@ -57,7 +51,6 @@ def _default_timer(name: str, fn: Callable[[], object], device: str) -> float:
 TIMER: Callable[[str, Callable[[], object], str], float] = _default_timer  # test hook: a fake clock
 
 _lock = threading.RLock()
-_built: dict[tuple[str, str], bool] = {}
 _checked: dict[tuple[str, str], dict] = {}
 _auto: dict[tuple[str, str, str], dict] = {}
 
@@ -78,38 +71,18 @@ def selfcheck_mode() -> str:
 
 
 @torch.compiler.assume_constant_result
-def kernels_built(device_type: str, family: str = "skeletal") -> bool:
-    """Whether this build registered the ``family``'s kernels for ``device_type``: probed once, then cached."""
-    if not HAS_EXT:
-        return False
-    key = (device_type, family)
-    with _lock:
-        if key not in _built:
-            if device_type == "meta":  # the fake kernels give shapes
-                ok = True
-            else:
-                try:
-                    ok = all(torch._C._dispatch_has_kernel_for_dispatch_key(f"modi_ext::{op}", device_type.upper())
-                             for op in _FAMILY_OPS[family])
-                except RuntimeError:  # op not defined, or an unknown dispatch key
-                    ok = False
-            _built[key] = ok
-        return _built[key]
-
-
-@torch.compiler.assume_constant_result
 def kernels_trusted(device: str, dtype_name: str) -> bool:
-    """Whether the kernels passed their self-check on ``device`` (e.g. 'cuda:0') for ``dtype_name`` ('torch.float32').
+    """Whether the kernels passed their self-check on ``device`` (e.g. 'cuda:0'; 'cuda' is the same key,
+    ``device_key``) for ``dtype_name`` ('torch.float32').
 
     Runs the check on first use (evaluated eagerly even inside ``torch.compile``: the answer is a constant)."""
     mode = selfcheck_mode()
     if mode == "0":
         return True
+    device = device_key(device)
     key = (device, dtype_name)
     with _lock:
         if key not in _checked:
-            from modi_ext import selfcheck
-
             res = selfcheck.run(device, getattr(torch, dtype_name.replace("torch.", "")))
             _checked[key] = res
             if not res["ok"] and mode != "strict":
@@ -146,13 +119,13 @@ def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callabl
         return "dense"
     if want == "ext" or dev_type == "meta":
         return "ext"
-    if not kernels_trusted(str(x.device), str(x.dtype)):
+    if not kernels_trusted(device_key(x.device), str(x.dtype)):
         return "dense"
     if dev_type in MEASURE_DEVICES and signature is not None and bench is not None:
         sig = signature()
         if torch.compiler.is_compiling():
-            return _cached_choice(op, str(x.device), sig)
-        return _measured(op, str(x.device), sig, bench)
+            return _cached_choice(op, device_key(x.device), sig)
+        return _measured(op, device_key(x.device), sig, bench)
     return "ext"
 
 

@@ -55,4 +55,22 @@ def make_function(name: str, run: Callable, setup_context: Callable, backward: C
                                                    "backward": staticmethod(backward)})
 
 
-__all__ = ["usable", "make_function"]
+def needed(ctx, i: int) -> bool:
+    """Whether the backward running now must produce the gradient of input ``i``.
+
+    ``ctx.needs_input_grad`` only says that the input requires grad.  ``torch.autograd.grad(score, interp,
+    create_graph=True)`` -- the WGAN-GP and R1 -- asks for the input's gradient alone, yet every layer's weight also
+    requires grad: computing (and building the graph of) a weight gradient that the engine then drops cost the
+    GANimator D step a weight-gradient pass per layer.  So ask the engine whether it will run the node that the
+    gradient goes to; when it cannot say (a leaf that ``autograd.grad`` captures, compiled autograd), compute it.
+    """
+    if not ctx.needs_input_grad[i]:
+        return False
+    try:
+        node = ctx.next_functions[i][0]
+        return node is None or bool(torch._C._will_engine_execute_node(node))
+    except (RuntimeError, AttributeError, IndexError):
+        return True
+
+
+__all__ = ["usable", "make_function", "needed"]

@@ -22,58 +22,9 @@ from torch import nn
 
 from modi_ext import dispatch
 from modi_ext._loader import HAS_EXT, requested_impl
+from modi_ext.reference import fk_reference  # noqa: F401  (re-exported: the oracle lives with the others)
 
 __all__ = ["fk", "fk_reference", "ForwardKinematics", "check_parents"]
-
-
-# ---------------------------------------------------------------------------------------------------------
-# dense reference
-# ---------------------------------------------------------------------------------------------------------
-
-
-def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        dim=-1,
-    )
-
-
-def _qrot(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * torch.linalg.cross(u, v.expand_as(u))
-    return v + w * t + torch.linalg.cross(u, t)
-
-
-def fk_reference(
-    local_quats: torch.Tensor,
-    offsets: torch.Tensor,
-    parents: Sequence[int],
-    root_positions: torch.Tensor,
-    return_rotations: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Dense torch FK: one Python step per joint (the oracle the C++ kernel is tested against).
-
-    local_quats (..., J, 4), offsets (J, 3) or (..., J, 3), root_positions (..., 3)
-    -> positions (..., J, 3) [, global_quats (..., J, 4)]. Differentiable through plain torch ops.
-    """
-    J = local_quats.shape[-2]
-    rots: list[torch.Tensor] = [local_quats[..., 0, :]]
-    pos: list[torch.Tensor] = [root_positions]
-    for j in range(1, J):
-        p = parents[j]
-        rots.append(_qmul(rots[p], local_quats[..., j, :]))
-        pos.append(pos[p] + _qrot(rots[p], offsets[..., j, :]))
-    positions = torch.stack(pos, dim=-2)
-    if return_rotations:
-        return positions, torch.stack(rots, dim=-2)
-    return positions
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -21,34 +21,27 @@ from __future__ import annotations
 import torch
 
 from modi_ext import eager
+from modi_ext.eager import needed
 
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2
+
+# ``A_W x`` on the kernels with their autograd: ``modi_ext.ops`` (above this module) installs ``ops.plain_op``
+# here when it registers the ops, so the import order stays one way (ops -> gradfix).
+_plain_forward = None
+
+
+def set_plain_forward(fn) -> None:
+    global _plain_forward
+    _plain_forward = fn
 
 
 def plain_forward(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
                   n_out: int, padding_mode: str) -> torch.Tensor:
     """``A_W x`` without bias, style or scale, on the kernels with their autograd (``modi_ext.ops.plain_op``)."""
-    from modi_ext import ops
-
-    return ops.plain_op(kind, x, weight, index, offsets, n_out, padding_mode)
-
-
-def needed(ctx, i: int) -> bool:
-    """Whether the backward running now must produce the gradient of input ``i``.
-
-    ``ctx.needs_input_grad`` only says that the input requires grad.  ``torch.autograd.grad(score, interp,
-    create_graph=True)`` -- the WGAN-GP and R1 -- asks for the input's gradient alone, yet every layer's weight also
-    requires grad: computing (and building the graph of) a weight gradient that the engine then drops cost the
-    GANimator D step a weight-gradient pass per layer.  So ask the engine whether it will run the node that the
-    gradient goes to; when it cannot say (a leaf that ``autograd.grad`` captures, compiled autograd), compute it.
-    """
-    if not ctx.needs_input_grad[i]:
-        return False
-    try:
-        node = ctx.next_functions[i][0]
-        return node is None or bool(torch._C._will_engine_execute_node(node))
-    except (RuntimeError, AttributeError, IndexError):
-        return True
+    if _plain_forward is None:
+        raise RuntimeError("modi_ext.gradfix: the skeletal ops are not registered (import modi_ext.ops first; "
+                           "the C++ extension must be built)")
+    return _plain_forward(kind, x, weight, index, offsets, n_out, padding_mode)
 
 
 def _weight_shape(kind: int, grad: torch.Tensor, x: torch.Tensor, nnz: int, taps: int) -> list[int]:

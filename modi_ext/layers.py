@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from modi_ext import ops
+from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
 from modi_ext.reference import to_dense
 from modi_ext.topology_tensors import SparseTopology, csr_from_lists
 
@@ -219,14 +220,3 @@ class ModulatedSkeletalConv(nn.Module):
 
     def extra_repr(self) -> str:
         return f"mode={self.mode!r}, demodulate={self.demodulate}, style_dim={self.style_dim}"
-
-
-try:
-    from modi_ext.fk import ForwardKinematics  # type: ignore[attr-defined]  # noqa: F401
-except ImportError:
-    class ForwardKinematics(nn.Module):  # type: ignore[no-redef]
-        """Placeholder until ``modi_ext.fk`` lands: constructing it explains what is missing."""
-
-        def __init__(self, parents: Sequence[int], offsets: torch.Tensor) -> None:
-            super().__init__()
-            raise NotImplementedError("modi_ext.fk is not available in this build; ForwardKinematics needs it")

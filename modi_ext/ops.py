@@ -329,7 +329,6 @@ def _out_shape(kind, x, weight, offsets, n_out):
 
 def _autograd_rules(kind: int):
     """``(setup_context, backward)`` of one op: registered with torch.library and reused by ``modi_ext.eager``."""
-    from modi_ext import gradfix
     up = kind == _KIND_UP
 
     def setup_context(ctx, inputs, output):
@@ -375,9 +374,8 @@ def _autograd_rules(kind: int):
 
 
 def _register_ext() -> None:
-    from modi_ext import gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
-
     lib = torch.library
+    gradfix.set_plain_forward(plain_op)
 
     def make_fake(kind):
         if kind == _KIND_UP:
@@ -409,4 +407,6 @@ def _register_ext() -> None:
 
 
 if HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_conv"):
+    from modi_ext import gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
+
     _register_ext()

@@ -1,120 +1,62 @@
-"""First-use self-check of the kernels on one (device, dtype): a tiny random problem per kernel vs the reference.
+"""First-use self-check of the kernels on one (device, dtype): the shared payload against the float64 reference.
 
 A kernel that is wrong on some GPU (a miscompile, an architecture the build did not target, a driver issue) must
 never silently train a model: ``modi_ext.dispatch`` runs ``run(device, dtype)`` once per (device, dtype) before the
-kernels get a real call and routes that pair to the dense path if anything here disagrees with the float64 CPU
-reference.  Each problem is a few thousand multiply-adds (forward and backward): milliseconds, once per process.
+kernels get a real call and routes that pair to the dense path if anything here disagrees with the reference.
+
+The problems are ``modi_ext.payload``'s, so the check launches every kernel instantiation of its dtype -- what MoDi
+trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
+and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
+plan with rotation and offsets gradients.  Milliseconds on a GPU; under 2 s on the CPU emulator.
+
+It calls the raw kernels of a table (``modi_ext.kernels``), not the autograd ops, so it imports nothing above it.
 """
 from __future__ import annotations
 
 import torch
 
-from modi_ext import reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext import kernels, payload
 
-# error allowed relative to max(1, max |reference|); gradients get 4x (reductions over batch x time)
-TOL = {torch.float64: 1e-9, torch.float32: 1e-4, torch.bfloat16: 5e-2, torch.float16: 8e-3}
-_NEIGHBORS = [[0, 1], [0, 1, 2], [1, 2, 3, 4], [2, 3], [2, 4]]
-_POOLING = [[0, 1], [1, 2], [3, 4]]  # overlapping: fine entity 1 belongs to two coarse ones
-_PARENTS = [-1, 0, 1, 1, 3]
+TOL = payload.TOL
 
 
-def _error(got: torch.Tensor, want: torch.Tensor) -> float:
-    got = got.detach().to("cpu", torch.float64)
-    if got.shape != want.shape:
-        return float("inf")
-    if not bool(torch.isfinite(got).all()):
-        return float("inf")
-    return float((got - want).abs().max()) / max(1.0, float(want.abs().max()))
+def _families(lib: str, device_type: str) -> tuple[str, ...]:
+    built = kernels.kernels_built if lib == kernels.LIB else (lambda d, f: kernels.registered(lib, f, d))
+    return tuple(f for f in ("skeletal", "fk") if built(device_type, f))
 
 
-def _rounded(g: torch.Generator, dtype: torch.dtype, *shape: int, scale: float = 1.0, shift: float = 0.0):
-    return (shift + scale * torch.randn(*shape, generator=g, dtype=torch.float64)).to(dtype).double()
+def _op_of(case) -> str:
+    return "fk" if isinstance(case, payload.FkCase) else f"skeletal_{case.kind}"
 
 
-def _skeletal(kind: str, device: str, dtype: torch.dtype) -> tuple[float, float]:
-    """(forward error, gradient error) of one modulated, demodulated, biased call with its backward."""
-    from modi_ext import ops  # late: ops imports the dispatcher that imports this module
-
-    g = torch.Generator().manual_seed(1234)
-    lists, n_in = (_NEIGHBORS, 5) if kind == "conv" else (_POOLING, 5)
-    topo = csr_from_lists(lists, n_in=n_in)
-    b, cin, cout, t, u = 2, 3, 5, 8, 3
-    nnz = topo.nnz
-    n_rows = topo.n_out
-    if kind == "up":
-        x = _rounded(g, dtype, b, cin, n_rows, t)
-        w = _rounded(g, dtype, cin, nnz, cout, u, scale=0.3)
-        n_out, pad = n_in, "reflect"
-    else:
-        x = _rounded(g, dtype, b, cin, n_in, t)
-        w = _rounded(g, dtype, cout, nnz, cin, u, scale=0.3)
-        n_out, pad = n_rows, ("reflect" if kind == "conv" else "zeros")
-    bias = _rounded(g, dtype, cout)
-    s = _rounded(g, dtype, b, cin, scale=0.3, shift=1.0)
-    ref_leaves = [v.clone().requires_grad_() for v in (x, w, bias, s)]
-    fn = {"conv": reference.skeletal_conv, "down": reference.skeletal_down}.get(kind)
-    if fn is None:
-        y_ref = reference.skeletal_up(ref_leaves[0], ref_leaves[1], ref_leaves[2], topo.index, topo.offsets, n_out,
-                                      ref_leaves[3], True, pad)
-    else:
-        y_ref = fn(ref_leaves[0], ref_leaves[1], ref_leaves[2], topo.index, topo.offsets, ref_leaves[3], True, pad)
-    gy = _rounded(g, dtype, *y_ref.shape)
-    g_ref = torch.autograd.grad(y_ref, ref_leaves, gy)
-    leaves = [v.to(device=device, dtype=dtype).requires_grad_() for v in (x, w, bias, s)]
-    idx, off = topo.index.to(device), topo.offsets.to(device)
-    kind_id = {"conv": ops._KIND_CONV, "down": ops._KIND_DOWN, "up": ops._KIND_UP}[kind]
-    y = ops._run(kind_id, "ext", leaves[0], leaves[1], leaves[2], idx, off, n_out, leaves[3], True, pad)
-    fwd = _error(y, y_ref.detach())
-    grads = torch.autograd.grad(y, leaves, gy.to(device=device, dtype=dtype), allow_unused=True)
-    bwd = max((_error(a, r) if a is not None else float("inf")) for a, r in zip(grads, g_ref))
-    return fwd, bwd
-
-
-def _fk(device: str, dtype: torch.dtype) -> tuple[float, float]:
-    from modi_ext import dispatch
-    from modi_ext.fk import fk_reference
-
-    g = torch.Generator().manual_seed(99)
-    q = torch.randn(2, 3, len(_PARENTS), 4, generator=g, dtype=torch.float64)
-    q = (q / q.norm(dim=-1, keepdim=True)).to(dtype).double()
-    off = _rounded(g, dtype, len(_PARENTS), 3)
-    root = _rounded(g, dtype, 2, 3, 3)
-    rq, rr = q.clone().requires_grad_(), root.clone().requires_grad_()
-    p_ref, r_ref = fk_reference(rq, off, _PARENTS, rr, True)
-    gp, gr = _rounded(g, dtype, *p_ref.shape), _rounded(g, dtype, *r_ref.shape)
-    g_ref = torch.autograd.grad([p_ref, r_ref], [rq, rr], [gp, gr])
-    dq, dr = (v.to(device=device, dtype=dtype).requires_grad_() for v in (q, root))
-    pos, rot = dispatch.KERNELS["fk"](dq, off.to(device=device, dtype=dtype), list(_PARENTS), dr)
-    fwd = max(_error(pos, p_ref.detach()), _error(rot, r_ref.detach()))
-    grads = torch.autograd.grad([pos, rot], [dq, dr], [gp.to(device, dtype), gr.to(device, dtype)])
-    return fwd, max(_error(a, r) for a, r in zip(grads, g_ref))
-
-
-def run(device: str, dtype: torch.dtype) -> dict:
-    """``{"ok", "errors": {op: message}, "max_error": {op: relative error}}`` for every kernel on (device, dtype)."""
-    from modi_ext import dispatch
-
+def run(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> dict:
+    """``{"ok", "errors": {op: message}, "max_error": {op: relative error}, "cases": n}`` for every kernel of
+    ``lib`` (default: this build's ``torch.ops.modi_ext``, through the ``kernels.KERNELS`` hook) on (device, dtype).
+    ``ok`` is False when nothing could be checked (no kernels registered for the device)."""
     tol = TOL.get(dtype, 1e-4)
-    dev_type = torch.device(device).type
-    checks = {}
-    if dispatch.kernels_built(dev_type, "skeletal"):
-        checks = {f"skeletal_{k}": (lambda k=k: _skeletal(k, device, dtype)) for k in ("conv", "down", "up")}
-    if dispatch.kernels_built(dev_type, "fk"):
-        checks["fk"] = lambda: _fk(device, dtype)
+    table = kernels.KERNELS if lib == kernels.LIB else kernels.kernel_table(lib)
+    families = _families(lib, torch.device(device).type)
     errors: dict[str, str] = {}
     worst: dict[str, float] = {}
-    # first use may come inside no_grad / inference_mode / autocast: the check needs none of them
+    todo = payload.cases(dtype, families)
+    if not todo:
+        return {"ok": False, "errors": {"build": f"no {lib} kernels are registered for {torch.device(device).type}: "
+                                                 "nothing was checked"}, "max_error": {}, "cases": 0}
+    # first use may come inside no_grad / inference_mode / autocast: the oracle needs autograd and full precision
     with torch.inference_mode(False), torch.enable_grad(), torch.autocast(torch.device(device).type, enabled=False):
-        for op, check in checks.items():
-            try:
-                fwd, bwd = check()
-            except Exception as exc:  # noqa: BLE001 - a kernel that raises has failed its check
-                errors[op] = f"raised {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+        for case in todo:
+            op = _op_of(case)
+            if op in errors:
                 continue
-            worst[op] = max(fwd, bwd)
+            try:
+                fwd, bwd = payload.run_case(table, case, device, dtype)
+            except Exception as exc:  # noqa: BLE001 - a kernel that raises has failed its check
+                msg = str(exc).splitlines()[0] if str(exc) else ""
+                errors[op] = f"raised {type(exc).__name__}: {msg} ({case.name})"
+                continue
+            worst[op] = max(worst.get(op, 0.0), fwd, bwd)
             if fwd > tol:
-                errors[op] = f"forward error {fwd:.3g} > {tol:.1g}"
-            elif bwd > 4 * tol:
-                errors[op] = f"backward error {bwd:.3g} > {4 * tol:.1g}"
-    return {"ok": not errors, "errors": errors, "max_error": worst}
+                errors[op] = f"forward error {fwd:.3g} > {tol:.1g} ({case.name})"
+            elif bwd > payload.GRAD_FACTOR * tol:
+                errors[op] = f"backward error {bwd:.3g} > {payload.GRAD_FACTOR * tol:.1g} ({case.name})"
+    return {"ok": not errors, "errors": errors, "max_error": worst, "cases": len(todo)}

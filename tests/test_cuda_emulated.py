@@ -16,11 +16,13 @@ ulps of the fp32 sums).
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import random
 import re
 import tempfile
+import time
 import zlib
 from pathlib import Path
 
@@ -58,8 +60,20 @@ def emu():
     if EMU is None:
         pytest.fail(f"modi_ext._C_emu (the emulated CUDA kernels) is not built: {EMU_ERROR}. "
                     "Build it with `python3 setup.py build_ext --inplace` (MODI_EXT_EMU must not be 0).")
+    assert EMU.injected_defect() == "", "the emulated module must start with no run-time defect"
     yield EMU
     EMU.set_schedule_seed(0)
+    EMU.set_injected_defect("")
+
+
+@contextlib.contextmanager
+def injected(defect: str):
+    """A run-time test defect of the emulated module (csrc/emu/cuda_emu.h), on for the block only."""
+    EMU.set_injected_defect(defect)
+    try:
+        yield
+    finally:
+        EMU.set_injected_defect("")
 
 
 # ------------------------------------------------------------------------------------------------ helpers
@@ -459,6 +473,28 @@ def test_injected_defect_is_caught(defect):
         check_problem(p, backward=False, lib=lib)
 
 
+def test_injected_finite_wrong_value_is_caught_by_the_tolerance():
+    """wrong_scale (a run-time defect): style_finish_kernel scales the style gradient by 1 + 2^-9.  Every value stays
+    finite -- no NaN poison to trip over -- so only the tolerance against the float64 reference can see it: the
+    suite's check does, and so does the first-use self-check (which then refuses the kernels)."""
+    from modi_ext import selfcheck
+
+    p = Problem("conv", "style", "reflect", U=3, seed=4, B=2, cin=5, cout=6, T=40)
+    check_problem(p)  # the clean kernels pass the same case
+    with pytest.raises(ValueError, match="unknown defect"):
+        EMU.set_injected_defect("no_such_defect")
+    with injected("wrong_scale"):
+        assert EMU.injected_defect() == "wrong_scale"
+        got = p.backward(p.forward())
+        assert all(bool(torch.isfinite(t).all()) for t in got if t.numel()), "the defect must stay finite"
+        with pytest.raises(AssertionError, match=r"conv grad style: max error .* > 5e-05"):
+            check_problem(p)
+        res = selfcheck.run("cpu", torch.float32, lib="modi_ext_emu")
+    assert not res["ok"] and "backward error" in res["errors"]["skeletal_conv"], res
+    assert EMU.injected_defect() == ""
+    check_problem(p)
+
+
 # ------------------------------------------------------------------------------------------------ build defects
 def _setup_helpers(*names):
     """Functions / constants of setup.py, read from its source (importing it would run setup())."""
@@ -521,6 +557,76 @@ def _global_kernels() -> set[str]:
     return names
 
 
+EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c10::Half",
+             torch.bfloat16: "c10::BFloat16"}
+
+
+def _expected_instantiations(dtypes=DTYPES) -> set[str]:
+    """The kernel instantiations csrc/cuda can launch, written out: 20 per dtype plus the topology kernel."""
+    want = {"topology_kernel"}
+    for t in (EMU_TYPES[d] for d in dtypes):
+        for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
+                                             ("false", "true")):
+            want.add(f"{k}<{t}, {bm}, {flag}>")
+        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "fk_offsets_reduce_kernel"):
+            want.add(f"{k}<{t}>")
+        for k, flag in itertools.product(("fk_forward_kernel", "fk_backward_kernel"), ("false", "true")):
+            want.add(f"{k}<{t}, {flag}>")
+    return want
+
+
+def _cuda_instantiations(names) -> set[str]:
+    """The entries of ``names`` that are csrc/cuda kernels (not the emulator's own self-test kernels)."""
+    kernels = _global_kernels()
+    return {k for k in names if re.match(r"\w+", k).group(0) in kernels}
+
+
+def _launched_since(before: dict) -> set[str]:
+    after = EMU.launch_counts()
+    return _cuda_instantiations(k for k, n in after.items() if n > before.get(k, 0))
+
+
+def test_the_emulator_registers_every_instantiation():
+    """Each instantiation some host code can launch registers itself at load time (cuda_emu.h KernelRegistration):
+    the registry is exactly the list written out here (81 today) -- the yardstick of the payload test below."""
+    registered = _cuda_instantiations(EMU.registered_kernels())
+    assert registered == _expected_instantiations(), (sorted(registered ^ _expected_instantiations()))
+    assert len(registered) == 1 + 20 * len(DTYPES)
+    assert {"divergent_barrier_kernel", "race_kernel"} <= set(EMU.registered_kernels())  # self-test kernels too
+
+
+def test_the_shared_payload_launches_every_instantiation():
+    """modi_ext.payload (what validate's sanitizer steps, the GPU tests and the self-check run) launches every
+    kernel instantiation the emulator registered, in fp32/fp64/fp16/bf16, and matches the float64 oracle."""
+    from modi_ext import kernels, payload
+
+    before = EMU.launch_counts()
+    res = payload.run(kernels.kernel_table("modi_ext_emu"), "cpu", payload.DTYPES)
+    assert not res["errors"], res["errors"]
+    launched = _launched_since(before)
+    registered = _cuda_instantiations(EMU.registered_kernels())
+    assert launched == registered, f"never launched by the payload: {sorted(registered - launched)}"
+    assert len(launched) == 81
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=str)
+def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
+    """The first-use self-check (modi_ext.selfcheck, the payload against the float64 oracle) on the emulated
+    kernels: it passes, and it launched all 20 instantiations of its dtype and the topology kernel -- the 64-row
+    tiles, split-K and FK offsets gradients on every plan that training runs included.  Its first-use time on this
+    CPU is printed (-s), not asserted (the machine may be shared)."""
+    from modi_ext import selfcheck
+
+    before = EMU.launch_counts()
+    t0 = time.perf_counter()
+    res = selfcheck.run("cpu", dtype, lib="modi_ext_emu")
+    seconds = time.perf_counter() - t0
+    assert res["ok"], res["errors"]
+    assert set(res["max_error"]) == {"skeletal_conv", "skeletal_down", "skeletal_up", "fk"}
+    assert _launched_since(before) == _expected_instantiations((dtype,))
+    print(f"\nself-check {dtype} on the emulated kernels: {seconds:.2f} s, {res['cases']} cases")
+
+
 def test_every_kernel_instantiation_ran(request):
     """Runs last: every __global__ kernel of csrc/cuda, in every dtype and tile/blur variant, was executed above."""
     defined = {n for n in dir(request.module) if n.startswith("test_")}
@@ -530,15 +636,5 @@ def test_every_kernel_instantiation_ran(request):
     counts = EMU.launch_counts()
     ran = {re.match(r"\w+", k).group(0) for k in counts}
     assert _global_kernels() <= ran, f"kernels never executed: {sorted(_global_kernels() - ran)}"
-    dt = {"double": torch.float64, "float": torch.float32, "c10::Half": torch.float16, "c10::BFloat16": None}
-    want = {"topology_kernel"}
-    for t in dt:
-        for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
-                                             ("false", "true")):
-            want.add(f"{k}<{t}, {bm}, {flag}>")
-        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "fk_offsets_reduce_kernel"):
-            want.add(f"{k}<{t}>")
-        for k, flag in itertools.product(("fk_forward_kernel", "fk_backward_kernel"), ("false", "true")):
-            want.add(f"{k}<{t}, {flag}>")
-    missing = sorted(want - set(counts))
+    missing = sorted(_expected_instantiations() - set(counts))
     assert not missing, f"kernel instantiations never executed: {missing}"

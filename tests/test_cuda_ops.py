@@ -11,6 +11,7 @@ without a CUDA device or without the CUDA part of the extension.
 from __future__ import annotations
 
 import random
+import re
 import subprocess
 import sys
 import textwrap
@@ -18,7 +19,7 @@ import textwrap
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, ops, reference
+from modi_ext import HAS_EXT, kernels, ops, payload, reference
 from modi_ext.fk import fk, fk_reference
 from modi_ext.topology_tensors import csr_from_lists
 
@@ -410,7 +411,21 @@ def _run_subprocess(code: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=120)
 
 
-@pytest.mark.parametrize("bad", ["index_out_of_range", "empty_row"])
+@pytest.mark.parametrize("dtype", payload.DTYPES, ids=str)
+def test_shared_payload_matches_the_reference(dtype):
+    """modi_ext.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
+    tests/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
+    res = payload.run(kernels.KERNELS, DEV, (dtype,))
+    assert res["ran"] and not res["errors"], res["errors"]
+
+
+# The assert each bad map must trip: its own message (csrc/cuda/skeletal_cuda.cu topology_kernel), as CUDA prints it
+# ("... Assertion `<message>` failed."), not merely some stderr that mentions modi_ext.
+DEVICE_ASSERTS = {"index_out_of_range": "modi_ext: index holds an entity out of range",
+                  "empty_row": "modi_ext: offsets: an output entity has no neighbors"}
+
+
+@pytest.mark.parametrize("bad", sorted(DEVICE_ASSERTS))
 def test_subprocess_bad_index_is_a_device_assert(bad):
     # CUDA indices are validated on the device (no host sync): a bad map must stop the kernel with a device-side
     # assert (which poisons the CUDA context, hence the subprocess) instead of reading out of bounds.
@@ -428,7 +443,8 @@ def test_subprocess_bad_index_is_a_device_assert(bad):
     """
     r = _run_subprocess(code)
     assert r.returncode != 0 and "NO ERROR" not in r.stdout, r.stdout + r.stderr
-    assert "device-side assert" in r.stderr or "modi_ext" in r.stderr, r.stderr[-2000:]
+    assert re.search(r"Assertion `" + re.escape(DEVICE_ASSERTS[bad]) + r"` failed", r.stderr), r.stderr[-2000:]
+    assert "device-side assert triggered" in r.stderr, r.stderr[-2000:]
 
 
 # ------------------------------------------------------------------------------------------------ FK

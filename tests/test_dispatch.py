@@ -260,6 +260,72 @@ def test_selfcheck_catches_a_raising_kernel_and_wrong_fk(monkeypatch):
 
 
 @needs_ext
+def test_selfcheck_covers_what_training_runs(monkeypatch):
+    """Kernels wrong only where MoDi's training goes -- a weight gradient wrong only on wide layers (cin > 32: the
+    64-row tiles and split-K of the CUDA kernels, B x T > 256) and an FK offsets gradient wrong only when it is
+    asked for -- fail the first-use self-check: one warning naming the case, and the calls go to dense."""
+    from modi_ext import payload
+
+    real_bwd, real_fkb = dispatch.KERNELS["skeletal_backward"], dispatch.KERNELS["fk_backward"]
+
+    def bwd(*a):
+        gx, gw, gb, gs, gd = real_bwd(*a)
+        return gx, (gw * 1.01 if a[2].shape[1] > 32 and gw.numel() else gw), gb, gs, gd
+
+    def fkb(*a):
+        gq, groot, goff = real_fkb(*a)
+        return gq, groot, (goff * 1.01 if a[6] else goff)
+
+    assert any(c.cin > 32 and c.columns > 256 for c in payload.SKELETAL_CASES)  # the case that finds it
+    monkeypatch.setitem(dispatch.KERNELS, "skeletal_backward", bwd)
+    monkeypatch.setitem(dispatch.KERNELS, "fk_backward", fkb)
+    p = problem("conv", dtype=torch.float32)
+    q, off, root = fk_inputs(torch.float32)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        y = call(ops, p)
+        call(ops, p)
+        pos = fk(q, off, PARENTS, root)
+    msgs = [str(w.message) for w in rec if "self-check" in str(w.message)]
+    assert len(msgs) == 1, msgs
+    assert "skeletal_conv: backward error" in msgs[0] and "(conv.wide)" in msgs[0], msgs[0]
+    assert "skeletal_up: backward error" in msgs[0] and "fk: backward error" in msgs[0], msgs[0]
+    assert dispatch.route("skeletal_conv", p["x"]) == "dense"
+    torch.testing.assert_close(y, call(reference, p), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(pos, fk_reference(q, off, PARENTS, root))
+
+
+def test_one_selfcheck_key_per_device(monkeypatch):
+    """'cuda' and 'cuda:0' (the current device) are one cache entry; validate and routing share it."""
+    from modi_ext import kernels, selfcheck
+
+    calls = []
+
+    def fake_run(device, dtype, lib="modi_ext"):
+        calls.append((device, dtype))
+        return {"ok": True, "errors": {}, "max_error": {}}
+
+    monkeypatch.setattr(selfcheck, "run", fake_run)
+    index = torch.cuda.current_device() if torch.cuda.is_available() else 0
+    assert kernels.device_key("cuda") == kernels.device_key(f"cuda:{index}") == f"cuda:{index}"
+    assert kernels.device_key(torch.device("cpu")) == "cpu"
+    for dev in ("cuda", f"cuda:{index}", torch.device("cuda")):
+        assert dispatch.kernels_trusted(dev, "torch.float32")
+    assert calls == [(f"cuda:{index}", torch.float32)]
+    rows = [r for r in modi_ext.dispatch_report() if r["kind"] == "selfcheck"]
+    assert [r["device"] for r in rows] == [f"cuda:{index}"]
+
+
+@needs_ext
+def test_selfcheck_with_nothing_to_check_is_not_ok():
+    """A device with no kernels registered is not 'ok': nothing was checked (issue 33)."""
+    from modi_ext import selfcheck
+
+    res = selfcheck.run("meta", torch.float32, lib="modi_ext_nonexistent")
+    assert not res["ok"] and "nothing was checked" in res["errors"]["build"] and res["cases"] == 0
+
+
+@needs_ext
 @pytest.mark.parametrize("context", ["no_grad", "inference_mode"])
 def test_selfcheck_passes_when_first_use_is_inside_no_grad(context):
     p = problem("conv", dtype=torch.float32)
@@ -560,5 +626,7 @@ def test_validate_payloads_run_on_cpu(tmp_path):
     assert validate.main(["--payload", "kernels", "--device", "cpu", "--out", str(tmp_path / "k.json")]) == 0
     import json
 
-    ran = json.loads((tmp_path / "k.json").read_text())["ran"]
-    assert {r.split(".")[0] for r in ran} == {"skeletal_conv", "skeletal_down", "skeletal_up", "fk"}
+    res = json.loads((tmp_path / "k.json").read_text())
+    assert res["errors"] == {}
+    assert {r.split(".")[0] for r in res["ran"]} == {"conv", "down", "up", "fk"}
+    assert {r.rsplit(".", 1)[1] for r in res["ran"]} == {"float32", "float64"}  # the CPU kernels' dtypes

@@ -618,7 +618,8 @@ template <typename T>
 __global__ void split_reduce_kernel(const acc_t<T>* __restrict__ ws, int splits, int64_t n, T* __restrict__ out) {
   for (int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
     acc_t<T> s = 0;
-    for (int k = 0; k < splits; ++k) s += ws[int64_t(k) * n + i];
+    // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (cuda_common.cuh)
+    for (int k = 0; k < splits + MODI_EMU_GLOBAL_OOB; ++k) s += ws[int64_t(k) * n + i];
     st(out + i, s);
   }
 }
@@ -642,6 +643,7 @@ __global__ void style_finish_kernel(const acc_t<T>* __restrict__ gxp, const T* _
     if (gx) st(gx + bi * len + k, v * sv);
   }
   dot = cuda::block_sum(dot, scratch);
+  if (MODI_EMU_WRONG_SCALE) dot *= A(1) + A(1) / A(512);  // 0 outside the emulator's defect injection
   if (threadIdx.x == 0) st(gs + bi, dot);
 }
 

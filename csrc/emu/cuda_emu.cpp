@@ -8,12 +8,14 @@
 #include <ucontext.h>
 
 #include <algorithm>
+#include <atomic>
 #include <exception>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <numeric>
 #include <random>
+#include <set>
 #include <sstream>
 #include <stdexcept>
 #include <vector>
@@ -36,6 +38,7 @@ constexpr int kMaxThreads = 1024;
 std::mutex g_mu;
 uint64_t g_seed = 0;
 int g_sm_count = 108;
+std::atomic<int> g_defect{0};
 std::map<std::string, int64_t> g_counts;
 
 enum class St { Ready, Barrier, Warp, Done };
@@ -356,6 +359,28 @@ std::string kernel_name(const char* pretty) {
   return k;
 }
 
+namespace {
+std::mutex& registry_mutex() {
+  static std::mutex mu;
+  return mu;
+}
+std::set<std::string>& registry() {  // function-local: safe from the initialisation order of the registrations
+  static std::set<std::string> names;
+  return names;
+}
+}  // namespace
+
+bool register_kernel(const char* pretty) {
+  std::lock_guard<std::mutex> lk(registry_mutex());
+  registry().insert(kernel_name(pretty));
+  return true;
+}
+
+std::set<std::string> registered_kernels() {
+  std::lock_guard<std::mutex> lk(registry_mutex());
+  return registry();
+}
+
 void run_launch(const LaunchSpec& spec) {
   Block b;
   b.spec = &spec;
@@ -436,6 +461,9 @@ uint64_t get_seed() {
   std::lock_guard<std::mutex> lk(g_mu);
   return g_seed;
 }
+int injected_defect() { return g_defect.load(std::memory_order_relaxed); }
+void set_injected_defect(int id) { g_defect.store(id, std::memory_order_relaxed); }
+
 void set_sm_count(int n) {
   std::lock_guard<std::mutex> lk(g_mu);
   g_sm_count = n;

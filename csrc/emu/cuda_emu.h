@@ -14,10 +14,12 @@
 #error "cuda_emu.h is only for the emulated (host C++) build of the CUDA sources"
 #endif
 
-// Test-only defect injection: -DMODI_EMU_INJECT=drop_sync (the first __syncthreads() of row_gemm_kernel is
-// skipped) or -DMODI_EMU_INJECT=off_by_one (one shared-memory index of the row GEMM is shifted by one).
-#define MODI_EMU_INJECT_DROP_SYNC_ID 1
-#define MODI_EMU_INJECT_OFF_BY_ONE_ID 2
+// Test-only defect injection, at compile time: -DMODI_EMU_INJECT=drop_sync (the first __syncthreads() of
+// row_gemm_kernel is skipped) or -DMODI_EMU_INJECT=off_by_one (one shared-memory index of the row GEMM is shifted by
+// one); at run time (set_injected_defect, emu_control.h; off unless a test turns it on): global_oob
+// (split_reduce_kernel reads one split past the end of its global workspace) or wrong_scale (style_finish_kernel
+// scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it).
+#include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
 #if defined(MODI_EMU_INJECT)
 #define drop_sync 1
 #define off_by_one 2
@@ -73,6 +75,7 @@ enum cudaDeviceAttr { cudaDevAttrMultiProcessorCount = 16 };
 
 namespace modi_emu {
 int sm_count();  // emulated multiprocessor count (settable: it steers the split-K choice of the weight gradient)
+int injected_defect();  // the run-time test defect (MODI_EMU_INJECT_*_ID), 0 = none
 }
 
 inline cudaError_t cudaDeviceGetAttribute(int* v, cudaDeviceAttr attr, int /*device*/) {
@@ -211,9 +214,20 @@ struct LaunchSpec {
 };
 void run_launch(const LaunchSpec& spec);
 std::string kernel_name(const char* pretty);
+bool register_kernel(const char* pretty);  // records kernel_name(pretty) in the set of launchable instantiations
+
+// Every kernel instantiation some host code can launch registers itself when the module is loaded: launch_as
+// odr-uses this static member, whose dynamic initialisation runs at load time.  So the tests can compare the
+// instantiations a payload launched with all that exist (emu_control.h: registered_kernels).
+template <auto Kernel>
+struct KernelRegistration {
+  static const char* pretty() { return __PRETTY_FUNCTION__; }
+  static inline const bool registered = register_kernel(pretty());
+};
 
 template <auto Kernel, typename... P, typename... Args>
 void launch_as(void (*)(P...), dim3 grid, dim3 block, size_t smem, Args&&... args) {
+  (void)KernelRegistration<Kernel>::registered;
   // Arguments are converted to the parameter types once, as the CUDA runtime copies them into the launch.
   std::tuple<std::decay_t<P>...> params(std::forward<Args>(args)...);
   LaunchSpec spec{__PRETTY_FUNCTION__, grid, block, smem, [&params] { std::apply(Kernel, params); }};

@@ -3,6 +3,7 @@
 
 #include <cstdint>
 #include <map>
+#include <set>
 #include <string>
 
 // The op namespace of the emulated kernels (variants with injected defects get their own).
@@ -10,10 +11,19 @@
 #define MODI_EMU_LIB modi_ext_emu
 #endif
 
+// Test-only defects (cuda_emu.h): compile-time (-DMODI_EMU_INJECT=...) and run-time (set_injected_defect).
+#define MODI_EMU_INJECT_DROP_SYNC_ID 1
+#define MODI_EMU_INJECT_OFF_BY_ONE_ID 2
+#define MODI_EMU_INJECT_GLOBAL_OOB_ID 3
+#define MODI_EMU_INJECT_WRONG_SCALE_ID 4
+
 namespace modi_emu {
 void set_seed(uint64_t seed);  // 0: threads and blocks in index order; else a seeded permutation
 uint64_t get_seed();
 void set_sm_count(int n);
+void set_injected_defect(int id);  // test-only run-time defect (MODI_EMU_INJECT_*_ID above), 0 = none
+int injected_defect();
 std::map<std::string, int64_t> launch_counts();  // kernel instantiation -> launches since the last reset
 void reset_launch_counts();
+std::set<std::string> registered_kernels();  // every kernel instantiation the loaded code can launch
 }  // namespace modi_emu

@@ -3,6 +3,9 @@
 #include <Python.h>
 #include <torch/library.h>
 
+#include <cstring>
+#include <utility>
+
 #include "emu/emu_control.h"
 #include "modi_ext.h"
 
@@ -53,6 +56,45 @@ PyObject* py_launch_counts(PyObject*, PyObject*) {
   return d;
 }
 
+// Test-only run-time defects (cuda_emu.h): "" (none), "global_oob", "wrong_scale".
+const std::pair<const char*, int> kDefects[] = {
+    {"", 0}, {"global_oob", MODI_EMU_INJECT_GLOBAL_OOB_ID}, {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID}};
+
+PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
+  const char* name = PyUnicode_AsUTF8(arg);
+  if (!name) return nullptr;
+  for (const auto& [n, id] : kDefects) {
+    if (std::strcmp(n, name) == 0) {
+      modi_emu::set_injected_defect(id);
+      Py_RETURN_NONE;
+    }
+  }
+  PyErr_Format(PyExc_ValueError, "unknown defect '%s' (expected '', 'global_oob' or 'wrong_scale')", name);
+  return nullptr;
+}
+
+PyObject* py_injected_defect(PyObject*, PyObject*) {
+  const int id = modi_emu::injected_defect();
+  for (const auto& [n, i] : kDefects)
+    if (i == id) return PyUnicode_FromString(n);
+  return PyUnicode_FromString("?");
+}
+
+PyObject* py_registered_kernels(PyObject*, PyObject*) {
+  PyObject* l = PyList_New(0);
+  if (!l) return nullptr;
+  for (const auto& name : modi_emu::registered_kernels()) {
+    PyObject* v = PyUnicode_FromString(name.c_str());
+    if (!v || PyList_Append(l, v) < 0) {
+      Py_XDECREF(v);
+      Py_DECREF(l);
+      return nullptr;
+    }
+    Py_DECREF(v);
+  }
+  return l;
+}
+
 PyObject* py_reset_launch_counts(PyObject*, PyObject*) {
   modi_emu::reset_launch_counts();
   Py_RETURN_NONE;
@@ -64,6 +106,11 @@ PyMethodDef kMethods[] = {
     {"set_sm_count", py_set_sm_count, METH_O, "Multiprocessor count the host code sees (cuda::sm_count; default 108)."},
     {"launch_counts", py_launch_counts, METH_NOARGS, "{kernel instantiation: launches} since the last reset."},
     {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters."},
+    {"set_injected_defect", py_set_injected_defect, METH_O,
+     "Test-only: turn on a run-time defect ('global_oob', 'wrong_scale') or off ('')."},
+    {"injected_defect", py_injected_defect, METH_NOARGS, "The run-time defect in force ('' = none)."},
+    {"registered_kernels", py_registered_kernels, METH_NOARGS,
+     "Sorted names of every kernel instantiation the module can launch (registered at load time)."},
     {nullptr, nullptr, 0, nullptr}};
 
 }  // namespace
