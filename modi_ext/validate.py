@@ -1,6 +1,6 @@
 """One command that validates modi_ext on a real GPU and records what it measured.
 
-    python -m modi_ext.validate [--json FILE] [--budget SECONDS] [--emulated] [--dry-run] [--allow-skip]
+    python -m modi_ext.validate [--build] [--json FILE] [--budget SECONDS] [--emulated] [--dry-run] [--allow-skip]
 
 What the CPU-only CI cannot prove (real concurrency, the hardware's own numerics, speed) is checked here, each step a
 subprocess in its own process group with its own timeout so the whole run fits ``--budget`` (default 600 s: 10
@@ -18,6 +18,10 @@ ran and passed; a skipped step makes it ``incomplete`` (exit 1) unless ``--allow
 4. ``compare_fp32`` / ``compare_bf16``  ``benchmarks/compare.py --device cuda``: reference vs dense vs kernels;
 5. ``train_step`` ``benchmarks/train_step.py --device cuda --preset paper``: seconds per MoDi training step on the
                   ref, dense and ext paths.
+
+``--build`` (the default when the installed extension has no CUDA kernels and nvcc is found) first builds modi and
+modi_ext with the CUDA kernels for this GPU into a temporary folder -- never the checkout -- inside the budget, and
+every step then imports that build (``step_env``).
 
 Writes ``benchmarks/results/cuda_<gpu>.json`` (or ``--json FILE``).  Without a visible GPU it says so and exits 2.
 """
@@ -124,7 +128,7 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
     return steps
 
 
-def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
+def run_step(step: Step, timeout_s: float, env: dict | None = None, cwd: Path = ROOT) -> dict:
     """Run one step; ``status`` is pass / fail / timeout / skipped, with the output's tail."""
     missing = [str(p) for p in step.needs if not p.exists()]
     if missing:
@@ -140,7 +144,7 @@ def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
         return {"status": "skipped", "reason": "time budget spent"}
     env = dict(os.environ if env is None else env, **step.env)
     t0 = time.perf_counter()
-    rc, out, timed_out = run_group(cmd, timeout_s, env)
+    rc, out, timed_out = run_group(cmd, timeout_s, env, cwd)
     res = {"status": "timeout" if timed_out else ("pass" if rc == 0 else "fail"), "rc": rc,
            "seconds": round(time.perf_counter() - t0, 2), "timeout_s": round(timeout_s, 1), "tail": out[-3000:]}
     if step.result_json is not None and step.result_json.is_file():
@@ -151,10 +155,11 @@ def run_step(step: Step, timeout_s: float, env: dict | None = None) -> dict:
     return res
 
 
-def run_group(cmd: list[str], timeout_s: float, env: dict | None = None) -> tuple[int | None, str, bool]:
+def run_group(cmd: list[str], timeout_s: float, env: dict | None = None,
+              cwd: Path = ROOT) -> tuple[int | None, str, bool]:
     """Run ``cmd`` in a new session (its own process group) and kill the whole group on timeout: under the
     sanitizer the traced python is a grandchild, which ``subprocess.run(timeout=)`` would leave on the GPU."""
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
                             start_new_session=True)
     try:
         out, _ = proc.communicate(timeout=timeout_s)
@@ -179,41 +184,18 @@ def _kill_group(pgid: int) -> None:
 
 # ---------------------------------------------------------------------------------------------------------- payloads
 def _payload_kernels(device: str) -> dict:
-    """One small call of every kernel, forward and backward (what compute-sanitizer watches)."""
+    """The shared payload (``modi_ext.payload``): every kernel instantiation, forward and backward with every
+    gradient, in every dtype the device's kernels take, against the float64 oracle -- what compute-sanitizer
+    watches.  ``errors`` names any case that disagreed with the oracle (the step then fails)."""
     import torch
 
-    from modi_ext import ops
-    from modi_ext.fk import fk
-    from modi_ext.topology_tensors import csr_from_lists
+    from modi_ext import kernels, payload
 
-    os.environ["MODI_EXT_IMPL"] = "ext"
-    g = torch.Generator().manual_seed(0)
-    nb = csr_from_lists([[0, 1], [0, 1, 2], [1, 2, 3], [2, 3]])
-    pool = csr_from_lists([[0, 1], [2, 3]], n_in=4)
-    done = []
-    for dtype in (torch.float32, torch.bfloat16) if device.startswith("cuda") else (torch.float32, torch.float64):
-        rnd = lambda *s: torch.randn(*s, generator=g).to(device, dtype).requires_grad_()  # noqa: E731
-        for kind in ("conv", "down", "up"):
-            topo = nb if kind == "conv" else pool
-            idx, off = topo.index.to(device), topo.offsets.to(device)
-            if kind == "up":
-                x, w = rnd(2, 3, 2, 8), rnd(3, topo.nnz, 5, 3)
-                y = ops.skeletal_up(x, w, None, idx, off, 4, style=rnd(2, 3), demodulate=True)
-            else:
-                x, w = rnd(2, 3, 4, 8), rnd(5, topo.nnz, 3, 3)
-                fn = ops.skeletal_conv if kind == "conv" else ops.skeletal_down
-                y = fn(x, w, None, idx, off, style=rnd(2, 3), demodulate=True)
-            y.float().square().sum().backward()
-            done.append(f"skeletal_{kind}.{str(dtype).replace('torch.', '')}")
-        q = torch.randn(2, 4, 5, 4, generator=g)
-        q = (q / q.norm(dim=-1, keepdim=True)).to(device, dtype).requires_grad_()
-        pos = fk(q, torch.randn(5, 3).to(device, dtype), [-1, 0, 1, 1, 3], torch.zeros(2, 4, 3, device=device,
-                                                                                          dtype=dtype))
-        pos.float().square().sum().backward()
-        done.append(f"fk.{str(dtype).replace('torch.', '')}")
-    if device.startswith("cuda"):
+    cuda = device.startswith("cuda")
+    res = payload.run(kernels.KERNELS, device, payload.DTYPES if cuda else (torch.float32, torch.float64))
+    if cuda:
         torch.cuda.synchronize()
-    return {"ran": done}
+    return res
 
 
 def _payload_dispatch(device: str) -> dict:
@@ -248,7 +230,7 @@ def _run_payload(name: str, out: Path | None, device: str) -> int:
         print(text)
     else:
         _write_atomic(out, text + "\n")
-    return 0
+    return 1 if res.get("errors") else 0
 
 
 # ---------------------------------------------------------------------------------------------------------- main
@@ -341,14 +323,64 @@ def _cuda_kernels_run() -> bool:
     return True
 
 
-def preflight() -> str | None:
-    """Gather the facts on this machine and return ``preflight_message`` for them."""
+BUILD_TIMEOUT_S = 300.0  # nvcc for this GPU's arch only (torch derives it from the visible GPU)
+
+
+def build_extension(work: Path, timeout_s: float, env: dict | None = None) -> tuple[Path | None, dict]:
+    """``--build``: build modi and modi_ext with the CUDA kernels (no emulator) into ``work`` -- a temporary folder,
+    never the checkout -- within ``timeout_s``.  Returns the folder holding the built packages (the steps import
+    them instead of the checkout's) or None, and the build's step result (status, seconds, output tail)."""
+    missing = [str(p) for p in (ROOT / "setup.py", ROOT / "csrc") if not p.exists()]
+    if missing:
+        return None, {"status": "skipped", "reason": f"not found: {', '.join(missing)} (run from a source checkout)"}
+    base = work / "build"
+    cmd = [sys.executable, "setup.py", "-q", "build", "--build-base", str(base)]
+    env = dict(os.environ if env is None else env, MODI_EXT_CUDA="1", MODI_EXT_EMU="0")
+    t0 = time.perf_counter()
+    rc, out, timed_out = run_group(cmd, timeout_s, env)
+    res = {"status": "timeout" if timed_out else ("pass" if rc == 0 else "fail"), "rc": rc,
+           "seconds": round(time.perf_counter() - t0, 2), "timeout_s": round(timeout_s, 1), "tail": out[-3000:],
+           "build_base": str(base)}
+    libs = sorted(p for p in base.glob("lib*") if (p / "modi_ext" / "__init__.py").is_file())
+    if res["status"] != "pass" or not libs:
+        if res["status"] == "pass":
+            res.update(status="fail", reason="the build produced no package folder")
+        return None, res
+    return libs[0], res
+
+
+def step_env(lib: Path | None, work: Path, env: dict | None = None) -> tuple[dict, Path]:
+    """The environment and working folder of the steps: the checkout on PYTHONPATH, or with ``--build`` the built
+    packages in ``lib`` -- and then a working folder outside the checkout, so that ``python -m`` (which puts the
+    working folder first on sys.path) cannot pick up the checkout's modi_ext instead."""
+    env = dict(os.environ if env is None else env)
+    first = str(lib) if lib is not None else str(ROOT)
+    env["PYTHONPATH"] = os.pathsep.join([first] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    return env, (work if lib is not None else ROOT)
+
+
+def _kernels_run_in(lib: Path, work: Path, timeout_s: float) -> bool:
+    """Whether the CUDA kernels of the build in ``lib`` run on this GPU (a fresh process: this one already imported
+    the checkout's modi_ext)."""
+    env, cwd = step_env(lib, work)
+    code = "import sys, modi_ext.validate as v; sys.exit(0 if v._cuda_kernels_run() else 3)"
+    rc, _, _ = run_group([sys.executable, "-c", code], timeout_s, env, cwd)
+    return rc == 0
+
+
+def preflight_facts() -> dict:
+    """What the preflight decides on: a visible GPU, torch's CUDA version, runnable CUDA kernels, nvcc's version."""
     import torch
 
     gpu = torch.cuda.is_available()
     kernels = gpu and torch.version.cuda is not None and _cuda_kernels_run()
-    return preflight_message(gpu, torch.version.cuda, torch.__version__, kernels,
-                             nvcc_version() if torch.version.cuda else None)
+    return dict(gpu_visible=gpu, torch_cuda=torch.version.cuda, torch_version=torch.__version__,
+                cuda_kernels=kernels, nvcc=nvcc_version() if torch.version.cuda else None)
+
+
+def preflight() -> str | None:
+    """Gather the facts on this machine and return ``preflight_message`` for them."""
+    return preflight_message(**preflight_facts())
 
 
 def verdict(steps: dict, allow_skip: bool = False) -> tuple[str, list[str]]:
@@ -372,6 +404,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--emulated", action="store_true", help="also run the cuda_emulated suite (CPU-bound)")
     ap.add_argument("--dry-run", action="store_true", help="list the steps and their timeouts, run nothing")
     ap.add_argument("--allow-skip", action="store_true", help="report ok even when a step could not run")
+    ap.add_argument("--build", action="store_true",
+                    help="first build the extension with its CUDA kernels into a temporary folder, inside the budget "
+                         "(the default when the installed build has no CUDA kernels and nvcc is found)")
     ap.add_argument("--payload", choices=("kernels", "dispatch"), help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)
@@ -382,22 +417,48 @@ def main(argv: list[str] | None = None) -> int:
     if args.payload:
         return _run_payload(args.payload, args.out, args.device)
     with tempfile.TemporaryDirectory(prefix="modi_validate_") as tmp:
-        steps = plan(Path(tmp), args.emulated)
+        work = Path(tmp)
+        steps = plan(work, args.emulated)
         if args.dry_run:
             total = 0.0
+            if args.build:
+                total += BUILD_TIMEOUT_S
+                print(f"{'build':18s} {BUILD_TIMEOUT_S:5.0f} s  setup.py build --build-base {work / 'build'}")
             for s in steps:
                 total += s.timeout_s
                 print(f"{s.name:18s} {s.timeout_s:5.0f} s  {' '.join(s.cmd)}")
-            print(f"{'total':18s} {total:5.0f} s  (budget {args.budget:.0f} s)")
+            print(f"{'total':18s} {total:5.0f} s  (budget {args.budget:.0f} s; each step gets what is left)")
             return 0
-        why = preflight()
+        t_start = time.perf_counter()
+        facts = preflight_facts()
+        kernels_missing = facts["gpu_visible"] and facts["torch_cuda"] is not None and not facts["cuda_kernels"]
+        build = args.build or (kernels_missing and facts["nvcc"] is not None)
+        why = preflight_message(**dict(facts, cuda_kernels=True)) if build else preflight_message(**facts)
+        if why is None and build and facts["nvcc"] is None:
+            why = (f"validate: --build needs nvcc: install CUDA toolkit {facts['torch_cuda'].split('.')[0]}.x and "
+                   "set CUDA_HOME")
         if why is not None:
             print(why, file=sys.stderr)
             return 2
-        return _validate(steps, args)
+        lib, built = None, None
+        if build:
+            lib, built = build_extension(work, min(BUILD_TIMEOUT_S, args.budget), None)
+            print(f"{'build':18s} {built['status']:8s} {built.get('seconds', 0):7.1f} s  {built.get('reason', '')}",
+                  flush=True)
+            if lib is None:
+                print(f"validate: the build into {work / 'build'} failed ({built['status']}); its output ends:\n"
+                      + built.get("tail", "")[-1500:], file=sys.stderr)
+                return 2
+            left = args.budget - (time.perf_counter() - t_start)
+            if not _kernels_run_in(lib, work, max(5.0, min(60.0, left))):
+                print("validate: the extension built with nvcc has no CUDA kernels that run on this GPU (check "
+                      "TORCH_CUDA_ARCH_LIST)", file=sys.stderr)
+                return 2
+        return _validate(steps, args, lib=lib, built=built, t_start=t_start, work=work)
 
 
-def _validate(steps: list[Step], args: argparse.Namespace) -> int:
+def _validate(steps: list[Step], args: argparse.Namespace, lib: Path | None = None, built: dict | None = None,
+              t_start: float | None = None, work: Path | None = None) -> int:
     import torch
 
     p = torch.cuda.get_device_properties(0)
@@ -405,12 +466,15 @@ def _validate(steps: list[Step], args: argparse.Namespace) -> int:
     report = {"gpu": p.name, "sms": p.multi_processor_count, "memory_gib": round(p.total_memory / 2**30, 1),
               "torch": torch.__version__, "cuda": torch.version.cuda, "date": datetime.date.today().isoformat(),
               "budget_s": args.budget, "steps": {}}
-    t_start = time.perf_counter()
+    t_start = time.perf_counter() if t_start is None else t_start  # with --build, the build is inside the budget
     deadline = t_start + args.budget
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    env, cwd = step_env(lib, work or ROOT)
+    if built is not None:
+        report["steps"]["build"] = built
+        report["built_into"] = str(lib)
     for step in steps:
         left = deadline - time.perf_counter()
-        res = run_step(step, min(step.timeout_s, left), env)
+        res = run_step(step, min(step.timeout_s, left), env, cwd)
         report["steps"][step.name] = res
         print(f"{step.name:18s} {res['status']:8s} {res.get('seconds', 0):7.1f} s  {res.get('reason', '')}",
               flush=True)

@@ -43,13 +43,15 @@ def test_preflight_fails_in_one_line_naming_the_problem(facts, words):
         assert w in msg, (w, msg)
 
 
-def test_validate_here_exits_nonzero_in_one_line(tmp_path):
+@pytest.mark.parametrize("extra", [[], ["--build"]], ids=["plain", "build"])
+def test_validate_here_exits_nonzero_in_one_line(tmp_path, extra):
+    """No GPU: one line and exit 2 -- with --build too, before anything is compiled."""
     import torch
 
     if torch.cuda.is_available():
         pytest.skip("a GPU is visible here")
     out = tmp_path / "r.json"
-    r = subprocess.run([sys.executable, "-m", "modi_ext.validate", "--json", str(out)], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "modi_ext.validate", "--json", str(out), *extra], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("validate: "), r.stderr
@@ -158,3 +160,51 @@ def test_fk_under_ext_raises_on_a_device_without_fk_kernels(monkeypatch):
     q = torch.tensor([[[1.0, 0.0, 0.0, 0.0]] * 2])
     with pytest.raises(RuntimeError, match="no CPU FK kernels"):
         fk(q, torch.ones(2, 3), [-1, 0], torch.zeros(1, 3))
+
+
+# ------------------------------------------------------------------------------------------------ --build
+def test_build_goes_into_a_temporary_folder_not_the_checkout(tmp_path, monkeypatch):
+    seen = {}
+
+    def fake_group(cmd, timeout_s, env=None, cwd=validate.ROOT):
+        seen.update(cmd=cmd, env=env, cwd=cwd, timeout_s=timeout_s)
+        pkg = Path(cmd[cmd.index("--build-base") + 1]) / "lib.linux-x86_64-cpython-311" / "modi_ext"
+        pkg.mkdir(parents=True)
+        (pkg / "__init__.py").write_text("")
+        return 0, "built", False
+
+    monkeypatch.setattr(validate, "run_group", fake_group)
+    lib, res = validate.build_extension(tmp_path, 42.0)
+    assert res["status"] == "pass" and lib == tmp_path / "build" / "lib.linux-x86_64-cpython-311"
+    assert seen["cmd"][1:5] == ["setup.py", "-q", "build", "--build-base"] and "--inplace" not in seen["cmd"]
+    assert Path(seen["cmd"][5]).is_relative_to(tmp_path) and seen["timeout_s"] == 42.0
+    assert seen["env"]["MODI_EXT_CUDA"] == "1" and seen["env"]["MODI_EXT_EMU"] == "0"
+
+
+def test_a_failed_build_is_reported_not_used(tmp_path, monkeypatch):
+    monkeypatch.setattr(validate, "run_group", lambda cmd, t, env=None, cwd=None: (1, "nvcc fatal: boom", False))
+    lib, res = validate.build_extension(tmp_path, 10.0)
+    assert lib is None and res["status"] == "fail" and "nvcc fatal" in res["tail"]
+    monkeypatch.setattr(validate, "run_group", lambda cmd, t, env=None, cwd=None: (None, "", True))
+    assert validate.build_extension(tmp_path, 10.0)[1]["status"] == "timeout"
+
+
+def test_the_steps_import_the_build_not_the_checkout(tmp_path):
+    """With --build every step runs with the built packages first on PYTHONPATH and outside the checkout, so even
+    ``python -m`` (which puts the working folder first on sys.path) imports the build."""
+    lib = tmp_path / "lib"
+    (lib / "modi_ext").mkdir(parents=True)
+    (lib / "modi_ext" / "__init__.py").write_text("")
+    (lib / "modi_ext" / "where.py").write_text("print('BUILT', __file__)\n")
+    env, cwd = validate.step_env(lib, tmp_path)
+    assert env["PYTHONPATH"].split(os.pathsep)[0] == str(lib) and cwd == tmp_path
+    rc, out, _ = validate.run_group([sys.executable, "-m", "modi_ext.where"], 60, env, cwd)
+    assert rc == 0 and out.startswith("BUILT") and str(lib) in out, out
+    env, cwd = validate.step_env(None, tmp_path)  # no build: the checkout
+    assert env["PYTHONPATH"].split(os.pathsep)[0] == str(validate.ROOT) and cwd == validate.ROOT
+
+
+def test_dry_run_lists_the_build_inside_the_budget(capsys):
+    assert validate.main(["--dry-run", "--build"]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("build") and "--build-base" in out and "budget 600 s" in out
