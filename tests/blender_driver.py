@@ -4,6 +4,7 @@ steps CONFIG names and writes what it saw to CONFIG["out"] (JSON, plus .npy join
 to check. Nothing here decides pass or fail; it only records.
 
 Steps (each records the operator's return set and ``STATE["result"]``, the add-on's one-line outcome):
+  fbx                 bones renamed Mixamo-style, the armature through Blender's FBX exporter and importer
   learn, generate     Learn the imported action; Generate variations (positions of every new action dumped)
   generate_keyframes  Generate following the source action's key frames, with foot-contact cleanup
   generate_bad_ckpt   Generate from a copy of the run whose checkpoint is junk (a failing modi command)
@@ -86,6 +87,10 @@ def setup():
     return arm
 
 
+def active():
+    return bpy.context.view_layer.objects.active
+
+
 def step_learn(arm):
     r = call(bpy.ops.modi.learn)
     r["run_dir"] = bpy.path.abspath(bpy.context.scene.modi.run_dir)
@@ -158,7 +163,33 @@ def step_sample_modi(arm, interpolate=False):
     return r
 
 
-STEPS = {"learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
+def step_fbx(arm):
+    """A Mixamo-style FBX character: bones renamed 'mixamorig:<name>', exported with Blender's FBX exporter,
+    the scene emptied, imported back with Blender's FBX importer (its own bone orientations, an object transform
+    of its own); the imported armature becomes the active one for the steps that follow."""
+    for b in arm.data.bones:
+        b.name = "mixamorig:" + b.name
+    lo, hi = arm.animation_data.action.frame_range
+    bpy.context.scene.frame_start, bpy.context.scene.frame_end = int(round(lo)), int(round(hi))  # what FBX bakes
+    path = os.path.join(OUT, "character.fbx")
+    bpy.ops.export_scene.fbx(filepath=path, object_types={"ARMATURE"}, bake_anim=True, add_leaf_bones=False,
+                             bake_anim_use_all_actions=False, bake_anim_use_nla_strips=False)
+    for o in list(bpy.data.objects):
+        bpy.data.objects.remove(o)
+    for a in list(bpy.data.actions):
+        bpy.data.actions.remove(a)
+    bpy.ops.import_scene.fbx(filepath=path, automatic_bone_orientation=True)
+    new = [o for o in bpy.data.objects if o.type == "ARMATURE"][0]
+    bpy.context.view_layer.objects.active = new
+    new.select_set(True)
+    REC["armature"], REC["source_action"] = new.name, new.animation_data.action.name
+    lo, hi = new.animation_data.action.frame_range
+    return {"armature": new.name, "action": new.animation_data.action.name, "frames": int(round(hi - lo)) + 1,
+            "matrix_world": [list(r) for r in new.matrix_world], "bones": [b.name for b in new.data.bones][:3],
+            "frame_start": int(round(lo))}
+
+
+STEPS = {"fbx": step_fbx, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
          "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
          "broken_path": step_broken_path, "sample_modi": step_sample_modi,
          "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True)}
@@ -237,7 +268,7 @@ try:
             gui_cancel_resume(ARM)
             break  # the event loop takes over; the timer saves and quits
         t = time.time()
-        REC["steps"][name] = STEPS[name](ARM)
+        REC["steps"][name] = STEPS[name](active())
         REC["steps"][name]["seconds"] = round(time.time() - t, 2)
         save()
 except Exception:

@@ -237,10 +237,18 @@ def _fill(fc, frames: list, values: list) -> None:
 
 def action_from_bvh(obj, bvh: Bvh, name: str, frame_start: int = 1):
     """A new action on armature ``obj`` that plays ``bvh`` (joints matched to bones by name, see
-    :func:`joint_name`; bones the file lacks keep their rest pose relative to their parent). Every bone the file
+    :func:`joint_name`, or by the name without its namespace prefix; bones the file lacks keep their rest pose relative to their parent). Every bone the file
     has gets location and rotation keys in its own rotation mode."""
     bones = bone_order(obj.data)
     by_joint = {joint_name(b.name): b for b in bones}
+    # a namespace prefix ('mixamorig:Hips') may be gone from the file (modi's reader drops it): match the rest too,
+    # where that is unambiguous
+    bare = {}
+    for b in bones:
+        bare.setdefault(joint_name(b.name).rsplit(":", 1)[-1], []).append(b)
+    for n, bs in bare.items():
+        if len(bs) == 1:
+            by_joint.setdefault(n, bs[0])
     missing = [n for n in bvh.names if n not in by_joint]
     if missing:
         raise RigError(f"the BVH's joints {missing[:5]} are not bones of {obj.name!r} (it was made for another rig)")
