@@ -1,4 +1,4 @@
-// The emulator's scheduler: one fiber (ucontext) per CUDA thread, blocks run one at a time on the calling thread.
+// The emulator's scheduler: one fiber per CUDA thread, blocks run one at a time on the calling thread.
 // See cuda_emu.h for what it checks.  Everything here is test-only code.
 #include "emu/cuda_emu.h"
 
@@ -22,11 +22,86 @@
 
 #include "emu/emu_control.h"
 
+// ------------------------------------------------------------------------------------------------ context switch
+// x86-64 (not under AddressSanitizer): a minimal System V switch -- the callee-saved registers, the stack pointer and
+// the SSE / x87 control words, i.e. what a function call preserves.  glibc's swapcontext also saves the signal mask
+// with a system call on every switch, which made the switches most of the emulator's time.  Elsewhere, and in the
+// AddressSanitizer build (which knows ucontext stacks), ucontext.
+#if defined(__x86_64__) && !defined(__SANITIZE_ADDRESS__)
+#define MODI_EMU_FAST_SWITCH 1
+extern "C" __attribute__((visibility("hidden"))) void modi_emu_switch(void** save_sp, void* load_sp);
+asm(R"(
+  .text
+  .p2align 4
+  .globl modi_emu_switch
+  .hidden modi_emu_switch
+  .type modi_emu_switch,@function
+modi_emu_switch:
+  pushq %rbp
+  pushq %rbx
+  pushq %r12
+  pushq %r13
+  pushq %r14
+  pushq %r15
+  subq $16, %rsp
+  stmxcsr 8(%rsp)
+  fnstcw (%rsp)
+  movq %rsp, (%rdi)
+  movq %rsi, %rsp
+  fldcw (%rsp)
+  ldmxcsr 8(%rsp)
+  addq $16, %rsp
+  popq %r15
+  popq %r14
+  popq %r13
+  popq %r12
+  popq %rbx
+  popq %rbp
+  ret
+  .size modi_emu_switch, .-modi_emu_switch
+)");
+#else
+#define MODI_EMU_FAST_SWITCH 0
+#endif
+
 namespace modi_emu {
 
 thread_local ThreadCtx* g_ctx = nullptr;
 
 namespace {
+
+#if MODI_EMU_FAST_SWITCH
+struct Ctx {
+  void* sp = nullptr;
+};
+// A fresh context whose first switch "returns" into entry() on the given stack (never to return from it).
+void ctx_make(Ctx& c, unsigned char* stack, size_t size, void (*entry)()) {
+  auto* top = reinterpret_cast<unsigned char*>(reinterpret_cast<uintptr_t>(stack + size) & ~uintptr_t(15));
+  auto* sp = reinterpret_cast<uint64_t*>(top - 80);  // 16-aligned: entry() then starts with rsp = 8 (mod 16)
+  uint32_t mxcsr;
+  uint16_t fpcw;
+  asm volatile("stmxcsr %0" : "=m"(mxcsr));
+  asm volatile("fnstcw %0" : "=m"(fpcw));
+  std::memset(sp, 0, 80);
+  std::memcpy(sp, &fpcw, sizeof fpcw);                             // [sp + 0]  x87 control word
+  std::memcpy(reinterpret_cast<unsigned char*>(sp) + 8, &mxcsr, 4);  // [sp + 8]  MXCSR
+  sp[8] = reinterpret_cast<uint64_t>(entry);                        // [sp + 64] after r15..rbp: the "return"
+  c.sp = sp;
+}
+inline void ctx_switch(Ctx& from, const Ctx& to) { modi_emu_switch(&from.sp, to.sp); }
+#else
+struct Ctx {
+  ucontext_t uc;
+};
+void ctx_make(Ctx& c, unsigned char* stack, size_t size, void (*entry)()) {
+  getcontext(&c.uc);
+  c.uc.uc_stack.ss_sp = stack;
+  c.uc.uc_stack.ss_size = size;
+  c.uc.uc_link = nullptr;
+  makecontext(&c.uc, entry, 0);
+}
+inline void ctx_switch(Ctx& from, Ctx& to) { swapcontext(&from.uc, &to.uc); }
+#endif
 
 constexpr size_t kStackBytes = 256 * 1024;
 constexpr size_t kGuardBytes = 4096;
@@ -44,7 +119,7 @@ std::map<std::string, int64_t> g_counts;
 enum class St { Ready, Barrier, Warp, Done };
 
 struct Fiber {
-  ucontext_t uc;
+  Ctx uc;
   ThreadCtx ctx;
   St st = St::Ready;
   int line = 0;
@@ -89,7 +164,7 @@ struct Block {
   const LaunchSpec* spec = nullptr;
   std::string kname;
   std::vector<Fiber> f;
-  ucontext_t sched;
+  Ctx sched;
   int cur = -1;
   std::exception_ptr err;
   int err_thread = -1;
@@ -121,12 +196,12 @@ void fiber_entry() {
     }
   }
   b.f[me].st = St::Done;
-  swapcontext(&b.f[me].uc, &b.sched);  // never resumed
+  ctx_switch(b.f[me].uc, b.sched);  // never resumed
 }
 
 void yield_to_scheduler(Block& b) {
   Fiber& f = b.f[b.cur];
-  swapcontext(&f.uc, &b.sched);
+  ctx_switch(f.uc, b.sched);
   g_ctx = &f.ctx;
 }
 
@@ -168,11 +243,7 @@ void run_block(Block& b, const dim3& bid, uint64_t seed) {
     f.ctx.bdim = s.block;
     f.ctx.gdim = s.grid;
     f.ctx.linear = i;
-    getcontext(&f.uc);
-    f.uc.uc_stack.ss_sp = g_arena->stack(i);
-    f.uc.uc_stack.ss_size = kStackBytes;
-    f.uc.uc_link = nullptr;
-    makecontext(&f.uc, fiber_entry, 0);
+    ctx_make(f.uc, g_arena->stack(i), kStackBytes, fiber_entry);
   }
   std::vector<int> order(nt);
   std::iota(order.begin(), order.end(), 0);
@@ -223,7 +294,7 @@ void run_block(Block& b, const dim3& bid, uint64_t seed) {
       if (b.f[i].st != St::Ready) continue;
       b.cur = i;
       g_ctx = &b.f[i].ctx;
-      swapcontext(&b.sched, &b.f[i].uc);
+      ctx_switch(b.sched, b.f[i].uc);
       g_ctx = nullptr;
       b.cur = -1;
       if (b.err) break;
