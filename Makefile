@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip
 
-.PHONY: install demo test cmake-build bench
+.PHONY: install demo test test-cuda-emulated cmake-build bench
 
 install:
 	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy
@@ -16,6 +16,10 @@ demo: install
 
 test: install
 	$(PYTHON) -m pytest -q -p no:cacheprovider tests
+
+# The CUDA kernels on the CPU emulator, and again under AddressSanitizer (part of `make test` too).
+test-cuda-emulated: install
+	$(PYTHON) -m pytest -q -p no:cacheprovider -m cuda_emulated tests
 
 cmake-build:
 	cmake -S . -B build/cmake -DCMAKE_PREFIX_PATH="$$($(PYTHON) -c 'import torch; print(torch.utils.cmake_prefix_path)')"

@@ -7,8 +7,11 @@ Each case runs under two thread/block schedules (index order and a seeded permut
 bitwise equal (the kernels have no atomics, so any difference is a race) and match the float64 reference.
 
 What this proves without a GPU: the kernels' index math, padding/blur adjoints, tiling, split-K bookkeeping,
-barrier placement and the host code's launch geometry.  What it does not: real concurrency (memory-model races
-between warps that happen to be ordered here), speed, register/occupancy limits.
+barrier placement and the host code's launch geometry; that the shared payload (modi_ext.payload: validate's
+sanitizer steps, the GPU tests and the self-check) launches every instantiation the emulator registered; and that
+injected defects are caught -- through NaN poison (a dropped barrier, an off-by-one) and through the tolerance alone
+(a finite wrong scale).  Global memory bounds: tests/test_cuda_emulated_asan.py.  What it does not: real concurrency
+(memory-model races between warps that happen to be ordered here), speed, register/occupancy limits.
 
 Tolerances, relative to the largest reference magnitude: fp64 1e-9, fp32 5e-5, fp16 5e-3, bf16 3e-2 (inputs are
 rounded to the dtype first; the kernels accumulate half types in fp32, so the error is output rounding plus a few

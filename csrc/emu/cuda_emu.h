@@ -2,11 +2,15 @@
 // (-DMODI_EXT_EMULATE_CUDA) and runs them on the CPU, so CI exercises the CUDA code without a GPU.
 //
 // Model: blocks run one after another (in an order permuted by the schedule seed); every thread of a block is its
-// own fiber (ucontext), so __syncthreads() is a real barrier and warp intrinsics are warp barriers with an exchange.
+// own fiber (own stack; cuda_emu.cpp switches between them), so __syncthreads() is a real barrier and warp
+// intrinsics are warp barriers with an exchange.
 // Between barriers the threads run in an order permuted by the seed.  What the emulator reports that a GPU would
 // not: reads of unwritten shared memory / workspaces (filled with NaN, integers with their max value, before each
 // launch), out-of-range shared-array indices (C++ exception -> Python RuntimeError), barriers reached by only some
 // threads of a block, warp intrinsics with inactive or mismatched lanes, writes past dynamic shared memory.
+// Global memory is plain host memory here; tests/test_cuda_emulated_asan.py builds this module again with
+// AddressSanitizer, which then reports any access outside a tensor torch allocated.  Every kernel instantiation that
+// host code can launch registers itself at load time (KernelRegistration), so tests compare launched with launchable.
 // What it cannot show: real concurrency (memory-model races, atomics under contention), timing, register pressure.
 #pragma once
 
