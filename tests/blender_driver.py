@@ -8,6 +8,7 @@ Steps (each records the operator's return set and ``STATE["result"]``, the add-o
   learn, generate     Learn the imported action; Generate variations (positions of every new action dumped)
   generate_keyframes  Generate following the source action's key frames, with foot-contact cleanup
   generate_bad_ckpt   Generate from a copy of the run whose checkpoint is junk (a failing modi command)
+  bad_rig, one_frame  Learn on a copy with two root bones / with a one-frame action
   broken_path         Learn with the modi path pointing nowhere
   sample_modi         Sample a MoDi checkpoint (CONFIG["modi_ckpt"]); sample_modi_interpolate: between two seeds
   gui_cancel_resume   (needs a window) modal Learn, a counter timer ticking meanwhile, Cancel mid-training,
@@ -189,7 +190,43 @@ def step_fbx(arm):
             "frame_start": int(round(lo))}
 
 
-STEPS = {"fbx": step_fbx, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
+def _copy(arm, name):
+    obj = arm.copy()
+    obj.data = arm.data.copy()
+    obj.name = name
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def step_bad_rig(arm):
+    """A copy of the armature with a second root bone: Learn refuses before starting anything."""
+    obj = _copy(arm, "two_roots")
+    bpy.context.view_layer.objects.active = obj
+    bpy.ops.object.mode_set(mode="EDIT")
+    child = [b for b in obj.data.edit_bones if b.parent is not None][-1]
+    child.parent = None
+    bpy.ops.object.mode_set(mode="OBJECT")
+    try:
+        return call(bpy.ops.modi.learn)
+    finally:
+        bpy.context.view_layer.objects.active = arm
+
+
+def step_one_frame(arm):
+    """A copy of the armature whose action has one frame: modi refuses to train on it (a failing command)."""
+    obj = _copy(arm, "one_frame")
+    act = bpy.data.actions.new("one_frame_action")
+    fc = act.fcurves.new(f'pose.bones["{obj.pose.bones[0].name}"].location', index=0)
+    fc.keyframe_points.insert(1, 0.0)
+    obj.animation_data.action = act
+    bpy.context.view_layer.objects.active = obj
+    try:
+        return call(bpy.ops.modi.learn)
+    finally:
+        bpy.context.view_layer.objects.active = arm
+
+
+STEPS = {"fbx": step_fbx, "bad_rig": step_bad_rig, "one_frame": step_one_frame, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
          "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
          "broken_path": step_broken_path, "sample_modi": step_sample_modi,
          "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True)}

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from modi.cli import main
 from modi.commands.blender import blender_env, this_modi
 
 REPO = Path(__file__).resolve().parent.parent
@@ -94,8 +95,7 @@ def _blender(tmp: Path, addon_zip: Path, steps: list[str], gui: bool = False, ti
 def _positions(bvh: str, tmp: Path) -> tuple[np.ndarray, list[str]]:
     """modi's own forward kinematics of a BVH (Y up), turned into Blender's frame (Z up: x, -z, y)."""
     npy, names = tmp / "p.npy", tmp / "names.txt"
-    subprocess.run([sys.executable, "-m", "modi", "export-positions", bvh, str(npy), "--names", str(names)],
-                   check=True, capture_output=True)
+    assert main(["export-positions", bvh, str(npy), "--names", str(names)]) == 0
     p = np.load(npy).astype(np.float64)
     return np.stack([p[..., 0], -p[..., 2], p[..., 1]], -1), names.read_text().split()
 
@@ -121,7 +121,7 @@ def _one_line_cancel(step: dict) -> str:
 # ------------------------------------------------------------------------------------------ headless (blender -b)
 def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     rec = _blender(tmp_path, addon_zip, ["learn", "generate", "generate_keyframes", "generate_bad_ckpt",
-                                         "broken_path"], runner=runner)
+                                         "broken_path", "bad_rig", "one_frame"], runner=runner)
     assert rec["blender"].startswith("3.4" if runner == "blender" else "4."), rec["blender"]
     st = rec["steps"]
     learn = st["learn"]
@@ -163,6 +163,10 @@ def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     msg = _one_line_cancel(st["broken_path"])
     assert "modi command not found" in msg and "/nonexistent/modi" in msg, msg
     assert st["broken_path"]["new_run_folders"] == []  # nothing exported, nothing started
+    msg = _one_line_cancel(st["bad_rig"])
+    assert "root bones" in msg and "two_roots" in msg, msg
+    msg = _one_line_cancel(st["one_frame"])
+    assert msg.startswith("modi failed:") and "frame" in msg, msg
 
 
 def test_fbx_mixamo_style_character_learns_and_takes_its_variations(tmp_path, addon_zip, runner):

@@ -30,11 +30,11 @@ def joint_name(bone_name: str) -> str:
     return re.sub(r"\s+", "_", bone_name.strip()) or "_"
 
 
-def bone_order(arm) -> list:
-    """The armature's bones depth first from its one root (BVH has one root joint)."""
-    roots = [b for b in arm.bones if b.parent is None]
+def bone_order(obj) -> list:
+    """The armature object's bones depth first from its one root (BVH has one root joint)."""
+    roots = [b for b in obj.data.bones if b.parent is None]
     if len(roots) != 1:
-        raise RigError(f"armature {arm.name!r} has {len(roots)} root bones; modi needs exactly one "
+        raise RigError(f"armature {obj.name!r} has {len(roots)} root bones; modi needs exactly one "
                        "(parent the others under one root bone)")
     out, stack = [], [roots[0]]
     while stack:
@@ -58,7 +58,7 @@ def export_action_bvh(obj, scene, path: str, frame_start: int, frame_end: int) -
     joint has 6 channels imports). Returns the number of frames written."""
     if frame_end < frame_start:
         raise RigError(f"no frames to export ({frame_start}..{frame_end})")
-    bones = bone_order(obj.data)
+    bones = bone_order(obj)
     index = {b.name: i for i, b in enumerate(bones)}
     parent = [index[b.parent.name] if b.parent else -1 for b in bones]
     M = obj.matrix_world.copy()
@@ -239,7 +239,7 @@ def action_from_bvh(obj, bvh: Bvh, name: str, frame_start: int = 1):
     """A new action on armature ``obj`` that plays ``bvh`` (joints matched to bones by name, see
     :func:`joint_name`, or by the name without its namespace prefix; bones the file lacks keep their rest pose relative to their parent). Every bone the file
     has gets location and rotation keys in its own rotation mode."""
-    bones = bone_order(obj.data)
+    bones = bone_order(obj)
     by_joint = {joint_name(b.name): b for b in bones}
     # a namespace prefix ('mixamorig:Hips') may be gone from the file (modi's reader drops it): match the rest too,
     # where that is unambiguous
