@@ -3,10 +3,12 @@ xvfb): installs the add-on zip with Blender's own operators, imports a BVH with 
 steps CONFIG names and writes what it saw to CONFIG["out"] (JSON, plus .npy joint positions) for the pytest side
 to check. Nothing here decides pass or fail; it only records.
 
-Steps (each records the operator's return set and ``STATE["result"]``, the add-on's one-line outcome):
+Steps (a step named twice is recorded the second time as "name#2"; each records the operator's return set and ``STATE["result"]``, the add-on's one-line outcome):
   fbx                 bones renamed Mixamo-style, the armature through Blender's FBX exporter and importer
   learn, generate     Learn the imported action; Generate variations (positions of every new action dumped)
   generate_keyframes  Generate following the source action's key frames, with foot-contact cleanup
+  learn_conditional   Learn a trajectory-conditioned run from the run in Run; generate_trajectory follows the
+                      source action's root path
   generate_bad_ckpt   Generate from a copy of the run whose checkpoint is junk (a failing modi command)
   bad_rig, one_frame  Learn on a copy with two root bones / with a one-frame action
   broken_path         Learn with the modi path pointing nowhere
@@ -226,7 +228,18 @@ def step_one_frame(arm):
         bpy.context.view_layer.objects.active = arm
 
 
-STEPS = {"fbx": step_fbx, "bad_rig": step_bad_rig, "one_frame": step_one_frame, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
+def step_learn_conditional(arm):
+    s = bpy.context.scene.modi
+    s.conditional = True
+    try:
+        r = step_learn(arm)
+    finally:
+        s.conditional = False
+    return r
+
+
+STEPS = {"fbx": step_fbx, "learn_conditional": step_learn_conditional,
+         "generate_trajectory": lambda arm: step_generate(arm, "trajectory"), "bad_rig": step_bad_rig, "one_frame": step_one_frame, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
          "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
          "broken_path": step_broken_path, "sample_modi": step_sample_modi,
          "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True)}
@@ -305,8 +318,9 @@ try:
             gui_cancel_resume(ARM)
             break  # the event loop takes over; the timer saves and quits
         t = time.time()
-        REC["steps"][name] = STEPS[name](active())
-        REC["steps"][name]["seconds"] = round(time.time() - t, 2)
+        key = name if name not in REC["steps"] else f"{name}#{sum(k.split('#')[0] == name for k in REC['steps']) + 1}"
+        REC["steps"][key] = STEPS[name](active())
+        REC["steps"][key]["seconds"] = round(time.time() - t, 2)
         save()
 except Exception:
     REC["error"] = traceback.format_exc()

@@ -169,6 +169,27 @@ def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     assert msg.startswith("modi failed:") and "frame" in msg, msg
 
 
+@needs_blender
+def test_trajectory_conditioned_run_follows_an_actions_root_path(tmp_path, addon_zip):
+    rec = _blender(tmp_path, addon_zip, ["learn_conditional", "learn", "learn_conditional", "generate_trajectory"],
+                   n=2, frames=0)
+    st = rec["steps"]
+    msg = _one_line_cancel(st["learn_conditional"])  # nothing trained yet to learn trajectories from
+    assert "trained run" in msg, msg
+    first, cond = st["learn"], st["learn_conditional#2"]
+    assert first["ret"] == ["FINISHED"] and cond["ret"] == ["FINISHED"], (first, cond)
+    run = Path(cond["run_dir"])
+    assert run.name.endswith("_traj_001") and (run / "ganimator.ckpt").is_file()
+    flags = json.loads((run / "modi_addon.json").read_text())["flags"]
+    assert flags[flags.index("--conditional-from") + 1] == first["run_dir"]  # what Resume will pass again
+    gen = st["generate_trajectory"]
+    assert gen["ret"] == ["FINISHED"] and len(gen["new_actions"]) == 2, gen
+    for name, dump in gen["dumps"].items():
+        assert dump["frames"] == rec["source_frames"], dump["frames"]  # the trajectory's length
+        assert (Path(dump["bvh"]).parent / "trajectory.bvh").is_file()
+        assert _rel_error(rec, dump, dump["bvh"], tmp_path) <= TOL
+
+
 def test_fbx_mixamo_style_character_learns_and_takes_its_variations(tmp_path, addon_zip, runner):
     """Blender's FBX importer gives the armature bone orientations and an object transform of its own and the
     bones have Mixamo's 'mixamorig:' names: the variations still land on it joint for joint."""

@@ -38,6 +38,9 @@ class ModiSettings(bpy.types.PropertyGroup):
         ("paper", "paper", "the published schedule: hours")])
     iterations: bpy.props.IntProperty(name="Iterations", default=0, min=0,
                                       description="iterations per block of levels (0: the preset's)")
+    conditional: bpy.props.BoolProperty(name="Trajectory-conditioned", default=False,
+                                        description="learn a model that follows a root path, from the trained "
+                                                    "run in Run (Generate's trajectory mode needs one)")
     n: bpy.props.IntProperty(name="Variations", default=4, min=1, max=256)
     frames: bpy.props.IntProperty(name="Frames", default=0, min=0, description="0: the learned action's length")
     seed: bpy.props.IntProperty(name="Seed", default=0, min=0)
@@ -81,6 +84,7 @@ class MODI_PT_panel(bpy.types.Panel):
         col.label(text="Learn the active action", icon="ACTION")
         col.prop(s, "preset")
         col.prop(s, "iterations")
+        col.prop(s, "conditional")
         row = col.row(align=True)
         row.enabled = not running
         row.operator("modi.learn", text="Learn", icon="PLAY")

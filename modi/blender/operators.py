@@ -8,6 +8,7 @@ failure of any kind ends the operator with ``CANCELLED`` and one line in the rep
 from __future__ import annotations
 
 import glob
+import json
 import os
 import re
 import shutil
@@ -165,16 +166,19 @@ class _ModiJob:
         return job is not None and job.poll() is None
 
 
-def _run_train(op, context, run: str, source: str):
-    s = context.scene.modi
-    argv = [modi_command(context), "ganimator", "train", source, "--out", run, "--preset", s.preset,
-            "--fps", str(max(1, int(round(scene_fps(context.scene)))))]
-    if s.iterations > 0:
-        argv += ["--iterations", str(s.iterations)]
+SETTINGS_NAME = "modi_addon.json"  # RUN/modi_addon.json: the training flags, so Resume passes the same ones
+
+
+def _run_train(op, context, run: str, flags: list):
+    argv = [modi_command(context), "ganimator", "train", os.path.join(run, "source.bvh"), "--out", run, *flags]
     job = jobs.Job("training", argv, os.path.join(run, "modi_train.log"),
                    progress_path=os.path.join(run, "progress.json"), env=jobs.modi_env())
-    s.run_dir = run
+    context.scene.modi.run_dir = run
     return op.start(context, job, lambda ctx: f"trained: {os.path.basename(run)}")
+
+
+def _has_checkpoint(run: str) -> bool:
+    return bool(run) and os.path.isfile(os.path.join(run, "ganimator.ckpt"))
 
 
 class MODI_OT_learn(_ModiJob, bpy.types.Operator):
@@ -185,20 +189,31 @@ class MODI_OT_learn(_ModiJob, bpy.types.Operator):
     def execute(self, context):
         if self.busy():
             return self.refuse("modi is already running (Cancel it first)")
+        s = context.scene.modi
         try:
             modi_command(context)  # fail before exporting anything
             obj = active_armature(context)
             action = obj.animation_data.action
-            run = new_folder(runs_root(), f"{obj.name}_{action.name}")
-            source = os.path.join(run, "source.bvh")
-            export_action(obj, context.scene, action, source)
-            return _run_train(self, context, run, source)
+            flags = ["--preset", s.preset, "--fps", str(max(1, int(round(scene_fps(context.scene)))))]
+            if s.iterations > 0:
+                flags += ["--iterations", str(s.iterations)]
+            if s.conditional:
+                base = bpy.path.abspath(s.run_dir)
+                if not _has_checkpoint(base):
+                    raise Refused("a trajectory-conditioned run learns from a trained run: Learn the action "
+                                  "once without the option, then again with it (Run must hold that first run)")
+                flags += ["--conditional-from", base]
+            run = new_folder(runs_root(), f"{obj.name}_{action.name}" + ("_traj" if s.conditional else ""))
+            export_action(obj, context.scene, action, os.path.join(run, "source.bvh"))
+            with open(os.path.join(run, SETTINGS_NAME), "w") as fh:
+                json.dump({"flags": flags, "armature": obj.name, "action": action.name}, fh, indent=1)
+            return _run_train(self, context, run, flags)
         except (Refused, rig_io.RigError, RuntimeError, OSError) as e:
             return self.refuse(str(e))
 
 
 class MODI_OT_resume(_ModiJob, bpy.types.Operator):
-    """Continue the run folder's training where it stopped"""
+    """Continue the run folder's training where it stopped (with the flags it was started with)"""
     bl_idname = "modi.resume"
     bl_label = "Resume Training"
 
@@ -206,11 +221,14 @@ class MODI_OT_resume(_ModiJob, bpy.types.Operator):
         if self.busy():
             return self.refuse("modi is already running")
         run = bpy.path.abspath(context.scene.modi.run_dir)
-        source = os.path.join(run, "source.bvh")
-        if not os.path.isfile(source):
-            return self.refuse(f"{run or '(no run folder)'}: not a run the add-on started (no source.bvh)")
         try:
-            return _run_train(self, context, run, source)
+            with open(os.path.join(run, SETTINGS_NAME)) as fh:
+                flags = [str(f) for f in json.load(fh)["flags"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            return self.refuse(f"{run or '(no run folder)'}: not a run the add-on started (no readable "
+                               f"{SETTINGS_NAME}); resume it with 'modi ganimator train' and its own flags")
+        try:
+            return _run_train(self, context, run, flags)
         except (Refused, RuntimeError, OSError) as e:
             return self.refuse(str(e))
 
