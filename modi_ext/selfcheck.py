@@ -7,8 +7,9 @@ kernels get a real call and routes that pair to the dense path if anything here 
 The problems are ``modi_ext.payload``'s, so the check launches every kernel instantiation of its dtype -- what MoDi
 trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
 and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
-plan with rotation and offsets gradients.  Milliseconds on a GPU; about 0.5 s per dtype on the CPU emulator
-(``tests/test_cuda_emulated.py`` prints it), 0.1 s on the CPU kernels.
+plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
+ops hand to the kernels (``modi_ext.demod``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
+on the CPU emulator (``tests/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
 
 It calls the raw kernels of a table (``modi_ext.kernels``), not the autograd ops, so it imports nothing above it.
 """
@@ -16,9 +17,19 @@ from __future__ import annotations
 
 import torch
 
-from modi_ext import kernels, payload
+from modi_ext import demod, kernels, payload
 
 TOL = payload.TOL
+
+
+def _demod_error(case: payload.SkeletalCase, device: str, dtype: torch.dtype) -> float:
+    """The demodulation coefficients the public ops hand to the kernels (``modi_ext.demod``: a C++ op on the CPU)
+    against the float64 formula."""
+    p = payload.skeletal_inputs(case, dtype)
+    dev = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731
+    d = demod.demod_scale(dev(p["w"]), p["index"].to(device), p["offsets"].to(device), dev(p["s"]), case.kind == "up",
+                          p["n_out"], case.B)
+    return payload.rel_error(d, p["d"])
 
 
 def _families(lib: str, device_type: str) -> tuple[str, ...]:
@@ -56,6 +67,15 @@ def run(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> dict:
                 errors[op] = f"raised {type(exc).__name__}: {msg} ({case.name})"
                 continue
             worst[op] = max(worst.get(op, 0.0), fwd, bwd)
+            if lib == kernels.LIB and isinstance(case, payload.SkeletalCase) and "demod_scale" not in errors:
+                try:
+                    err = _demod_error(case, device, dtype)
+                except Exception as exc:  # noqa: BLE001
+                    errors["demod_scale"] = f"raised {type(exc).__name__}: {str(exc).splitlines()[0]} ({case.name})"
+                else:
+                    worst["demod_scale"] = max(worst.get("demod_scale", 0.0), err)
+                    if err > tol:
+                        errors["demod_scale"] = f"error {err:.3g} > {tol:.1g} ({case.name})"
             if fwd > tol:
                 errors[op] = f"forward error {fwd:.3g} > {tol:.1g} ({case.name})"
             elif bwd > payload.GRAD_FACTOR * tol:

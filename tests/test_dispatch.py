@@ -295,6 +295,16 @@ def test_selfcheck_covers_what_training_runs(monkeypatch):
     torch.testing.assert_close(pos, fk_reference(q, off, PARENTS, root))
 
 
+@needs_ext
+def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch):
+    from modi_ext import demod, selfcheck
+
+    real = demod.demod_scale
+    monkeypatch.setattr(demod, "demod_scale", lambda *a: real(*a) * 1.01)
+    res = selfcheck.run("cpu", torch.float32)
+    assert not res["ok"] and set(res["errors"]) == {"demod_scale"} and "error" in res["errors"]["demod_scale"]
+
+
 def test_one_selfcheck_key_per_device(monkeypatch):
     """'cuda' and 'cuda:0' (the current device) are one cache entry; validate and routing share it."""
     from modi_ext import kernels, selfcheck
