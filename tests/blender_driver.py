@@ -41,9 +41,17 @@ def save():
         json.dump(REC, fh, indent=1)
 
 
+# "addon": the legacy installer (Blender 3.4 and 4.x); "extension": Blender 4.2+'s extension installer
+MODULE = "bl_ext.user_default.modi_blender" if CFG.get("install") == "extension" else "modi_blender"
+
+
+def operators():
+    import importlib
+    return importlib.import_module(MODULE + ".operators")
+
+
 def state():
-    from modi_blender import operators
-    return operators.STATE
+    return operators().STATE
 
 
 def call(op, **kw):
@@ -73,9 +81,13 @@ def dump_positions(obj, action, tag):
 
 
 def setup():
-    bpy.ops.preferences.addon_install(filepath=CFG["zip"])
-    bpy.ops.preferences.addon_enable(module="modi_blender")
-    bpy.context.preferences.addons["modi_blender"].preferences.modi_path = CFG["modi"]
+    if CFG.get("install") == "extension":
+        bpy.ops.extensions.package_install_files(filepath=CFG["zip"], repo="user_default", enable_on_install=True)
+    else:
+        bpy.ops.preferences.addon_install(filepath=CFG["zip"])
+        bpy.ops.preferences.addon_enable(module=MODULE)
+    REC["module"] = MODULE
+    bpy.context.preferences.addons[MODULE].preferences.modi_path = CFG["modi"]
     for o in list(bpy.data.objects):
         bpy.data.objects.remove(o)
     bpy.ops.import_anim.bvh(filepath=CFG["bvh"], update_scene_fps=True, update_scene_duration=True)
@@ -136,7 +148,7 @@ def step_generate_bad_ckpt(arm):
 
 
 def step_broken_path(arm):
-    prefs = bpy.context.preferences.addons["modi_blender"].preferences
+    prefs = bpy.context.preferences.addons[MODULE].preferences
     keep, prefs.modi_path = prefs.modi_path, "/nonexistent/modi"
     runs = sorted(os.listdir(state_runs_root())) if os.path.isdir(state_runs_root()) else []
     try:
@@ -148,8 +160,7 @@ def step_broken_path(arm):
 
 
 def state_runs_root():
-    from modi_blender import operators
-    return operators.runs_root()
+    return operators().runs_root()
 
 
 def step_sample_modi(arm, interpolate=False):

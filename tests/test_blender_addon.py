@@ -207,6 +207,17 @@ def test_fbx_mixamo_style_character_learns_and_takes_its_variations(tmp_path, ad
         assert err <= TOL, f"{name}: joint positions differ from modi's by {err:.2e} of the body height"
 
 
+def test_installs_as_a_blender_4_extension_too(tmp_path, addon_zip):
+    """Blender 4.2+ also takes the zip as an extension (its manifest): the operators then live under the
+    extension's module name and still find their preferences."""
+    if not BPY_PYTHON.is_file():
+        pytest.skip(NO_BPY)
+    rec = _blender(tmp_path, addon_zip, ["learn", "broken_path"], runner="bpy", install="extension")
+    assert rec["module"] == "bl_ext.user_default.modi_blender"
+    assert rec["steps"]["learn"]["ret"] == ["FINISHED"], rec["steps"]["learn"]
+    assert "modi command not found" in _one_line_cancel(rec["steps"]["broken_path"])
+
+
 @pytest.fixture(scope="module")
 def modi_checkpoint(tmp_path_factory) -> Path:
     run = tmp_path_factory.mktemp("modi") / "run"
