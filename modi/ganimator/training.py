@@ -129,7 +129,8 @@ def read_checkpoint(run: str | Path) -> dict:
     try:
         ck = load_data(path, "GANimator checkpoint", allowed=earlier_modi_globals(), hint=f"; {_INSTEAD}")
     except UnreadableFileError as exc:  # a truncated or foreign file
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc.reason}") from None
+        raise CheckpointError(f"cannot read checkpoint {path}: not a checkpoint, or a truncated/damaged one "
+                              f"({exc.reason})") from None
     if not isinstance(ck, dict) or ck.get("format") != FORMAT:
         found = ck.get("format") if isinstance(ck, dict) else None
         what = "a MoDi checkpoint: sample it with 'modi generate'" if found == "modi-checkpoint" else _INSTEAD
