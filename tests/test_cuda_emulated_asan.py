@@ -45,7 +45,7 @@ def _libasan() -> str:
 
 
 def _build(build: Path) -> Path:
-    """Compile the emulated module with AddressSanitizer (ninja: incremental, two jobs); returns the .so path."""
+    """Compile the emulated module with AddressSanitizer (ninja: incremental, one job per CPU); returns the .so."""
     import torch
     from torch.utils import cpp_extension
 
@@ -71,7 +71,8 @@ def _build(build: Path) -> Path:
         lines.append(f"build {obj}: cc {CSRC / 'emu' / src}")
     lines.append(f"build {out.name}: link {' '.join(objs)}")
     (build / "build.ninja").write_text("\n".join(lines) + "\n")
-    r = subprocess.run(["ninja", "-C", str(build), "-j", "2"], capture_output=True, text=True)
+    jobs = str(max(2, os.cpu_count() or 2))
+    r = subprocess.run(["ninja", "-C", str(build), "-j", jobs], capture_output=True, text=True)
     assert r.returncode == 0, f"the AddressSanitizer build failed:\n{r.stdout[-4000:]}\n{r.stderr[-4000:]}"
     return out
 

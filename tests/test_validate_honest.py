@@ -179,6 +179,8 @@ def test_build_goes_into_a_temporary_folder_not_the_checkout(tmp_path, monkeypat
     assert seen["cmd"][1:5] == ["setup.py", "-q", "build", "--build-base"] and "--inplace" not in seen["cmd"]
     assert Path(seen["cmd"][5]).is_relative_to(tmp_path) and seen["timeout_s"] == 42.0
     assert seen["env"]["MODI_EXT_CUDA"] == "1" and seen["env"]["MODI_EXT_EMU"] == "0"
+    validate.build_extension(tmp_path / "e", 42.0, emulated=True)  # --emulated: its tests import the emulated module
+    assert seen["env"]["MODI_EXT_EMU"] == "1"
 
 
 def test_a_failed_build_is_reported_not_used(tmp_path, monkeypatch):
