@@ -26,8 +26,9 @@
 // x86-64 (not under AddressSanitizer): a minimal System V switch -- the callee-saved registers, the stack pointer and
 // the SSE / x87 control words, i.e. what a function call preserves.  glibc's swapcontext also saves the signal mask
 // with a system call on every switch, which made the switches most of the emulator's time.  Elsewhere, and in the
-// AddressSanitizer build (which knows ucontext stacks), ucontext.
-#if defined(__x86_64__) && !defined(__SANITIZE_ADDRESS__)
+// AddressSanitizer build (which knows ucontext stacks) and under -fcf-protection (__CET__: a shadow stack would refuse
+// the switch's `ret` onto another stack; glibc's swapcontext handles it), ucontext.
+#if defined(__x86_64__) && !defined(__SANITIZE_ADDRESS__) && !defined(__CET__)
 #define MODI_EMU_FAST_SWITCH 1
 extern "C" __attribute__((visibility("hidden"))) void modi_emu_switch(void** save_sp, void* load_sp);
 asm(R"(
