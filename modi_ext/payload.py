@@ -15,8 +15,7 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
   ``scale_grad_kernel``; conv / down and up: the plain and the blur (adjoint) variants;
 * FK, one joint count per launch plan of ``fk_cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
   else a global workspace; each at a plan boundary), 40 samples (a partial block and a partial warp), rotation
-  and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle
-  offsets reduction.
+  and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction.
 
 Everything calls the raw ops of a kernel table (``modi_ext.kernels.kernel_table``), never autograd, so the same
 list runs on ``torch.ops.modi_ext`` (CPU or CUDA) and on the emulator's ``torch.ops.modi_ext_emu``.
