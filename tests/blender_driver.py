@@ -14,7 +14,7 @@ Steps (a step named twice is recorded the second time as "name#2"; each records 
   broken_path         Learn with the modi path pointing nowhere
   sample_modi         Sample a MoDi checkpoint (CONFIG["modi_ckpt"]); sample_modi_interpolate: between two seeds
   gui_cancel_resume   (needs a window) modal Learn, a counter timer ticking meanwhile, Cancel mid-training,
-                      Resume to the end
+                      Resume to the end, then Learn again and quit Blender while it trains
 """
 import builtins
 import json
@@ -308,7 +308,14 @@ def gui_cancel_resume(arm):
             elif g["phase"] == "resuming" and st["job"] is None:
                 g["after_resume"] = list(st["result"])
                 g["progress_after_resume"] = progress()
-                g["phase"] = "done"
+                g["relearn_ret"] = op(bpy.ops.modi.learn)  # a new run, then Blender quits while it trains
+                g["quit_run"] = bpy.path.abspath(bpy.context.scene.modi.run_dir)
+                g["phase"] = "quit_while_training"
+            elif g["phase"] == "quit_while_training":
+                p = progress()
+                if p and p.get("state") == "training" and p.get("done_iterations", 0) >= 1:
+                    g["progress_before_quit"] = p
+                    g["phase"] = "done"
         except Exception:
             g["error"] = traceback.format_exc()
             g["phase"] = "done"

@@ -265,6 +265,12 @@ def test_modal_training_keeps_the_ui_running_cancel_saves_and_resume_finishes(tm
     assert g["after_resume"][0] == "FINISHED", g
     done = g["progress_after_resume"]
     assert done["state"] == "done" and done["done_iterations"] == done["total_iterations"], done
+    # Blender quit while a second run trained: the add-on stopped it the way Cancel does, nothing left running
+    quit_run = Path(g["quit_run"])
+    assert g["relearn_ret"] == ["RUNNING_MODAL"] and quit_run.name.endswith("_002"), quit_run
+    after_quit = json.loads((quit_run / "progress.json").read_text())
+    assert after_quit["state"] == "stopped" and (quit_run / "ganimator.ckpt").is_file(), after_quit
+    assert "SIGTERM" in (quit_run / "modi_train.log").read_text()
 
 
 # ------------------------------------------------------------------------------------------ modi blender install

@@ -11,6 +11,7 @@ bl_info = {
     "category": "Animation",
 }
 
+import atexit
 import shutil
 import textwrap
 
@@ -127,9 +128,12 @@ def register():
     for c in _CLASSES:
         bpy.utils.register_class(c)
     bpy.types.Scene.modi = bpy.props.PointerProperty(type=ModiSettings)
+    atexit.register(operators.stop_running_job)  # Blender quits: a running training saves and stops
 
 
 def unregister():
+    atexit.unregister(operators.stop_running_job)
+    operators.stop_running_job()
     del bpy.types.Scene.modi
     for c in reversed(_CLASSES):
         bpy.utils.unregister_class(c)

@@ -113,7 +113,8 @@ def status_line() -> str:
 
 # ------------------------------------------------------------------------------------------------- the modal base
 class _ModiJob:
-    """Start a job, poll it modally (UI) or wait for it (``blender -b``), then ``finish`` on success."""
+    """Start a job, poll it modally (UI) or wait for it (``blender -b``), then ``finish`` on success. Operators
+    implement ``run(context)``; ``execute`` wraps it."""
 
     def start(self, context, job: jobs.Job, finish=None):
         STATE["job"] = job
@@ -147,6 +148,8 @@ class _ModiJob:
             message = self._finish(context) if self._finish else job.outcome()
         except (rig_io.RigError, Refused, RuntimeError, OSError) as e:
             return self.refuse(str(e).splitlines()[0] if str(e) else e.__class__.__name__)
+        except Exception as e:  # noqa: BLE001 -- importing the result failed: one line, not a traceback
+            return self.refuse(f"modi add-on: importing the result failed: {e.__class__.__name__}: {e}")
         STATE["last"] = message
         STATE["result"] = ("FINISHED", message)
         self.report({"INFO"}, message)
@@ -160,6 +163,17 @@ class _ModiJob:
         self.report({level}, message)
         _redraw()
         return {"CANCELLED"}
+
+    def execute(self, context):
+        """``run`` with a last net: whatever goes wrong ends as one report line and CANCELLED, never a traceback
+        in the console (the job, if one started, is stopped: its run folder stays resumable)."""
+        try:
+            return self.run(context)
+        except Exception as e:  # noqa: BLE001 -- the operator's contract is one line, whatever failed
+            job = STATE["job"]
+            if job is not None and job.poll() is None and getattr(self, "_job", None) is job:
+                job.cancel()
+            return self.refuse(f"modi add-on: {e.__class__.__name__}: {e}")
 
     def busy(self) -> bool:
         job = STATE["job"]
@@ -186,7 +200,7 @@ class MODI_OT_learn(_ModiJob, bpy.types.Operator):
     bl_idname = "modi.learn"
     bl_label = "Learn Action"
 
-    def execute(self, context):
+    def run(self, context):
         if self.busy():
             return self.refuse("modi is already running (Cancel it first)")
         s = context.scene.modi
@@ -217,7 +231,7 @@ class MODI_OT_resume(_ModiJob, bpy.types.Operator):
     bl_idname = "modi.resume"
     bl_label = "Resume Training"
 
-    def execute(self, context):
+    def run(self, context):
         if self.busy():
             return self.refuse("modi is already running")
         run = bpy.path.abspath(context.scene.modi.run_dir)
@@ -252,7 +266,7 @@ class MODI_OT_generate(_ModiJob, bpy.types.Operator):
     bl_idname = "modi.generate"
     bl_label = "Generate Variations"
 
-    def execute(self, context):
+    def run(self, context):
         if self.busy():
             return self.refuse("modi is already running")
         s = context.scene.modi
@@ -306,7 +320,7 @@ class MODI_OT_sample_modi(_ModiJob, bpy.types.Operator):
 
     interpolate: bpy.props.BoolProperty(name="Interpolate", default=False)
 
-    def execute(self, context):
+    def run(self, context):
         if self.busy():
             return self.refuse("modi is already running")
         s = context.scene.modi
@@ -353,5 +367,15 @@ class MODI_OT_sample_modi(_ModiJob, bpy.types.Operator):
         return self.start(context, job, finish)
 
 
+def stop_running_job(wait: float = 20.0) -> None:
+    """Blender is quitting or the add-on is being disabled: SIGTERM the running job (training saves a resumable
+    checkpoint first) and give it ``wait`` seconds, so no orphaned modi keeps running unseen."""
+    job = STATE["job"]
+    if job is not None and job.poll() is None:
+        job.cancel()
+        job.wait(timeout=wait)
+    STATE["job"] = None
+
+
 CLASSES = (MODI_OT_learn, MODI_OT_resume, MODI_OT_cancel, MODI_OT_generate, MODI_OT_sample_modi)
-__all__ = ["STATE", "CLASSES", "status_line", "Refused"]
+__all__ = ["STATE", "CLASSES", "status_line", "stop_running_job", "Refused"]
