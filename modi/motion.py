@@ -57,6 +57,23 @@ def _euler_quats(euler: np.ndarray, orders: list[str], dtype: torch.dtype) -> Te
     return out
 
 
+def fold_dummy_root(parents, trans: np.ndarray, euler: np.ndarray, quat0: torch.Tensor, scale: float):
+    """Bandai's pattern: a *static* joint 0 (constant channels) whose only child carries the animated
+    translation (``joint_Root`` above ``Hips``). Joint 0 is rigid, so ``pos[a](t) = root + R0 @ t_a(t)``: returns
+    ``(root track with all of t_a moved in, a)`` (the child's offset is then zero), or None for any other file.
+    ``trans`` (F, J, 3) local translations, ``euler`` (F, J, 3) channel angles, ``quat0`` joint 0's rotation."""
+    children0 = [j for j, p in enumerate(parents) if p == 0]
+    if len(children0) != 1:
+        return None
+    a = children0[0]
+    root_static = np.ptp(trans[:, 0], axis=0).max() <= 1e-9 * scale and np.ptp(euler[:, 0], axis=0).max() <= 1e-9
+    child_moves = np.abs(trans[:, a] - trans[:, a].mean(axis=0)).max() > 1e-6 * scale
+    if not (root_static and child_moves):
+        return None
+    r0 = quat0.to(torch.float64).expand(trans.shape[0], 4)
+    return trans[:, 0] + quat_apply(r0, torch.from_numpy(trans[:, a])).numpy(), a
+
+
 @dataclass
 class Motion:
     """Local unit quaternions ``rotations (T, J, 4)`` (w,x,y,z, parent frame), ``root_positions (T, 3)``
@@ -149,13 +166,9 @@ class Motion:
         animated = dev > 1e-6 * scale
         animated[0] = False
 
-        children0 = [j for j, p in enumerate(b.parents) if p == 0]
-        root_static = np.ptp(trans[:, 0], axis=0).max() <= 1e-9 * scale and np.ptp(euler[:, 0], axis=0).max() <= 1e-9
-        if root_static and len(children0) == 1 and animated[children0[0]]:
-            a = children0[0]
-            # joint 0 is rigid, so pos[a](t) = root + R0 @ t_a(t); move all of t_a into the root trajectory
-            r0 = quats[0, 0].expand(b.n_frames, 4)
-            root = root + quat_apply(r0, torch.from_numpy(trans[:, a])).numpy()
+        folded = fold_dummy_root(b.parents, trans, euler, quats[0, 0], scale)
+        if folded is not None:
+            root, a = folded
             offsets[a] = 0.0
             animated[a] = False
         if animated.any():

@@ -279,6 +279,26 @@ def test_real_skeletons_reduce_and_find_feet(shared_data):
         load_sequence(root / "Crabnew" / "Crab-dance-long.bvh", cfg, like=salsa)
 
 
+def test_bandai_pelvis_motion_reaches_the_root_track(shared_data):
+    """Bandai files animate Hips' translation under a static joint_Root: read_clip must keep that motion (it
+    moves into the root track), so GANimator learns the pelvis moving, not a pelvis nailed at its rest offset."""
+    from modi.io import bvh as bvh_io
+    from modi.kinematics import forward_kinematics
+
+    path = shared_data / "bvh" / "bandai-namco-1" / "data" / "dataset-1_byebye_angry_001.bvh"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    b = bvh_io.load(str(path))
+    clip = read_clip(path)
+    exact, _ = forward_kinematics(clip.rotations, torch.from_numpy(b.local_translations()), b.parents,
+                                  torch.from_numpy(b.local_translations()[:, 0].copy()))
+    ours, _ = forward_kinematics(clip.rotations, clip.skeleton.offsets, b.parents, clip.root_positions)
+    height = float(exact[0, :, 1].max() - exact[0, :, 1].min())
+    assert float((exact[:, 1:] - ours[:, 1:]).abs().max()) < 1e-4 * height  # every joint but the dummy root
+    hips = exact[:, 1]
+    assert float((hips - hips.mean(0)).abs().max()) > 0.01 * height  # the pelvis really moves in this clip
+
+
 def test_iterations_help_names_the_coarse_multiplier_and_min_frames_is_the_shortest():
     import argparse
 

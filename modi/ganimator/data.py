@@ -235,8 +235,11 @@ class RawClip:
 
 
 def read_clip(path: str | Path) -> RawClip:
-    """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET)."""
+    """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET; other
+    joints' position channels are not used, as in the authors' loader, except Bandai's pattern, see
+    :func:`modi.motion.fold_dummy_root`)."""
     from modi.io import bvh as bvh_io
+    from modi.motion import fold_dummy_root
     from modi.rotations import euler_to_quat
 
     p = Path(path)
@@ -251,8 +254,19 @@ def read_clip(path: str | Path) -> RawClip:
     for order in set(orders):
         idx = [j for j, o in enumerate(orders) if o == order]
         quats[:, idx] = euler_to_quat(eul[:, idx], order)
-    root = torch.from_numpy(b.local_translations()[:, 0].copy())
-    return RawClip(b.skeleton(), quats, root, b.fps)
+    trans = b.local_translations()
+    skeleton = b.skeleton()
+    scale = float(np.ptp(skeleton.rest_positions(), axis=0).max()) or 1.0
+    folded = fold_dummy_root(b.parents, trans, b.euler_degrees(), quats[0, 0], scale)
+    if folded is None:
+        root = trans[:, 0].copy()
+    else:  # Bandai's static joint_Root above an animated Hips: the pelvis motion goes into the root track
+        root, a = folded
+        offsets = skeleton.offsets.copy()
+        offsets[a] = 0.0
+        skeleton = Skeleton(names=list(skeleton.names), parents=list(skeleton.parents), offsets=offsets,
+                            end_sites=dict(skeleton.end_sites), rotation_orders=list(skeleton.rotation_orders))
+    return RawClip(skeleton, quats, torch.from_numpy(np.ascontiguousarray(root)), b.fps)
 
 
 def subset_clip(clip: RawClip, keep: list[int]) -> RawClip:
