@@ -165,15 +165,20 @@ class _ModiJob:
         return {"CANCELLED"}
 
     def execute(self, context):
-        """``run`` with a last net: whatever goes wrong ends as one report line and CANCELLED, never a traceback
-        in the console (the job, if one started, is stopped: its run folder stays resumable)."""
+        """One job at a time, then ``run``; whatever goes wrong ends as one report line and CANCELLED, never a
+        traceback in the console (a job this operator started is stopped: its run folder stays resumable)."""
         try:
             return self.run(context)
+        except (Refused, rig_io.RigError, RuntimeError, OSError) as e:  # the expected refusals: their own line
+            return self._abandon(str(e))
         except Exception as e:  # noqa: BLE001 -- the operator's contract is one line, whatever failed
-            job = STATE["job"]
-            if job is not None and job.poll() is None and getattr(self, "_job", None) is job:
-                job.cancel()
-            return self.refuse(f"modi add-on: {e.__class__.__name__}: {e}")
+            return self._abandon(f"modi add-on: {e.__class__.__name__}: {e}")
+
+    def _abandon(self, message: str):
+        job = getattr(self, "_job", None)
+        if job is not None and job.poll() is None:
+            job.cancel()
+        return self.refuse(message)
 
     def busy(self) -> bool:
         job = STATE["job"]
@@ -201,29 +206,24 @@ class MODI_OT_learn(_ModiJob, bpy.types.Operator):
     bl_label = "Learn Action"
 
     def run(self, context):
-        if self.busy():
-            return self.refuse("modi is already running (Cancel it first)")
         s = context.scene.modi
-        try:
-            modi_command(context)  # fail before exporting anything
-            obj = active_armature(context)
-            action = obj.animation_data.action
-            flags = ["--preset", s.preset, "--fps", str(max(1, int(round(scene_fps(context.scene)))))]
-            if s.iterations > 0:
-                flags += ["--iterations", str(s.iterations)]
-            if s.conditional:
-                base = bpy.path.abspath(s.run_dir)
-                if not _has_checkpoint(base):
-                    raise Refused("a trajectory-conditioned run learns from a trained run: Learn the action "
-                                  "once without the option, then again with it (Run must hold that first run)")
-                flags += ["--conditional-from", base]
-            run = new_folder(runs_root(), f"{obj.name}_{action.name}" + ("_traj" if s.conditional else ""))
-            export_action(obj, context.scene, action, os.path.join(run, "source.bvh"))
-            with open(os.path.join(run, SETTINGS_NAME), "w") as fh:
-                json.dump({"flags": flags, "armature": obj.name, "action": action.name}, fh, indent=1)
-            return _run_train(self, context, run, flags)
-        except (Refused, rig_io.RigError, RuntimeError, OSError) as e:
-            return self.refuse(str(e))
+        modi_command(context)  # fail before exporting anything
+        obj = active_armature(context)
+        action = obj.animation_data.action
+        flags = ["--preset", s.preset, "--fps", str(max(1, int(round(scene_fps(context.scene)))))]
+        if s.iterations > 0:
+            flags += ["--iterations", str(s.iterations)]
+        if s.conditional:
+            base = bpy.path.abspath(s.run_dir)
+            if not _has_checkpoint(base):
+                raise Refused("a trajectory-conditioned run learns from a trained run: Learn the action "
+                              "once without the option, then again with it (Run must hold that first run)")
+            flags += ["--conditional-from", base]
+        run = new_folder(runs_root(), f"{obj.name}_{action.name}" + ("_traj" if s.conditional else ""))
+        export_action(obj, context.scene, action, os.path.join(run, "source.bvh"))
+        with open(os.path.join(run, SETTINGS_NAME), "w") as fh:
+            json.dump({"flags": flags, "armature": obj.name, "action": action.name}, fh, indent=1)
+        return _run_train(self, context, run, flags)
 
 
 class MODI_OT_resume(_ModiJob, bpy.types.Operator):
@@ -232,8 +232,6 @@ class MODI_OT_resume(_ModiJob, bpy.types.Operator):
     bl_label = "Resume Training"
 
     def run(self, context):
-        if self.busy():
-            return self.refuse("modi is already running")
         run = bpy.path.abspath(context.scene.modi.run_dir)
         try:
             with open(os.path.join(run, SETTINGS_NAME)) as fh:
@@ -241,10 +239,7 @@ class MODI_OT_resume(_ModiJob, bpy.types.Operator):
         except (OSError, ValueError, KeyError, TypeError):
             return self.refuse(f"{run or '(no run folder)'}: not a run the add-on started (no readable "
                                f"{SETTINGS_NAME}); resume it with 'modi ganimator train' and its own flags")
-        try:
-            return _run_train(self, context, run, flags)
-        except (Refused, RuntimeError, OSError) as e:
-            return self.refuse(str(e))
+        return _run_train(self, context, run, flags)
 
 
 class MODI_OT_cancel(bpy.types.Operator):
@@ -267,31 +262,26 @@ class MODI_OT_generate(_ModiJob, bpy.types.Operator):
     bl_label = "Generate Variations"
 
     def run(self, context):
-        if self.busy():
-            return self.refuse("modi is already running")
         s = context.scene.modi
-        try:
-            exe = modi_command(context)
-            obj = active_armature(context, need_action=False)
-            run = bpy.path.abspath(s.run_dir)
-            if not os.path.isfile(os.path.join(run, "ganimator.ckpt")):
-                raise Refused(f"{run or '(no run folder)'}: no trained run here (Learn an action first)")
-            out = new_folder(os.path.join(run, "variations"), f"seed{s.seed}")
-            argv = [exe, "ganimator", "generate", run, "--out", out, "--n", str(s.n), "--seed", str(s.seed),
-                    "--no-gif", "--no-view", "--crowd-spacing", "0"]
-            if s.frames > 0:
-                argv += ["--frames", str(s.frames)]
-            if s.contact_cleanup:
-                argv.append("--ik")
-            if s.mode != "random":
-                action = bpy.data.actions.get(s.condition_action)
-                if action is None:
-                    raise Refused(f"choose the action that holds the {s.mode} (not found: {s.condition_action!r})")
-                cond = os.path.join(out, f"{s.mode}.bvh")
-                export_action(obj, context.scene, action, cond)
-                argv += [f"--{s.mode}", cond]
-        except (Refused, rig_io.RigError, RuntimeError, OSError) as e:
-            return self.refuse(str(e))
+        exe = modi_command(context)
+        obj = active_armature(context, need_action=False)
+        run = bpy.path.abspath(s.run_dir)
+        if not _has_checkpoint(run):
+            raise Refused(f"{run or '(no run folder)'}: no trained run here (Learn an action first)")
+        out = new_folder(os.path.join(run, "variations"), f"seed{s.seed}")
+        argv = [exe, "ganimator", "generate", run, "--out", out, "--n", str(s.n), "--seed", str(s.seed),
+                "--no-gif", "--no-view", "--crowd-spacing", "0"]
+        if s.frames > 0:
+            argv += ["--frames", str(s.frames)]
+        if s.contact_cleanup:
+            argv.append("--ik")
+        if s.mode != "random":
+            action = bpy.data.actions.get(s.condition_action)
+            if action is None:
+                raise Refused(f"choose the action that holds the {s.mode} (not found: {s.condition_action!r})")
+            cond = os.path.join(out, f"{s.mode}.bvh")
+            export_action(obj, context.scene, action, cond)
+            argv += [f"--{s.mode}", cond]
         base = obj.animation_data.action.name if obj.animation_data and obj.animation_data.action else obj.name
         seed, start = s.seed, context.scene.frame_start
         job = jobs.Job("generating", argv, os.path.join(out, "modi_generate.log"), env=jobs.modi_env())
@@ -321,18 +311,13 @@ class MODI_OT_sample_modi(_ModiJob, bpy.types.Operator):
     interpolate: bpy.props.BoolProperty(name="Interpolate", default=False)
 
     def run(self, context):
-        if self.busy():
-            return self.refuse("modi is already running")
         s = context.scene.modi
-        try:
-            exe = modi_command(context)
-            ckpt = bpy.path.abspath(s.modi_checkpoint)
-            if not os.path.isfile(ckpt):
-                raise Refused(f"{ckpt or '(no checkpoint)'}: choose a MoDi checkpoint ('modi train' writes one)")
-            out = new_folder(os.path.join(os.path.dirname(ckpt), "blender_samples"),
-                             "interp" if self.interpolate else f"psi{s.psi:.2f}_seed{s.modi_seed}")
-        except (Refused, OSError) as e:
-            return self.refuse(str(e))
+        exe = modi_command(context)
+        ckpt = bpy.path.abspath(s.modi_checkpoint)
+        if not os.path.isfile(ckpt):
+            raise Refused(f"{ckpt or '(no checkpoint)'}: choose a MoDi checkpoint ('modi train' writes one)")
+        out = new_folder(os.path.join(os.path.dirname(ckpt), "blender_samples"),
+                         "interp" if self.interpolate else f"psi{s.psi:.2f}_seed{s.modi_seed}")
         if self.interpolate:
             argv = [exe, "latent", "interpolate", ckpt, "--from", str(s.interp_from), "--to", str(s.interp_to),
                     "--steps", str(s.interp_steps), "--format", "glb", "--no-view", "--out", out]
