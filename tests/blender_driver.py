@@ -10,6 +10,7 @@ Steps (a step named twice is recorded the second time as "name#2"; each records 
   learn_conditional   Learn a trajectory-conditioned run from the run in Run; generate_trajectory follows the
                       source action's root path
   generate_bad_ckpt   Generate from a copy of the run whose checkpoint is junk (a failing modi command)
+  generate_import_crash  Generate with an injected bug in importing the result
   bad_rig, one_frame  Learn on a copy with two root bones / with a one-frame action
   broken_path         Learn with the modi path pointing nowhere
   sample_modi         Sample a MoDi checkpoint (CONFIG["modi_ckpt"]); sample_modi_interpolate: between two seeds
@@ -147,6 +148,23 @@ def step_generate_bad_ckpt(arm):
         s.run_dir = good
 
 
+def step_generate_import_crash(arm):
+    """Generate whose import of the result hits an unexpected bug (an injected KeyError)."""
+    rig_io = __import__(MODULE + ".rig_io", fromlist=["rig_io"])
+    keep = rig_io.action_from_bvh
+
+    def broken(*a, **k):
+        raise KeyError("injected")
+
+    rig_io.action_from_bvh = broken
+    try:
+        s = bpy.context.scene.modi
+        s.n, s.frames, s.mode = 1, 20, "random"
+        return call(bpy.ops.modi.generate)
+    finally:
+        rig_io.action_from_bvh = keep
+
+
 def step_broken_path(arm):
     prefs = bpy.context.preferences.addons[MODULE].preferences
     keep, prefs.modi_path = prefs.modi_path, "/nonexistent/modi"
@@ -249,7 +267,7 @@ def step_learn_conditional(arm):
     return r
 
 
-STEPS = {"fbx": step_fbx, "learn_conditional": step_learn_conditional,
+STEPS = {"fbx": step_fbx, "generate_import_crash": step_generate_import_crash, "learn_conditional": step_learn_conditional,
          "generate_trajectory": lambda arm: step_generate(arm, "trajectory"), "bad_rig": step_bad_rig, "one_frame": step_one_frame, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
          "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
          "broken_path": step_broken_path, "sample_modi": step_sample_modi,

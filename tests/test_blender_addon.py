@@ -121,7 +121,8 @@ def _one_line_cancel(step: dict) -> str:
 # ------------------------------------------------------------------------------------------ headless (blender -b)
 def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     rec = _blender(tmp_path, addon_zip, ["learn", "generate", "generate_keyframes", "generate_bad_ckpt",
-                                         "broken_path", "bad_rig", "one_frame"], runner=runner)
+                                         "generate_import_crash", "broken_path", "bad_rig", "one_frame"],
+                   runner=runner)
     assert rec["blender"].startswith("3.4" if runner == "blender" else "4."), rec["blender"]
     st = rec["steps"]
     learn = st["learn"]
@@ -160,6 +161,8 @@ def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
 
     msg = _one_line_cancel(st["generate_bad_ckpt"])
     assert msg.startswith("modi failed:") and "ganimator.ckpt" in msg, msg
+    msg = _one_line_cancel(st["generate_import_crash"])  # a bug of ours: still one line, no traceback
+    assert msg == "modi add-on: importing the result failed: KeyError: 'injected'", msg
     msg = _one_line_cancel(st["broken_path"])
     assert "modi command not found" in msg and "/nonexistent/modi" in msg, msg
     assert st["broken_path"]["new_run_folders"] == []  # nothing exported, nothing started
