@@ -24,7 +24,6 @@ import itertools
 import os
 import random
 import re
-import tempfile
 import time
 import zlib
 from pathlib import Path
@@ -397,7 +396,7 @@ def test_fk_launch_plans(plan, dtype):
 
 # ------------------------------------------------------------------------------------------------ emulator checks
 def test_emulated_ops_are_cpu_only_and_in_their_own_namespace():
-    assert EMU.LIBRARY == "modi_ext_emu" and EMU.INJECTED == ""
+    assert EMU.LIBRARY == "modi_ext_emu" and EMU.injected_defect() == ""
     for op in ("skeletal_conv", "skeletal_down", "skeletal_up", "skeletal_backward", "fk", "fk_backward"):
         name = f"modi_ext_emu::{op}"
         assert torch._C._dispatch_has_kernel_for_dispatch_key(name, "CPU")
@@ -446,34 +445,17 @@ def test_emulator_warp_intrinsics_and_atomics():
 
 
 # ------------------------------------------------------------------------------------------------ injected defects
-def _build_variant(defect: str):
-    """The emulated skeletal kernels compiled with -DMODI_EMU_INJECT=<defect>, under their own op namespace."""
-    from torch.utils.cpp_extension import load
-
-    lib = f"modi_ext_emu_{defect}"
-    build = Path(tempfile.gettempdir()) / f"modi_emu_inject_{defect}_{os.getuid()}"
-    build.mkdir(exist_ok=True)
-    csrc = REPO / "csrc"
-    srcs = [csrc / "emu" / f for f in ("skeletal_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")]
-    mod = load(name=f"_C_emu_{defect}", sources=[str(s) for s in srcs], build_directory=str(build),
-               extra_include_paths=[str(csrc)], verbose=False,
-               extra_cflags=["-O0", "-g0", "-fvisibility=hidden", "-Wno-unknown-pragmas", "-DMODI_EXT_EMULATE_CUDA",
-                             f"-DMODI_EMU_INJECT={defect}", f"-DMODI_EMU_LIB={lib}"])
-    assert mod.INJECTED == defect and mod.LIBRARY == lib
-    return lib
-
-
 @pytest.mark.parametrize("defect", ("drop_sync", "off_by_one"))
 def test_injected_defect_is_caught(defect):
-    """The harness can fail: each injected defect (a build with -DMODI_EMU_INJECT=<defect>) fails check_problem,
-    while the clean build passes the same case.  drop_sync: the first __syncthreads() of row_gemm_kernel is gone, so
+    """The harness can fail: each injected defect (the emulated module's run-time switch) fails check_problem, while
+    the clean kernels pass the same case.  drop_sync: the first __syncthreads() of row_gemm_kernel is gone, so
     threads read the shared stage before the others stored it (NaN); off_by_one: one column of the staged operand
     is never written (NaN) and the others are shifted."""
-    lib = _build_variant(defect)
     p = Problem("conv", "style", "reflect", U=3, seed=4, B=2, cin=5, cout=6, T=40)
-    check_problem(p, backward=False)  # the clean module passes the same case
-    with pytest.raises(AssertionError, match="non-finite"):
-        check_problem(p, backward=False, lib=lib)
+    check_problem(p, backward=False)  # the clean kernels pass the same case
+    with injected(defect), pytest.raises(AssertionError, match="non-finite"):
+        check_problem(p, backward=False)
+    check_problem(p, backward=False)  # and again once the defect is off
 
 
 def test_injected_finite_wrong_value_is_caught_by_the_tolerance():

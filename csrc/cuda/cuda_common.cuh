@@ -45,17 +45,14 @@
 #define MODI_DYNAMIC_SHARED(T, name) extern __shared__ __align__(16) T name[]
 #endif
 
-// Test-only defect injection (emulator build with -DMODI_EMU_INJECT=off_by_one; emulator run with the run-time
-// defect global_oob / wrong_scale): 0 everywhere else, so the CUDA build compiles to the same code.
-#if defined(MODI_EXT_EMULATE_CUDA) && MODI_EMU_INJECTED == MODI_EMU_INJECT_OFF_BY_ONE_ID
-#define MODI_EMU_OFF_BY_ONE 1
-#else
-#define MODI_EMU_OFF_BY_ONE 0
-#endif
+// Test-only defects of the emulator, chosen at run time (csrc/emu/cuda_emu.h: off_by_one, global_oob,
+// wrong_scale): 0 in every other build, so the CUDA build compiles to the same code.
 #ifdef MODI_EXT_EMULATE_CUDA
+#define MODI_EMU_OFF_BY_ONE (::modi_emu::injected_defect() == MODI_EMU_INJECT_OFF_BY_ONE_ID ? 1 : 0)
 #define MODI_EMU_GLOBAL_OOB (::modi_emu::injected_defect() == MODI_EMU_INJECT_GLOBAL_OOB_ID ? 1 : 0)
 #define MODI_EMU_WRONG_SCALE (::modi_emu::injected_defect() == MODI_EMU_INJECT_WRONG_SCALE_ID ? 1 : 0)
 #else
+#define MODI_EMU_OFF_BY_ONE 0
 #define MODI_EMU_GLOBAL_OOB 0
 #define MODI_EMU_WRONG_SCALE 0
 #endif

@@ -325,13 +325,11 @@ void run_block(Block& b, const dim3& bid, uint64_t seed) {
 
 void syncthreads(int line) {
   Block& b = block();
-#if MODI_EMU_INJECTED == MODI_EMU_INJECT_DROP_SYNC_ID
-  // Injected defect (test-only build): the first __syncthreads() of row_gemm_kernel is not there.
+  // Injected defect (run-time, test-only): the first __syncthreads() of row_gemm_kernel is not there.
   if (b.drop_sync) {
     if (b.dropped_line < 0) b.dropped_line = line;
     if (line == b.dropped_line) return;
   }
-#endif
   Fiber& f = b.f[b.cur];
   f.st = St::Barrier;
   f.line = line;
@@ -468,9 +466,7 @@ void run_launch(const LaunchSpec& spec) {
   TORCH_CHECK(spec.smem <= kSmemLimit, "modi_emu: kernel ", b.kname, ": ", spec.smem,
               " bytes of dynamic shared memory exceed 48 KB");
   b.dyn_bytes = spec.smem;
-#if MODI_EMU_INJECTED == MODI_EMU_INJECT_DROP_SYNC_ID
-  b.drop_sync = b.kname.rfind("row_gemm_kernel", 0) == 0;
-#endif
+  b.drop_sync = injected_defect() == MODI_EMU_INJECT_DROP_SYNC_ID && b.kname.rfind("row_gemm_kernel", 0) == 0;
   uint64_t seed;
   {
     std::lock_guard<std::mutex> lk(g_mu);

@@ -18,27 +18,11 @@
 #error "cuda_emu.h is only for the emulated (host C++) build of the CUDA sources"
 #endif
 
-// Test-only defect injection, at compile time: -DMODI_EMU_INJECT=drop_sync (the first __syncthreads() of
-// row_gemm_kernel is skipped) or -DMODI_EMU_INJECT=off_by_one (one shared-memory index of the row GEMM is shifted by
-// one); at run time (set_injected_defect, emu_control.h; off unless a test turns it on): global_oob
-// (split_reduce_kernel reads one split past the end of its global workspace) or wrong_scale (style_finish_kernel
-// scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it).
+// Test-only defects, chosen at run time (set_injected_defect, emu_control.h; off unless a test turns one on):
+// drop_sync (the first __syncthreads() of row_gemm_kernel is skipped), off_by_one (one shared-memory index of the row
+// GEMM is shifted by one), global_oob (split_reduce_kernel reads one split past the end of its global workspace) or
+// wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it).
 #include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
-#if defined(MODI_EMU_INJECT)
-#define drop_sync 1
-#define off_by_one 2
-#if MODI_EMU_INJECT == 1
-#define MODI_EMU_INJECTED 1
-#elif MODI_EMU_INJECT == 2
-#define MODI_EMU_INJECTED 2
-#else
-#error "MODI_EMU_INJECT must be drop_sync or off_by_one"
-#endif
-#undef drop_sync
-#undef off_by_one
-#else
-#define MODI_EMU_INJECTED 0
-#endif
 
 #include <c10/core/Device.h>
 #include <c10/macros/Macros.h>

@@ -6,12 +6,12 @@
 #include <set>
 #include <string>
 
-// The op namespace of the emulated kernels (variants with injected defects get their own).
+// The op namespace of the emulated kernels (the AddressSanitizer build gets its own).
 #ifndef MODI_EMU_LIB
 #define MODI_EMU_LIB modi_ext_emu
 #endif
 
-// Test-only defects (cuda_emu.h): compile-time (-DMODI_EMU_INJECT=...) and run-time (set_injected_defect).
+// Test-only defects (cuda_emu.h), chosen at run time (set_injected_defect).
 #define MODI_EMU_INJECT_DROP_SYNC_ID 1
 #define MODI_EMU_INJECT_OFF_BY_ONE_ID 2
 #define MODI_EMU_INJECT_GLOBAL_OOB_ID 3

@@ -56,9 +56,12 @@ PyObject* py_launch_counts(PyObject*, PyObject*) {
   return d;
 }
 
-// Test-only run-time defects (cuda_emu.h): "" (none), "global_oob", "wrong_scale".
-const std::pair<const char*, int> kDefects[] = {
-    {"", 0}, {"global_oob", MODI_EMU_INJECT_GLOBAL_OOB_ID}, {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID}};
+// Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale".
+const std::pair<const char*, int> kDefects[] = {{"", 0},
+                                                {"drop_sync", MODI_EMU_INJECT_DROP_SYNC_ID},
+                                                {"off_by_one", MODI_EMU_INJECT_OFF_BY_ONE_ID},
+                                                {"global_oob", MODI_EMU_INJECT_GLOBAL_OOB_ID},
+                                                {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID}};
 
 PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
   const char* name = PyUnicode_AsUTF8(arg);
@@ -69,7 +72,8 @@ PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
       Py_RETURN_NONE;
     }
   }
-  PyErr_Format(PyExc_ValueError, "unknown defect '%s' (expected '', 'global_oob' or 'wrong_scale')", name);
+  PyErr_Format(PyExc_ValueError,
+               "unknown defect '%s' (expected '', 'drop_sync', 'off_by_one', 'global_oob' or 'wrong_scale')", name);
   return nullptr;
 }
 
@@ -107,7 +111,7 @@ PyMethodDef kMethods[] = {
     {"launch_counts", py_launch_counts, METH_NOARGS, "{kernel instantiation: launches} since the last reset."},
     {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters."},
     {"set_injected_defect", py_set_injected_defect, METH_O,
-     "Test-only: turn on a run-time defect ('global_oob', 'wrong_scale') or off ('')."},
+     "Test-only: turn on a defect ('drop_sync', 'off_by_one', 'global_oob', 'wrong_scale') or off ('')."},
     {"injected_defect", py_injected_defect, METH_NOARGS, "The run-time defect in force ('' = none)."},
     {"registered_kernels", py_registered_kernels, METH_NOARGS,
      "Sorted names of every kernel instantiation the module can launch (registered at load time)."},
@@ -125,10 +129,5 @@ PyMODINIT_FUNC MODI_EMU_CAT(PyInit_, TORCH_EXTENSION_NAME)(void) {
   PyObject* m = PyModule_Create(&def);
   if (!m) return nullptr;
   if (PyModule_AddStringConstant(m, "LIBRARY", MODI_EMU_STR(MODI_EMU_LIB)) < 0) return nullptr;
-#ifdef MODI_EMU_INJECT
-  if (PyModule_AddStringConstant(m, "INJECTED", MODI_EMU_STR(MODI_EMU_INJECT)) < 0) return nullptr;
-#else
-  if (PyModule_AddStringConstant(m, "INJECTED", "") < 0) return nullptr;
-#endif
   return m;
 }
