@@ -69,7 +69,7 @@ def call(op, **kw):
 def dump_positions(obj, action, tag):
     """Every frame of ``action`` on ``obj``: the world head of each pose bone (Blender's own evaluation)."""
     scene = bpy.context.scene
-    obj.animation_data.action = action
+    operators().rig_io.assign_action(obj, action)
     lo, hi = (int(round(v)) for v in action.frame_range)
     names = [b.name for b in obj.pose.bones]
     pos = np.zeros((hi - lo + 1, len(names), 3))
@@ -247,9 +247,11 @@ def step_one_frame(arm):
     """A copy of the armature whose action has one frame: modi refuses to train on it (a failing command)."""
     obj = _copy(arm, "one_frame")
     act = bpy.data.actions.new("one_frame_action")
-    fc = act.fcurves.new(f'pose.bones["{obj.pose.bones[0].name}"].location', index=0)
-    fc.keyframe_points.insert(1, 0.0)
     obj.animation_data.action = act
+    path = f'pose.bones["{obj.pose.bones[0].name}"].location'
+    fc = (act.fcurve_ensure_for_datablock(obj, path, index=0) if hasattr(act, "fcurve_ensure_for_datablock")
+          else act.fcurves.new(path, index=0))  # 4.4+ (5.0: the only way) / up to 4.3
+    fc.keyframe_points.insert(1, 0.0)
     bpy.context.view_layer.objects.active = obj
     try:
         return call(bpy.ops.modi.learn)

@@ -1,6 +1,6 @@
-"""The modi Blender add-on in Debian's Blender 3.4, driven through its operators (tests/blender_driver.py runs
+"""The modi Blender add-on, driven through its operators (tests/blender_driver.py runs
 inside Blender and records; this side checks): the zip installed with Blender's own operators, a real BVH imported
-with Blender's importer (in Debian's Blender 3.4 and in PyPI's bpy 4.x, each in its own process and venv),
+with Blender's importer (in Debian's Blender 3.4 and in PyPI's bpy 4.x and 5.x, each in its own process and venv),
 Learn -> Generate with the variations' joint world positions (Blender's own pose
 evaluation) equal to ``modi export-positions`` of the BVH modi wrote, key-frame generation, MoDi sampling, one-line
 failures with CANCELLED, and -- with a real window under xvfb -- the modal operator leaving the event loop running
@@ -28,22 +28,31 @@ BLENDER = shutil.which("blender")
 XVFB = shutil.which("xvfb-run")
 TOL = 1e-4  # of body height
 
-# PyPI's bpy (Blender 4.x as a Python module) in a venv of its own: torch and bpy never share one
-BPY_VENV = Path(os.environ.get("MODI_BPY_VENV", Path.home() / ".cache" / "modi" / "bpy-venv"))
-BPY_PYTHON = BPY_VENV / "bin" / "python"
+# PyPI's bpy (Blender as a Python module), 4.x and 5.x, each in a venv of its own: torch and bpy never share one
+_CACHE = Path.home() / ".cache" / "modi"
+BPY_VENVS = {"bpy4": Path(os.environ.get("MODI_BPY_VENV", _CACHE / "bpy-venv")),
+             "bpy5": Path(os.environ.get("MODI_BPY5_VENV", _CACHE / "bpy5-venv"))}
+BPY_PINS = {"bpy4": "bpy>=4.2,<5", "bpy5": "bpy>=5,<6"}
 NO_BLENDER = "blender not on PATH (Debian package 'blender', with 'python3-numpy'; .ci/install_tools installs them)"
-NO_BPY = (f"no Python with PyPI's bpy 4.x at {BPY_PYTHON} (set MODI_BPY_VENV; .ci/install_tools makes it: "
-          f"python3 -m venv VENV && VENV/bin/pip install 'bpy>=4.2,<5')")
 needs_blender = pytest.mark.skipif(BLENDER is None, reason=NO_BLENDER)
 
 
-@pytest.fixture(params=["blender", "bpy"], ids=["debian-blender-3.4", "pypi-bpy-4.x"])
+def bpy_python(which: str) -> Path:
+    return BPY_VENVS[which] / "bin" / "python"
+
+
+def no_bpy(which: str) -> str:
+    return (f"no Python with PyPI's {BPY_PINS[which]!r} at {bpy_python(which)} (set MODI_BPY_VENV / MODI_BPY5_VENV; "
+            f".ci/install_tools makes it: python3 -m venv VENV && VENV/bin/pip install '{BPY_PINS[which]}')")
+
+
+@pytest.fixture(params=["blender", "bpy4", "bpy5"], ids=["debian-blender-3.4", "pypi-bpy-4.x", "pypi-bpy-5.x"])
 def runner(request) -> str:
     """Which Blender runs the headless tests: Debian's executable, or PyPI's bpy module in its own venv."""
     if request.param == "blender" and BLENDER is None:
         pytest.skip(NO_BLENDER)
-    if request.param == "bpy" and not BPY_PYTHON.is_file():
-        pytest.skip(NO_BPY)
+    if request.param != "blender" and not bpy_python(request.param).is_file():
+        pytest.skip(no_bpy(request.param))
     return request.param
 
 
@@ -76,8 +85,8 @@ def _blender(tmp: Path, addon_zip: Path, steps: list[str], gui: bool = False, ti
     (tmp / "cfg.json").write_text(json.dumps(conf))
     env = {**blender_env(), "HOME": str(tmp / "home"), "TMPDIR": str(tmp)}
     cmd = [BLENDER, "--factory-startup", "--python", str(DRIVER), "--", str(tmp / "cfg.json")]
-    if runner == "bpy":
-        cmd = [str(BPY_PYTHON), str(DRIVER), "--", str(tmp / "cfg.json")]
+    if runner != "blender":
+        cmd = [str(bpy_python(runner)), str(DRIVER), "--", str(tmp / "cfg.json")]
     elif gui:
         cmd = [XVFB, "-a", "-s", "-screen 0 1280x720x24", *cmd]
     else:
@@ -123,7 +132,7 @@ def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     rec = _blender(tmp_path, addon_zip, ["learn", "generate", "generate_keyframes", "generate_bad_ckpt",
                                          "generate_import_crash", "broken_path", "bad_rig", "one_frame"],
                    runner=runner)
-    assert rec["blender"].startswith("3.4" if runner == "blender" else "4."), rec["blender"]
+    assert rec["blender"].startswith({"blender": "3.4", "bpy4": "4.", "bpy5": "5."}[runner]), rec["blender"]
     st = rec["steps"]
     learn = st["learn"]
     assert learn["ret"] == ["FINISHED"] and learn["result"][0] == "FINISHED", learn
@@ -213,9 +222,9 @@ def test_fbx_mixamo_style_character_learns_and_takes_its_variations(tmp_path, ad
 def test_installs_as_a_blender_4_extension_too(tmp_path, addon_zip):
     """Blender 4.2+ also takes the zip as an extension (its manifest): the operators then live under the
     extension's module name and still find their preferences."""
-    if not BPY_PYTHON.is_file():
-        pytest.skip(NO_BPY)
-    rec = _blender(tmp_path, addon_zip, ["learn", "broken_path"], runner="bpy", install="extension")
+    if not bpy_python("bpy4").is_file():
+        pytest.skip(no_bpy("bpy4"))
+    rec = _blender(tmp_path, addon_zip, ["learn", "broken_path"], runner="bpy4", install="extension")
     assert rec["module"] == "bl_ext.user_default.modi_blender"
     assert rec["steps"]["learn"]["ret"] == ["FINISHED"], rec["steps"]["learn"]
     assert "modi command not found" in _one_line_cancel(rec["steps"]["broken_path"])

@@ -84,12 +84,15 @@ def new_folder(root: str, stem: str) -> str:
 def export_action(obj, scene, action, path: str) -> int:
     """Export ``action`` played on ``obj`` (restoring the armature's own action afterwards)."""
     keep = obj.animation_data.action
-    obj.animation_data.action = action
+    keep_slot = getattr(obj.animation_data, "action_slot", None)
+    rig_io.assign_action(obj, action)
     try:
         lo, hi = frame_span(action)
         return rig_io.export_action_bvh(obj, scene, path, lo, hi)
     finally:
         obj.animation_data.action = keep
+        if keep_slot is not None:
+            obj.animation_data.action_slot = keep_slot
 
 
 def _redraw() -> None:
@@ -295,9 +298,7 @@ class MODI_OT_generate(_ModiJob, bpy.types.Operator):
                 act = rig_io.action_from_bvh(obj, rig_io.read_bvh(path), f"{base}.modi.s{seed:04d}.{i:03d}", start)
                 act["modi_bvh"] = path  # the file it came from
                 made.append(act.name)
-            if obj.animation_data is None:
-                obj.animation_data_create()
-            obj.animation_data.action = bpy.data.actions[made[0]]
+            rig_io.assign_action(obj, bpy.data.actions[made[0]])
             return f"{len(made)} new action(s) on {obj.name}: {made[0]}" + (f" .. {made[-1]}" if len(made) > 1 else "")
 
         return self.start(context, job, finish)

@@ -220,8 +220,34 @@ def read_bvh(path: str) -> Bvh:
 
 
 # ------------------------------------------------------------------------------------------------- applying
-def _curves(action, path: str, n: int, group: str):
-    return [action.fcurves.new(path, index=k, action_group=group) for k in range(n)]
+def _fcurve_maker(action, obj):
+    """``new(path, index, group)`` for a fresh ``action`` meant for ``obj``: in a slot for ``obj`` where Blender
+    has slotted actions (4.4+; 5.0 has nothing else), else in the action's own F-curve list (3.x to 4.3)."""
+    if not hasattr(action, "slots"):
+        return lambda path, index, group: action.fcurves.new(path, index=index, action_group=group)
+    slot = action.slots.new(id_type="OBJECT", name=obj.name)
+    bag = action.layers.new("modi").strips.new(type="KEYFRAME").channelbag(slot, ensure=True)
+    groups = {}
+
+    def new(path, index, group):
+        fc = bag.fcurves.new(path, index=index)
+        if group not in groups:
+            groups[group] = bag.groups.new(group)
+        fc.group = groups[group]
+        return fc
+
+    return new
+
+
+def assign_action(obj, action) -> None:
+    """Play ``action`` on ``obj`` (and, with slotted actions, in the action's first slot when Blender picked
+    none)."""
+    if obj.animation_data is None:
+        obj.animation_data_create()
+    ad = obj.animation_data
+    ad.action = action
+    if action is not None and hasattr(ad, "action_slot") and ad.action_slot is None and len(action.slots):
+        ad.action_slot = action.slots[0]
 
 
 def _fill(fc, frames: list, values: list) -> None:
@@ -297,15 +323,16 @@ def action_from_bvh(obj, bvh: Bvh, name: str, frame_start: int = 1):
                 rot[b.name].append(tuple(e))
     action = bpy_actions().new(name)
     action.use_fake_user = True  # kept in the .blend though only one action is assigned at a time
+    new_fcurve = _fcurve_maker(action, obj)
     for b in keyed:
         base = f'pose.bones["{b.name}"]'
-        for a, fc in enumerate(_curves(action, base + ".location", 3, b.name)):
-            _fill(fc, frames, loc[b.name][a])
+        for a in range(3):
+            _fill(new_fcurve(base + ".location", a, b.name), frames, loc[b.name][a])
         mode = obj.pose.bones[b.name].rotation_mode
         prop, width = {"QUATERNION": ("rotation_quaternion", 4), "AXIS_ANGLE": ("rotation_axis_angle", 4)}.get(
             mode, ("rotation_euler", 3))
-        for a, fc in enumerate(_curves(action, f"{base}.{prop}", width, b.name)):
-            _fill(fc, frames, [r[a] for r in rot[b.name]])
+        for a in range(width):
+            _fill(new_fcurve(f"{base}.{prop}", a, b.name), frames, [r[a] for r in rot[b.name]])
     return action
 
 
@@ -315,5 +342,6 @@ def bpy_actions():
     return bpy.data.actions
 
 
-__all__ = ["RigError", "Bvh", "read_bvh", "export_action_bvh", "action_from_bvh", "joint_name", "bone_order",
+__all__ = ["RigError", "Bvh", "read_bvh", "export_action_bvh", "action_from_bvh", "assign_action", "joint_name",
+           "bone_order",
            "TO_BVH", "FROM_BVH"]
