@@ -528,8 +528,9 @@ class Trainer:
 
     def _progress(self, state: str, block_rate: float | None = None, force: bool = False) -> None:
         """Rewrite ``RUN/progress.json`` (atomically, at most once a second unless ``force``): the block and
-        iteration, the totals, and an ETA from the current block's seconds per iteration (finer blocks cost more,
-        so it is an estimate). A failed write is not worth stopping a run for: progress is advisory."""
+        iteration, the totals, and an ETA: the current block's seconds per iteration, scaled for each block left
+        by the frames of the levels it trains (an estimate). A failed write is not worth stopping a run for:
+        progress is advisory."""
         now = time.time()
         if block_rate is not None:
             self._block_rate = block_rate
@@ -539,13 +540,18 @@ class Trainer:
         budgets = self.cfg.block_budgets(len(self.blocks))
         b = min(self.state["block"], len(self.blocks) - 1)
         done_iters = sum(budgets[:self.state["block"]]) + (self.state["iteration"] if state != "done" else 0)
+        # an iteration costs about the frames of the levels it trains: weigh the blocks left by that
+        frames = self.model.lengths[0]
+        weight = [sum(frames[lv] for lv in levels) for levels in self.blocks]
+        left = (budgets[b] - self.state["iteration"]) * weight[b] + sum(n * w for n, w in
+                                                                         zip(budgets[b + 1:], weight[b + 1:]))
         rate = getattr(self, "_block_rate", None)
         levels = self.blocks[b]
         info = {"state": state, "block": b + 1, "blocks": len(self.blocks), "levels": [levels[0], levels[-1]],
                 "n_levels": self.model.n_levels, "iteration": self.state["iteration"] if state != "done" else
                 budgets[b], "iterations": budgets[b], "done_iterations": done_iters,
                 "total_iterations": sum(budgets),
-                "eta_s": None if rate is None or state == "done" else round(rate * (sum(budgets) - done_iters), 1),
+                "eta_s": None if rate is None or state == "done" else round(rate / weight[b] * left, 1),
                 "time": round(now, 3)}
         try:
             faults.atomic_write(self.run_dir / PROGRESS_NAME, json.dumps(info) + "\n")
