@@ -50,6 +50,8 @@ def write_addon_zip(out: Path) -> Path:
     """Zip the add-on under one folder ``modi_blender/`` (the module name Blender will give it)."""
     if not out.parent.is_dir():
         raise UserError(f"{out.parent}: no such folder")
+    if out.is_dir():
+        raise UserError(f"{out}: is a folder, expected the .zip file to write")
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
         for name in _FILES:
             z.write(_ADDON_DIR / name, f"{MODULE}/{name}")
@@ -86,6 +88,9 @@ def _install(args) -> int:
     if blender is None:
         raise UserError(f"Blender not found ({args.blender or 'no blender on PATH'}); pass --blender PATH")
     modi = args.modi or this_modi()
+    if args.modi is not None and shutil.which(args.modi) is None:
+        raise UserError(f"--modi {args.modi}: not an executable modi command (the output of 'which modi' in the "
+                        "environment the add-on should run)")
     with tempfile.TemporaryDirectory() as tmp:
         z = write_addon_zip(Path(tmp) / f"{MODULE}.zip")
         cfg = json.dumps({"zip": str(z), "module": MODULE, "modi": modi})
