@@ -5,7 +5,7 @@
     python benchmarks/compare.py --device cuda --dtype fp32,bf16 --json benchmarks/results/cuda_h100.json
 
 Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
-the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.topology`` when importable, a
+the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.core.topology`` when importable, a
 built-in fallback otherwise), batch 16, fp32:
 
   skeletal_conv.<level>.{fwd,fwd_bwd}     in-place SkeletalConv (kernel 3, zero padding, bias)
@@ -78,14 +78,14 @@ STYLE_DIM = 512
 def bandai_hierarchy() -> tuple[list[list[list[int]]], list[list[list[int]]], str]:
     """(neighbors per level finest->coarsest, pooling maps, source description)."""
     try:
-        from modi import topology
+        from modi.core import topology
 
         class _Sk:
             parents = BANDAI_PARENTS
             names = [f"j{i}" for i in range(len(BANDAI_PARENTS))]
 
         h = topology.build_hierarchy(_Sk(), feet=BANDAI_FEET, neighbor_distance=1)
-        return [lv.neighbors for lv in h.levels], [list(map(list, p)) for p in h.pooling], "modi.topology"
+        return [lv.neighbors for lv in h.levels], [list(map(list, p)) for p in h.pooling], "modi.core.topology"
     except Exception:  # noqa: BLE001 - fall back to a self-contained hierarchy
         return _fallback_hierarchy(), _fallback_pooling(), "built-in fallback"
 
@@ -216,9 +216,9 @@ def ganimator_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, d
     cases: dict[str, tuple[Callable, Callable]] = {}
     info: dict[str, dict] = {}
     try:
-        from modi.ganimator import config as gconfig
-        from modi.ganimator.data import load_sequence, sequence_pyramid
-        from modi.ganimator.networks import ganimator_neighbors
+        from modi.models.ganimator import config as gconfig
+        from modi.models.ganimator.data import load_sequence, sequence_pyramid
+        from modi.models.ganimator.networks import ganimator_neighbors
     except Exception as exc:  # noqa: BLE001
         print(f"compare: GANimator cases skipped ({type(exc).__name__}: {exc})", file=sys.stderr)
         return cases, info

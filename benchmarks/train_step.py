@@ -75,8 +75,8 @@ def _kind(step: int, tc) -> str:
 
 
 def bench_modi(args, sides: list[str], device: torch.device) -> dict:
-    from modi.modi_model.config import make_config
-    from modi.modi_model.training import Trainer, prepare_data
+    from modi.models.modi.config import make_config
+    from modi.models.modi.training import Trainer, prepare_data
 
     data_dir = args.data
     if data_dir is None:
@@ -158,9 +158,9 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
 
 
 def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
-    from modi.ganimator import config as gconfig
-    from modi.ganimator.data import load_sequence
-    from modi.ganimator.training import Trainer
+    from modi.models.ganimator import config as gconfig
+    from modi.models.ganimator.data import load_sequence
+    from modi.models.ganimator.training import Trainer
 
     clip = Path(args.clip or ROOT.parent / "shared" / "data" / "bvh" / "ganimator" / "Joe" / "Salsa-Dancing-6.bvh")
     if not clip.is_file():

@@ -276,8 +276,8 @@ def test_random_skeletons(kind):
 
 
 def test_modi_hierarchy_levels():
-    # The Bandai 22-joint skeleton's real pooling hierarchy (modi.topology): every level's conv and both scalers.
-    topology = pytest.importorskip("modi.topology")
+    # The Bandai 22-joint skeleton's real pooling hierarchy (modi.core.topology): every level's conv and both scalers.
+    topology = pytest.importorskip("modi.core.topology")
 
     class _Skeleton:
         parents = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]

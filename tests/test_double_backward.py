@@ -156,10 +156,10 @@ def test_opcheck_backward_ops(kind, padding):
 
 
 def _modi_pair():
-    from modi.modi_model.config import ModelConfig
-    from modi.modi_model.networks import Discriminator, Generator, build_levels
-    from modi.procedural import builtin_skeleton
-    from modi.topology import build_hierarchy
+    from modi.models.modi.config import ModelConfig
+    from modi.models.modi.networks import Discriminator, Generator, build_levels
+    from modi.data.procedural import builtin_skeleton
+    from modi.core.topology import build_hierarchy
 
     sk = builtin_skeleton()
     h = build_hierarchy(sk, sk.detect_feet())
@@ -176,7 +176,7 @@ def _param_grads(module):
 
 
 def _run_modi_regularisers(impl, monkeypatch):
-    from modi.modi_model.losses import d_r1_penalty, path_length_penalty
+    from modi.models.modi.losses import d_r1_penalty, path_length_penalty
 
     monkeypatch.setenv("MODI_EXT_IMPL", impl)
     cfg, g, d = _modi_pair()
@@ -202,8 +202,8 @@ def test_modi_r1_and_path_length_gradients_match_reference(monkeypatch):
 
 
 def _run_wgan_gp(impl, monkeypatch):
-    from modi.ganimator.networks import PatchDiscriminator, ganimator_neighbors
-    from modi.ganimator.training import gradient_penalty
+    from modi.models.ganimator.networks import PatchDiscriminator, ganimator_neighbors
+    from modi.models.ganimator.training import gradient_penalty
 
     monkeypatch.setenv("MODI_EXT_IMPL", impl)
     parents = [-1, 0, 1, 2, 0, 4, 5, 0, 7]

@@ -1,4 +1,4 @@
-"""modi_ext.fk: the C++ FK kernel against the dense reference, hand-computed poses and modi.kinematics."""
+"""modi_ext.fk: the C++ FK kernel against the dense reference, hand-computed poses and modi.core.kinematics."""
 from __future__ import annotations
 
 import math
@@ -80,7 +80,7 @@ def test_bandai_shape_and_leading_dims():
 
 
 def test_matches_modi_kinematics():
-    kin = pytest.importorskip("modi.kinematics")
+    kin = pytest.importorskip("modi.core.kinematics")
     for n_joints, seed in [(5, 10), (22, 11), (35, 12)]:
         parents = random_tree(n_joints, seed)
         q, off, root = random_inputs(parents, lead=(6,), dtype=torch.float64, seed=seed)
@@ -264,8 +264,8 @@ def test_compile_fullgraph_matches_eager():
 @needs_ext
 def test_real_skeletons_match_modi_kinematics(shared_data):
     bvh = pytest.importorskip("modi.io.bvh")
-    kin = pytest.importorskip("modi.kinematics")
-    rotations = pytest.importorskip("modi.rotations")
+    kin = pytest.importorskip("modi.core.kinematics")
+    rotations = pytest.importorskip("modi.core.rotations")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))
     picked = [f for f in files if "bandai" in str(f)][:1] + [f for f in files if "ganimator" in str(f)][:2]
     if not picked:

@@ -21,7 +21,7 @@ def random_parents(n: int, rng: random.Random) -> list[int]:
 
 
 def tree_neighbors(parents: list[int], distance: int) -> list[list[int]]:
-    """Entities within `distance` tree hops (self included), sorted: built here, independent of modi.topology."""
+    """Entities within `distance` tree hops (self included), sorted: built here, independent of modi.core.topology."""
     adj = [set() for _ in parents]
     for j, p in enumerate(parents):
         if p >= 0:
@@ -366,7 +366,7 @@ def test_opcheck(kind):
 
 @needs_ext
 def test_real_bandai_hierarchy(shared_data):
-    topology = pytest.importorskip("modi.topology")
+    topology = pytest.importorskip("modi.core.topology")
     bvh = pytest.importorskip("modi.io.bvh")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))
     if not files:

@@ -111,7 +111,7 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
                           timeout=timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"modi train failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
-    from modi.modi_model.checkpoint import load_checkpoint
+    from modi.models.modi.checkpoint import load_checkpoint
 
     levels = load_checkpoint(out / "checkpoint.pt")["levels"]  # what it trained: entities and widths per level
     steps = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines() if line.strip()]

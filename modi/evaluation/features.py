@@ -456,10 +456,10 @@ def load_labelled_folder(
     Returns ``(clips, class_names, joint_names, parents, body_height)``. Class names come from
     ``cfg/{label_key}_label.txt`` (looked up in ``root`` and its two parents; Bandai-Namco's layout), else
     ``class_<i>``. An anchor root with a single child (Bandai's ``joint_Root`` above ``Hips``) is dropped, as
-    ``modi.dataset.motion_from_bvh`` does, so generated motions of the promoted skeleton match by name. All clips must share the skeleton's joint names.
+    ``modi.data.dataset.motion_from_bvh`` does, so generated motions of the promoted skeleton match by name. All clips must share the skeleton's joint names.
     """
     from modi.io import bvh as bvh_io
-    from modi.kinematics import bvh_positions
+    from modi.core.kinematics import bvh_positions
 
     root = Path(root)
     if not root.is_dir():

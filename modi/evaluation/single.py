@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from modi.skeleton import strip_namespace
+from modi.core.skeleton import strip_namespace
 
 __all__ = [
     "rotation_features",
@@ -57,7 +57,7 @@ def rotation_features(rotations: Any, representation: str = "6d") -> torch.Tenso
     if not r.is_floating_point():
         r = r.double()
     if r.ndim == 3 and r.shape[-1] == 4:
-        from modi.rotations import quat_to_matrix
+        from modi.core.rotations import quat_to_matrix
 
         m = quat_to_matrix(r.double())
     elif r.ndim == 4 and r.shape[-2:] == (3, 3):
@@ -235,7 +235,7 @@ def single_sequence_metrics(
 # ---------------------------------------------------------------------------------------- matching skeletons
 
 
-bare_name = strip_namespace  # one definition, in modi.skeleton
+bare_name = strip_namespace  # one definition, in modi.core.skeleton
 
 
 def _bare_names(skeleton: Any, label: str) -> list[str]:
@@ -249,10 +249,10 @@ def _bare_names(skeleton: Any, label: str) -> list[str]:
 def shared_joints(skeletons: Sequence[Any], reduce: bool = True, labels: Sequence[str] | None = None) -> list[str]:
     """Bare names of the joints that every skeleton has, in the first skeleton's order.
 
-    ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.joint_reduction.reduce_joints`:
+    ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.core.joint_reduction.reduce_joints`:
     fingers and head-top dropped), so a full Mixamo source and a 24-joint output meet on the published joint set.
     """
-    from modi.joint_reduction import reduce_joints
+    from modi.core.joint_reduction import reduce_joints
 
     labels = list(labels) if labels is not None else [f"skeleton {i}" for i in range(len(skeletons))]
     common: list[str] | None = None
@@ -270,7 +270,7 @@ def shared_pose_frames(
     representation: str = "6d",
     labels: Sequence[str] | None = None,
 ) -> tuple[torch.Tensor, list[torch.Tensor], list[str]]:
-    """Pose vectors of the source and of each generated :class:`modi.motion.Motion` on their shared joints.
+    """Pose vectors of the source and of each generated :class:`modi.data.motion.Motion` on their shared joints.
 
     Returns ``(source (N, F), [generated (L_i, F)], joint names)``; the joints are :func:`shared_joints` of all
     skeletons, in the source's order, so neither the namespace prefix nor sibling order matters. Joints outside

@@ -56,9 +56,9 @@ def encoder_state(e_sd: dict[str, torch.Tensor], enc: Any, index: list[int], pow
 
 def convert_encoder(st: dict[str, Any], g: Any) -> Any:
     """A modi ``MotionEncoder`` (released head) holding the released encoder's function, for modi generator ``g``."""
-    from modi.encoder.model import EncoderConfig, MotionEncoder
+    from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
     from modi.interop.modi_released import check_masks, released_style_index
-    from modi.latent.space import mean_w
+    from modi.models.modi.latent.space import mean_w
 
     args = st["args"]
     e_sd = st["e"]
@@ -81,10 +81,10 @@ def import_checkpoint(ckpt: Path | str, generator: Path | str, data: Path | str,
                       fps: float = 30.0) -> Path:
     """Write ``out/encoder.pt``, a modi encoder run (the released encoder with the released generator it
     inverts, converted as ``modi import modi-released`` does); returns its path."""
-    from modi.encoder.training import ENCODER_FORMAT, ENCODER_VERSION, generator_bundle
+    from modi.models.modi.encoder.training import ENCODER_FORMAT, ENCODER_VERSION, generator_bundle
     from modi.interop.modi_released import convert_checkpoint
-    from modi.modi_model.checkpoint import atomic_torch_save
-    from modi.modi_model.sampling import load_generator
+    from modi.models.modi.checkpoint import atomic_torch_save
+    from modi.models.modi.sampling import load_generator
 
     st = read_encoder_checkpoint(ckpt)
     gen_state = convert_checkpoint(generator, data, fps)

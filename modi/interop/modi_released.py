@@ -80,7 +80,7 @@ def n_convs_per_level(args: argparse.Namespace) -> int:
 
 def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> list[Any]:
     """Coarse -> fine ``LevelSpec``s read from the generator's masks and shapes."""
-    from modi.modi_model.networks import LevelSpec
+    from modi.models.modi.networks import LevelSpec
 
     const = g_sd["input.input"]
     n_to = len({k.split(".")[1] for k in g_sd if k.startswith("to_xyzs.")})
@@ -108,7 +108,7 @@ def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> 
 
 def model_config(args: argparse.Namespace, levels: Sequence[Any]) -> Any:
     """modi's ModelConfig for a released model (see the module docstring for the named differences)."""
-    from modi.modi_model.config import ModelConfig
+    from modi.models.modi.config import ModelConfig
 
     return ModelConfig(latent_dim=int(args.latent), n_mlp=int(args.n_mlp), lr_mlp=0.01,
                        channels=tuple(lv.channels for lv in levels), kernel_size=3,
@@ -213,7 +213,7 @@ def _linear(dst: dict, prefix: str, sd: dict, src: str) -> None:
 def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
                       out_channels: int, w_avg: torch.Tensor | None = None) -> Any:
     """A modi ``Generator`` holding the released generator's function (float32, like the released file)."""
-    from modi.modi_model.networks import Generator
+    from modi.models.modi.networks import Generator
 
     check_masks(g_sd, "g")
     g = Generator(model_config(args, levels), levels, out_channels)
@@ -255,7 +255,7 @@ def generator_state(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, g: 
 def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
                           in_channels: int) -> Any:
     """A modi ``Discriminator`` holding the released discriminator's function."""
-    from modi.modi_model.networks import Discriminator
+    from modi.models.modi.networks import Discriminator
 
     check_masks(d_sd, "d")
     d = Discriminator(model_config(args, levels), levels, in_channels)
@@ -310,7 +310,7 @@ def edge_skeleton(parents: Sequence[int], offsets: np.ndarray, names: Sequence[s
     and a leaf bone ends in an End Site at ``offsets[i]``. Its forward kinematics is the released BVH's; it has
     the released BVH's joints except each multi-child joint, whose position its dummies share. Names follow
     their writer: the joint's own name when the bone is its only one, ``parent_child`` for a dummy."""
-    from modi.skeleton import Skeleton
+    from modi.core.skeleton import Skeleton
 
     P = [int(p) for p in parents]
     off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
@@ -337,9 +337,9 @@ def joint_of_bone_end(parents: Sequence[int], j: int) -> int:
 
 def released_codec(motion0: dict, st: dict, feet_entities: Sequence[int], fps: float) -> Any:
     """modi's ``MotionCodec`` for the released tensor layout: rotations, root motion, contacts, their statistics."""
-    from modi.modi_model.codec import MotionCodec
-    from modi.normalization import Normalizer
-    from modi.representation import MotionRepresentation
+    from modi.models.modi.codec import MotionCodec
+    from modi.data.normalization import Normalizer
+    from modi.data.representation import MotionRepresentation
 
     args = st["args"]
     P = [int(p) for p in np.asarray(motion0["parents_with_root"]).tolist()]
@@ -395,7 +395,7 @@ def _find_data(data: Path) -> Path:
 
 def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: float = 30.0) -> Path:
     """Write ``out/checkpoint.pt``, a modi run holding the released G, EMA G and D; returns its path."""
-    from modi.modi_model.checkpoint import atomic_torch_save
+    from modi.models.modi.checkpoint import atomic_torch_save
 
     state = convert_checkpoint(ckpt, data, fps)
     out = Path(out)
@@ -408,8 +408,8 @@ def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: 
 def convert_checkpoint(ckpt: Path | str, data: Path | str, fps: float = 30.0) -> dict[str, Any]:
     """The modi checkpoint dict (format ``modi-checkpoint``) of a released MoDi checkpoint and its data."""
     from modi.interop.released_files import load_released_npy
-    from modi.modi_model.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-    from modi.modi_model.config import MoDiConfig
+    from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+    from modi.models.modi.config import MoDiConfig
 
     st = read_checkpoint(ckpt)
     motions = load_released_npy(_find_data(Path(data)))

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from modi.errors import BvhError
-from modi.skeleton import Skeleton
+from modi.core.skeleton import Skeleton
 
 __all__ = ["Bvh", "load", "loads", "save", "dumps", "CHANNEL_NAMES"]
 

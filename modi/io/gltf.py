@@ -10,8 +10,8 @@ from the body height when not given, see :func:`guess_unit`). Contact labels go 
 
 Why numpy + json and no glTF library: the file is a few typed arrays and one JSON document, so the package keeps no
 extra dependency for it, and the parts a library would hide (alignment, accessor bounds, the GLB chunk layout) are
-checked directly by the tests against the Khronos validator. Rotations come from :mod:`modi.rotations`, positions
-from :func:`modi.kinematics.forward_kinematics`, both for writing and for reading back.
+checked directly by the tests against the Khronos validator. Rotations come from :mod:`modi.core.rotations`, positions
+from :func:`modi.core.kinematics.forward_kinematics`, both for writing and for reading back.
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ class UnitGuess:
     scale: float
     unit: str          # "metres", "centimetres", "inches", "millimetres" or "given"
     height: float      # body size in file units (``Skeleton.height``, a chain length: what the guess uses)
-    standing: float | None = None  # standing height in file units (:class:`modi.body.Body`), what is printed
+    standing: float | None = None  # standing height in file units (:class:`modi.core.body.Body`), what is printed
 
     def describe(self) -> str:
         shown = self.height if self.standing is None else self.standing
@@ -75,9 +75,9 @@ def guess_unit(height: float) -> UnitGuess:
 
 
 def _body(bvh, up: str = "y"):
-    """The :class:`modi.body.Body` of the clip (ground root, standing height), from its FK positions, Y up."""
-    from modi.body import Body
-    from modi.kinematics import bvh_positions
+    """The :class:`modi.core.body.Body` of the clip (ground root, standing height), from its FK positions, Y up."""
+    from modi.core.body import Body
+    from modi.core.kinematics import bvh_positions
 
     p = np.asarray(bvh_positions(bvh), dtype=np.float64)
     if up == "z":
@@ -147,7 +147,7 @@ def _local_motion(bvh) -> tuple[np.ndarray, np.ndarray]:
     """(local quaternions (F, J, 4) w,x,y,z; local translations (F, J, 3)) in file units, float64."""
     import torch
 
-    from modi.rotations import euler_to_quat, quat_unflip
+    from modi.core.rotations import euler_to_quat, quat_unflip
 
     euler = torch.from_numpy(bvh.euler_degrees())
     orders = bvh.rotation_orders
@@ -216,10 +216,10 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None, m
     ``mesh``: also a box-per-bone body bound to the skin, for viewers that draw no skeleton. Off by default
     because Debian's Blender 3.4 fails on any mesh with its default import (Shading "Use Normals" reaches
     ``numpy.bool``, which numpy 1.24 removed); without a mesh it imports the armature and its action.
-    The boxes follow :class:`modi.body.Body`: none on a static ground root or its link to the hips, none for
+    The boxes follow :class:`modi.core.body.Body`: none on a static ground root or its link to the hips, none for
     End Sites (leaf joints get a small cube instead, so a head top is not drawn twice).
     ``up="z"``: the BVH is Z-up; its root is turned -90 degrees about X into glTF's Y-up."""
-    from modi.kinematics import forward_kinematics
+    from modi.core.kinematics import forward_kinematics
     import torch
 
     J, F = bvh.n_joints, bvh.n_frames
@@ -227,7 +227,7 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None, m
         raise UserError("the motion has no frames; nothing written")
     quats, trans = _local_motion(bvh)
     if up == "z":   # (x, y, z) -> (x, z, -y): the root's rotation and translation turn, everything below follows
-        from modi.rotations import quat_mul
+        from modi.core.rotations import quat_mul
 
         half = math.sqrt(0.5)
         turn = torch.tensor([half, -half, 0.0, 0.0], dtype=torch.float64)
@@ -459,7 +459,7 @@ def _sample(times: np.ndarray, keys: np.ndarray, values: np.ndarray, mode: str, 
     """A sampler's value at each of ``times`` (LINEAR: lerp/slerp, STEP, CUBICSPLINE: Hermite), clamped at the ends."""
     import torch
 
-    from modi.rotations import quat_normalize, quat_slerp
+    from modi.core.rotations import quat_normalize, quat_slerp
 
     n = len(keys)
     if mode == "CUBICSPLINE":
@@ -497,7 +497,7 @@ def _node_static(node: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             s[0], r[:, 0] = -s[0], -r[:, 0]
         import torch
 
-        from modi.rotations import matrix_to_quat
+        from modi.core.rotations import matrix_to_quat
 
         q = matrix_to_quat(torch.from_numpy(r)).numpy()
         return t, q[[1, 2, 3, 0]], s
@@ -512,12 +512,12 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
     Joints are the first skin's joints (all nodes when there is no skin), in the skin's order when parents come first
     there, else depth first; frames are
     the first animation's key times (the union over its samplers). Each frame's TRS is sampled from the accessors
-    and turned into positions by :func:`modi.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
+    and turned into positions by :func:`modi.core.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
     the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
     """
     import torch
 
-    from modi.kinematics import forward_kinematics
+    from modi.core.kinematics import forward_kinematics
 
     path = Path(path)
     if not path.is_file():
@@ -588,7 +588,7 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
         if np.ptp(s) > 1e-6 * abs(s).max():
             raise UserError(f"{path}: node {nodes[p].get('name', p)} scales unevenly above the skeleton")
         m = np.eye(4)
-        from modi.rotations import quat_to_matrix
+        from modi.core.rotations import quat_to_matrix
 
         m[:3, :3] = quat_to_matrix(torch.from_numpy(r[[3, 0, 1, 2]])).numpy() * s[0]
         m[:3, 3] = t

@@ -51,8 +51,8 @@ def _char_index(i: int, part: int) -> int:
 
 
 def _side_of(name: str) -> int:
-    """0 centre, 1 left, 2 right (:func:`modi.body.side_of`, shared with the viewer and the glTF export)."""
-    from modi.body import side_of
+    """0 centre, 1 left, 2 right (:func:`modi.core.body.side_of`, shared with the viewer and the glTF export)."""
+    from modi.core.body import side_of
 
     return side_of(name)
 
@@ -64,9 +64,9 @@ def foot_joints_by_name(names: Sequence[str]) -> list[int]:
 
 def foot_contacts(positions: np.ndarray, feet: Sequence[int], fps: float, up: str = "y",
                   parents: Sequence[int] | None = None, names: Sequence[str] | None = None) -> np.ndarray:
-    """(T, J) bool contact labels by the one rule every preview uses (:func:`modi.contacts.preview_contacts`:
+    """(T, J) bool contact labels by the one rule every preview uses (:func:`modi.core.contacts.preview_contacts`:
     low above the floor and slow, in standing heights, short runs removed), for ``up`` = "y" or "z" data."""
-    from modi.contacts import preview_contacts
+    from modi.core.contacts import preview_contacts
 
     p = _to_y_up(np.asarray(positions, dtype=np.float64), up)
     if p.ndim != 3 or p.shape[-1] != 3:
@@ -283,9 +283,9 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
     if w < 16 or h < 16:
         raise ValueError(f"size must be at least 16x16 pixels, got {w}x{h}")
 
-    from modi.body import Body
+    from modi.core.body import Body
 
-    from modi.body import metres_scale
+    from modi.core.body import metres_scale
 
     bodies = [Body.of(p, par[i], nm[i]) for i, p in enumerate(pos)]   # ground root, sides, fingers, height
     # every motion in metres (a crab in m beside a human in cm): the scene layout compares true sizes
@@ -514,7 +514,7 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
     from modi.io.gltf import guess_unit
 
     from modi.io import bvh as bvh_io
-    from modi.kinematics import bvh_positions
+    from modi.core.kinematics import bvh_positions
 
     if isinstance(paths, (str, Path)):
         paths = [paths]
@@ -536,7 +536,7 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
         xyz = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
         keep = _resample_frames(len(xyz), b.fps, fps, max_frames)
         if contacts:   # labelled on the clip's own frames, as the viewer page and the glTF export do
-            from modi.contacts import preview_contacts
+            from modi.core.contacts import preview_contacts
 
             con.append(preview_contacts(xyz, _feet_of(b), b.fps, b.parents, b.names)[keep])
         xyz = xyz[keep] * (guess_unit(b.skeleton().height()).scale if scale is None else float(scale))

@@ -87,18 +87,18 @@ def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
 
 
 def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> ViewMotion:
-    from modi.contacts import preview_contacts
+    from modi.core.contacts import preview_contacts
     from modi.io import bvh as bvh_io
-    from modi.kinematics import bvh_positions
+    from modi.core.kinematics import bvh_positions
     from modi.viz.render import _feet_of
 
     b = bvh_io.load(path)
     pos = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
     height = b.skeleton().height()
     con = None
-    if contacts:  # the previews' one rule (modi.contacts.PREVIEW_RULE), as the GIF and the glTF export show
+    if contacts:  # the previews' one rule (modi.core.contacts.PREVIEW_RULE), as the GIF and the glTF export show
         con = preview_contacts(pos, _feet_of(b), b.fps, b.parents, b.names)
-    from modi.body import Body
+    from modi.core.body import Body
 
     standing = Body.of(pos, b.parents, b.names).standing_height
     if scale is None:
@@ -159,14 +159,14 @@ def from_positions(positions: Any, parents: Sequence[int], names: Sequence[str] 
 
 
 def _from_motion_object(m: Any, title: str) -> ViewMotion:
-    """A :class:`modi.motion.Motion` (rotations + root; positions by the repo's FK), units guessed."""
+    """A :class:`modi.data.motion.Motion` (rotations + root; positions by the repo's FK), units guessed."""
     sk = m.skeleton
     pos = m.positions().detach().cpu().numpy()
     return from_positions(pos, sk.parents, sk.names, m.fps, title=title, scale=guess_scale(sk.height())[0])
 
 
 def as_view_motions(items: Sequence[Any], **kwargs) -> list[ViewMotion]:
-    """Paths, :class:`modi.motion.Motion` objects or :class:`ViewMotion` objects, in order."""
+    """Paths, :class:`modi.data.motion.Motion` objects or :class:`ViewMotion` objects, in order."""
     out = []
     for i, it in enumerate(items):
         if isinstance(it, ViewMotion):
@@ -184,7 +184,7 @@ def as_view_motions(items: Sequence[Any], **kwargs) -> list[ViewMotion]:
 
 # ------------------------------------------------------------------------------------------------ the page
 def _side_codes(names: Sequence[str]) -> list[int]:
-    from modi.body import side_of
+    from modi.core.body import side_of
     return [side_of(n) for n in names]
 
 
@@ -201,7 +201,7 @@ def _pack(m: ViewMotion, index: int) -> dict:
     span = float((p.reshape(-1, 3).max(0) - lo).max())
     step = max(span / 65535.0, 1e-9)
     qv = np.clip(np.round((p - lo) / step) - 32768, -32768, 32767).astype("<i2")
-    from modi.body import Body
+    from modi.core.body import Body
 
     body = Body.of(p, m.parents, m.names)  # the same body as the GIF and the glTF: a floor root is no bone
     hide = [int(par in body.ground) for par in m.parents]

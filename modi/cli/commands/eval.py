@@ -1,0 +1,457 @@
+"""modi eval: train the feature extractor, and measure real data, a MoDi checkpoint or GANimator outputs.
+
+    modi eval train-features DATA --out features.pt      # ST-GCN on labelled clips; prints held-out top-1
+    modi eval real DATA --features features.pt           # held-out vs train clips: the floor for generators
+    modi eval gen --ckpt CKPT --features F --data DIR    # MoDi samples vs the real clips of DIR
+    modi eval single --source SRC.bvh GEN.bvh ...        # GANimator coverage / global / local diversity
+    modi eval plausibility CLIP.bvh ...                  # foot skating, floating/penetration, jitter
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from modi.cli import types as ct
+from modi.errors import UserError
+
+_FMT = argparse.ArgumentDefaultsHelpFormatter
+_AXES = {"x": 0, "y": 1, "z": 2}
+# a frame rate above 2 fps (a Frame Time under 0.5 s, what ``_motion`` accepts from a header) and at most MAX_FPS
+_single_fps = ct.float_range(2.0, ct.MAX_FPS, lo_inclusive=False)
+
+
+def register(subparsers: Any) -> None:
+    p = subparsers.add_parser("eval", help="evaluation metrics (MoDi and GANimator)", formatter_class=_FMT,
+                              description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="eval_command", metavar="EVAL_COMMAND")
+    p.set_defaults(func=lambda a: (p.print_help(), 2)[1])
+
+    t = sub.add_parser("train-features", formatter_class=_FMT,
+                       help="train the ST-GCN feature extractor on labelled BVH clips",
+                       description="Train the ST-GCN action recogniser whose penultimate features FID/KID/"
+                                   "precision/recall/diversity use. Labels come from a JSON beside each BVH "
+                                   "(Bandai-Namco layout); the split is by file, stratified by class.")
+    t.add_argument("data", help="folder with BVH files and a JSON label file beside each")
+    t.add_argument("--out", required=True, type=ct.output_file, help="where to write the extractor (one .pt file)")
+    t.add_argument("--label-key", default="content", help="JSON key holding the integer class label")
+    t.add_argument("--window", type=ct.int_range(8, 4096), default=64, help="window length in frames")
+    t.add_argument("--fps", type=ct.fps_float, default=30.0, help="frame rate the clips are resampled to")
+    t.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=4, help="stride between training windows (frames)")
+    t.add_argument("--eval-stride", type=ct.int_range(1, ct.MAX_FRAMES), default=16, help="stride between held-out windows (frames)")
+    t.add_argument("--holdout", type=ct.float_range(0.0, 1.0, False, False), default=0.2, help="fraction of each class's files held out")
+    t.add_argument("--epochs", type=ct.int_range(1, 100_000), default=12, help="training epochs (one pass over the windows each)")
+    t.add_argument("--batch-size", type=ct.batch_int, default=64, help="batch size")
+    t.add_argument("--lr", type=ct.lr_float, default=2e-3, help="peak learning rate (one-cycle schedule)")
+    t.add_argument("--max-minutes", type=ct.minutes_float, default=None, help="stop training after this many minutes")
+    t.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis of the data")
+    t.add_argument("--seed", type=ct.seed_int, default=0, help="random seed (split, init, batches)")
+    t.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
+    t.add_argument("--json", default=None, type=ct.output_file, help="also write the training summary here")
+    t.set_defaults(func=cmd_train_features)
+
+    r = sub.add_parser("real", formatter_class=_FMT,
+                       help="real-vs-real floor: held-out clips vs training clips",
+                       description="FID, KID, precision, recall and diversity of the held-out clips against "
+                                   "the training clips (the extractor's own split), plus plausibility of the "
+                                   "held-out clips: the floor a generator is judged against.")
+    r.add_argument("data", help="the labelled folder the extractor was trained on")
+    r.add_argument("--features", required=True, help="feature extractor file from train-features")
+    r.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=32, help="stride between windows of both sets (frames)")
+    _metric_args(r)
+    r.set_defaults(func=cmd_real)
+
+    g = sub.add_parser("gen", formatter_class=_FMT, help="evaluate a MoDi checkpoint against real clips",
+                       description="Sample N motions from a MoDi checkpoint and compare their features with "
+                                   "the windows of every clip in DATA (FID, KID, precision, recall, "
+                                   "diversity), plus plausibility of the samples.")
+    g.add_argument("--ckpt", required=True, help="MoDi checkpoint")
+    g.add_argument("--features", required=True, help="feature extractor file from train-features")
+    g.add_argument("--data", required=True, help="folder of real BVH clips (same skeleton)")
+    g.add_argument("--n", type=ct.int_range(4, ct.MAX_SAMPLES), default=2000, help="number of generated motions")
+    g.add_argument("--psi", type=ct.float_range(-2.0, 2.0), default=1.0, help="truncation psi in [-2, 2] (1 = none)")
+    g.add_argument("--ik", action="store_true", help="apply the IK foot-contact cleanup to the samples")
+    g.add_argument("--stride", type=ct.int_range(1, ct.MAX_FRAMES), default=32, help="stride between windows of real clips (frames)")
+    _metric_args(g)
+    g.set_defaults(func=cmd_gen)
+
+    s = sub.add_parser("single", formatter_class=_FMT,
+                       help="GANimator coverage and diversity of generated BVH against one source BVH",
+                       description="Coverage (30-frame windows, threshold 2.0), global diversity (patched "
+                                   "nearest neighbour, segments >= 30 frames) and local diversity (15-frame "
+                                   "windows) of generated BVH files against the source they were trained on, "
+                                   "as the GANimator authors measure them: at 30 fps, on the reduced joints both "
+                                   "files share (matched by name, namespace prefix ignored).")
+    s.add_argument("generated", nargs="+", help="generated BVH files (the source's rig; joints are matched by name, "
+                                                "namespace prefix and sibling order ignored)")
+    s.add_argument("--source", required=True, help="the training sequence (BVH)")
+    s.add_argument("--json", default=None, type=ct.output_file, help="write the results (means and per-file values) here")
+    s.add_argument("--md", default=None, type=ct.output_file, help="also write a Markdown summary here")
+    s.add_argument("--window", type=ct.int_range(1, ct.MAX_FRAMES), default=30, help="coverage window (frames)")
+    s.add_argument("--threshold", type=ct.positive_finite_float, default=2.0, help="coverage distance threshold")
+    s.add_argument("--min-segment", type=ct.int_range(1, ct.MAX_FRAMES), default=30, help="PNN minimum segment length (frames)")
+    s.add_argument("--local-window", type=ct.int_range(1, ct.MAX_FRAMES), default=15, help="local-diversity window (frames)")
+    s.add_argument("--representation", choices=["6d", "matrix"], default="6d",
+                   help="pose vector: the first two rows of each local rotation matrix, as in the GANimator "
+                        "authors' evaluation code (what threshold 2.0 and their tables use), or all 9 entries")
+    s.add_argument("--fps", type=_single_fps, default=30.0,
+                   help="resample source and generated clips to this rate (the authors score at 30 fps; their "
+                        "loader halves 60 fps files)")
+    s.add_argument("--gen-fps", type=_single_fps, default=None,
+                   help="the generated files' true frame rate, when their header's Frame Time is wrong "
+                        "(unset: the header's)")
+    s.add_argument("--joints", choices=["reduced", "all"], default="reduced",
+                   help="score on GANimator's reduced joint set (no fingers or head-top: 24 joints of a Mixamo "
+                        "rig, as the published figures) or on every joint; either way on the joints both files have")
+    s.set_defaults(func=cmd_single)
+
+    q = sub.add_parser("plausibility", formatter_class=_FMT, help="foot skating, floating, jitter of BVH clips",
+                       description="Foot skating (horizontal foot speed in contact), floating/penetration "
+                                   "relative to the ground and jitter (mean jerk), in the file's units.")
+    q.add_argument("clips", nargs="+", help="BVH files")
+    q.add_argument("--up-axis", choices=sorted(_AXES), default="y", help="vertical axis")
+    q.add_argument("--feet", nargs="+", metavar="JOINT", default=None,
+                   help="foot joints by name (default: joints named foot/toe/ankle/heel)")
+    q.add_argument("--ground", type=ct.finite_float, default=0.0, help="ground height along the up axis")
+    q.add_argument("--json", default=None, type=ct.output_file, help="write per-file and mean values here")
+    q.set_defaults(func=cmd_plausibility)
+
+
+def _metric_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--k", type=ct.int_range(1, 1000), default=3, help="k of the k-NN manifolds for precision/recall")
+    p.add_argument("--kid-blocks", type=ct.int_range(1, 1000), default=10, help="disjoint blocks for KID's standard error")
+    p.add_argument("--diversity-pairs", type=ct.int_range(1, 10_000_000), default=200, help="random pairs for diversity")
+    p.add_argument("--seed", type=ct.seed_int, default=0, help="random seed (sampling, blocks, pairs)")
+    p.add_argument("--json", default=None, type=ct.output_file, help="write the full report (JSON) here")
+    p.add_argument("--md", default=None, type=ct.output_file, help="write a Markdown summary here")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _threads(n: int | None) -> None:
+    if n is not None:
+        import torch
+
+        torch.set_num_threads(max(1, n))
+
+
+def _dump(results: dict[str, Any], args: argparse.Namespace, title: str) -> None:
+    from modi.evaluation.report import to_markdown, write_reports
+
+    write_reports(results, getattr(args, "json", None), getattr(args, "md", None), title)
+    if getattr(args, "md", None) is None:
+        print(to_markdown(results, title))
+
+
+def cmd_train_features(args: argparse.Namespace) -> int:
+    from modi.evaluation import features as F
+
+    if args.json and Path(args.json).absolute() == Path(args.out).absolute():
+        raise UserError(f"--json {args.json} is also --out, the extractor file; choose another name")
+    _threads(args.threads)
+    if args.window < 8:
+        raise UserError(f"--window must be at least 8 frames, got {args.window}")
+    if not 0 < args.holdout < 1:
+        raise UserError(f"--holdout must be between 0 and 1, got {args.holdout}")
+    clips, class_names, joints, parents, height = F.load_labelled_folder(args.data, args.label_key, args.fps)
+    train_idx, held_idx = F.split_by_file(clips, args.holdout, args.seed)
+    config = F.FeatureConfig(joint_names=joints, parents=parents, class_names=class_names, window=args.window,
+                             fps=args.fps, up_axis=_AXES[args.up_axis], body_height=height,
+                             pairs=F.lr_pairs(joints, parents))
+    if not config.pairs:
+        print("modi: warning: no left/right joint pair found by name; windows keep their heading", file=sys.stderr)
+    wtr, ltr = F.windows_and_labels([clips[i] for i in train_idx], args.window, args.stride)
+    if held_idx:
+        who, lho = F.windows_and_labels([clips[i] for i in held_idx], args.window, args.eval_stride)
+    else:
+        who, lho = None, None
+    print(f"{len(train_idx)} training clips ({len(wtr)} windows), {len(held_idx)} held-out clips "
+          f"({0 if who is None else len(who)} windows), {len(class_names)} classes, {len(joints)} joints")
+    extractor, hist = F.train_feature_extractor(
+        wtr, ltr, config, who, lho, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes, seed=args.seed)
+    extractor.info.update({
+        "data": str(Path(args.data).resolve()),
+        "label_key": args.label_key,
+        "train_files": [clips[i].name for i in train_idx],
+        "heldout_files": [clips[i].name for i in held_idx],
+        "seed": args.seed,
+        "stride": args.stride,
+        "eval_stride": args.eval_stride,
+    })
+    extractor.save(args.out)
+    summary = {k: v for k, v in hist.items() if k != "epochs"}
+    summary["out"] = str(args.out)
+    if "val_top1" in hist:
+        print(f"held-out top-1: {hist['val_top1']:.3f} (class-balanced {hist['val_balanced_top1']:.3f}) "
+              f"on {hist['val_windows']} windows of {len(held_idx)} clips; trained {hist['seconds']:.0f} s "
+              f"({hist['cpu_seconds']:.0f} CPU s)")
+    else:
+        print(f"no held-out clips; trained {hist['seconds']:.0f} s")
+    print(f"wrote {args.out}")
+    if args.json:
+        from modi.evaluation.report import write_json
+
+        write_json({"summary": summary, "epochs": hist["epochs"]}, args.json)
+    return 0
+
+
+def _load_bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
+    from modi.io import bvh as bvh_io
+    from modi.core.kinematics import bvh_positions
+
+    b = bvh_io.load(path)
+    return bvh_positions(b), list(b.names), float(b.fps)
+
+
+def _real_clips(extractor: Any, files: list[Path]) -> list[np.ndarray]:
+    out = []
+    for f in files:
+        p, names, fps = _load_bvh_positions(f)
+        out.append(extractor.clip_positions(p, names, fps))
+    return out
+
+
+def _plausibility_set(clips: list[np.ndarray], ext: Any, ref: list[np.ndarray]) -> dict[str, Any]:
+    """Mean plausibility figures of clips in the extractor's joints and fps; planted foot heights from ``ref``."""
+    from modi.evaluation.plausibility import aggregate, guess_feet, plausibility_metrics, planted_heights
+
+    c = ext.config
+    feet = guess_feet(c.joint_names)
+    heights = planted_heights(ref, feet, c.up_axis)
+    per = [plausibility_metrics(x, c.fps, feet, up_axis=c.up_axis, foot_heights=heights, body_height=c.body_height)
+           for x in clips if len(x) >= 4]
+    if not per:
+        raise UserError("no clip has the 4 frames plausibility needs")
+    out = aggregate(per)
+    out["feet"] = [c.joint_names[f] for f in feet]
+    out["planted_heights"] = heights
+    return out
+
+
+def _metrics(real: np.ndarray, fake: np.ndarray, args: argparse.Namespace) -> dict[str, Any]:
+    from modi.evaluation.distribution import distribution_metrics
+
+    return distribution_metrics(real, fake, k=args.k, kid_blocks=args.kid_blocks,
+                                diversity_pairs=args.diversity_pairs, seed=args.seed)
+
+
+def cmd_real(args: argparse.Namespace) -> int:
+    from modi.evaluation.features import load_extractor
+
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.features], f"--{opt}")
+    ext = load_extractor(args.features)
+    root = Path(args.data)
+    if not root.is_dir():
+        raise UserError(f"data folder not found: {root}")
+    train_files = ext.info.get("train_files")
+    held_files = ext.info.get("heldout_files")
+    if not train_files or not held_files:
+        raise UserError(f"{args.features} holds no train/held-out split (was it trained with held-out clips?)")
+    missing = [f for f in train_files + held_files if not (root / f).is_file()]
+    if missing:
+        raise UserError(f"{len(missing)} clip(s) of the extractor's split are not under {root}, e.g. {missing[0]}")
+    t0 = time.perf_counter()
+    train = _real_clips(ext, [root / f for f in train_files])
+    held = _real_clips(ext, [root / f for f in held_files])
+    f_train = ext.features(ext.windows(train, args.stride))
+    f_held = ext.features(ext.windows(held, args.stride))
+    results: dict[str, Any] = {
+        "data": str(root),
+        "features": str(args.features),
+        "settings": {"stride": args.stride, "k": args.k, "kid_blocks": args.kid_blocks,
+                     "diversity_pairs": args.diversity_pairs, "seed": args.seed},
+        "extractor_heldout_top1": ext.info.get("val_top1"),
+        "distribution (held-out vs train)": _metrics(f_train, f_held, args),
+        "plausibility (held-out clips)": _plausibility_set(held, ext, train),
+        "seconds": time.perf_counter() - t0,
+    }
+    _dump(results, args, "Real-vs-real floor")
+    return 0
+
+
+def _sampler():
+    try:
+        from modi.models.modi.sampling import sample_motions
+    except ImportError as exc:
+        raise UserError(f"the MoDi model is not available in this installation ({exc})") from None
+    return sample_motions
+
+
+def cmd_gen(args: argparse.Namespace) -> int:
+    from modi.evaluation.features import load_extractor
+
+    if args.n < 4:
+        raise UserError(f"--n must be at least 4, got {args.n}")
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.ckpt, args.features], f"--{opt}")
+    ext = load_extractor(args.features)
+    sample_motions = _sampler()
+    root = Path(args.data)
+    files = sorted(p for p in root.rglob("*") if p.suffix.lower() == ".bvh") if root.is_dir() else []
+    if not files:
+        raise UserError(f"no .bvh files under {root}")
+    t0 = time.perf_counter()
+    real = _real_clips(ext, files)
+    motions = sample_motions(args.ckpt, args.n, seed=args.seed, psi=args.psi, ik=args.ik)
+    gen = [ext.clip_positions(m.positions(), m.skeleton.names, m.fps) for m in motions]
+    f_real = ext.features(ext.windows(real, args.stride))
+    f_gen = ext.features(ext.windows(gen, tail=False))  # a 64-frame MoDi sample is exactly one window
+    results: dict[str, Any] = {
+        "ckpt": str(args.ckpt),
+        "features": str(args.features),
+        "n_generated_motions": len(motions),
+        "psi": args.psi,
+        "ik": bool(args.ik),
+        "distribution (generated vs real)": _metrics(f_real, f_gen, args),
+        "plausibility (generated)": _plausibility_set(gen, ext, real),
+        "plausibility (real)": _plausibility_set(real, ext, real),
+        "seconds": time.perf_counter() - t0,
+    }
+    _dump(results, args, "MoDi evaluation")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _motion(path: str, true_fps: float | None = None, remedy: str = "") -> Any:
+    """A BVH as a Motion; ``true_fps`` replaces the header's rate (``--gen-fps``), else the header must be
+    plausible: some tools write ``Frame Time: 0`` or ``1``, which would silently change every window."""
+    from modi.io import bvh as bvh_io
+    from modi.data.motion import Motion
+
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"{p} is a folder, not a BVH file" if p.is_dir() else f"no such BVH file: {p}")
+    b = bvh_io.load(p, check_frame_time=False)  # checked here, to name the option that fixes it
+    if true_fps is not None:
+        b.frame_time = 1.0 / true_fps
+    elif not 0 < b.frame_time < 0.5:
+        raise UserError(f"{p}: implausible Frame Time {b.frame_time:g} s in the header (the rate must be above "
+                        f"2 fps){remedy}")
+    return Motion.from_bvh(b)
+
+
+def cmd_single(args: argparse.Namespace) -> int:
+    import warnings
+
+    from modi.evaluation.report import to_markdown, write_reports
+    from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
+
+    for opt in ("json", "md"):
+        if getattr(args, opt):
+            ct.refuse_overwrite(getattr(args, opt), [args.source, *args.generated], f"--{opt}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
+        src = _motion(args.source)
+        gens = [_motion(g, args.gen_fps, "; give the generated files' true frame rate with --gen-fps")
+                for g in args.generated]
+    src, gens = src.resample(args.fps), [m.resample(args.fps) for m in gens]
+    try:
+        source, feats, joints = shared_pose_frames(src, gens, args.joints == "reduced", args.representation,
+                                                   labels=args.generated)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    print(f"scoring {len(joints)} joints ({args.joints}; of the source's {src.n_joints}) at {args.fps:g} fps: "
+          + " ".join(joints))
+    left_out = [n for n in shared_joints([src.skeleton], args.joints == "reduced") if n not in joints]
+    if left_out:
+        print(f"  not in every generated file, so not scored: {' '.join(left_out)}")
+    t0 = time.perf_counter()
+    try:
+        res = single_sequence_metrics(feats, source, coverage_window=args.window, threshold=args.threshold,
+                                      min_segment=args.min_segment, local_window=args.local_window)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    lengths = sorted({int(f.shape[0]) for f in feats})
+    out = {
+        "coverage": res["coverage"],
+        "global_diversity": res["global_diversity"],
+        "local_diversity": res["local_diversity"],
+        "source": str(args.source),
+        "protocol": {
+            "joints": args.joints,
+            "n_joints": len(joints),
+            "joint_names": joints,
+            "fps": args.fps,
+            "gen_fps": args.gen_fps,
+            "n_samples": len(feats),
+            "sample_frames": lengths[0] if len(lengths) == 1 else lengths,
+            "source_frames": int(source.shape[0]),
+            "representation": args.representation,
+        },
+        "settings": res["settings"],
+        "seconds": time.perf_counter() - t0,
+        "per_file": [dict(file=str(p), frames=int(f.shape[0]), **v)
+                     for p, f, v in zip(args.generated, feats, res["per_sequence"])],
+    }
+    write_reports(out, args.json, args.md, "Single-sequence metrics")
+    print(f"coverage {out['coverage']:.4f}  global diversity {out['global_diversity']:.4f}  "
+          f"local diversity {out['local_diversity']:.4f}  ({len(feats)} file(s), {out['seconds']:.1f} s)")
+    if args.json is None and args.md is None:
+        print(to_markdown({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
+    return 0
+
+
+def _plausibility_feet(path: Path, names: list[str], given: list[str] | None) -> list[int]:
+    from modi.evaluation.plausibility import guess_feet
+
+    if given is None:
+        try:
+            return guess_feet(names)
+        except ValueError:
+            raise UserError(f"{path}: no foot joints found by name (foot/toe/ankle/heel); name them with "
+                            f"--feet JOINT ... (joints: {', '.join(names[:12])}{', ...' if len(names) > 12 else ''})"
+                            ) from None
+    from modi.evaluation.single import bare_name
+
+    ct.unique_names("--feet", given)
+    # a name matches exactly, or modulo a namespace prefix (``mixamorig:LeftToeBase`` = ``LeftToeBase``)
+    bare = [bare_name(n) for n in names]
+    idx = []
+    for n in given:
+        hits = [j for j, (full, b) in enumerate(zip(names, bare)) if n in (full, b)]
+        if len(hits) > 1:
+            raise UserError(f"{path}: --feet: {n!r} names {len(hits)} joints; give the full names")
+        idx.append(hits[0] if hits else -1)
+    missing = [n for n, j in zip(given, idx) if j < 0]
+    if missing:
+        raise UserError(f"{path}: --feet: no joint named {', '.join(missing)}")
+    if 0 in idx:
+        raise UserError(f"--feet: the root joint {names[0]} cannot be a foot")
+    return idx
+
+
+def cmd_plausibility(args: argparse.Namespace) -> int:
+    from modi.evaluation.plausibility import aggregate, plausibility_metrics
+    from modi.evaluation.report import write_json
+
+    if args.json:
+        ct.refuse_overwrite(args.json, args.clips, "--json")
+    axis = _AXES[args.up_axis]
+    per = []
+    for f in args.clips:
+        p = ct.input_file(f)
+        pos, names, fps = _load_bvh_positions(p)
+        feet = _plausibility_feet(p, names, args.feet)
+        try:
+            m = plausibility_metrics(pos, fps, feet, up_axis=axis, ground=args.ground)
+        except ValueError as exc:
+            raise UserError(f"{p}: {exc}") from None
+        per.append(dict(file=str(p), **m))
+        print(f"{p}: " + "  ".join(f"{k} {v:.4g}" for k, v in m.items()))
+    out = {"mean": aggregate([{k: v for k, v in m.items() if k != "file"} for m in per]), "per_file": per}
+    if args.json:
+        write_json(out, args.json)
+    print(json.dumps(out["mean"], indent=1) if len(per) > 1 else "", end="\n" if len(per) > 1 else "")
+    return 0

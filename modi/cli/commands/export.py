@@ -1,0 +1,126 @@
+"""``modi export-positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks);
+``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers."""
+from __future__ import annotations
+
+import argparse
+import os
+
+from modi.cli import types as ct
+from modi.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "export-positions",
+        help="write a BVH's global joint positions to a .npy array (T, J, 3)",
+        description="Run forward kinematics on a BVH exactly as the file means it (every position channel "
+                    "honoured) and save the global joint positions as a float32 array of shape (frames, joints, 3), "
+                    "in the file's units and joint order (the order of ROOT/JOINT in the file; End Sites excluded).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("input", metavar="IN.bvh", help="input BVH file")
+    p.add_argument("output", metavar="OUT.npy", type=ct.output_file, help="output .npy file (written as named)")
+    p.add_argument("--names", metavar="FILE", default=None, type=ct.output_file,
+                   help="also write the joint names, one per line, to this text file")
+    p.set_defaults(func=run)
+
+    e = subparsers.add_parser("export", help="convert a BVH to another format (gltf)",
+                              description="Convert motion files for other tools.",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    esub = e.add_subparsers(dest="export_format", metavar="FORMAT")
+    e.set_defaults(func=lambda args: (e.print_help(), 2)[1])
+    g = esub.add_parser(
+        "gltf", help="write a BVH as glTF 2.0 (.glb or .gltf)", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Write IN.bvh as glTF 2.0: one node per joint (names kept), a skin (Blender: an armature), "
+                    "one animation at the clip's frame rate and the foot contacts as extras. glTF is Y-up in metres: "
+                    "the BVH is read as Y-up (--up z turns a Z-up file) and its lengths are scaled to metres (the unit "
+                    "is guessed from the body size and printed with the standing height; --scale overrides). "
+                    "OUT.glb is binary; OUT.gltf is JSON with the buffer embedded (or beside it as OUT.bin with "
+                    "--side-buffer). Debian's Blender 3.4 imports the file with its default options; set the scene's "
+                    "frame rate to the clip's before importing (Blender resamples keys at the scene rate, 24 fps by "
+                    "default). Contacts: " + _contact_rule() + ".")
+    g.add_argument("input", metavar="IN.bvh", help="input BVH file")
+    g.add_argument("output", metavar="OUT.glb", type=ct.output_file, help="output .glb or .gltf file")
+    g.add_argument("--scale", type=ct.positive_finite_float, default=None,
+                   help="multiply lengths by this to get metres (default: guessed from the body size)")
+    g.add_argument("--up", choices=("y", "z"), default="y", help="the BVH file's up axis")
+    g.add_argument("--mesh", action="store_true",
+                   help="also write a box-per-bone body for viewers that draw no skeleton (Debian's Blender 3.4 "
+                        "then needs Import Shading: Flat or Smooth, its default fails on any mesh)")
+    g.add_argument("--no-contacts", action="store_true", help="do not store foot-contact labels")
+    g.add_argument("--side-buffer", action="store_true", help=".gltf only: write the binary buffer as OUT.bin")
+    g.set_defaults(func=run_gltf)
+
+
+def _contact_rule() -> str:
+    from modi.core.contacts import PREVIEW_RULE
+
+    return PREVIEW_RULE
+
+
+def run_gltf(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from modi.io import bvh, gltf
+    from modi.io.formats import check_motion
+
+    out = Path(args.output)
+    if out.suffix.lower() not in gltf.SUFFIXES:
+        raise UserError(f"{args.output}: the output name must end in .glb or .gltf")
+    if args.side_buffer and out.suffix.lower() != ".gltf":
+        raise UserError("--side-buffer needs an output ending in .gltf")
+    ct.input_file(args.input)
+    if not out.absolute().parent.is_dir():
+        raise UserError(f"{args.output}: folder {out.absolute().parent} does not exist")
+    ct.refuse_overwrite(args.output, [args.input])
+    if args.side_buffer:
+        ct.refuse_overwrite(out.with_suffix(".bin"), [args.input], "buffer file")
+    b = bvh.load(args.input)
+    check_motion(b, args.input)
+    contacts = None
+    if not args.no_contacts:  # the same labels as the GIF and the viewer page (modi.core.contacts.preview_contacts)
+        import numpy as np
+
+        from modi.core.contacts import preview_contacts
+        from modi.core.kinematics import bvh_positions
+        from modi.viz.render import _feet_of
+
+        p = np.asarray(bvh_positions(b), dtype=np.float64)
+        if args.up == "z":
+            p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
+        feet = _feet_of(b)
+        lab = preview_contacts(p, feet, b.fps, b.parents, b.names)
+        contacts = {b.names[f]: lab[:, f] for f in feet}
+    unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer, contacts=contacts, mesh=args.mesh,
+                     up=args.up)
+    print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {unit.describe()}")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from modi.io import bvh
+    from modi.core.kinematics import bvh_positions
+
+    if os.path.isdir(args.input):
+        raise UserError(f"{args.input}: is a folder, expected a .bvh file")
+    if not os.path.exists(args.input):
+        raise UserError(f"{args.input}: no such file")
+    out_dir = os.path.dirname(os.path.abspath(args.output))
+    if not os.path.isdir(out_dir):
+        raise UserError(f"{args.output}: folder {out_dir} does not exist")
+    ct.refuse_overwrite(args.output, [args.input])
+    if args.names:
+        ct.refuse_overwrite(args.names, [args.input], "--names")
+        if os.path.abspath(args.names) == os.path.abspath(args.output):
+            raise UserError(f"--names {args.names} is the output array's file; choose another name")
+    b = bvh.load(args.input)
+    pos = bvh_positions(b).astype(np.float32)
+    from modi.faults import atomic_save_npy, atomic_write
+
+    atomic_save_npy(args.output, pos)
+    if args.names:
+        atomic_write(args.names, "\n".join(b.names) + "\n")
+    print(f"{args.output}: {pos.shape[0]} frames x {pos.shape[1]} joints x 3 (float32, {b.fps:g} fps)")
+    return 0

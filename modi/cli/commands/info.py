@@ -1,0 +1,149 @@
+"""``modi info FILE``: what a modi file is (kind, format, step, skeleton, config, the modi that wrote it).
+
+Before trusting a checkpoint someone shared, look at it: the file is read as data only (``modi.io.safe_load``),
+no network is built, and a file that names code is refused with one line, so ``info`` is safe on any file.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from modi.errors import UserError
+
+_FOLDER_FILES = ("ganimator.ckpt", "checkpoint.pt")  # what a GANimator / MoDi run folder holds
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("info", help="what a modi checkpoint, encoder or feature-extractor file is",
+                              description="Print the kind, format version, training step, skeleton, config and "
+                                          "modi version of a MoDi or GANimator checkpoint (or run folder), an "
+                                          "encoder or a feature-extractor file. The file is read as data only: "
+                                          "nothing in it runs, and a file that names code is refused.")
+    p.add_argument("file", help="checkpoint file, or a run folder (ganimator.ckpt / checkpoint.pt inside)")
+    p.add_argument("--json", action="store_true", help="print the description as JSON")
+    p.set_defaults(func=_info)
+
+
+def _resolve(path: Path) -> Path:
+    if path.is_dir():
+        for name in _FOLDER_FILES:
+            if (path / name).is_file():
+                return path / name
+        raise UserError(f"{path}: a folder without a modi checkpoint ({' or '.join(_FOLDER_FILES)})")
+    if not path.exists():
+        raise UserError(f"{path}: no such file")
+    return path
+
+
+def _skeleton(d: dict | None, names: list | None = None, parents: list | None = None) -> dict[str, Any] | None:
+    names = list(d["names"]) if d is not None else names
+    parents = list(d["parents"]) if d is not None else parents
+    if names is None:
+        return None
+    return {"joints": len(names), "root": names[0] if names else None, "names": names, "parents": parents}
+
+
+def _written_by(st: dict) -> dict[str, Any]:
+    return {"modi_version": st.get("modi_version"), "torch_version": st.get("torch_version")}
+
+
+def _modi(st: dict) -> dict[str, Any]:
+    return {"kind": "MoDi generator checkpoint", "format": st.get("format"), "version": st.get("version"),
+            "step": st.get("step"), "skeleton": _skeleton(st.get("skeleton")), "config": st.get("config"),
+            "data": st.get("data_source"), **_written_by(st)}
+
+
+def _encoder(st: dict) -> dict[str, Any]:
+    gen = st.get("generator") or {}
+    return {"kind": "MoDi encoder checkpoint", "format": st.get("format"), "version": st.get("version"),
+            "step": st.get("step"), "skeleton": _skeleton(gen.get("skeleton")),
+            "config": {"encoder": st.get("encoder_config"), "train": st.get("train_config"),
+                       "generator": gen.get("config")}, "data": st.get("data_source"), **_written_by(st)}
+
+
+def _features(st: dict) -> dict[str, Any]:
+    cfg = dict(st.get("config") or {})
+    info = st.get("info") or {}
+    epochs = info.get("epochs") or []
+    return {"kind": "feature-extractor file (ST-GCN)", "format": st.get("format"),
+            "version": int(st["format"].rsplit("-v", 1)[1]) if "-v" in st["format"] else None,
+            "step": f"{len(epochs)} epochs" + (f", validation top-1 {info['val_top1']:.3f}" if "val_top1" in info else ""),
+            "skeleton": _skeleton(None, cfg.pop("joint_names", None), cfg.pop("parents", None)), "config": cfg,
+            "data": info.get("data"), **_written_by(st)}
+
+
+def _ganimator(st: dict) -> dict[str, Any]:
+    m = st.get("model") or {}
+    cfg = m.get("config") or {}
+    state = st.get("state") or {}
+    lengths = m.get("lengths") or [[]]
+    n_levels = len(lengths[0])
+    n_blocks = math.ceil(n_levels / max(int(cfg.get("group_size", 1)), 1)) if n_levels else 0
+    b = int(state.get("block", 0))
+    where = "fully trained" if b >= n_blocks else f"block {b + 1}/{n_blocks}, iteration {state.get('iteration', 0)}"
+    clips = [f"{c['name']} ({c['features'].shape[-1]} frames at {c['fps']:g} fps; pyramid {'-'.join(map(str, l))})"
+             for c, l in zip(m.get("clips", []), lengths)]
+    first = (m.get("clips") or [{}])[0]
+    return {"kind": "GANimator checkpoint" + (" (trajectory-conditioned)" if cfg.get("conditional") else ""),
+            "format": st.get("format"), "version": int(str(st.get("format")).rsplit("/", 1)[1]),
+            "step": f"{where}; {state.get('levels_done', 0)} of {n_levels} levels trained",
+            "skeleton": _skeleton(first.get("skeleton")), "config": cfg, "data": ", ".join(clips),
+            **_written_by(st)}
+
+
+_KINDS = {"modi-checkpoint": _modi, "modi-encoder": _encoder, "modi-features-v1": _features,
+          "modi.models.ganimator/1": _ganimator}
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    """The description ``modi info`` prints, from the file's data alone (``UserError`` for anything else)."""
+    from modi.io.safe_load import earlier_modi_globals, load_data
+
+    p = _resolve(Path(path))
+    st = load_data(p, "modi file", allowed=earlier_modi_globals())
+    fmt = st.get("format") if isinstance(st, dict) else None
+    if fmt not in _KINDS:
+        raise UserError(f"{p}: not a modi checkpoint, encoder or feature-extractor file"
+                        + (f" (format tag {fmt!r})" if fmt is not None else " (no format tag)"))
+    try:
+        return {"file": str(p), **_KINDS[fmt](st)}
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise UserError(f"{p}: a {fmt} file with missing or malformed fields ({type(exc).__name__}: {exc})") from None
+
+
+def _flat(d: Any, prefix: str = "") -> list[str]:
+    """``a.b=value`` pairs of a nested config, for one readable line per field group."""
+    if not isinstance(d, dict):
+        return [f"{prefix}={d!r}"] if prefix else [repr(d)]
+    out: list[str] = []
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        out += _flat(v, key) if isinstance(v, dict) else [f"{key}={json.dumps(v)}"]
+    return out
+
+
+def _text(d: dict[str, Any]) -> str:
+    import textwrap
+
+    sk = d["skeleton"]
+    names = ", ".join(sk["names"][:8]) + (", ..." if sk and len(sk["names"]) > 8 else "") if sk else ""
+    wrote = (f"modi {d['modi_version']}" if d.get("modi_version")
+             else "not recorded (written before modi recorded its version)")
+    if d.get("torch_version"):
+        wrote += f", torch {d['torch_version']}"
+    rows = [("file", d["file"]), ("kind", d["kind"]), ("format", f"{d['format']} (version {d['version'] if d['version'] is not None else 'not recorded'})"),
+            ("step", d["step"]),
+            ("skeleton", f"{sk['joints']} joints, root {sk['root']}: {names}" if sk else "not recorded"),
+            ("data", d.get("data") or "not recorded"), ("written by", wrote)]
+    lines = [f"{k + ':':12s} {v}" for k, v in rows]
+    cfg = " ".join(_flat(d["config"])) if d.get("config") is not None else "not recorded"
+    lines += textwrap.wrap(cfg, width=110, initial_indent=f"{'config:':12s} ", subsequent_indent=" " * 13)
+    return "\n".join(lines)
+
+
+def _info(args) -> int:
+    d = describe(args.file)
+    print(json.dumps(d, indent=2, default=str) if args.json else _text(d))
+    return 0

@@ -1,0 +1,315 @@
+"""``Motion``: a clip as local joint rotations + root trajectory on a fixed-offset skeleton.
+
+This is the form every representation, model and metric works on. It deliberately has no per-joint
+translations: bones keep their length. ``Motion.from_bvh`` therefore has to decide what to do with
+BVH files that animate non-root translations (see its docstring); everything else round-trips
+exactly through ``to_bvh``.
+"""
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from modi.io import bvh as bvh_io
+from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import (
+    euler_to_quat,
+    quat_apply,
+    quat_canonical,
+    quat_inverse,
+    quat_mul,
+    quat_slerp,
+    quat_to_euler,
+    quat_unflip,
+)
+from modi.core.skeleton import Skeleton
+
+__all__ = ["Motion"]
+
+
+def _snap_fps(fps: float) -> float:
+    """BVH frame times are printed rounded (0.0333333, 0.016667): recover the integer rate they stand for."""
+    r = round(fps)
+    return float(r) if r > 0 and abs(fps - r) <= 1e-4 * fps else float(fps)
+
+
+def _rest_positions(parents: list[int], offsets: np.ndarray) -> np.ndarray:
+    pos = np.zeros_like(offsets)
+    for j, p in enumerate(parents):
+        if p >= 0:
+            pos[j] = pos[p] + offsets[j]
+    return pos
+
+
+def _euler_quats(euler: np.ndarray, orders: list[str], dtype: torch.dtype) -> Tensor:
+    """(F, J, 3) degrees, per-joint order -> (F, J, 4), one batched call per distinct order."""
+    e = torch.from_numpy(np.ascontiguousarray(euler)).to(dtype)
+    out = torch.empty(e.shape[:-1] + (4,), dtype=dtype)
+    for order in sorted(set(orders)):
+        idx = [j for j, o in enumerate(orders) if o == order]
+        out[:, idx] = euler_to_quat(e[:, idx], order)
+    return out
+
+
+def fold_dummy_root(parents, trans: np.ndarray, euler: np.ndarray, quat0: torch.Tensor, scale: float):
+    """Bandai's pattern: a *static* joint 0 (constant channels) whose only child carries the animated
+    translation (``joint_Root`` above ``Hips``). Joint 0 is rigid, so ``pos[a](t) = root + R0 @ t_a(t)``: returns
+    ``(root track with all of t_a moved in, a)`` (the child's offset is then zero), or None for any other file.
+    ``trans`` (F, J, 3) local translations, ``euler`` (F, J, 3) channel angles, ``quat0`` joint 0's rotation."""
+    children0 = [j for j, p in enumerate(parents) if p == 0]
+    if len(children0) != 1:
+        return None
+    a = children0[0]
+    root_static = np.ptp(trans[:, 0], axis=0).max() <= 1e-9 * scale and np.ptp(euler[:, 0], axis=0).max() <= 1e-9
+    child_moves = np.abs(trans[:, a] - trans[:, a].mean(axis=0)).max() > 1e-6 * scale
+    if not (root_static and child_moves):
+        return None
+    r0 = quat0.to(torch.float64).expand(trans.shape[0], 4)
+    return trans[:, 0] + quat_apply(r0, torch.from_numpy(trans[:, a])).numpy(), a
+
+
+@dataclass
+class Motion:
+    """Local unit quaternions ``rotations (T, J, 4)`` (w,x,y,z, parent frame), ``root_positions (T, 3)``
+    (joint 0's global position), on ``skeleton`` (fixed offsets), sampled at ``fps``."""
+
+    skeleton: Skeleton
+    rotations: Tensor
+    root_positions: Tensor
+    fps: float
+
+    def __post_init__(self) -> None:
+        self.rotations = torch.as_tensor(self.rotations)
+        if not self.rotations.is_floating_point():
+            self.rotations = self.rotations.to(torch.get_default_dtype())
+        self.root_positions = torch.as_tensor(self.root_positions, dtype=self.rotations.dtype,
+                                              device=self.rotations.device)
+        j = self.skeleton.n_joints
+        if self.rotations.ndim != 3 or self.rotations.shape[1:] != (j, 4):
+            raise ValueError(f"Motion: rotations must be (T, {j}, 4), got {tuple(self.rotations.shape)}")
+        t = self.rotations.shape[0]
+        if t < 1:
+            raise ValueError("Motion: needs at least one frame")
+        if self.root_positions.shape != (t, 3):
+            raise ValueError(f"Motion: root_positions must be ({t}, 3), got {tuple(self.root_positions.shape)}")
+        self.fps = float(self.fps)
+        if not (math.isfinite(self.fps) and self.fps > 0):
+            raise ValueError(f"Motion: fps must be positive, got {self.fps}")
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def n_frames(self) -> int:
+        return int(self.rotations.shape[0])
+
+    @property
+    def n_joints(self) -> int:
+        return self.skeleton.n_joints
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "Motion":
+        return Motion(self.skeleton, self.rotations.to(dtype=dtype, device=device),
+                      self.root_positions.to(dtype=dtype, device=device), self.fps)
+
+    def crop(self, start: int, stop: int | None = None) -> "Motion":
+        """Frames ``[start, stop)``."""
+        sl = slice(start, stop)
+        return Motion(self.skeleton, self.rotations[sl], self.root_positions[sl], self.fps)
+
+    def forward_kinematics(self) -> tuple[Tensor, Tensor]:
+        """(global positions (T, J, 3), global rotations (T, J, 4))."""
+        return forward_kinematics(self.rotations, self.skeleton.offsets, self.skeleton.parents, self.root_positions)
+
+    def positions(self) -> Tensor:
+        """Global joint positions ``(T, J, 3)`` (the reference FK)."""
+        return self.forward_kinematics()[0]
+
+    # ------------------------------------------------------------------ BVH
+    @classmethod
+    def from_bvh(cls, bvh_or_path, dtype: torch.dtype = torch.float64) -> "Motion":
+        """Convert a :class:`modi.io.bvh.Bvh` (or a path to one) into a Motion.
+
+        * rotations: each joint's Euler channels in its own order, made sign-continuous over time
+          (first frame with w >= 0); joints without rotation channels get the identity.
+        * root_positions: joint 0's position channels (its OFFSET where it has none).
+        * offsets: a non-root joint's translation (position channels where present, else OFFSET).
+        * fps: ``1 / frame_time``, snapped to an integer when the file's frame time is a rounded 1/n.
+
+        Files that animate the translation of non-root joints cannot be represented exactly by
+        fixed bones. Two cases are handled:
+
+        * a *static* joint 0 (constant channels) whose only child carries the translation — e.g.
+          Bandai's ``joint_Root`` above ``Hips``: that child gets a zero offset and its animated
+          translation moves into ``root_positions``, so every joint except the dummy root is exact
+          (the dummy root now rides on the child; drop it with :meth:`subset` to get an exact
+          child-rooted motion);
+        * anything else (e.g. a few stretchy bones in the Elephant rig): the translation's temporal
+          mean becomes the fixed offset, and a warning says how large the discarded stretch was.
+        """
+        b = bvh_or_path if isinstance(bvh_or_path, bvh_io.Bvh) else bvh_io.load(bvh_or_path)
+        where = "" if isinstance(bvh_or_path, bvh_io.Bvh) else f"{os.fspath(bvh_or_path)}: "
+        orders = b.rotation_orders
+        euler = b.euler_degrees()
+        trans = b.local_translations()  # (F, J, 3)
+        quats = _euler_quats(euler, orders, torch.float64)
+        offsets = trans.mean(axis=0)
+        offsets[0] = b.offsets[0]
+        root = trans[:, 0].copy()
+
+        scale = float(np.ptp(_rest_positions(b.parents, offsets), axis=0).max())
+        scale = scale if scale > 0 else max(float(np.abs(trans).max()), 1.0)
+        dev = np.abs(trans - offsets[None]).max(axis=(0, 2))  # (J,) max deviation from the fixed offset
+        animated = dev > 1e-6 * scale
+        animated[0] = False
+
+        folded = fold_dummy_root(b.parents, trans, euler, quats[0, 0], scale)
+        if folded is not None:
+            root, a = folded
+            offsets[a] = 0.0
+            animated[a] = False
+        if animated.any():
+            names = [b.names[j] for j in np.nonzero(animated)[0]]
+            warnings.warn(
+                f"{where}Motion keeps bones rigid: the animated translations of {len(names)} joint(s) "
+                f"({', '.join(names[:5])}{', ...' if len(names) > 5 else ''}; up to {dev[animated].max() / scale:.2%} "
+                f"of the skeleton's size) are replaced by their mean",
+                stacklevel=2,
+            )
+        skeleton = Skeleton(
+            names=list(b.names),
+            parents=list(b.parents),
+            offsets=offsets,
+            end_sites={k: v.copy() for k, v in b.end_sites.items()},
+            rotation_orders=list(orders),
+        )
+        rotations = quat_unflip(torch.cat((quat_canonical(quats[:1]), quats[1:])), dim=0)
+        return cls(skeleton, rotations.to(dtype), torch.from_numpy(root).to(dtype), _snap_fps(b.fps))
+
+    def to_bvh(self) -> bvh_io.Bvh:
+        """A :class:`modi.io.bvh.Bvh`: root with 6 channels (XYZ position + rotation), the others 3 rotation
+        channels, each in ``skeleton.rotation_orders``."""
+        sk = self.skeleton
+        orders = sk.rotation_orders or ["ZYX"] * sk.n_joints
+        rot = self.rotations.detach().to("cpu", torch.float64)
+        euler = torch.empty(rot.shape[:-1] + (3,), dtype=torch.float64)
+        for order in sorted(set(orders)):
+            idx = [j for j, o in enumerate(orders) if o == order]
+            euler[:, idx] = quat_to_euler(rot[:, idx], order)
+        root = self.root_positions.detach().to("cpu", torch.float64)
+        motion = torch.cat((root, euler.reshape(self.n_frames, -1)), dim=1).numpy()
+        channels = [[f"{c}rotation" for c in o] for o in orders]
+        channels[0] = ["Xposition", "Yposition", "Zposition"] + channels[0]
+        return bvh_io.Bvh(
+            names=list(sk.names),
+            parents=list(sk.parents),
+            offsets=sk.offsets.copy(),
+            channels=channels,
+            end_sites={k: np.asarray(v, dtype=np.float64).copy() for k, v in sk.end_sites.items()},
+            frame_time=1.0 / self.fps,
+            motion=motion,
+        )
+
+    def save(self, path: str | os.PathLike, precision: int = 6) -> None:
+        bvh_io.save(self.to_bvh(), path, precision)
+
+    # ------------------------------------------------------------------ resampling
+    def resample(self, fps: float) -> "Motion":
+        """Resample in time to ``fps``: slerp for rotations, linear for the root.
+
+        Frame ``i`` of the result is at source time ``i * old/new`` (frames), so the first frame is
+        kept and the result has ``floor((T - 1) * new / old) + 1`` frames (never past the clip's end).
+        """
+        fps = float(fps)
+        if not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"resample: fps must be positive, got {fps}")
+        if abs(fps - self.fps) <= 1e-9 * self.fps:
+            return Motion(self.skeleton, self.rotations.clone(), self.root_positions.clone(), self.fps)
+        ratio = self.fps / fps  # source frames per target frame
+        n = int(math.floor((self.n_frames - 1) / ratio + 1e-9)) + 1
+        t = torch.arange(n, dtype=torch.float64) * ratio
+        i0 = torch.clamp(torch.floor(t).long(), 0, self.n_frames - 1)
+        i1 = torch.clamp(i0 + 1, max=self.n_frames - 1)
+        frac = (t - i0.to(torch.float64)).clamp(0.0, 1.0).to(self.rotations.dtype).to(self.rotations.device)
+        i0, i1 = i0.to(self.rotations.device), i1.to(self.rotations.device)
+        rot = quat_slerp(self.rotations[i0], self.rotations[i1], frac[:, None, None])
+        root = self.root_positions[i0] * (1 - frac[:, None]) + self.root_positions[i1] * frac[:, None]
+        return Motion(self.skeleton, rot, root, fps)
+
+    # ------------------------------------------------------------------ joint subsets
+    def subset(self, keep_indices) -> "Motion":
+        """Keep only ``keep_indices`` (any order; result in ascending original order) and re-parent.
+
+        Each kept joint hangs from its nearest kept ancestor. Its new local rotation is the exact
+        product of the dropped intermediate joints' rotations with its own (``G_parent^-1 G_joint``),
+        so every kept joint's *global orientation* is preserved. Its new offset is the plain sum of the
+        offsets along the dropped chain (the rest pose, all rotations identity) — one skeleton for
+        every clip, as in MoDi/GANimator. A fixed offset cannot follow a dropped joint that rotates:
+        for parent P, dropped J, child C the true translation ``t_J + R_J t_C`` varies with ``R_J``.
+        So kept *positions* are exact when each dropped intermediate joint has an identity rotation
+        (or nothing below it to move); otherwise they drift by that rotation's effect on the chain.
+
+        Dropping the root is exact: the kept joint with no kept ancestor becomes the root and takes
+        its global trajectory and orientation. A kept joint whose children were all dropped gets an
+        End Site at its first dropped child's offset (for viewers).
+        """
+        sk = self.skeleton
+        try:
+            keep = sorted({int(k) for k in keep_indices})
+        except (TypeError, ValueError):
+            raise ValueError(f"subset: keep_indices must be joint indices, got {keep_indices!r}") from None
+        if not keep:
+            raise ValueError("subset: keep_indices is empty")
+        if keep[0] < 0 or keep[-1] >= sk.n_joints:
+            raise ValueError(f"subset: joint indices must be in 0..{sk.n_joints - 1}, got {keep[0]}..{keep[-1]}")
+        kept = set(keep)
+        new_index = {j: i for i, j in enumerate(keep)}
+        new_parents: list[int] = []
+        new_offsets = np.zeros((len(keep), 3))
+        for i, j in enumerate(keep):
+            off = np.zeros(3)
+            a = j
+            while a >= 0 and (a == j or a not in kept):
+                off += sk.offsets[a]
+                a = sk.parents[a]
+            if a < 0:
+                if i != 0:
+                    raise ValueError(
+                        f"subset: kept joints {sk.names[keep[0]]!r} and {sk.names[j]!r} have no common kept "
+                        "ancestor (the result must be one tree)")
+                new_parents.append(-1)
+                new_offsets[i] = off if j != 0 else sk.offsets[0]
+            else:
+                new_parents.append(new_index[a])
+                new_offsets[i] = off
+        gpos, grot = self.forward_kinematics()
+        rots = torch.empty(self.n_frames, len(keep), 4, dtype=self.rotations.dtype, device=self.rotations.device)
+        for i, j in enumerate(keep):
+            p = new_parents[i]
+            if p < 0:
+                rots[:, i] = grot[:, j]
+            elif keep[p] == sk.parents[j]:
+                rots[:, i] = self.rotations[:, j]  # direct child: keep the exact local rotation
+            else:
+                rots[:, i] = quat_mul(quat_inverse(grot[:, keep[p]]), grot[:, j])
+        end_sites = {}
+        for i, j in enumerate(keep):
+            if j in sk.end_sites:
+                end_sites[i] = np.asarray(sk.end_sites[j]).copy()
+            elif i not in new_parents:
+                dropped = sk.children(j)
+                if dropped:
+                    end_sites[i] = sk.offsets[dropped[0]].copy()
+        orders = sk.rotation_orders or ["ZYX"] * sk.n_joints
+        skeleton = Skeleton(
+            names=[sk.names[j] for j in keep],
+            parents=new_parents,
+            offsets=new_offsets,
+            end_sites=end_sites,
+            rotation_orders=[orders[j] for j in keep],
+        )
+        rots = quat_unflip(torch.cat((quat_canonical(rots[:1]), rots[1:])), dim=0)
+        return Motion(skeleton, rots, gpos[:, keep[0]].clone(), self.fps)

@@ -1,0 +1,1 @@
+"""The two generative systems: MoDi (``models.modi``) and GANimator (``models.ganimator``)."""

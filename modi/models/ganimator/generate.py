@@ -1,0 +1,450 @@
+"""Sampling from a trained GANimator: any length, crowds, style transfer, key-frame editing, trajectory control,
+streaming (the paper's Algorithm 1), BVH/GIF output, IK contact clean-up and the single-sequence metrics.
+
+All levels live on fixed time grids (level ``l`` of an ``N``-frame output has ``ceil(N * rate_l)`` frames, and
+frame ``i`` of it always sits at the same instant), so a longer output is an extension of a shorter one except
+near its end. :class:`TrajectoryStream` relies on that: when new trajectory frames arrive it recomputes only a
+window covering the new frames plus the receptive field at every level, and emits only frames that no future
+input can change — exactly the frames a full recomputation would produce.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence as Seq
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from modi.errors import UserError
+from modi.models.ganimator.data import K, Sequence as Clip, features_to_motion, load_sequence, resample
+from modi.models.ganimator.networks import GanimatorModel, make_noise, synthesize
+
+# ------------------------------------------------------------------------------------------- decoding / output
+
+
+def decode(model: GanimatorModel, feats: Tensor, base: int = 0, root_start: Tensor | None = None
+           ) -> tuple[Tensor, Tensor, Tensor]:
+    """Features ``(6, E, T)`` -> local quats ``(T, J, 4)``, root ``(T, 3)`` (starting at ``root_start``, by
+    default where the training clip started), contact labels ``(T, C)`` in [0, 1]."""
+    start = model.seqs[base].root_start if root_start is None else root_start
+    quats, root, contacts = features_to_motion(feats.detach().cpu().to(torch.float32), model.n_joints,
+                                               start.detach().cpu().to(torch.float32), sixd=model.seqs[base].sixd)
+    return quats, root, contacts.clamp(0.0, 1.0)
+
+
+def positions_of(seq: Clip, quats: Tensor, root: Tensor) -> Tensor:
+    from modi.core.kinematics import forward_kinematics
+
+    pos, _ = forward_kinematics(quats.to(torch.float64), torch.as_tensor(seq.skeleton.offsets), seq.skeleton.parents,
+                                root.to(torch.float64))
+    return pos
+
+
+def fix_contacts(seq: Clip, quats: Tensor, root: Tensor, contacts: Tensor) -> tuple[Tensor, Tensor]:
+    """IK clean-up: pin each foot while its predicted label is on (``modi.core.ik.fix_foot_contact``)."""
+    if not seq.feet:
+        return quats, root
+    from modi.core.ik import fix_foot_contact
+
+    q, r = fix_foot_contact(quats.to(torch.float64), root.to(torch.float64), seq.skeleton, list(seq.feet),
+                            contacts > 0.5, tol=1e-5 * seq.size)
+    return q.to(quats.dtype), r.to(root.dtype)
+
+
+def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
+    """A ``modi.io.bvh.Bvh`` in the *source file's* units (root: 6 channels, other joints: 3 rotation channels)."""
+    from modi.io.bvh import Bvh
+    from modi.core.rotations import quat_to_euler
+
+    sk = seq.skeleton
+    inv = 1.0 / seq.scale
+    orders = list(sk.rotation_orders or ["ZYX"] * sk.n_joints)
+    T, J = quats.shape[:2]
+    eul = torch.empty(T, J, 3, dtype=torch.float64)
+    q = quats.to(torch.float64)
+    for order in set(orders):
+        idx = [j for j, o in enumerate(orders) if o == order]
+        eul[:, idx] = quat_to_euler(q[:, idx], order)
+    channels, cols = [], []
+    for j in range(J):
+        rot = [f"{a}rotation" for a in orders[j]]
+        if j == 0:
+            channels.append(["Xposition", "Yposition", "Zposition"] + rot)
+            cols.append(root.to(torch.float64) * inv)
+        else:
+            channels.append(rot)
+        cols.append(eul[:, j])
+    motion = torch.cat(cols, dim=1).numpy()
+    return Bvh(names=list(sk.names), parents=list(sk.parents), offsets=sk.offsets * inv, channels=channels,
+               end_sites={k: np.asarray(v) * inv for k, v in sk.end_sites.items()},
+               frame_time=1.0 / float(fps or seq.fps), motion=motion)
+
+
+def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path, contacts: Tensor | None = None) -> Path:
+    """Write the motion at ``path`` in the requested ``--format`` formats (``modi.io.formats``); ``contacts`` (T, F) in
+    ``seq.feet`` order go into glTF extras. Returns the first format's path."""
+    from modi.io.formats import save_motion
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    labels = None
+    if contacts is not None and seq.feet:
+        c = contacts.detach().cpu().numpy()
+        labels = {seq.skeleton.names[f]: c[:, k] for k, f in enumerate(seq.feet)}
+    return save_motion(to_bvh(seq, quats, root), path, contacts=labels)
+
+
+# ------------------------------------------------------------------------------------------- metrics
+
+
+def rotation_frames(quats: Tensor) -> Tensor:
+    """Per-frame pose vectors for the single-sequence metrics (6D of every local rotation, as the authors)."""
+    from modi.evaluation.single import rotation_features
+
+    return rotation_features(quats.to(torch.float64), representation="6d")
+
+
+def metrics_against_sources(model: GanimatorModel, samples: Seq[Tensor]) -> dict:
+    """Coverage (30-frame windows, threshold 2.0), global diversity (PNN, segments >= 30) and local diversity
+    (15-frame windows) of decoded samples against each training clip."""
+    from modi.evaluation.single import single_sequence_metrics
+
+    gens = [rotation_frames(decode(model, s)[0]) for s in samples]
+    out = {}
+    for seq in model.seqs:
+        src = rotation_frames(seq.rotations())
+        r = single_sequence_metrics(gens, src)
+        out[seq.name] = {k: float(r[k]) for k in ("coverage", "global_diversity", "local_diversity")}
+    return out
+
+
+def evaluate_run(run: str | Path, n: int = 10, n_frames: int | None = None, seed: int = 0) -> dict:
+    """Sample ``n`` motions and report the metrics per training clip, plus the run's schedule and timings."""
+    from modi.models.ganimator.training import load_model, run_summary
+
+    model = load_model(run)
+    T = n_frames or model.seqs[0].n_frames
+    gen = torch.Generator().manual_seed(seed)
+    samples = [model.sample(T, 1, generator=gen)[0] for _ in range(n)]
+    rec = [model.reconstruct(m)[0] for m in range(len(model.seqs))]
+    metrics = metrics_against_sources(model, samples)
+    for f in metrics.values():  # the number of samples and their length beside every figure
+        f.update(samples=n, frames=T)
+    figures = {"protocol": "ours", "samples": n, "frames": T, "metrics": metrics}
+    figures["reconstruction_l1"] = {s.name: float((r - s.features).abs().mean()) for s, r in zip(model.seqs, rec)}
+    summary = run_summary(run)
+    figures["levels"] = summary["lengths"]
+    figures["blocks"] = [{"levels": b, "seconds": round(s, 1)} for b, s in zip(summary["blocks"],
+                                                                               summary["block_seconds"])]
+    figures["preset"] = summary["config"]["preset"]
+    figures["iterations_per_block"] = summary["block_iterations"]
+    return figures
+
+
+# ------------------------------------------------------------------------------------------- applications
+
+
+def coarse_from_clip(model: GanimatorModel, clip: Clip, n_frames: int, frame_step: float = 1.0,
+                     base: int = 0) -> Tensor:
+    """A clip as level 0 of an ``n_frames`` output ``(1, 6, E, L0)``.
+
+    ``frame_step``: output frames per clip frame (1 for a content motion at the model's rate; ``n_frames / F`` for
+    ``F`` key-frames spread over the output). Root displacement is rescaled to per-output-frame units.
+    """
+    f = clip.features.clone()
+    J = model.n_joints
+    f[0, J] = f[0, J] / frame_step
+    f[2, J] = f[2, J] / frame_step
+    L0 = model.level_lengths(n_frames, base)[0]
+    F = f.shape[-1]
+    return resample(f, L0, F / L0).unsqueeze(0).to(model.device)
+
+
+def style_transfer(model: GanimatorModel, content: str | Path, seed: int = 0) -> Tensor:
+    """The content motion's coarse level with the trained clip's detail: ``(1, 6, E, T_content)``."""
+    clip = load_sequence(content, model.cfg, like=model.seqs[0])
+    coarse = coarse_from_clip(model, clip, clip.n_frames)
+    return model.sample(clip.n_frames, 1, replace={0: coarse}, generator=torch.Generator().manual_seed(seed))
+
+
+def keyframe_edit(model: GanimatorModel, keyframes: str | Path, n_frames: int | None = None, seed: int = 0) -> Tensor:
+    """Edited coarse-level poses (a BVH with one frame per coarse frame) -> full-rate motion through them."""
+    clip = load_sequence(keyframes, model.cfg, like=model.seqs[0])
+    T = n_frames or model.seqs[0].n_frames
+    coarse = coarse_from_clip(model, clip, T, frame_step=T / clip.n_frames)
+    return model.sample(T, 1, replace={0: coarse}, generator=torch.Generator().manual_seed(seed))
+
+
+def trajectory_conditions(model: GanimatorModel, traj: Tensor, n_frames: int) -> list[Tensor]:
+    """Full-rate constraint ``(1, 6, 2, T)`` -> one per level on the fixed grids."""
+    rates = model.rates[0]
+    lengths = model.level_lengths(n_frames)
+    return [resample(traj, L, 1.0 / r) if L != n_frames else traj for L, r in zip(lengths, rates)]
+
+
+def load_trajectory(model: GanimatorModel, path: str | Path) -> tuple[Tensor, Tensor]:
+    """Root trajectory (root motion + root rotation entities) of a BVH ``(1, 6, 2, T)`` and its start position."""
+    clip = load_sequence(path, model.cfg, like=model.seqs[0])
+    return clip.features[:, model.cond_entities].unsqueeze(0).to(model.device), clip.root_start
+
+
+def sample_trajectory(model: GanimatorModel, n_frames: int, seed: int = 0) -> Tensor:
+    """A random trajectory from the unconditional run a conditional model was trained against."""
+    src = getattr(model, "cond_source", None)
+    if src is None:
+        raise UserError("this conditional run carries no trajectory source; pass --trajectory BVH")
+    full = src.sample(n_frames, 1, fine_noise=True, generator=torch.Generator().manual_seed(seed))
+    return full[:, :, model.cond_entities]
+
+
+def conditional_generate(model: GanimatorModel, traj: Tensor, seed: int = 0) -> Tensor:
+    if not model.cond_entities:
+        raise UserError("this run is not trajectory-conditioned (train it with --conditional-from RUN)")
+    T = traj.shape[-1]
+    conds = trajectory_conditions(model, traj, T)
+    return model.sample(T, 1, conds=conds, generator=torch.Generator().manual_seed(seed))
+
+
+# ------------------------------------------------------------------------------------------- streaming
+
+
+def _window_resample(x: Tensor, x_start: int, L_in: int, out_start: int, out_stop: int, ratio: float) -> Tensor:
+    """:func:`resample` evaluated only for output frames ``[out_start, out_stop)`` from a window of the input that
+    begins at frame ``x_start`` of an ``L_in``-frame signal."""
+    i = torch.arange(out_start, out_stop, dtype=torch.float64)
+    pos = ((i + 0.5) * ratio - 0.5).clamp(0.0, L_in - 1)
+    lo = pos.floor().long()
+    hi = (lo + 1).clamp(max=L_in - 1)
+    w = (pos - lo.to(torch.float64)).to(x.dtype).to(x.device)
+    lo_w, hi_w = (lo - x_start).to(x.device), (hi - x_start).to(x.device)
+    if int(lo_w.min()) < 0 or int(hi_w.max()) >= x.shape[-1]:
+        raise RuntimeError("streaming window does not cover the resampling support (internal error)")
+    return x.index_select(-1, lo_w) * (1 - w) + x.index_select(-1, hi_w) * w
+
+
+class TrajectoryStream:
+    """Interactive trajectory-conditioned generation (Algorithm 1 of the paper), exact by construction.
+
+    ``extend(segment)`` appends root-trajectory frames ``(1, 6, 2, n)`` and returns the newly *final* output
+    frames ``(1, 6, E, k)``: those whose receptive field, through every level, no longer reaches the end of the
+    input. Only a window of each level (the new frames plus the receptive field) is recomputed. ``finish()``
+    emits the remaining tail. Noise is drawn per fixed block of frames from ``seed``, so the result does not
+    depend on how the trajectory was cut into segments and equals :meth:`offline` on the whole trajectory.
+    """
+
+    NOISE_BLOCK = 64
+
+    def __init__(self, model: GanimatorModel, seed: int = 0, fine_noise: bool = False) -> None:
+        if not model.cond_entities:
+            raise UserError("streaming needs a trajectory-conditioned run (train with --conditional-from RUN)")
+        self.model = model
+        self.seed = int(seed)
+        self.fine_noise = fine_noise
+        self.rates = list(model.rates[0])
+        self.R = model.gens[0].receptive_radius
+        self.traj: Tensor | None = None
+        self.emitted = 0
+        self.windows: list[int] = []  # frames recomputed per level on the last call (for inspection)
+
+    # noise: block b of level l comes from its own generator, so any prefix is reproducible
+    def _noise(self, level: int, start: int, stop: int) -> Tensor | None:
+        if level > 0 and not self.fine_noise:
+            return None
+        amp = self.model.amps[0][level]
+        B = self.NOISE_BLOCK
+        chunks = []
+        for b in range(start // B, (max(stop, start + 1) - 1) // B + 1):
+            g = torch.Generator().manual_seed(self.seed * 1000003 + level * 7919 + b)
+            chunks.append(torch.randn(B, generator=g))
+        z = torch.cat(chunks)[start - (start // B) * B: stop - (start // B) * B]
+        return (z * amp).view(1, 1, 1, -1).to(self.model.device)
+
+    def noises(self, lengths: Seq[int]) -> list[Tensor | None]:
+        return [self._noise(l, 0, L) for l, L in enumerate(lengths)]
+
+    def _lengths(self, N: int) -> list[int]:
+        return [max(1, math.ceil(N * r - 1e-6)) for r in self.rates]
+
+    def stable_frames(self, N: int) -> int:
+        """How many final frames of an ``N``-frame input can no longer change when more input arrives."""
+        lengths = self._lengths(N)
+        U_prev = None
+        U = 0
+        for l, (L, r) in enumerate(zip(lengths, self.rates)):
+            # condition at this level: frame j reads fine frames floor(src)+{0,1}; final once both exist
+            j = np.arange(L)
+            src = np.clip((j + 0.5) / r - 0.5, 0, None)
+            ok = np.floor(src) + 1 <= N - 1 if r < 1 else j < N
+            S = int(np.argmin(ok)) if not ok.all() else L
+            if l > 0:
+                rho = self.rates[l - 1] / r
+                src_up = np.clip((j + 0.5) * rho - 0.5, 0, None)
+                ok_up = np.floor(src_up) + 1 < U_prev
+                S = min(S, int(np.argmin(ok_up)) if not ok_up.all() else L)
+            U = max(0, min(S, L) - self.R)
+            U_prev = U
+        return U
+
+    def _run(self, N: int, e0: int) -> Tensor:
+        """Final-level frames ``[e0, N)`` of the ``N``-frame input, computing only the needed windows."""
+        m = self.model
+        lengths = self._lengths(N)
+        n = len(lengths)
+        need = [0] * n
+        win = [0] * n
+        need[-1] = e0
+        for l in range(n - 1, -1, -1):
+            win[l] = max(0, need[l] - self.R)
+            if l > 0:
+                rho = self.rates[l - 1] / self.rates[l]
+                pos = max(0.0, (win[l] + 0.5) * rho - 0.5)
+                need[l - 1] = min(int(math.floor(pos)), lengths[l - 1] - 1)
+        self.windows = [L - w for L, w in zip(lengths, win)]
+        prev = None
+        E = m.n_entities
+        for l in range(n):
+            L, w = lengths[l], win[l]
+            if l == 0:
+                base = torch.zeros(1, K, E, L - w, device=m.device)
+            else:
+                base = _window_resample(prev, win[l - 1], lengths[l - 1], w, L, self.rates[l - 1] / self.rates[l])
+            cond = _window_resample(self.traj, 0, N, w, L, 1.0 / self.rates[l])
+            z = self._noise(l, w, L)
+            x = base if z is None else base + z
+            with torch.no_grad():
+                prev = m.gens[l](x, base, cond) + base
+        return prev[..., e0 - win[-1]:]
+
+    def extend(self, segment: Tensor) -> Tensor:
+        seg = segment.to(self.model.device, torch.float32)
+        if seg.ndim != 4 or seg.shape[:3] != (1, K, len(self.model.cond_entities)):
+            raise ValueError(f"segment must be (1, {K}, {len(self.model.cond_entities)}, n), got {tuple(seg.shape)}")
+        self.traj = seg if self.traj is None else torch.cat([self.traj, seg], dim=-1)
+        N = self.traj.shape[-1]
+        stop = self.stable_frames(N)
+        if stop <= self.emitted or N <= self.R:
+            return torch.zeros(1, K, self.model.n_entities, 0, device=self.model.device)
+        out = self._run(N, self.emitted)[..., : stop - self.emitted]
+        self.emitted = stop
+        return out
+
+    def finish(self) -> Tensor:
+        """Emit everything not yet emitted (the end of the input is now known to be the end)."""
+        if self.traj is None:
+            raise ValueError("nothing streamed yet")
+        N = self.traj.shape[-1]
+        out = self._run(N, self.emitted)
+        self.emitted = N
+        return out
+
+    def offline(self, traj: Tensor) -> Tensor:
+        """The same generator run on the whole trajectory at once (what streaming must reproduce)."""
+        m = self.model
+        N = traj.shape[-1]
+        lengths = self._lengths(N)
+        conds = [resample(traj.to(m.device, torch.float32), L, 1.0 / r) for L, r in zip(lengths, self.rates)]
+        with torch.no_grad():
+            return synthesize(m.gens, self.rates, lengths, self.noises(lengths), m.n_entities, conds=conds)[-1]
+
+
+# ------------------------------------------------------------------------------------------- the command
+
+
+def _render(seqs_and_positions, parents, path: Path, fps: float, names, contacts=None, layout="grid") -> None:
+    from modi.viz.render import render_positions
+
+    render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout,
+                     view="view.html")
+
+
+def generate_command(args) -> dict:
+    """Implements ``modi ganimator generate`` (see ``modi.cli.commands.ganimator``)."""
+    from modi.models.ganimator.training import load_model
+
+    model = load_model(args.run)
+    seq = model.seqs[0]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.n < 1:
+        raise UserError("--n must be at least 1")
+    if args.frames is not None and args.frames < 2:
+        raise UserError("--frames must be at least 2")
+    if sum(x is not None for x in (args.content, args.keyframes, args.trajectory)) > 1:
+        raise UserError("use only one of --content, --keyframes, --trajectory")
+    gen = torch.Generator().manual_seed(args.seed)
+    samples: list[Tensor] = []
+    start = None  # root position of frame 0: the input's for content / key-frames / trajectories
+    extra: dict = {}
+    if args.content:
+        start = load_sequence(args.content, model.cfg, like=seq).root_start
+        for i in range(args.n):
+            samples.append(style_transfer(model, args.content, seed=args.seed + i)[0])
+        extra["mode"] = "style transfer"
+    elif args.keyframes:
+        start = load_sequence(args.keyframes, model.cfg, like=seq).root_start
+        for i in range(args.n):
+            samples.append(keyframe_edit(model, args.keyframes, args.frames, seed=args.seed + i)[0])
+        extra["mode"] = "key-frame editing"
+    elif args.trajectory or model.cond_entities:
+        if not model.cond_entities:
+            raise UserError("--trajectory needs a trajectory-conditioned run (train with --conditional-from RUN)")
+        for i in range(args.n):
+            if args.trajectory:
+                traj, start = load_trajectory(model, args.trajectory)
+            else:
+                traj = sample_trajectory(model, args.frames or seq.n_frames, seed=args.seed + i)
+            if args.stream:
+                st = TrajectoryStream(model, seed=args.seed + i, fine_noise=args.fine_noise)
+                parts = [st.extend(traj[..., s:s + args.stream]) for s in range(0, traj.shape[-1], args.stream)]
+                parts.append(st.finish())
+                samples.append(torch.cat(parts, dim=-1)[0])
+            else:
+                samples.append(conditional_generate(model, traj, seed=args.seed + i)[0])
+        extra["mode"] = "trajectory" + (" (streamed)" if args.stream else "")
+    else:
+        T = args.frames or seq.n_frames
+        for i in range(args.n):
+            samples.append(model.sample(T, 1, fine_noise=args.fine_noise, generator=gen)[0])
+        extra["mode"] = "random"
+    from modi.io.formats import check_finite
+
+    check_finite(samples)
+    spacing = args.crowd_spacing if args.crowd_spacing is not None else 1.5 * seq.size
+    cols = max(1, math.ceil(math.sqrt(len(samples))))
+    positions, contact_masks, written = [], [], []
+    for i, s in enumerate(samples):
+        quats, root, contacts = decode(model, s, root_start=start)
+        if args.ik:
+            quats, root = fix_contacts(seq, quats, root, contacts)
+        if len(samples) > 1:  # a crowd: place motions on a grid
+            root = root.clone()
+            root[:, 0] += (i % cols) * spacing
+            root[:, 2] += (i // cols) * spacing
+        name = f"sample_{i:03d}.bvh" if len(samples) > 1 else "sample.bvh"
+        written.append(str(write_bvh(seq, quats, root, out / name, contacts=contacts)))
+        positions.append(positions_of(seq, quats, root).numpy())
+        mask = np.zeros((quats.shape[0], seq.n_joints), dtype=bool)
+        if seq.feet:
+            mask[:, seq.feet] = (contacts > 0.5).numpy()
+        contact_masks.append(mask)
+    if not args.no_gif:
+        layout = "scene" if len(samples) > 1 else "grid"
+        gif = out / ("crowd.gif" if len(samples) > 1 else "sample.gif")
+        _render(positions, seq.skeleton.parents, gif, seq.fps, seq.skeleton.names, contact_masks, layout)
+        extra["gif"] = str(gif)
+    result = {"written": written, **extra}
+    if args.evaluate:
+        result["metrics"] = metrics_against_sources(model, samples)
+        lengths = sorted({int(s.shape[-1]) for s in samples})
+        for f in result["metrics"].values():  # the number of samples and their length beside every figure
+            f.update(samples=len(samples), frames=lengths[0] if len(lengths) == 1 else lengths)
+    print(f"{extra['mode']}: wrote {len(written)} BVH to {out}" + (f" and {extra['gif']}" if "gif" in extra else ""))
+    return result
+
+
+__all__ = ["decode", "positions_of", "fix_contacts", "to_bvh", "write_bvh", "metrics_against_sources",
+           "evaluate_run", "coarse_from_clip", "style_transfer", "keyframe_edit", "trajectory_conditions",
+           "load_trajectory", "sample_trajectory", "conditional_generate", "TrajectoryStream", "generate_command",
+           "rotation_frames", "make_noise"]

@@ -1,0 +1,622 @@
+"""MoDi's networks: mapping MLP, skeleton-aware StyleGAN2 synthesis network, and the reverse-hierarchy discriminator.
+
+Shapes follow the project convention ``(B, K, E, T)``. The hierarchy runs coarse (level 0, learned constant) to
+fine (last level, the motion's own entities and frames); each finer level doubles the frames and un-merges entities
+along the skeleton's automatic pooling map. Skeleton-aware layers come from ``modi_ext.layers``; the ablation
+variants (skeletal pooling, pseudo-image convolutions) are built here from plain torch.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from modi.models.modi.config import ModelConfig
+
+SQRT2 = math.sqrt(2.0)
+
+
+# --------------------------------------------------------------------------------------------- topology per level
+@dataclass
+class LevelSpec:
+    """One hierarchy level as the model sees it (coarse -> fine order).
+
+    ``up_pooling[c]`` lists this level's entities that merge into entity ``c`` of the previous (coarser) level;
+    it is ``None`` for level 0.
+    """
+
+    n_entities: int
+    neighbors: list[list[int]]
+    up_pooling: list[list[int]] | None
+    n_frames: int
+    channels: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "LevelSpec":
+        return cls(
+            n_entities=int(d["n_entities"]),
+            neighbors=[[int(n) for n in ns] for ns in d["neighbors"]],
+            up_pooling=None if d["up_pooling"] is None else [[int(n) for n in ns] for ns in d["up_pooling"]],
+            n_frames=int(d["n_frames"]),
+            channels=int(d["channels"]),
+        )
+
+
+def build_levels(hierarchy: Any, cfg: ModelConfig, n_frames: int) -> list[LevelSpec]:
+    """Turn a ``PoolingHierarchy`` (finest first) into coarse -> fine ``LevelSpec``s for the given frame count.
+
+    Uses at most ``len(cfg.channels)`` of the finest hierarchy levels, and needs ``n_frames`` to halve cleanly
+    once per level, because every level doubles time.
+    """
+    h_levels = list(hierarchy.levels)
+    poolings = list(hierarchy.pooling)
+    if len(poolings) != len(h_levels) - 1:
+        raise ValueError(f"hierarchy has {len(h_levels)} levels but {len(poolings)} pooling maps (need levels-1)")
+    n_levels = min(len(h_levels), len(cfg.channels))
+    factor = 2 ** (n_levels - 1)
+    if n_frames % factor != 0:
+        raise ValueError(
+            f"n_frames={n_frames} must be divisible by 2**(levels-1)={factor} for a {n_levels}-level hierarchy; "
+            f"use a multiple of {factor} frames or fewer channel levels"
+        )
+    channels = [int(c) for c in cfg.channels][-n_levels:]
+    specs: list[LevelSpec] = []
+    for i in range(n_levels):  # i: coarse -> fine; hierarchy index = n_levels - 1 - i
+        h = n_levels - 1 - i
+        lv = h_levels[h]
+        up = None if i == 0 else [[int(e) for e in group] for group in poolings[h]]
+        specs.append(
+            LevelSpec(
+                n_entities=int(lv.n_entities),
+                neighbors=[[int(n) for n in ns] for ns in lv.neighbors],
+                up_pooling=up,
+                n_frames=n_frames // 2 ** (n_levels - 1 - i),
+                channels=channels[i],
+            )
+        )
+    for i in range(1, n_levels):
+        covered = sorted({e for group in specs[i].up_pooling for e in group})
+        if covered != list(range(specs[i].n_entities)):
+            raise ValueError(f"pooling map into level {i} does not cover each of its {specs[i].n_entities} entities")
+        if len(specs[i].up_pooling) != specs[i - 1].n_entities:
+            raise ValueError(f"pooling map into level {i} has {len(specs[i].up_pooling)} groups, "
+                             f"expected {specs[i - 1].n_entities}")
+    return specs
+
+
+def _unpool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
+    """(E_fine, E_coarse) copy matrix: each fine entity takes its coarse entity's features (averaged if shared)."""
+    m = torch.zeros(n_fine, len(pooling))
+    for c, group in enumerate(pooling):
+        for e in group:
+            m[e, c] = 1.0
+    return m / m.sum(1, keepdim=True).clamp_min(1.0)
+
+
+def _pool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
+    """(E_coarse, E_fine) averaging matrix: skeletal mean pooling (Aberman et al.) for the pooling ablation."""
+    m = torch.zeros(len(pooling), n_fine)
+    for c, group in enumerate(pooling):
+        for e in group:
+            m[c, e] = 1.0 / len(group)
+    return m
+
+
+# --------------------------------------------------------------------------------------------- small building blocks
+def fir_upsample_time(x: torch.Tensor) -> torch.Tensor:
+    """Double the last axis with StyleGAN2's [1,3,3,1] FIR (zero-insertion, gain 2) -- linear interpolation."""
+    n = x.shape[-1]
+    y = x.new_zeros(*x.shape[:-1], 2 * n)
+    y[..., ::2] = x
+    y = F.pad(y, (2, 1))
+    return 0.25 * y[..., 0 : 2 * n] + 0.75 * y[..., 1 : 2 * n + 1] + 0.75 * y[..., 2 : 2 * n + 2] + 0.25 * y[..., 3:]
+
+
+def fir_downsample_time(x: torch.Tensor) -> torch.Tensor:
+    """Halve the last axis: [1,3,3,1]/8 blur then stride 2 (StyleGAN2's anti-aliased downsampling)."""
+    y = F.pad(x, (1, 1))
+    n = y.shape[-1] - 3
+    b = (y[..., 0:n] + 3 * y[..., 1 : n + 1] + 3 * y[..., 2 : n + 2] + y[..., 3 : n + 3]) / 8.0
+    return b[..., ::2]
+
+
+def fir_blur_time(x: torch.Tensor) -> torch.Tensor:
+    """[1,3,3,1]/8 blur keeping the length (pad 1 before, 2 after): the anti-alias filter StyleGAN2 puts before
+    every strided discriminator conv, so a stride-2 conv then centres coarse frame t on fine frame 2t + 1/2."""
+    y = F.pad(x, (1, 2))
+    n = x.shape[-1]
+    return (y[..., 0:n] + 3 * y[..., 1 : n + 1] + 3 * y[..., 2 : n + 2] + y[..., 3 : n + 3]) / 8.0
+
+
+def fused_leaky_relu(x: torch.Tensor, bias: torch.Tensor | None, slope: float = 0.2) -> torch.Tensor:
+    """Bias + leaky ReLU + gain sqrt(2), which keeps the activations' second moment at 1 (StyleGAN2)."""
+    if bias is not None:
+        x = x + bias.view(1, -1, *([1] * (x.ndim - 2)))
+    return F.leaky_relu(x, slope) * SQRT2
+
+
+class FusedLeakyReLU(nn.Module):
+    def __init__(self, channels: int, bias: bool = True):
+        super().__init__()
+        self.bias = nn.Parameter(torch.zeros(channels)) if bias else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fused_leaky_relu(x, self.bias)
+
+
+class PixelNorm(nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * torch.rsqrt(x.pow(2).mean(1, keepdim=True) + 1e-8)
+
+
+class EqualLinear(nn.Module):
+    """Linear layer with equalised learning rate and an optional learning-rate multiplier (mapping net: 0.01)."""
+
+    def __init__(self, in_dim: int, out_dim: int, bias_init: float = 0.0, lr_mul: float = 1.0, activate: bool = False):
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(out_dim, in_dim) / lr_mul)
+        self.bias = nn.Parameter(torch.full((out_dim,), float(bias_init) / lr_mul))
+        self.scale = lr_mul / math.sqrt(in_dim)
+        self.lr_mul = lr_mul
+        self.activate = activate
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.activate:
+            return fused_leaky_relu(F.linear(x, self.weight * self.scale), self.bias * self.lr_mul)
+        return F.linear(x, self.weight * self.scale, self.bias * self.lr_mul)
+
+
+class MappingNetwork(nn.Module):
+    """z -> w: pixel norm then ``n_mlp`` equalised linear layers with lr multiplier (StyleGAN's mapping)."""
+
+    def __init__(self, latent_dim: int, n_mlp: int, lr_mul: float):
+        super().__init__()
+        layers: list[nn.Module] = [PixelNorm()]
+        layers += [EqualLinear(latent_dim, latent_dim, lr_mul=lr_mul, activate=True) for _ in range(n_mlp)]
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.net(z)
+
+
+class NoiseInjection(nn.Module):
+    """Adds per-(entity, frame) Gaussian noise scaled by a learned scalar that starts at zero."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        return x + self.weight * noise
+
+
+# --------------------------------------------------------------------------------------------- pseudo-image ablation
+class PseudoImageConv(nn.Module):
+    """Dense 2D conv over (entity index, frame), i.e. motion as a pseudo-image (the non-skeleton-aware ablation).
+
+    Optionally modulated/demodulated by a style (generator) and resized to ``out_size`` before (generator,
+    bilinear) or after (discriminator, area average) the conv: entity rows are treated like image rows.
+    """
+
+    def __init__(self, in_ch: int, out_ch: int, kernel_size: int, style_dim: int | None = None,
+                 demodulate: bool = True, out_size: tuple[int, int] | None = None, resize: str | None = None):
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(out_ch, in_ch, kernel_size, kernel_size))
+        self.scale = 1.0 / math.sqrt(in_ch * kernel_size * kernel_size)
+        self.modulation = EqualLinear(style_dim, in_ch, bias_init=1.0) if style_dim else None
+        self.demodulate = demodulate
+        self.out_size = out_size
+        self.resize = resize
+        self.pad = kernel_size // 2
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
+        if self.resize == "before":
+            x = F.interpolate(x, size=self.out_size, mode="bilinear", align_corners=False)
+        b, cin, e, t = x.shape
+        if self.modulation is None:
+            out = F.conv2d(x, self.weight * self.scale, padding=self.pad)
+        else:
+            s = self.modulation(w)  # (B, Cin)
+            weight = self.scale * self.weight.unsqueeze(0) * s.view(b, 1, cin, 1, 1)
+            if self.demodulate:
+                weight = weight * torch.rsqrt(weight.pow(2).sum([2, 3, 4], keepdim=True) + 1e-8)
+            out = F.conv2d(x.reshape(1, b * cin, e, t), weight.reshape(-1, cin, *weight.shape[-2:]),
+                           padding=self.pad, groups=b)
+            out = out.view(b, -1, e, t)
+        if self.resize == "after":
+            out = F.adaptive_avg_pool2d(out, self.out_size)
+        return out
+
+
+# --------------------------------------------------------------------------------------------- layer factories
+def _ext():
+    try:
+        from modi_ext import layers
+    except ImportError as exc:  # pragma: no cover - depends on install state
+        raise ImportError(f"modi_ext.layers is required for the skeleton-aware MoDi model: {exc}") from exc
+    return layers
+
+
+class _PooledUp(nn.Module):
+    """Pooling ablation, generator side: skeletal unpool (copy) + FIR time upsample, then an in-place modulated conv."""
+
+    def __init__(self, conv: nn.Module, pooling: list[list[int]], n_fine: int):
+        super().__init__()
+        self.conv = conv
+        self.register_buffer("unpool", _unpool_matrix(pooling, n_fine), persistent=False)
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        x = fir_upsample_time(torch.einsum("bcet,fe->bcft", x, self.unpool))
+        return self.conv(x.contiguous(), w)
+
+
+class _SkeletalPoolDown(nn.Module):
+    """Pooling ablation, discriminator side: skeletal mean pooling + anti-aliased time downsampling."""
+
+    def __init__(self, pooling: list[list[int]], n_fine: int):
+        super().__init__()
+        self.register_buffer("pool", _pool_matrix(pooling, n_fine), persistent=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fir_downsample_time(torch.einsum("bcft,ef->bcet", x, self.pool)).contiguous()
+
+
+def _modconv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, mode: str, kernel_size: int | None = None,
+             demodulate: bool = True, per_entity: bool = False) -> nn.Module:
+    """A modulated conv ``forward(x, w)`` for the generator: in place ('same') or coarse->fine ('up').
+
+    ``per_entity`` gives every entity its own weights with no neighbours (the to-motion 1x1 projection)."""
+    k = cfg.kernel_size if kernel_size is None else kernel_size
+    demodulate = demodulate and cfg.demodulation == "weight"  # "activations": StyledConv normalises instead
+    if not cfg.skeleton_aware:
+        size = (level.n_entities, level.n_frames)
+        return PseudoImageConv(cin, cout, k, style_dim=cfg.latent_dim, demodulate=demodulate,
+                               out_size=size, resize="before" if mode == "up" else None)
+    layers = _ext()
+    if mode == "up":
+        if cfg.scaler == "pool":
+            conv = layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.neighbors, kernel_size=k,
+                                                mode="same", demodulate=demodulate)
+            return _PooledUp(conv, level.up_pooling, level.n_entities)
+        return layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.up_pooling, kernel_size=k,
+                                            mode="up", demodulate=demodulate)
+    topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
+    return layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, topo, kernel_size=k, mode="same",
+                                        demodulate=demodulate)
+
+
+def _conv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, kernel_size: int | None = None,
+          per_entity: bool = False) -> nn.Module:
+    """An unmodulated, bias-free in-place conv for the discriminator."""
+    k = cfg.kernel_size if kernel_size is None else kernel_size
+    if not cfg.skeleton_aware:
+        return _NoStyle(PseudoImageConv(cin, cout, k))
+    topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
+    return _ext().SkeletalConv(cin, cout, topo, kernel_size=k, bias=False)
+
+
+def _down(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: LevelSpec, kernel_size: int) -> nn.Module:
+    """A bias-free fine->coarse conv for the discriminator (conv scaler, or conv + skeletal pooling)."""
+    if not cfg.skeleton_aware:
+        return _NoStyle(PseudoImageConv(cin, cout, kernel_size, out_size=(coarse.n_entities, coarse.n_frames),
+                                        resize="after"))
+    layers = _ext()
+    if cfg.scaler == "pool":
+        topo = fine.neighbors if kernel_size > 1 else [[j] for j in range(fine.n_entities)]
+        return nn.Sequential(layers.SkeletalConv(cin, cout, topo, kernel_size=kernel_size, bias=False),
+                             _SkeletalPoolDown(fine.up_pooling, fine.n_entities))
+    if cfg.time_padding == "stylegan2":  # 2 more zero frames before the blur, the extra coarse frame cropped
+        return nn.Sequential(_Blur(2), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
+                                                                 bias=False), _CropStart(1))
+    return nn.Sequential(_Blur(), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
+                                                            bias=False))
+
+
+class _Blur(nn.Module):
+    def __init__(self, pad_start: int = 0):
+        super().__init__()
+        self.pad_start = pad_start
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fir_blur_time(F.pad(x, (self.pad_start, 0)) if self.pad_start else x)
+
+
+class _CropStart(nn.Module):
+    def __init__(self, n: int):
+        super().__init__()
+        self.n = n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., self.n:]
+
+
+class _NoStyle(nn.Module):
+    def __init__(self, conv: nn.Module):
+        super().__init__()
+        self.conv = conv
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(x)
+
+
+# --------------------------------------------------------------------------------------------- generator
+class StyledConv(nn.Module):
+    """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
+
+    The released MoDi has no noise injection (modulated conv + bias + leaky ReLU); StyleGAN2's per-(entity, frame)
+    noise is the ``use_noise`` option."""
+
+    def __init__(self, conv: nn.Module, out_ch: int, n_entities: int, n_frames: int, use_noise: bool,
+                 demodulate_activations: bool = False, stylegan2_up: bool = False):
+        super().__init__()
+        self.conv = conv
+        self.demodulate_activations = demodulate_activations  # released MoDi: out / std over (entities, frames)
+        self.stylegan2_up = stylegan2_up  # upsampler with StyleGAN2's padding: one zero frame in, two frames cropped
+        self.noise = NoiseInjection() if use_noise else None
+        self.act = FusedLeakyReLU(out_ch)
+        self.noise_shape = (n_entities, n_frames)
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        x = self.conv(F.pad(x, (1, 0)), w)[..., 2:] if self.stylegan2_up else self.conv(x, w)
+        if self.demodulate_activations:
+            x = x / x.std((2, 3), keepdim=True)
+        if self.noise is not None:
+            if noise is None:
+                noise = x.new_empty(x.shape[0], 1, x.shape[2], x.shape[3]).normal_()
+            x = self.noise(x, noise)
+        return self.act(x)
+
+
+class ToMotion(nn.Module):
+    """Per-entity 1x1 modulated projection (no demodulation) to the motion features, plus the upsampled skip."""
+
+    def __init__(self, cfg: ModelConfig, in_ch: int, out_ch: int, level: LevelSpec):
+        super().__init__()
+        self.conv = _modconv(cfg, in_ch, out_ch, level, "same", kernel_size=1, demodulate=False, per_entity=True)
+        self.bias = nn.Parameter(torch.zeros(1, out_ch, 1, 1))
+        self.skeleton_aware = cfg.skeleton_aware
+        self.size = (level.n_entities, level.n_frames)
+        if level.up_pooling is not None and cfg.skeleton_aware:
+            self.register_buffer("unpool", _unpool_matrix(level.up_pooling, level.n_entities), persistent=False)
+        else:
+            self.unpool = None
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
+        out = self.conv(x, w) + self.bias
+        if skip is not None:
+            if self.skeleton_aware:
+                skip = fir_upsample_time(torch.einsum("bket,fe->bkft", skip, self.unpool))
+            else:
+                skip = F.interpolate(skip, size=self.size, mode="bilinear", align_corners=False)
+            out = out + skip
+        return out
+
+
+class Generator(nn.Module):
+    """Mapping network + skeleton-aware synthesis network with skip (to-motion) outputs summed across levels.
+
+    Style indices follow StyleGAN2 (rosinality): the coarsest conv takes w[0], its to-motion w[1]; each finer
+    level's upsampling conv re-uses the previous to-motion index, then its in-place convs and to-motion follow.
+    """
+
+    def __init__(self, cfg: ModelConfig, levels: Sequence[LevelSpec], out_channels: int):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.levels = list(levels)
+        self.out_channels = out_channels
+        self.latent_dim = cfg.latent_dim
+        self.mapping = MappingNetwork(cfg.latent_dim, cfg.n_mlp, cfg.lr_mlp)
+        self.register_buffer("w_avg", torch.zeros(cfg.latent_dim))
+
+        lv0 = self.levels[0]
+        self.const = nn.Parameter(torch.randn(1, lv0.channels, lv0.n_entities, lv0.n_frames))
+        noise, act_demod = cfg.noise_injection, cfg.demodulation == "activations"
+        self.conv1 = StyledConv(_modconv(cfg, lv0.channels, lv0.channels, lv0, "same"),
+                                lv0.channels, lv0.n_entities, lv0.n_frames, noise, act_demod)
+        self.to_motion1 = ToMotion(cfg, lv0.channels, out_channels, lv0)
+
+        self.blocks = nn.ModuleList()
+        self.to_motions = nn.ModuleList()
+        n_inplace = cfg.n_inplace_convs - (1 if cfg.scaler == "pool" and cfg.skeleton_aware else 0)
+        self.n_inplace = n_inplace
+        for i in range(1, len(self.levels)):
+            prev, lv = self.levels[i - 1], self.levels[i]
+            sg2_up = cfg.time_padding == "stylegan2" and cfg.skeleton_aware and cfg.scaler == "conv"
+            convs = [StyledConv(_modconv(cfg, prev.channels, lv.channels, lv, "up"),
+                                lv.channels, lv.n_entities, lv.n_frames, noise, act_demod, sg2_up)]
+            for _ in range(n_inplace):
+                convs.append(StyledConv(_modconv(cfg, lv.channels, lv.channels, lv, "same"),
+                                        lv.channels, lv.n_entities, lv.n_frames, noise, act_demod))
+            self.blocks.append(nn.ModuleList(convs))
+            self.to_motions.append(ToMotion(cfg, lv.channels, out_channels, lv))
+        self.n_latent = 2 + (len(self.levels) - 1) * (1 + n_inplace)
+
+        if cfg.noise_injection:  # fixed noise maps for noise_mode="const" (none exist when noise is off)
+            g = torch.Generator().manual_seed(0x5EED)
+            for i, layer in enumerate(self.styled_layers()):
+                e, t = layer.noise_shape
+                self.register_buffer(f"noise_const_{i}", torch.randn(1, 1, e, t, generator=g))
+
+    # -- introspection
+    def styled_layers(self) -> list[StyledConv]:
+        return [self.conv1] + [c for block in self.blocks for c in block]
+
+    @property
+    def uses_noise(self) -> bool:
+        """Whether the styled convs add per-frame noise (``ModelConfig.noise_injection``; off in the released MoDi)."""
+        return bool(self.cfg.noise_injection)
+
+    def noise_shapes(self) -> list[tuple[int, int]]:
+        """(entities, frames) of each noise input, in the order ``synthesis(noise=...)`` expects; empty when the
+        model has no noise injection (then nothing random enters the synthesis besides the latent)."""
+        if not self.uses_noise:
+            return []
+        return [layer.noise_shape for layer in self.styled_layers()]
+
+    @property
+    def output_shape(self) -> tuple[int, int, int]:
+        lv = self.levels[-1]
+        return (self.out_channels, lv.n_entities, lv.n_frames)
+
+    # -- latent handling
+    def make_wplus(self, ws: torch.Tensor | Sequence[torch.Tensor], inject_index: int | None = None) -> torch.Tensor:
+        """W (B, D), W+ (B, n_latent, D) or two Ws to mix at ``inject_index`` (random when None) -> W+."""
+        if isinstance(ws, torch.Tensor):
+            if ws.ndim == 3:
+                if ws.shape[1] != self.n_latent:
+                    raise ValueError(f"W+ must have {self.n_latent} styles, got {ws.shape[1]}")
+                return ws
+            if ws.ndim != 2:
+                raise ValueError(f"w must be (B, {self.latent_dim}) or (B, {self.n_latent}, {self.latent_dim})")
+            return ws.unsqueeze(1).expand(-1, self.n_latent, -1)
+        ws = list(ws)
+        if len(ws) == 1:
+            return self.make_wplus(ws[0])
+        if len(ws) != 2:
+            raise ValueError("style mixing takes exactly two latents")
+        if inject_index is None:
+            inject_index = int(torch.randint(1, self.n_latent, ()).item())
+        a = ws[0].unsqueeze(1).expand(-1, inject_index, -1)
+        b = ws[1].unsqueeze(1).expand(-1, self.n_latent - inject_index, -1)
+        return torch.cat([a, b], 1)
+
+    def truncate(self, w: torch.Tensor, psi: float) -> torch.Tensor:
+        """Move w (or W+) toward the tracked mean of W: w_avg + psi * (w - w_avg)."""
+        if psi == 1.0:
+            return w
+        return self.w_avg.to(w.dtype) + psi * (w - self.w_avg.to(w.dtype))
+
+    # -- synthesis
+    def synthesis(self, wplus: torch.Tensor, noise: Sequence[torch.Tensor | None] | None = None,
+                  noise_mode: str = "random") -> torch.Tensor:
+        """W+ (B, n_latent, D) -> motion (B, K, E, T). ``noise_mode``: 'random' | 'const' | 'none'.
+
+        Without noise injection (``cfg.noise_injection=False``) ``noise`` and ``noise_mode`` are ignored (an empty
+        ``noise`` list is what ``noise_shapes()`` describes) and the output depends on ``wplus`` alone."""
+        if wplus.ndim != 3 or wplus.shape[1] != self.n_latent or wplus.shape[2] != self.latent_dim:
+            raise ValueError(f"wplus must be (B, {self.n_latent}, {self.latent_dim}), got {tuple(wplus.shape)}")
+        layers = self.styled_layers()
+        if noise_mode not in ("random", "const", "none"):
+            raise ValueError(f"noise_mode must be 'random', 'const' or 'none', not {noise_mode!r}")
+        if not self.uses_noise:
+            noise = [None] * len(layers)
+        elif noise is None:
+            if noise_mode == "random":
+                noise = [None] * len(layers)
+            elif noise_mode == "const":
+                noise = [getattr(self, f"noise_const_{i}") for i in range(len(layers))]
+            elif noise_mode == "none":
+                noise = [torch.zeros((), dtype=wplus.dtype, device=wplus.device)] * len(layers)
+            else:
+                raise ValueError(f"noise_mode must be 'random', 'const' or 'none', not {noise_mode!r}")
+        elif len(noise) != len(layers):
+            raise ValueError(f"expected {len(layers)} noise tensors, got {len(noise)}")
+        b = wplus.shape[0]
+        x = self.const.repeat(b, 1, 1, 1)
+        x = self.conv1(x, wplus[:, 0], noise[0])
+        skip = self.to_motion1(x, wplus[:, 1])
+        idx, n_idx = 1, 1
+        for block, to_motion in zip(self.blocks, self.to_motions):
+            for j, conv in enumerate(block):
+                x = conv(x, wplus[:, idx + j], noise[n_idx])
+                n_idx += 1
+            skip = to_motion(x, wplus[:, idx + len(block)], skip)
+            idx += len(block)
+        return skip
+
+    def forward(self, z: torch.Tensor | Sequence[torch.Tensor], *, input_is_w: bool = False,
+                truncation_psi: float = 1.0, inject_index: int | None = None,
+                noise: Sequence[torch.Tensor | None] | None = None, noise_mode: str = "random",
+                return_latents: bool = False):
+        """z (B, D) or [z1, z2] for style mixing (or w / W+ with ``input_is_w``) -> motion (B, K, E, T).
+
+        With ``return_latents`` returns ``(motion, wplus)`` where ``wplus`` is the tensor the synthesis used
+        (the path-length regulariser differentiates with respect to it).
+        """
+        if input_is_w:
+            ws = z
+        elif isinstance(z, torch.Tensor):
+            ws = self.mapping(z)
+        else:
+            ws = [self.mapping(zi) for zi in z]
+        if truncation_psi != 1.0:
+            ws = self.truncate(ws, truncation_psi) if isinstance(ws, torch.Tensor) else \
+                [self.truncate(w, truncation_psi) for w in ws]
+        wplus = self.make_wplus(ws, inject_index)
+        motion = self.synthesis(wplus, noise=noise, noise_mode=noise_mode)
+        return (motion, wplus) if return_latents else motion
+
+
+# --------------------------------------------------------------------------------------------- discriminator
+class ConvAct(nn.Module):
+    def __init__(self, conv: nn.Module, out_ch: int):
+        super().__init__()
+        self.conv = conv
+        self.act = FusedLeakyReLU(out_ch)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.conv(x))
+
+
+class ResBlock(nn.Module):
+    """In-place convs then a downscaling conv, plus a 1x1 downscaling skip; summed and divided by sqrt(2)."""
+
+    def __init__(self, cfg: ModelConfig, fine: LevelSpec, coarse: LevelSpec):
+        super().__init__()
+        cin, cout = fine.channels, coarse.channels
+        n_inplace = cfg.n_inplace_convs - (1 if cfg.scaler == "pool" and cfg.skeleton_aware else 0)
+        convs: list[nn.Module] = [ConvAct(_conv(cfg, cin, cin, fine), cin) for _ in range(n_inplace)]
+        convs.append(ConvAct(_down(cfg, cin, cout, fine, coarse, cfg.kernel_size), cout))
+        self.convs = nn.Sequential(*convs)
+        self.skip = _down(cfg, cin, cout, fine, coarse, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (self.convs(x) + self.skip(x)) / SQRT2
+
+
+def minibatch_stddev(x: torch.Tensor, group: int) -> torch.Tensor:
+    """Append the mean per-group standard deviation as one extra channel (StyleGAN2)."""
+    b, c, e, t = x.shape
+    g = max(d for d in range(1, min(group, b) + 1) if b % d == 0)
+    y = x.view(g, -1, c, e, t)
+    std = torch.sqrt(y.var(0, unbiased=False) + 1e-8).mean([1, 2, 3])  # (B/g,)
+    std = std.view(-1, 1, 1, 1).repeat(g, 1, e, t)
+    return torch.cat([x, std], 1)
+
+
+class Discriminator(nn.Module):
+    """The synthesis hierarchy reversed: per-entity input conv, residual blocks fine -> coarse, mbstd, linear head."""
+
+    def __init__(self, cfg: ModelConfig, levels: Sequence[LevelSpec], in_channels: int):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.levels = list(levels)
+        fine = self.levels[-1]
+        self.from_motion = ConvAct(_conv(cfg, in_channels, fine.channels, fine, kernel_size=1, per_entity=True),
+                                   fine.channels)
+        self.blocks = nn.Sequential(*[ResBlock(cfg, self.levels[i], self.levels[i - 1])
+                                      for i in range(len(self.levels) - 1, 0, -1)])
+        lv0 = self.levels[0]
+        self.final_conv = ConvAct(_conv(cfg, lv0.channels + 1, lv0.channels, lv0), lv0.channels)
+        self.final_linear = nn.Sequential(
+            EqualLinear(lv0.channels * lv0.n_entities * lv0.n_frames, lv0.channels, activate=True),
+            EqualLinear(lv0.channels, 1),
+        )
+        self.input_shape = (in_channels, fine.n_entities, fine.n_frames)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.ndim != 4 or tuple(x.shape[1:]) != self.input_shape:
+            raise ValueError(f"discriminator input must be (B, {', '.join(map(str, self.input_shape))}), "
+                             f"got {tuple(x.shape)}")
+        out = self.blocks(self.from_motion(x))
+        out = self.final_conv(minibatch_stddev(out, self.cfg.mbstd_group))
+        return self.final_linear(out.flatten(1))

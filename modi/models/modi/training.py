@@ -1,0 +1,656 @@
+"""Training MoDi: data preparation, the normalised-tensor <-> motion codec, and the StyleGAN2-style ``Trainer``.
+
+One iteration (after rosinality/stylegan2-pytorch and the MoDi authors' ``train.py``): a discriminator step on
+the non-saturating loss, lazy R1 every ``d_reg_every`` steps, a generator step on the non-saturating loss plus
+MoDi's foot-touch and contact-consistency terms (through the FK op), lazy path-length regularisation every
+``g_reg_every`` steps, then the EMA generator and the tracked mean of W are updated.
+
+Exact resume: every source of randomness is a torch RNG whose state goes into the checkpoint (the global CPU/CUDA
+generators for latents and noise, a dedicated generator for batch indices), the optimisers' states are saved, and
+the loop only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
+Ctrl-C and SIGTERM (``modi.faults.stop_on_signals``) stop at the next boundary on every rank and save; the run
+folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor, nn
+
+from modi import __version__ as modi_version, faults
+from modi.errors import CheckpointError, UserError
+from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint
+from modi.models.modi.codec import MotionCodec
+from modi.models.modi.config import MoDiConfig
+from modi.models.modi.losses import (d_logistic_loss, d_r1_penalty, foot_contact_consistency_loss,
+                                    foot_contact_speed_loss, foot_touch_loss,
+                                    g_nonsaturating_loss, lazy_regularization_adam_params, path_length_penalty)
+from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
+
+
+
+class NonFiniteLossError(RuntimeError):
+    """A loss became NaN/inf: training stops before the optimiser step, and no checkpoint is written."""
+
+
+# =============================================================================================== data
+@dataclass
+class TrainingData:
+    """Normalised training windows plus everything the model and checkpoint need about them."""
+
+    codec: MotionCodec
+    windows: Tensor  # (N, K, E, T) normalised, float32
+    hierarchy: Any  # modi.core.topology.PoolingHierarchy
+    source: str
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def skeleton(self) -> Any:
+        return self.codec.skeleton
+
+
+def _dataset_config(cfg: MoDiConfig) -> Any:
+    from modi.data.dataset import DatasetConfig
+
+    return DatasetConfig(fps=cfg.data.fps, window=cfg.data.n_frames, stride=cfg.data.stride, root=cfg.data.root,
+                         rotation="quat", feet=cfg.data.feet, drop_patterns=cfg.data.drop_patterns,
+                         keep_joints=cfg.data.keep_joints, drop_root_anchor=cfg.data.drop_root_anchor,
+                         leaf_rotations=cfg.data.leaf_rotations)
+
+
+def write_procedural_data(out_dir: str | os.PathLike, n_clips: int = 48, frames: int = 160, seed: int = 0,
+                          fps: float = 30.0) -> Path:
+    """Write the built-in procedural clips (walk/run/jump/wave/squat/idle) as BVH files; returns the folder."""
+    from modi.data.procedural import write_dataset
+
+    out = Path(out_dir)
+    write_dataset(out, n_clips=n_clips, frames=frames, seed=seed, fps=fps)
+    return out
+
+
+def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | os.PathLike | None = None,
+                 cache: bool = True, progress: bool = False, normalizer: Any = None) -> TrainingData:
+    """Load a BVH folder (or the word ``procedural``) into normalised training windows for ``cfg``.
+
+    ``procedural`` writes the built-in clips under ``work_dir/procedural_data`` first (or a temp dir).
+    ``normalizer`` (e.g. a resumed checkpoint's) replaces the statistics fitted on the data.
+    """
+    from modi.data.dataset import build_dataset
+    from modi.data.normalization import Normalizer
+
+    cfg.validate()
+    src = str(source)
+    if src == "procedural":
+        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_proc_"))
+        folder = base / "procedural_data"
+        if not any(folder.glob("*.bvh")):
+            write_procedural_data(folder, fps=cfg.data.fps)
+        root = folder
+    else:
+        root = Path(src)
+        if not root.exists():
+            raise UserError(f"training data not found: {root} (give a BVH folder or the word 'procedural')")
+    ds = build_dataset(root, _dataset_config(cfg), cache=cache, progress=progress)
+    windows = ds.train
+    codec = MotionCodec(ds.representation, ds.normalizer, cfg.data.fps, positions=False)
+    if cfg.data.rotation == "positions":
+        codec = MotionCodec(ds.representation, ds.normalizer, cfg.data.fps, positions=True)
+        windows = codec.positions_from_raw_quat(ds.train.to(torch.float64), ds.representation).to(ds.train.dtype)
+        codec.normalizer = Normalizer.fit(windows, skip_entities=ds.representation.contacts)
+    if normalizer is not None:
+        if tuple(normalizer.mean.shape) != tuple(windows.shape[1:3]):
+            raise UserError(f"checkpoint normalisation is for (K, E) = {tuple(normalizer.mean.shape)}, "
+                            f"this data has {tuple(windows.shape[1:3])}")
+        codec.normalizer = normalizer
+    hierarchy = build_hierarchy_for(codec, cfg)
+    norm = codec.normalizer.normalize(windows).float().contiguous()
+    summary = {k: v for k, v in ds.summary().items() if isinstance(v, (int, float, str, list, bool))}
+    return TrainingData(codec=codec, windows=norm, hierarchy=hierarchy, source=src, summary=summary)
+
+
+def build_hierarchy_for(codec: MotionCodec, cfg: MoDiConfig) -> Any:
+    from modi.core.topology import build_hierarchy
+
+    return build_hierarchy(codec.skeleton, codec.feet, neighbor_distance=cfg.model.neighbor_distance,
+                           siblings=cfg.model.neighbors == "siblings", pooling=cfg.model.pooling)
+
+
+def build_models(cfg: MoDiConfig, levels: list[LevelSpec], n_channels: int) -> tuple[Generator, Discriminator]:
+    return Generator(cfg.model, levels, n_channels), Discriminator(cfg.model, levels, n_channels)
+
+
+# =============================================================================================== helpers
+def _requires_grad(model: nn.Module, flag: bool) -> None:
+    for p in model.parameters():
+        p.requires_grad_(flag)
+
+
+@torch.no_grad()
+def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
+    """EMA of parameters; buffers (w_avg, constant noise) are copied."""
+    torch._foreach_lerp_(list(ema.parameters()), [p.detach() for p in model.parameters()], 1.0 - decay)
+    for be, bm in zip(ema.buffers(), model.buffers()):
+        be.copy_(bm)
+
+
+
+
+def _dist() -> tuple[bool, int, int]:
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return True, dist.get_rank(), dist.get_world_size()
+    return False, 0, 1
+
+
+def init_distributed_from_env(device: torch.device | None = None) -> tuple[int, int]:
+    """Initialise the default process group when launched by ``torchrun`` (WORLD_SIZE > 1); gloo on CPU, NCCL on GPU.
+
+    Returns ``(rank, world_size)``; a no-op (0, 1) for a single process.
+    """
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not dist.is_initialized():
+        use_cuda = (device is not None and device.type == "cuda") or (device is None and torch.cuda.is_available())
+        backend = "nccl" if use_cuda else "gloo"
+        if use_cuda:
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+        dist.init_process_group(backend=backend)
+    return dist.get_rank(), dist.get_world_size()
+
+
+# =============================================================================================== trainer
+@dataclass
+class TrainResult:
+    step: int
+    interrupted: bool
+    checkpoint: Path | None
+    seconds: float
+    last_losses: dict[str, float]
+    signum: int | None = None  # the signal that stopped the run (SIGINT / SIGTERM)
+
+    @property
+    def exit_code(self) -> int:
+        """0, or 130 / 143 for a run stopped by Ctrl-C / SIGTERM."""
+        return faults.exit_code(self.signum) if self.interrupted else 0
+
+
+class Trainer:
+    """Trains G/D on ``data`` into ``run_dir`` (checkpoints, TensorBoard scalars, ``log.jsonl``, sample previews).
+
+    In a ``torch.distributed`` process group the models are wrapped in DDP (gradients averaged), each rank draws
+    its own latents/noise/batches, and rank 0 writes every file.
+    """
+
+    def __init__(self, cfg: MoDiConfig, data: TrainingData, run_dir: str | os.PathLike, *,
+                 device: str | torch.device | None = None, resume: str | os.PathLike | dict | None = None,
+                 progress: bool = True, tensorboard: bool = True, write_samples: bool = True,
+                 log: Callable[[str], None] | None = None):
+        self.cfg = cfg.validate()
+        self.data = data
+        self.codec = data.codec
+        self.run_dir = Path(run_dir)
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.distributed, self.rank, self.world = _dist()
+        tc = cfg.train
+        if tc.batch % self.world != 0:
+            raise UserError(f"batch {tc.batch} is not divisible by the {self.world} processes")
+        self.local_batch = tc.batch // self.world
+        self.progress = progress and self.rank == 0
+        self.write_samples = write_samples
+        self.log = log or (lambda msg: print(msg, flush=True))
+
+        if data.windows.ndim != 4 or data.windows.shape[1] != self.codec.n_channels:
+            raise ValueError(f"training windows must be (N, {self.codec.n_channels}, E, T), got "
+                             f"{tuple(data.windows.shape)}")
+        if data.windows.shape[-1] != cfg.data.n_frames:
+            raise ValueError(f"training windows have {data.windows.shape[-1]} frames, config says {cfg.data.n_frames}")
+        self.windows = data.windows.to(self.device)
+        self.levels = build_levels(data.hierarchy, cfg.model, cfg.data.n_frames)
+        if self.levels[-1].n_entities != self.codec.n_entities:
+            raise ValueError(f"hierarchy's finest level has {self.levels[-1].n_entities} entities, the representation "
+                             f"{self.codec.n_entities}")
+
+        torch.manual_seed(tc.seed)  # identical initial weights on every rank
+        self.G, self.D = build_models(cfg, self.levels, self.codec.n_channels)
+        self.G.to(self.device)
+        self.D.to(self.device)
+        self.G_ema = Generator(cfg.model, self.levels, self.codec.n_channels).to(self.device).eval()
+        self.G_ema.load_state_dict(self.G.state_dict())
+        _requires_grad(self.G_ema, False)
+
+        g_lr, g_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.g_reg_every)
+        d_lr, d_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.d_reg_every)
+        self.g_optim = torch.optim.Adam(self.G.parameters(), lr=g_lr, betas=g_betas)
+        self.d_optim = torch.optim.Adam(self.D.parameters(), lr=d_lr, betas=d_betas)
+
+        self.step = 0
+        self.mean_path_length = torch.zeros((), device=self.device)
+        self.data_rng = torch.Generator().manual_seed(tc.seed * 7919 + 17 + self.rank)
+        self.sample_z = torch.randn(tc.n_samples, cfg.model.latent_dim,
+                                    generator=torch.Generator().manual_seed(tc.seed + 12345))
+        self.last_losses: dict[str, float] = {}
+        self._latest_reg: dict[str, float] = {}
+        self.stop = faults.StopRequest()
+        self._saved_step: int | None = None  # step of the checkpoint on disk (named by a disk-full error)
+        torch.manual_seed(tc.seed * 1000 + 1 + self.rank)  # per-rank latents and noise
+        if resume is not None:
+            self.load_state(resume)
+
+        self.g_train: nn.Module = self.G
+        self.d_train: nn.Module = self.D
+        if self.distributed:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+
+            import inspect
+
+            ids = [self.device.index] if self.device.type == "cuda" else None
+            # Buffers (w_avg, constant noise) are identical on every rank by construction and updated with
+            # all-reduced values, so DDP need not re-broadcast them each forward.
+            no_sync = ({"forward_sync_buffers": False} if "forward_sync_buffers" in
+                       inspect.signature(DDP.__init__).parameters else {"broadcast_buffers": False})
+            warnings.filterwarnings("ignore", message="Grad strides do not match bucket view strides")
+            self.g_train = DDP(self.G, device_ids=ids, **no_sync)
+            self.d_train = DDP(_PairD(self.D), device_ids=ids, **no_sync)
+        else:
+            self.d_train = _PairD(self.D)
+        self.writer = None
+        if tensorboard and self.rank == 0:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                with faults.output_errors(self.run_dir / "tb"):
+                    self.writer = SummaryWriter(str(self.run_dir / "tb"))
+            except faults.OutputError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - tensorboard is optional at run time
+                warnings.warn(f"TensorBoard logging disabled: {exc}", stacklevel=2)
+
+    # ------------------------------------------------------------------------------------------- randomness
+    def _z(self, n: int) -> list[Tensor]:
+        """One latent, or two for style mixing with probability ``mixing`` (drawn from the global torch RNG)."""
+        dim = self.cfg.model.latent_dim
+        if self.cfg.train.mixing > 0 and torch.rand(()).item() < self.cfg.train.mixing:
+            return list(torch.randn(2, n, dim, device=self.device).unbind(0))
+        return [torch.randn(n, dim, device=self.device)]
+
+    def _real_batch(self) -> Tensor:
+        idx = torch.randint(self.windows.shape[0], (self.local_batch,), generator=self.data_rng)
+        return self.windows[idx.to(self.windows.device)]
+
+    # ------------------------------------------------------------------------------------------- checks
+    def _check_finite(self, losses: dict[str, Tensor]) -> None:
+        """Stop (on every rank) before any optimiser step if a loss is NaN/inf."""
+        vals = torch.stack([v.detach().float().reshape(()) for v in losses.values()])
+        bad = (~torch.isfinite(vals)).float()
+        if self.distributed:
+            import torch.distributed as dist
+
+            dist.all_reduce(bad)
+        if bad.sum() > 0:
+            names = [k for k, b in zip(losses, bad.tolist()) if b > 0]
+            last = self.run_dir / "checkpoint.pt"
+            where = f"; the last good checkpoint is {last}" if last.is_file() else ""
+            raise NonFiniteLossError(
+                f"non-finite loss ({', '.join(names)}) at step {self.step}: training stopped without writing a "
+                f"checkpoint{where}. Try a lower learning rate or check the data for NaN/huge values.")
+
+    def _all_mean(self, t: Tensor) -> Tensor:
+        if self.distributed:
+            import torch.distributed as dist
+
+            t = t.clone()
+            dist.all_reduce(t)
+            t /= self.world
+        return t
+
+    # ------------------------------------------------------------------------------------------- one iteration
+    def train_step(self) -> dict[str, float]:
+        """One D step (+ lazy R1), one G step (+ lazy path length), EMA and mean-W updates."""
+        out = self.d_step()
+        out.update(self.g_step())
+        self.step += 1
+        return out
+
+    def d_step(self) -> dict[str, float]:
+        """Discriminator update on the non-saturating loss, plus lazy R1 every ``d_reg_every`` steps."""
+        tc = self.cfg.train
+        _requires_grad(self.G, False)
+        _requires_grad(self.D, True)
+        real = self._real_batch()
+        with torch.no_grad():
+            fake = self.G(self._z(self.local_batch))
+        fake_pred, real_pred = self.d_train(fake, real)
+        d_loss = d_logistic_loss(real_pred, fake_pred)
+        self._check_finite({"d": d_loss})
+        self.d_optim.zero_grad(set_to_none=True)
+        d_loss.backward()
+        self.d_optim.step()
+        out = {"d": float(d_loss.detach()), "real_score": float(real_pred.detach().mean()),
+               "fake_score": float(fake_pred.detach().mean())}
+        if self.step % tc.d_reg_every == 0 and tc.r1_gamma > 0:
+            real_r = real.detach().requires_grad_(True)
+            pred = self.d_train(real_r)
+            r1 = d_r1_penalty(pred, real_r)
+            self._check_finite({"r1": r1})
+            self.d_optim.zero_grad(set_to_none=True)
+            (tc.r1_gamma / 2 * r1 * tc.d_reg_every + 0 * pred[0, 0]).backward()
+            self.d_optim.step()
+            out["r1"] = float(r1.detach())
+        return out
+
+    def g_step(self) -> dict[str, float]:
+        """Generator update (adversarial + foot terms), lazy path length, mean-W tracking and the EMA copy."""
+        tc = self.cfg.train
+        _requires_grad(self.G, True)
+        _requires_grad(self.D, False)
+        zs = self._z(self.local_batch)
+        fake = self.g_train(zs)
+        g_loss = g_nonsaturating_loss(self.D(fake))
+        total = g_loss
+        losses = {"g": g_loss}
+        if tc.touch_weight > 0 or tc.contact_weight > 0:
+            if tc.contact_loss == "released":  # speed of the ankles, data units
+                foot_pos, contact = self.codec.foot_terms(fake, self.codec.ankles)
+                fcon = foot_contact_speed_loss(foot_pos, contact)
+            else:  # "squared": speed^2 of the contact joints in body heights per second
+                foot_pos, contact = self.codec.foot_terms(fake)
+                fcon = foot_contact_consistency_loss(foot_pos, contact, self.codec.fps, self.codec.height)
+            touch = foot_touch_loss(contact)
+            total = total + tc.touch_weight * touch + tc.contact_weight * fcon
+            losses.update(touch=touch, contact=fcon)
+        self._check_finite(losses)
+        self.g_optim.zero_grad(set_to_none=True)
+        total.backward()
+        self.g_optim.step()
+        out = {k: float(v.detach()) for k, v in losses.items()}
+
+        if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:
+            n = max(1, self.local_batch // tc.path_batch_shrink)
+            fake_p, wplus = self.g_train(self._z(n), return_latents=True)
+            path, mean_path, lengths = path_length_penalty(fake_p, wplus, self.mean_path_length, tc.path_decay)
+            self._check_finite({"path": path})
+            self.g_optim.zero_grad(set_to_none=True)
+            (tc.path_weight * tc.g_reg_every * path + 0 * fake_p[0, 0, 0, 0]).backward()
+            self.g_optim.step()
+            self.mean_path_length = self._all_mean(mean_path.detach())
+            out.update(path=float(path.detach()), path_length=float(lengths.mean()))
+
+        with torch.no_grad():  # mean of W (truncation target), averaged over processes so replicas agree
+            w_mean = self._all_mean(self.G.mapping(zs[0]).mean(0))
+            self.G.w_avg.lerp_(w_mean, 1.0 - tc.w_avg_beta)
+        _accumulate(self.G_ema, self.G, self._ema_decay())
+        return out
+
+    def _ema_decay(self) -> float:
+        """EMA with a half-life of ``ema_kimg`` thousand samples, ramped up to 5% of the samples seen (StyleGAN2-ADA)
+        so short runs are not dominated by the random initialisation."""
+        tc = self.cfg.train
+        seen = (self.step + 1) * tc.batch
+        half_life = min(tc.ema_kimg * 1000.0, 0.05 * seen)
+        return 0.5 ** (tc.batch / max(half_life, 1e-8))
+
+    # ------------------------------------------------------------------------------------------- loop
+    def train(self, iters: int | None = None) -> TrainResult:
+        """Run until ``iters`` total steps (default ``cfg.train.iters``). Ctrl-C or SIGTERM (on any rank) finishes
+        the step, saves a checkpoint and returns (``interrupted``; ``exit_code`` 130 / 143). Rank 0 holds the run
+        folder's lock meanwhile."""
+        from contextlib import nullcontext
+
+        tc = self.cfg.train
+        target = tc.iters if iters is None else int(iters)
+        self.stop = faults.StopRequest()
+        lock = faults.hold_run_folder(self.run_dir) if self.rank == 0 else nullcontext()
+        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0):
+            if self.rank == 0:
+                faults.remove_stale_temps(self.run_dir / "checkpoint.pt")
+            return self._train_to(target)
+
+    def _train_to(self, target: int) -> TrainResult:
+        tc = self.cfg.train
+        t0 = time.time()
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=target, initial=min(self.step, target), dynamic_ncols=True, smoothing=0.05,
+                       desc="modi train")
+        interrupted = False
+        ckpt: Path | None = None
+        last_t, last_step = time.time(), self.step  # mean time per step since the last logged step
+        try:
+            while self.step < target:
+                if self.stop.agreed(self.device):
+                    interrupted = True
+                    break
+                losses = self.train_step()
+                # lazy regularisers run on other steps than the logged ones: report their latest values
+                self._latest_reg.update({k: v for k, v in losses.items() if k in ("r1", "path", "path_length")})
+                losses = {**self._latest_reg, **losses}
+                self.last_losses = losses
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix({k: f"{losses[k]:.3f}" for k in ("d", "g", "contact") if k in losses})
+                if self.rank == 0 and (self.step % tc.log_every == 0 or self.step == target):
+                    now = time.time()
+                    losses["sec_per_iter"] = (now - last_t) / max(1, self.step - last_step)
+                    last_t, last_step = now, self.step
+                    try:
+                        self._log_scalars(losses)
+                    except faults.OutputError as exc:  # DDP: the other ranks stop with it at the next step
+                        if not self.distributed:
+                            raise
+                        self.stop.fail(exc)
+                if tc.sample_every and self.step % tc.sample_every == 0 and self.write_samples:
+                    self.write_sample_grid()
+                if tc.ckpt_every and self.step % tc.ckpt_every == 0:
+                    ckpt = self.save_checkpoint()
+                if tc.snapshot_every and self.step % tc.snapshot_every == 0:
+                    self.save_checkpoint(self.run_dir / "checkpoints" / f"step_{self.step:07d}.pt")
+            if self.distributed:
+                self.stop.agreed(self.device)  # a log error of the last step is raised on every rank
+            # stopped right after a periodic save (a signal during the save): that checkpoint is this step's
+            ckpt = self.save_checkpoint() if self._saved_step != self.step or ckpt is None else ckpt
+            # a stopped run saves and leaves at once (a scheduler's grace period is short): no extra preview
+            if not interrupted and self.write_samples and (not tc.sample_every or self.step % tc.sample_every != 0):
+                self.write_sample_grid()
+        finally:
+            if bar is not None:
+                bar.close()
+            if self.writer is not None:
+                with faults.output_errors(self.run_dir / "tb"):
+                    self.writer.flush()
+        if interrupted and self.rank == 0:
+            self.log(f"interrupted at step {self.step}: checkpoint saved to {ckpt}")
+        return TrainResult(self.step, interrupted, ckpt, time.time() - t0, dict(self.last_losses),
+                           self.stop.signum if interrupted else None)
+
+    def request_stop(self) -> None:
+        """Ask the loop to save and return at the next iteration boundary (what Ctrl-C does)."""
+        self.stop.set()
+
+    def _log_scalars(self, losses: dict[str, float]) -> None:
+        rec = {"step": self.step, **{k: round(v, 6) for k, v in losses.items()}}
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        faults.append_line(self.run_dir / "log.jsonl", json.dumps(rec))
+        if self.writer is not None:
+            groups = {"d": "loss/d", "g": "loss/g", "r1": "loss/r1", "path": "loss/path", "touch": "loss/touch",
+                      "contact": "loss/contact", "real_score": "score/real", "fake_score": "score/fake",
+                      "path_length": "reg/path_length", "sec_per_iter": "time/sec_per_iter"}
+            with faults.output_errors(self.run_dir / "tb"):  # event files are appended by the library
+                for k, v in losses.items():
+                    self.writer.add_scalar(groups.get(k, k), v, self.step)
+
+    # ------------------------------------------------------------------------------------------- samples
+    def write_sample_grid(self) -> Path | None:
+        """Fixed latents through G_ema -> ``samples/step_XXXXXXX/`` (BVH per motion + one GIF grid). Rank 0 only."""
+        if self.rank != 0:
+            return None
+        from modi.models.modi.sampling import write_outputs
+
+        out = self.run_dir / "samples" / f"step_{self.step:07d}"
+        with torch.no_grad():
+            x = self.G_ema(self.sample_z.to(self.device), noise_mode="const")
+        try:
+            write_outputs(self.codec, x, out, gif=True, bvh=not self.codec.positions_mode, gif_name="grid.gif")
+        except Exception as exc:  # noqa: BLE001 - a preview must never kill a long run
+            warnings.warn(f"could not write samples at step {self.step}: {exc}", stacklevel=2)
+            return None
+        return out
+
+    # ------------------------------------------------------------------------------------------- checkpoints
+    def _rng_state(self) -> dict[str, Any]:
+        st = {"torch": torch.get_rng_state(), "data": self.data_rng.get_state()}
+        if torch.cuda.is_available():
+            st["cuda"] = torch.cuda.get_rng_state_all()
+        return st
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to generate, and to resume exactly (plain containers + tensors: loads with weights_only)."""
+        rng = self._rng_state()
+        rngs = [rng]
+        if self.distributed:
+            import torch.distributed as dist
+
+            rngs = [None] * self.world
+            dist.all_gather_object(rngs, rng)
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "config": self.cfg.to_dict(),
+            "codec": self.codec.state_dict(),
+            "skeleton": self.codec.skeleton.to_dict(),
+            "hierarchy": self.data.hierarchy.to_dict(),
+            "levels": [lv.to_dict() for lv in self.levels],
+            "G": self.G.state_dict(),
+            "G_ema": self.G_ema.state_dict(),
+            "D": self.D.state_dict(),
+            "g_optim": self.g_optim.state_dict(),
+            "d_optim": self.d_optim.state_dict(),
+            "step": self.step,
+            "mean_path_length": float(self.mean_path_length),
+            "rng": rngs,
+            "world_size": self.world,
+            "data_source": self.data.source,
+            "data_summary": _plain(self.data.summary),
+            "last_losses": dict(self.last_losses),
+            "torch_version": str(torch.__version__),
+            "modi_version": modi_version,  # for 'modi info'
+        }
+
+    def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
+        """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states)."""
+        state = self.state_dict()
+        path = Path(path) if path is not None else self.run_dir / "checkpoint.pt"
+        main = path == self.run_dir / "checkpoint.pt"
+        error = None
+        if self.rank == 0:
+            try:
+                atomic_torch_save(state, path, previous_step=self._saved_step if main else None)
+            except faults.OutputError as exc:
+                error = exc
+        if self.distributed:  # doubles as the barrier: every rank learns whether rank 0's write failed
+            import torch.distributed as dist
+
+            failed = torch.tensor([int(error is not None)], device=self.device)
+            dist.all_reduce(failed)
+            if error is None and int(failed.item()):
+                raise UserError(f"rank 0 could not write {path} (see its message)")
+        if error is not None:
+            raise error
+        if main:
+            self._saved_step = self.step
+        return path
+
+    def load_state(self, ckpt: str | os.PathLike | dict) -> None:
+        """Restore models, optimisers, step and RNG states from a checkpoint of the same model and skeleton."""
+        st = load_checkpoint(ckpt) if not isinstance(ckpt, dict) else ckpt
+        if MoDiConfig.from_dict(st["config"]).to_dict()["model"] != self.cfg.to_dict()["model"]:
+            raise CheckpointError("checkpoint was trained with a different model config; "
+                                  "resume with the same preset and model options")
+        if not self.codec.skeleton.same_as(_skeleton_from(st)):
+            raise CheckpointError("checkpoint was trained on a different skeleton than this data")
+        try:
+            self.G.load_state_dict(st["G"])
+            self.G_ema.load_state_dict(st["G_ema"])
+            self.D.load_state_dict(st["D"])
+            self.g_optim.load_state_dict(st["g_optim"])
+            self.d_optim.load_state_dict(st["d_optim"])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise CheckpointError(f"checkpoint does not match this model: {exc}") from None
+        self.step = int(st["step"])
+        self._saved_step = self.step
+        self.mean_path_length = torch.tensor(float(st.get("mean_path_length", 0.0)), device=self.device)
+        self.last_losses = dict(st.get("last_losses", {}))
+        self._latest_reg = {k: v for k, v in self.last_losses.items() if k in ("r1", "path", "path_length")}
+        rngs = st.get("rng") or []
+        if len(rngs) == self.world:
+            rng = rngs[self.rank]
+            torch.set_rng_state(rng["torch"])
+            self.data_rng.set_state(rng["data"])
+            if "cuda" in rng and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(rng["cuda"])
+        else:
+            warnings.warn(f"checkpoint was written by {len(rngs)} process(es), this run has {self.world}: "
+                          "random streams restart (training continues, but not bit-for-bit)", stacklevel=2)
+            torch.manual_seed(self.cfg.train.seed * 1000 + self.rank + 7 * self.step)
+
+
+class _PairD(nn.Module):
+    """Runs D on fake and real in ONE forward (so DDP sees one forward per backward), with separate
+    minibatch-stddev groups for each."""
+
+    def __init__(self, d: Discriminator):
+        super().__init__()
+        self.d = d
+
+    def forward(self, x: Tensor, y: Tensor | None = None):
+        if y is None:
+            return self.d(x)
+        return self.d(x), self.d(y)
+
+
+def _plain(obj: Any) -> Any:
+    """Plain Python containers/scalars only (numpy scalars -> Python), so checkpoints load with weights_only."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, (str, int, float, bool)) or obj is None or isinstance(obj, Tensor):
+        return obj
+    if hasattr(obj, "item"):
+        return obj.item()
+    return str(obj)
+
+
+def _skeleton_from(st: dict[str, Any]) -> Any:
+    from modi.core.skeleton import Skeleton
+
+    return Skeleton.from_dict(st["skeleton"])
+
+
+def seconds_per_iteration(trainer: Trainer, n: int = 5, warmup: int = 1) -> float:
+    """Mean wall time of ``n`` full training iterations (after ``warmup``), lazy regularisers included in
+    proportion (steps 0, 16, ... run R1; 0, 4, ... path length) -- a benchmark helper, not used by training."""
+    for _ in range(warmup):
+        trainer.train_step()
+    t = time.perf_counter()
+    for _ in range(n):
+        trainer.train_step()
+    return (time.perf_counter() - t) / n
+
+
+__all__ = ["MotionCodec", "TrainingData", "prepare_data", "write_procedural_data", "Trainer", "TrainResult",
+           "NonFiniteLossError", "atomic_torch_save", "init_distributed_from_env", "build_models",
+           "seconds_per_iteration"]
