@@ -14,12 +14,19 @@ from __future__ import annotations
 
 import glob
 import os
+import re
 import shutil
 import sys
 
 from setuptools import find_packages, setup
 
 ROOT = os.path.dirname(os.path.abspath(__file__))
+
+
+def _version() -> str:
+    """The one version string, from modi/_version.py (read as text: setup.py must not import the package)."""
+    with open(os.path.join(ROOT, "modi", "_version.py"), encoding="utf-8") as f:
+        return re.search(r'__version__ = "([^"]+)"', f.read()).group(1)
 
 
 def _flag(name: str) -> str | None:
@@ -126,7 +133,7 @@ ext_modules, cmdclass = extension_modules()
 
 setup(
     name="modi",
-    version="0.1.0",
+    version=_version(),
     description="MoDi and GANimator motion synthesis with fast skeleton-aware operators (modi_ext)",
     long_description=open(os.path.join(ROOT, "README.md"), encoding="utf-8").read(),
     long_description_content_type="text/markdown",

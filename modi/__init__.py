@@ -1,3 +1,5 @@
 """modi: MoDi and GANimator motion synthesis on skeleton-aware operators (see README)."""
 
-__version__ = "0.1.0"
+from modi._version import __version__
+
+__all__ = ["__version__"]

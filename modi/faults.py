@@ -18,6 +18,7 @@ One place for the things that belong together (issue 22), shared by ``modi train
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import shutil
 import signal
@@ -102,7 +103,7 @@ def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
 
 def atomic_save_npy(path: str | os.PathLike, array: Any) -> None:
     """``np.save`` through :func:`atomic_output` (to a file object, so numpy adds no ``.npy`` to the name)."""
-    import numpy as np
+    import numpy as np  # lazy, as torch below: the CLI imports this module first, to own Ctrl-C from the start
 
     with atomic_output(path, "wb") as f:
         np.save(f, array)
@@ -238,7 +239,7 @@ def atomic_torch_save(obj: Any, path: str | os.PathLike, *, previous_step: int |
     checkpoint's size against the free space (an atomic save needs room for a second copy beside the previous
     one) and that the previous checkpoint (``previous_step``: a step, or a position such as "block 2/4, iteration
     30") is intact; a read-only folder likewise."""
-    import torch
+    import torch  # lazy: the CLI imports this module before torch, to own Ctrl-C and SIGTERM from the start
 
     path = Path(path)
     try:
@@ -308,17 +309,14 @@ class StopRequest:
         number and of :meth:`fail`), so all ranks stop at the same step even when only one was signalled, and a
         recorded error is raised on all of them; the local flag otherwise. Every rank must call it at the same
         point of each step."""
-        try:
-            import torch.distributed as dist
+        import torch  # lazy: see atomic_torch_save
+        import torch.distributed as dist
 
-            distributed = dist.is_available() and dist.is_initialized()
-        except ImportError:  # pragma: no cover
-            distributed = False
+        distributed = dist.is_available() and dist.is_initialized()
         if not distributed:
             if self.error is not None:
                 raise self.error
             return bool(self)
-        import torch
 
         t = torch.tensor([self.signum or 0, int(self.error is not None)], dtype=torch.int64, device=device)
         dist.all_reduce(t, op=dist.ReduceOp.MAX)
@@ -518,8 +516,6 @@ def hold_run_folder(folder: str | os.PathLike, lock_name: str = LOCK_NAME, what:
 def _lock_file(lock: Path, folder: Path, what: str | None) -> int:
     """The open, exclusively flock-ed descriptor of ``lock`` (created if needed), or RunFolderBusy naming the
     holder."""
-    import fcntl
-
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)

@@ -16,6 +16,7 @@ on, and they disagreed. :class:`Body` decides once, from joint names and positio
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from typing import Sequence
@@ -62,11 +63,44 @@ def is_finger(name: str) -> bool:
     return bool(_FINGER.search(name.rsplit(":", 1)[-1]))
 
 
-def metres_scale(height: float) -> float:
-    """File units to metres for a body of ``height`` file units: :func:`modi.io.gltf.guess_unit`'s guess (the unit
-    among m, in, cm and mm that makes it closest to 1.7 m), the one every preview and export uses."""
-    from modi.io.gltf import guess_unit
+# ---------------------------------------------------------------------------------------------- units
 
+
+@dataclass(frozen=True)
+class UnitGuess:
+    """What the file's lengths were taken to be: ``scale`` converts them to metres."""
+
+    scale: float
+    unit: str          # "metres", "centimetres", "inches", "millimetres" or "given"
+    height: float      # body size in file units (``Skeleton.height``, a chain length: what the guess uses)
+    standing: float | None = None  # standing height in file units (:class:`modi.core.body.Body`), what is printed
+
+    def describe(self) -> str:
+        shown = self.height if self.standing is None else self.standing
+        what = "body size" if self.standing is None else "standing height"
+        if self.unit == "given":
+            return f"lengths x {self.scale:g} to metres (--scale given; {what} {shown * self.scale:.3g} m)"
+        return (f"body size {self.height:.4g} file units looks like {self.unit}: lengths x {self.scale:g} to metres "
+                f"({what} {shown * self.scale:.3g} m; override with --scale)")
+
+
+_UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
+
+
+def guess_unit(height: float) -> UnitGuess:
+    """The unit that makes the body closest to 1.7 m (on a log scale) among m, in, cm and mm.
+
+    Boundaries in file units: < 10.7 metres, < 107 inches, < 537 centimetres, else millimetres. A crab of 0.45 and an
+    elephant of 2 stay metres; a Mixamo or Bandai human of 150-230 is centimetres. It is a guess, so it is printed.
+    """
+    h = float(height) if math.isfinite(height) and height > 0 else 1.0
+    unit, scale = min(_UNITS, key=lambda u: abs(math.log(h * u[1] / 1.7)))
+    return UnitGuess(scale, unit, h)
+
+
+def metres_scale(height: float) -> float:
+    """File units to metres for a body of ``height`` file units: :func:`guess_unit`'s guess (the unit among m, in, cm
+    and mm that makes it closest to 1.7 m), the one every preview and export uses."""
     return guess_unit(height).scale
 
 

@@ -10,8 +10,11 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
+
+from modi.core.body import Body
 
 DEFAULT_VELOCITY_FACTOR = 0.25  # x height per second (~0.44 m/s for a 1.75 m person)
 DEFAULT_HEIGHT_FACTOR = 0.1  # x height above that foot's lowest point in the clip
@@ -76,8 +79,6 @@ PREVIEW_RULE = (f"a foot joint touches the ground while it is within {PREVIEW_HE
 def _drop_short_runs(mask, value: bool, min_len: int):
     """Flip runs of ``value`` shorter than ``min_len`` frames (along axis 0) that have the other value on both
     sides (runs touching the clip's ends are kept: their true length is unknown)."""
-    import numpy as np
-
     out = mask.copy()
     T = out.shape[0]
     for f in range(out.shape[1]):
@@ -104,9 +105,6 @@ def preview_contacts(positions, feet: Sequence[int], fps: float, parents: Sequen
     lowest point, so a foot that never comes down is never in contact. Label once on the clip's own frames and
     resample the labels with the positions: every output then shows the same labels.
     """
-    import numpy as np
-
-    from modi.core.body import Body
 
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 3 or p.shape[-1] != 3:
@@ -127,3 +125,25 @@ def preview_contacts(positions, feet: Sequence[int], fps: float, parents: Sequen
     lab = _drop_short_runs(_drop_short_runs(lab, False, k), True, k)
     out[:, feet] = lab
     return out
+
+
+_FOOT_WORDS = ("foot", "toe", "ankle", "heel")
+
+
+def foot_joints_by_name(names: Sequence[str]) -> list[int]:
+    """Joints whose names say foot/toe/ankle/heel (what contact highlighting marks when no list is given)."""
+    return [j for j, n in enumerate(names) if any(w in n.lower() for w in _FOOT_WORDS)]
+
+
+def feet_of(b) -> list[int]:
+    """Foot joints of a clip (anything with ``skeleton()`` and ``names``): the skeleton's own detection when
+    available, else by name."""
+    sk = b.skeleton()
+    if hasattr(sk, "detect_feet"):
+        try:
+            feet = list(sk.detect_feet(per_side=2))
+        except (ValueError, KeyError):   # detection is a convenience for previews: fall back to names
+            feet = []
+        if feet:
+            return feet
+    return foot_joints_by_name(b.names)

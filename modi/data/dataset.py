@@ -24,14 +24,20 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
-from modi.io import bvh as bvh_io
 from modi.core.contacts import DEFAULT_HEIGHT_FACTOR, DEFAULT_VELOCITY_FACTOR, foot_contacts
-from modi.errors import UserError
-from modi.data.normalization import Normalizer
-from modi.data.representation import LEAF_ROTATIONS, MotionRepresentation
+from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
 from modi.core.skeleton import Skeleton
 from modi.core.topology import EntityLayout, PoolingHierarchy, build_hierarchy
+from modi.data.motion import Motion
+from modi.data.normalization import Normalizer
+from modi.data.representation import LEAF_ROTATIONS, MotionRepresentation
+from modi.errors import UserError
+from modi.faults import OutputError, atomic_torch_save
+from modi.io import bvh as bvh_io
+from modi.io.safe_load import UnsafeFileError, load_data
 
 CACHE_VERSION = 2  # 2: skeleton offsets from the clip nearest the median, not the first file
 
@@ -220,8 +226,6 @@ def _bake_moving_anchor(b: bvh_io.Bvh) -> bvh_io.Bvh | None:
     ``Motion.from_bvh`` handles a *static* anchor exactly (the child's translation becomes the root
     trajectory) but can only average a moving one; after baking every such file takes that exact path.
     """
-    from modi.core.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
-
     if b.n_joints < 2 or [j for j, p in enumerate(b.parents) if p == 0] != [1]:
         return None
     rot_cols, pos_cols = _channel_columns(b)
@@ -275,16 +279,12 @@ def motion_from_bvh(b: bvh_io.Bvh, path: str | None = None) -> Any:
     is static. When the anchor moves as well, its motion is first composed into ``Hips``
     (``_bake_moving_anchor``) so the same exact conversion applies.
     """
-    from modi.data.motion import Motion
-
     baked = _bake_moving_anchor(b)
     return Motion.from_bvh(baked if baked is not None else b)
 
 
 def feet_positions(rotations: Tensor, root_positions: Tensor, skeleton: Skeleton, feet: Sequence[int]) -> Tensor:
     """Global positions (..., T, F, 3) of the ``feet`` only: FK restricted to their ancestor chains (cheap)."""
-    from modi.core.kinematics import forward_kinematics
-
     needed = sorted({a for f in feet for a in [f, *skeleton.ancestors(f)]} | {0})
     where = {j: i for i, j in enumerate(needed)}
     parents = [-1 if skeleton.parents[j] < 0 else where[skeleton.parents[j]] for j in needed]
@@ -359,8 +359,6 @@ def build_dataset(
     cdir = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
     cache_file = cdir / f"dataset-{key}.pt"
     if cache and cache_file.is_file():
-        from modi.io.safe_load import UnsafeFileError, load_data
-
         try:  # as data only: a cache file naming code was put there by someone else, so say so (exit 2)
             return _from_state(load_data(cache_file, "dataset cache file",
                                          hint="; delete it (or pass --no-cache) to rebuild the cache"),
@@ -381,8 +379,6 @@ def _build(files: list[Path], rels: list[str], shas: list[str], config: DatasetC
     splits = split_files(len(files), config.test_fraction, config.seed)
     iterator: Any = zip(files, rels, shas, splits)
     if progress:
-        from tqdm import tqdm
-
         iterator = tqdm(list(iterator), desc="loading BVH", unit="clip")
 
     # Pass 1: every clip on the reduced skeleton at the dataset rate. Joint reduction depends only on names and
@@ -561,8 +557,6 @@ def _from_state(s: dict[str, Any], from_cache: bool = False) -> MotionDataset:
 
 
 def _atomic_save(obj: Any, path: Path) -> None:
-    from modi.faults import OutputError, atomic_torch_save
-
     try:
         atomic_torch_save(obj, path)  # temp + fsync + rename: a killed run never leaves half a cache file
     except OutputError as exc:  # an unwritable cache (full disk, read-only) must not stop training

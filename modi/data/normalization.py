@@ -15,6 +15,10 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from modi.errors import CheckpointError
+from modi.faults import atomic_torch_save
+from modi.io.safe_load import load_data
+
 
 @dataclass
 class Normalizer:
@@ -78,15 +82,10 @@ class Normalizer:
             raise ValueError(f"normalizer state is missing {exc}") from None
 
     def save(self, path: str | os.PathLike) -> None:
-        from modi.faults import atomic_torch_save
-
         atomic_torch_save(self.state_dict(), path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Normalizer":
-        from modi.io.safe_load import load_data
-
-        from modi.errors import CheckpointError
 
         st = load_data(path, "normaliser file")  # as data only: code in the file is refused unrun
         if not isinstance(st, dict) or not {"mean", "std"} <= set(st):

@@ -17,7 +17,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from modi.core.rotations import matrix_to_euler, matrix_to_quat, quat_canonical, quat_normalize
 from modi.core.skeleton import Skeleton
+from modi.data.motion import Motion
+from modi.io import bvh as bvh_io
+from modi.io.formats import save_motion
 
 KINDS: tuple[str, ...] = ("walk", "run", "jump", "wave", "squat", "idle")
 
@@ -530,9 +534,6 @@ def generate_clip(kind: str, n_frames: int = 128, fps: float = 30.0,
 
     ``rng`` is a Generator (consumed) or a seed; the same seed gives the same clip.
     """
-    from modi.data.motion import Motion
-    from modi.core.rotations import matrix_to_quat, quat_canonical, quat_normalize
-
     local, root = clip_arrays(kind, n_frames, fps, rng)
     q = quat_normalize(matrix_to_quat(torch.from_numpy(local)))
     q = quat_canonical(q)
@@ -547,10 +548,6 @@ def write_dataset(out_dir: str | Path, n_clips: int = 32, frames: int = 128, see
     and equals ``generate_clip(kind, frames, fps, np.random.default_rng([seed, i]))``. All clips' Euler angles
     are converted in one batched call: thousands of tiny torch calls would cost more than the generation.
     """
-    from modi.io import bvh as bvh_io
-    from modi.io.formats import save_motion
-    from modi.core.rotations import matrix_to_euler
-
     kinds = tuple(KINDS if kinds is None else kinds)
     bad = [k for k in kinds if k not in _BUILDERS]
     if bad or not kinds:

@@ -36,6 +36,7 @@ from modi.core.kinematics import forward_kinematics
 from modi.core.rotations import quat_normalize, quat_to_6d, sixd_to_quat
 from modi.core.skeleton import Skeleton
 from modi.core.topology import EntityLayout
+from modi.data.motion import Motion
 
 ROTATION_WIDTH = {"quat": 4, "6d": 6}
 ROOT_MODES = ("velocity", "position", "velocity3")
@@ -213,8 +214,6 @@ class MotionRepresentation:
 
     def decode(self, x: Tensor, fps: float) -> Any:
         """``(K, E, T)`` -> Motion (contacts are dropped; use ``decode_parts`` to keep them)."""
-        from modi.data.motion import Motion
-
         if x.ndim != 3:
             raise ValueError(f"decode: expected one motion (K, E, T), got {tuple(x.shape)}; use decode_batch")
         quats, root, _ = self.decode_parts(x)

@@ -31,9 +31,13 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor, nn
+from tqdm import tqdm
 
-from modi import __version__ as modi_version
+from modi._version import __version__ as modi_version
+from modi.core.kinematics import bvh_positions
 from modi.errors import CheckpointError, UserError
+from modi.faults import atomic_torch_save
+from modi.io import bvh as bvh_io
 from modi.io.safe_load import load_data
 
 __all__ = [
@@ -399,8 +403,6 @@ class FeatureExtractor:
     def save(self, path: str | os.PathLike) -> None:
         """One file with config, skeleton (joint names + parents), normalisation, weights and training info;
         written atomically (``modi.faults``: a full disk is one line, an earlier file stays intact)."""
-        from modi.faults import atomic_torch_save
-
         atomic_torch_save(self.state(), path)
 
 
@@ -458,9 +460,6 @@ def load_labelled_folder(
     ``class_<i>``. An anchor root with a single child (Bandai's ``joint_Root`` above ``Hips``) is dropped, as
     ``modi.data.dataset.motion_from_bvh`` does, so generated motions of the promoted skeleton match by name. All clips must share the skeleton's joint names.
     """
-    from modi.io import bvh as bvh_io
-    from modi.core.kinematics import bvh_positions
-
     root = Path(root)
     if not root.is_dir():
         raise UserError(f"data folder not found: {root}")
@@ -485,11 +484,7 @@ def load_labelled_folder(
     if top >= len(names) or min(lab for _, lab in labelled) < 0:
         raise UserError(f"labels out of range: found {top}, but only {len(names)} class names")
 
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
-    it = labelled if not (progress and tqdm) else tqdm(labelled, desc="loading clips", unit="clip", leave=False)
+    it = labelled if not progress else tqdm(labelled, desc="loading clips", unit="clip", leave=False)
     raw = []
     ref_names = None
     skeleton = None
@@ -605,11 +600,7 @@ def train_feature_extractor(
     p /= p.sum()
     loss_fn = nn.CrossEntropyLoss(label_smoothing=0.1)
     history: dict[str, Any] = {"epochs": [], "train_windows": int(n)}
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
-    bar = tqdm(total=total, desc="train features", unit="step", disable=not (progress and tqdm)) if tqdm else None
+    bar = tqdm(total=total, desc="train features", unit="step", disable=not progress)
     start = time.perf_counter()
     cpu_start = time.process_time()
     stopped_early = False

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from modi.faults import OutputError, atomic_write, describe_os_error
+
 __all__ = ["write_json", "to_markdown", "write_markdown", "write_reports"]
 
 
@@ -35,8 +37,6 @@ def _plain(x: Any) -> Any:
 
 
 def _atomic_write(path: str | os.PathLike, text: str) -> None:
-    from modi.faults import OutputError, atomic_write, describe_os_error
-
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from modi.core.joint_reduction import reduce_joints
+from modi.core.rotations import quat_to_matrix
 from modi.core.skeleton import strip_namespace
 
 __all__ = [
@@ -57,8 +59,6 @@ def rotation_features(rotations: Any, representation: str = "6d") -> torch.Tenso
     if not r.is_floating_point():
         r = r.double()
     if r.ndim == 3 and r.shape[-1] == 4:
-        from modi.core.rotations import quat_to_matrix
-
         m = quat_to_matrix(r.double())
     elif r.ndim == 4 and r.shape[-2:] == (3, 3):
         m = r.double()
@@ -252,8 +252,6 @@ def shared_joints(skeletons: Sequence[Any], reduce: bool = True, labels: Sequenc
     ``reduce``: each skeleton first gets GANimator's joint reduction (:func:`modi.core.joint_reduction.reduce_joints`:
     fingers and head-top dropped), so a full Mixamo source and a 24-joint output meet on the published joint set.
     """
-    from modi.core.joint_reduction import reduce_joints
-
     labels = list(labels) if labels is not None else [f"skeleton {i}" for i in range(len(skeletons))]
     common: list[str] | None = None
     for sk, label in zip(skeletons, labels):

@@ -16,12 +16,17 @@ from typing import Any
 import torch
 
 from modi.errors import CheckpointError
+from modi.interop.modi_released import check_masks, convert_checkpoint, released_style_index, reverse_hierarchy_state
+from modi.interop.released_files import load_released_file
+from modi.models.modi.checkpoint import atomic_torch_save
+from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
+from modi.models.modi.encoder.training import ENCODER_FORMAT, ENCODER_VERSION, generator_bundle
+from modi.models.modi.latent.space import mean_w
+from modi.models.modi.sampling import load_generator
 
 
 def read_encoder_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     """The released encoder checkpoint's dict, checked for what conversion supports (as data)."""
-    from modi.interop.released_files import load_released_file
-
     st = load_released_file(path, "released MoDi encoder checkpoint")
     if "e" not in st or "args" not in st:
         raise CheckpointError(f"{path}: not a released MoDi encoder checkpoint (no 'e' and 'args')")
@@ -39,8 +44,6 @@ def read_encoder_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 def encoder_state(e_sd: dict[str, torch.Tensor], enc: Any, index: list[int], power: int = 1) -> dict[str, Tensor]:
     """The state dict of modi encoder ``enc`` for released encoder tensors ``e_sd`` (``power`` as in
     ``modi_released.generator_state``); the head's W+ rows gathered into modi's layout by ``index``."""
-    from modi.interop.modi_released import reverse_hierarchy_state
-
     sd = reverse_hierarchy_state(e_sd, enc.from_motion.net.conv, "from_motion.net", enc.blocks,
                                  int(enc.cfg.inplace_convs), power)
     sd["fc.weight"] = e_sd["latent_predictor.linear1.weight"].clone()
@@ -56,10 +59,6 @@ def encoder_state(e_sd: dict[str, torch.Tensor], enc: Any, index: list[int], pow
 
 def convert_encoder(st: dict[str, Any], g: Any) -> Any:
     """A modi ``MotionEncoder`` (released head) holding the released encoder's function, for modi generator ``g``."""
-    from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
-    from modi.interop.modi_released import check_masks, released_style_index
-    from modi.models.modi.latent.space import mean_w
-
     args = st["args"]
     e_sd = st["e"]
     check_masks(e_sd, "e")
@@ -81,11 +80,6 @@ def import_checkpoint(ckpt: Path | str, generator: Path | str, data: Path | str,
                       fps: float = 30.0) -> Path:
     """Write ``out/encoder.pt``, a modi encoder run (the released encoder with the released generator it
     inverts, converted as ``modi import modi-released`` does); returns its path."""
-    from modi.models.modi.encoder.training import ENCODER_FORMAT, ENCODER_VERSION, generator_bundle
-    from modi.interop.modi_released import convert_checkpoint
-    from modi.models.modi.checkpoint import atomic_torch_save
-    from modi.models.modi.sampling import load_generator
-
     st = read_encoder_checkpoint(ckpt)
     gen_state = convert_checkpoint(generator, data, fps)
     g, codec, gcfg = load_generator(gen_state)

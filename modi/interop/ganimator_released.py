@@ -31,7 +31,27 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.core.joint_reduction import reduce_joints
+from modi.core.kinematics import forward_kinematics
+from modi.core.skeleton import Skeleton, strip_namespace
 from modi.errors import CheckpointError, UserError
+from modi.io.safe_load import load_data
+from modi.models.ganimator.config import GanimatorConfig
+from modi.models.ganimator.data import Sequence as Clip
+from modi.models.ganimator.data import (
+    _permute_clip,
+    body_height,
+    contact_labels,
+    motion_to_features,
+    pyramid_lengths,
+    read_clip,
+    real_pyramid,
+    resample,
+    sequence_pyramid,
+    subset_clip,
+)
+from modi.models.ganimator.networks import EntityBias, ganimator_neighbors
+from modi.models.ganimator.training import Trainer, blocks_of, checkpoint_path
 
 ARGS_FILE = "args.txt"
 
@@ -134,8 +154,6 @@ def _fraction(text: str) -> float:
 
 
 def _load(path: Path, what: str) -> Any:
-    from modi.io.safe_load import load_data
-
     return load_data(path, what, hint="; a released GANimator file holds tensors only")
 
 
@@ -229,8 +247,6 @@ def _preorders(parents: Sequence[int], subset: Sequence[int], limit: int = 720) 
 
 def _released_neighbours(parents: Sequence[int], feet: Sequence[int], distance: int) -> list[set[int]]:
     """The neighbourhoods modi builds (``ganimator_neighbors``) in the released entity order."""
-    from modi.models.ganimator.networks import ganimator_neighbors
-
     J, C = len(parents), len(feet)
     perm = entity_perm(J, C)
     nb = ganimator_neighbors(list(parents), list(feet), distance)
@@ -300,8 +316,6 @@ def released_stride(fps: float) -> int:
 def _amplitudes(clip: Any, lengths: Sequence[int]) -> list[float]:
     """Each level's noise amplitude as their ``train.py`` sets it: the RMS of what upsampling the coarser real
     level misses (of the whole level at level 0)."""
-    from modi.models.ganimator.data import real_pyramid, resample
-
     reals = real_pyramid(clip, lengths)
     out = []
     for i, r in enumerate(reals):
@@ -314,10 +328,6 @@ def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: floa
                raw: Any = None) -> Any:
     """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels);
     ``raw``: the BVH already read (``read_clip``)."""
-    from modi.models.ganimator.data import (Sequence as Clip, _permute_clip, body_height, contact_labels,
-                                     motion_to_features, read_clip, subset_clip)
-    from modi.core.kinematics import forward_kinematics
-    from modi.core.skeleton import Skeleton, strip_namespace
 
     raw = read_clip(bvh) if raw is None else raw
     sub = subset_clip(raw, sorted(order))
@@ -348,8 +358,6 @@ THRESHOLDS = (0.018, 0.006)
 def match_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], lengths: Sequence[int],
                amps: Sequence[float], raw: Any = None) -> Any:
     """The clip whose pyramid reproduces the checkpoint's amplitudes (units and contact threshold)."""
-    from modi.models.ganimator.data import read_clip
-
     raw = read_clip(bvh) if raw is None else raw
     best, best_err = None, math.inf
     for scale in SCALES:
@@ -399,8 +407,6 @@ def _pairs(mod: Any) -> tuple[list[int], list[int]]:
 
 def _convs(body: Any) -> list[tuple[str, Any, str]]:
     """(conv name, conv module, bias name) of a modi ``SkeletalStack`` in order."""
-    from modi.models.ganimator.networks import EntityBias
-
     mods = list(body.net.named_children())
     out = []
     for i, (name, m) in enumerate(mods):
@@ -472,8 +478,6 @@ def discriminator_state(sd: dict[str, Tensor], disc: Any, perm: Sequence[int], w
 
 def config_for(args: dict, clip: Any, n_levels: int) -> Any:
     """modi's config for the released options (the released forms of every loss-level option)."""
-    from modi.models.ganimator.config import GanimatorConfig
-
     limit = int(args["num_stages_limit"])
     return GanimatorConfig(
         fps=30.0, keep_joints=list(clip.skeleton.names), feet=[clip.skeleton.names[f] for f in clip.feet],
@@ -517,9 +521,6 @@ def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str,
         raise UserError(f"{run}: z_star has {z_star.shape[1]} channels, the first layer {first.shape[1]}")
     adj = entity_adjacency(first, E, f"{run / 'gen000.pt'}: layers.0.0.mask")
     bvh = find_bvh(Path(data) if data is not None else None, run, args)
-    from modi.models.ganimator.data import read_clip
-    from modi.core.joint_reduction import reduce_joints
-
     raw = read_clip(bvh)
     sk = raw.skeleton
     cands = [reduce_joints(sk)] if args["joint_reduction"] else []
@@ -536,15 +537,11 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     The run is written by modi's own trainer (``Trainer.save``), marked fully trained, with the released
     generators, ``z*`` and amplitudes; its discriminators are freshly initialised (the released code does not save
     them). Raises ``UserError`` (one line) on anything that does not match."""
-    from modi.models.ganimator.data import sequence_pyramid
-    from modi.models.ganimator.training import Trainer, blocks_of, checkpoint_path
-
     r = read_released(ckpt, data)
     run, args, sds = r["run"], r["args"], r["sds"]
     J = len(r["order"])
     perm = entity_perm(J, len(r["feet"]))
     # level lengths: the released pyramid of the clip (checked against z* and the number of generator files)
-    from modi.models.ganimator.data import pyramid_lengths
 
     raw = r["raw"]
     n_frames = len(range(0, raw.rotations.shape[0], released_stride(raw.fps)))

@@ -30,7 +30,15 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from modi.core.skeleton import Skeleton
+from modi.data.normalization import Normalizer
+from modi.data.representation import MotionRepresentation
 from modi.errors import CheckpointError, UserError
+from modi.interop.released_files import load_released_file, load_released_npy
+from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict
+from modi.models.modi.codec import MotionCodec
+from modi.models.modi.config import ModelConfig, MoDiConfig
+from modi.models.modi.networks import Discriminator, Generator, LevelSpec
 
 REQUIRED = ("g", "g_ema", "d", "args", "mean_joints", "std_joints")
 
@@ -42,8 +50,6 @@ class MaskViolation(CheckpointError):
 # --------------------------------------------------------------------------------------------- reading
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     """The released checkpoint's dict, checked for what conversion needs (as data: see ``released_files``)."""
-    from modi.interop.released_files import load_released_file
-
     st = load_released_file(path, "released MoDi checkpoint")
     missing = [k for k in REQUIRED if k not in st]
     if missing:
@@ -80,8 +86,6 @@ def n_convs_per_level(args: argparse.Namespace) -> int:
 
 def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> list[Any]:
     """Coarse -> fine ``LevelSpec``s read from the generator's masks and shapes."""
-    from modi.models.modi.networks import LevelSpec
-
     const = g_sd["input.input"]
     n_to = len({k.split(".")[1] for k in g_sd if k.startswith("to_xyzs.")})
     per = n_convs_per_level(args)
@@ -108,8 +112,6 @@ def released_levels(g_sd: dict[str, torch.Tensor], args: argparse.Namespace) -> 
 
 def model_config(args: argparse.Namespace, levels: Sequence[Any]) -> Any:
     """modi's ModelConfig for a released model (see the module docstring for the named differences)."""
-    from modi.models.modi.config import ModelConfig
-
     return ModelConfig(latent_dim=int(args.latent), n_mlp=int(args.n_mlp), lr_mlp=0.01,
                        channels=tuple(lv.channels for lv in levels), kernel_size=3,
                        n_inplace_convs=int(args.n_inplace_conv), scaler="conv", skeleton_aware=True,
@@ -213,8 +215,6 @@ def _linear(dst: dict, prefix: str, sd: dict, src: str) -> None:
 def convert_generator(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
                       out_channels: int, w_avg: torch.Tensor | None = None) -> Any:
     """A modi ``Generator`` holding the released generator's function (float32, like the released file)."""
-    from modi.models.modi.networks import Generator
-
     check_masks(g_sd, "g")
     g = Generator(model_config(args, levels), levels, out_channels)
     g.load_state_dict(generator_state(g_sd, args, g, w_avg))
@@ -255,8 +255,6 @@ def generator_state(g_sd: dict[str, torch.Tensor], args: argparse.Namespace, g: 
 def convert_discriminator(d_sd: dict[str, torch.Tensor], args: argparse.Namespace, levels: Sequence[Any],
                           in_channels: int) -> Any:
     """A modi ``Discriminator`` holding the released discriminator's function."""
-    from modi.models.modi.networks import Discriminator
-
     check_masks(d_sd, "d")
     d = Discriminator(model_config(args, levels), levels, in_channels)
     d.load_state_dict(discriminator_state(d_sd, args, d))
@@ -310,8 +308,6 @@ def edge_skeleton(parents: Sequence[int], offsets: np.ndarray, names: Sequence[s
     and a leaf bone ends in an End Site at ``offsets[i]``. Its forward kinematics is the released BVH's; it has
     the released BVH's joints except each multi-child joint, whose position its dummies share. Names follow
     their writer: the joint's own name when the bone is its only one, ``parent_child`` for a dummy."""
-    from modi.core.skeleton import Skeleton
-
     P = [int(p) for p in parents]
     off = np.asarray(offsets, dtype=np.float64).reshape(-1, 3)
     names = [str(n) for n in names]
@@ -337,10 +333,6 @@ def joint_of_bone_end(parents: Sequence[int], j: int) -> int:
 
 def released_codec(motion0: dict, st: dict, feet_entities: Sequence[int], fps: float) -> Any:
     """modi's ``MotionCodec`` for the released tensor layout: rotations, root motion, contacts, their statistics."""
-    from modi.models.modi.codec import MotionCodec
-    from modi.data.normalization import Normalizer
-    from modi.data.representation import MotionRepresentation
-
     args = st["args"]
     P = [int(p) for p in np.asarray(motion0["parents_with_root"]).tolist()]
     offsets = np.concatenate([np.asarray(motion0["offset_root"], dtype=np.float64)[None],
@@ -395,8 +387,6 @@ def _find_data(data: Path) -> Path:
 
 def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: float = 30.0) -> Path:
     """Write ``out/checkpoint.pt``, a modi run holding the released G, EMA G and D; returns its path."""
-    from modi.models.modi.checkpoint import atomic_torch_save
-
     state = convert_checkpoint(ckpt, data, fps)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -407,10 +397,6 @@ def import_checkpoint(ckpt: Path | str, data: Path | str, out: Path | str, fps: 
 
 def convert_checkpoint(ckpt: Path | str, data: Path | str, fps: float = 30.0) -> dict[str, Any]:
     """The modi checkpoint dict (format ``modi-checkpoint``) of a released MoDi checkpoint and its data."""
-    from modi.interop.released_files import load_released_npy
-    from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-    from modi.models.modi.config import MoDiConfig
-
     st = read_checkpoint(ckpt)
     motions = load_released_npy(_find_data(Path(data)))
     if motions.ndim != 1 or len(motions) == 0 or not isinstance(motions[0], dict) or \
@@ -435,11 +421,8 @@ def convert_checkpoint(ckpt: Path | str, data: Path | str, fps: float = 30.0) ->
     cfg.data.fps = float(fps)
     cfg.train.batch = int(getattr(args, "batch", cfg.train.batch))
     cfg.validate()
-    state = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": cfg.to_dict(),
-             "codec": codec.state_dict(), "skeleton": codec.skeleton.to_dict(),
-             "levels": [lv.to_dict() for lv in levels], "G": g.state_dict(), "G_ema": g_ema.state_dict(),
-             "D": d.state_dict(), "step": 0, "imported_from": {"kind": "modi-released", "path": str(ckpt)}}
-    return state
+    return checkpoint_dict(config=cfg, codec=codec, levels=levels, G=g, G_ema=g_ema, D=d, step=0,
+                           imported_from={"kind": "modi-released", "path": str(ckpt)})
 
 
 __all__ = ["convert_checkpoint", "released_style_index", "wplus_from_released", "inject_index_from_released", "import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",

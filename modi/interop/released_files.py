@@ -7,15 +7,21 @@ global in the file (a function, a module) is refused, so a file from someone els
 from __future__ import annotations
 
 import argparse
+import builtins
+import copyreg
+import io
 import os
+import pickle
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.dtypes as npd
+from numpy._core import multiarray
+from numpy.lib import format as npy_format
 
 from modi.errors import CheckpointError
 from modi.io.safe_load import load_data, numpy_data_globals
-
 
 ALLOWED_GLOBALS = [argparse.Namespace, *numpy_data_globals()]
 
@@ -51,10 +57,6 @@ def load_released_npy(path: str | os.PathLike) -> np.ndarray:
     """A released ``.npy`` of pickled per-clip dicts (their ``preprocess_edges.py`` output), read with a pickle
     loader that builds only numpy arrays, plain containers and :class:`ReleasedQuaternions`; any other class or
     function named in the file is refused instead of imported."""
-    import io
-    import pickle
-
-    from numpy.lib import format as npy_format
 
     p = Path(path)
 
@@ -62,19 +64,14 @@ def load_released_npy(path: str | os.PathLike) -> np.ndarray:
         def find_class(self, module: str, name: str) -> Any:
             if (module, name) in _NPY_GLOBALS:
                 if name == "_reconstruct":
-                    from numpy._core import multiarray
                     return multiarray._reconstruct
                 if name == "scalar":
-                    from numpy._core import multiarray
                     return multiarray.scalar
-                import builtins
-                import copyreg
                 return {"ndarray": np.ndarray, "dtype": np.dtype, "_reconstructor": copyreg._reconstructor,
                         "object": builtins.object}[name]
             if name == "Quaternions" and module.endswith("Quaternions"):
                 return ReleasedQuaternions
             if module.startswith("numpy") and name.endswith("DType"):
-                import numpy.dtypes as npd
                 if hasattr(npd, name):
                     return getattr(npd, name)
             raise pickle.UnpicklingError(f"refusing {module}.{name}: it is code, not data")

@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from modi.errors import BvhError
 from modi.core.skeleton import Skeleton
+from modi.errors import BvhError
+from modi.faults import atomic_write
 
 __all__ = ["Bvh", "load", "loads", "save", "dumps", "CHANNEL_NAMES"]
 
@@ -580,6 +581,4 @@ def dumps(bvh: Bvh, precision: int = 6) -> str:
 def save(bvh: Bvh, path: str | os.PathLike, precision: int = 6) -> None:
     """Write ``bvh`` to ``path`` (see :func:`dumps`) through :func:`modi.faults.atomic_write`, so a crash or a full
     disk never leaves half a file (a full disk is one ``OutputError`` line)."""
-    from modi.faults import atomic_write
-
     atomic_write(path, dumps(bvh, precision))

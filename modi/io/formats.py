@@ -17,7 +17,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
+import numpy as np
+import torch
+
 from modi.errors import UserError
+from modi.faults import atomic_write
+from modi.io import bvh as bvh_io
+from modi.io import gltf
 
 __all__ = ["FORMATS", "parse_formats", "add_format_options", "requested", "save_motion", "check_motion",
            "check_finite"]
@@ -99,8 +105,6 @@ def requested(formats: Sequence[str] | None = None, scale: float | None = None, 
 def check_finite(x, what: str = "the generated motions") -> None:
     """``UserError`` when a batch (tensor or list of tensors) holds NaN or inf: checked before any file is written,
     so a broken model leaves no partial output."""
-    import torch
-
     parts = x if isinstance(x, (list, tuple)) else [x]
     if not all(bool(torch.isfinite(torch.as_tensor(p)).all()) for p in parts):
         raise UserError(f"{what} contain NaN or inf (a diverged or corrupt model?); nothing written")
@@ -108,8 +112,6 @@ def check_finite(x, what: str = "the generated motions") -> None:
 
 def check_motion(bvh, path: str | os.PathLike) -> None:
     """``UserError`` for a motion that cannot be written (no frames, NaN or inf anywhere)."""
-    import numpy as np
-
     if bvh.n_frames < 1:
         raise UserError(f"{path}: the motion has no frames; nothing written")
     if not (np.isfinite(bvh.motion).all() and np.isfinite(bvh.offsets).all()
@@ -124,10 +126,6 @@ def save_motion(bvh, path: str | os.PathLike, *, contacts: Mapping[str, object] 
     ``contacts`` ({joint name: (T,) labels}) go into the glTF's extras. Every file is checked before any is written
     and goes through :func:`modi.faults.atomic_write`. Returns the first format's path (the BVH one by default).
     """
-    from modi.faults import atomic_write
-    from modi.io import bvh as bvh_io
-    from modi.io import gltf
-
     req = _CURRENT.get()
     formats = tuple(formats) if formats else req.formats
     scale = scale if scale is not None else req.scale

@@ -20,13 +20,27 @@ import json
 import math
 import os
 import struct
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+from urllib.parse import unquote
 
 import numpy as np
+import torch
 
+from modi.core.body import Body, UnitGuess, guess_unit
+from modi.core.kinematics import bvh_positions, forward_kinematics
+from modi.core.rotations import (
+    euler_to_quat,
+    matrix_to_quat,
+    quat_mul,
+    quat_normalize,
+    quat_slerp,
+    quat_to_matrix,
+    quat_unflip,
+)
 from modi.errors import UserError
+from modi.faults import atomic_write
 
 __all__ = ["UnitGuess", "guess_unit", "dumps", "save", "load_positions", "SUFFIXES"]
 
@@ -42,43 +56,8 @@ CONTACTS_KEY = "modi_contacts"
 # ---------------------------------------------------------------------------------------------- units
 
 
-@dataclass(frozen=True)
-class UnitGuess:
-    """What the file's lengths were taken to be: ``scale`` converts them to metres."""
-
-    scale: float
-    unit: str          # "metres", "centimetres", "inches", "millimetres" or "given"
-    height: float      # body size in file units (``Skeleton.height``, a chain length: what the guess uses)
-    standing: float | None = None  # standing height in file units (:class:`modi.core.body.Body`), what is printed
-
-    def describe(self) -> str:
-        shown = self.height if self.standing is None else self.standing
-        what = "body size" if self.standing is None else "standing height"
-        if self.unit == "given":
-            return f"lengths x {self.scale:g} to metres (--scale given; {what} {shown * self.scale:.3g} m)"
-        return (f"body size {self.height:.4g} file units looks like {self.unit}: lengths x {self.scale:g} to metres "
-                f"({what} {shown * self.scale:.3g} m; override with --scale)")
-
-
-_UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
-
-
-def guess_unit(height: float) -> UnitGuess:
-    """The unit that makes the body closest to 1.7 m (on a log scale) among m, in, cm and mm.
-
-    Boundaries in file units: < 10.7 metres, < 107 inches, < 537 centimetres, else millimetres. A crab of 0.45 and an
-    elephant of 2 stay metres; a Mixamo or Bandai human of 150-230 is centimetres. It is a guess, so it is printed.
-    """
-    h = float(height) if math.isfinite(height) and height > 0 else 1.0
-    unit, scale = min(_UNITS, key=lambda u: abs(math.log(h * u[1] / 1.7)))
-    return UnitGuess(scale, unit, h)
-
-
 def _body(bvh, up: str = "y"):
     """The :class:`modi.core.body.Body` of the clip (ground root, standing height), from its FK positions, Y up."""
-    from modi.core.body import Body
-    from modi.core.kinematics import bvh_positions
-
     p = np.asarray(bvh_positions(bvh), dtype=np.float64)
     if up == "z":
         p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
@@ -86,8 +65,6 @@ def _body(bvh, up: str = "y"):
 
 
 def _unit_for(bvh, scale: float | None, up: str = "y") -> UnitGuess:
-    from dataclasses import replace
-
     height = bvh.skeleton().height()
     try:
         standing = _body(bvh, up).standing_height
@@ -145,9 +122,6 @@ def _num(v) -> float | int:
 
 def _local_motion(bvh) -> tuple[np.ndarray, np.ndarray]:
     """(local quaternions (F, J, 4) w,x,y,z; local translations (F, J, 3)) in file units, float64."""
-    import torch
-
-    from modi.core.rotations import euler_to_quat, quat_unflip
 
     euler = torch.from_numpy(bvh.euler_degrees())
     orders = bvh.rotation_orders
@@ -219,15 +193,11 @@ def build(bvh, scale: float, contacts: Mapping[str, np.ndarray] | None = None, m
     The boxes follow :class:`modi.core.body.Body`: none on a static ground root or its link to the hips, none for
     End Sites (leaf joints get a small cube instead, so a head top is not drawn twice).
     ``up="z"``: the BVH is Z-up; its root is turned -90 degrees about X into glTF's Y-up."""
-    from modi.core.kinematics import forward_kinematics
-    import torch
-
     J, F = bvh.n_joints, bvh.n_frames
     if F < 1:
         raise UserError("the motion has no frames; nothing written")
     quats, trans = _local_motion(bvh)
     if up == "z":   # (x, y, z) -> (x, z, -y): the root's rotation and translation turn, everything below follows
-        from modi.core.rotations import quat_mul
 
         half = math.sqrt(0.5)
         turn = torch.tensor([half, -half, 0.0, 0.0], dtype=torch.float64)
@@ -370,8 +340,6 @@ def save(bvh, path: str | os.PathLike, scale: float | None = None, contacts: Map
          side_buffer: bool = False, mesh: bool = False, up: str = "y") -> UnitGuess:
     """Write ``bvh`` as glTF to ``path`` (``.glb``, or ``.gltf`` with its buffer embedded, or beside it as
     ``NAME.bin`` with ``side_buffer``); every file goes through :func:`modi.faults.atomic_write`."""
-    from modi.faults import atomic_write
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
@@ -426,8 +394,6 @@ def _parse(path: Path) -> tuple[dict, list[bytes]]:
         elif uri.startswith("data:"):
             buffers.append(base64.b64decode(uri.split(",", 1)[1]))
         else:
-            from urllib.parse import unquote
-
             side = path.parent / unquote(uri)
             if not side.is_file():
                 raise UserError(f"{path}: buffer file {side} is missing")
@@ -457,9 +423,6 @@ def _accessor(doc: dict, buffers: list[bytes], i: int) -> np.ndarray:
 
 def _sample(times: np.ndarray, keys: np.ndarray, values: np.ndarray, mode: str, rotation: bool) -> np.ndarray:
     """A sampler's value at each of ``times`` (LINEAR: lerp/slerp, STEP, CUBICSPLINE: Hermite), clamped at the ends."""
-    import torch
-
-    from modi.core.rotations import quat_normalize, quat_slerp
 
     n = len(keys)
     if mode == "CUBICSPLINE":
@@ -495,9 +458,7 @@ def _node_static(node: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r = m[:3, :3] / s
         if np.linalg.det(r) < 0:
             s[0], r[:, 0] = -s[0], -r[:, 0]
-        import torch
 
-        from modi.core.rotations import matrix_to_quat
 
         q = matrix_to_quat(torch.from_numpy(r)).numpy()
         return t, q[[1, 2, 3, 0]], s
@@ -515,9 +476,6 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
     and turned into positions by :func:`modi.core.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
     the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
     """
-    import torch
-
-    from modi.core.kinematics import forward_kinematics
 
     path = Path(path)
     if not path.is_file():
@@ -588,7 +546,6 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
         if np.ptp(s) > 1e-6 * abs(s).max():
             raise UserError(f"{path}: node {nodes[p].get('name', p)} scales unevenly above the skeleton")
         m = np.eye(4)
-        from modi.core.rotations import quat_to_matrix
 
         m[:3, :3] = quat_to_matrix(torch.from_numpy(r[[3, 0, 1, 2]])).numpy() * s[0]
         m[:3, 3] = t

@@ -15,6 +15,11 @@ import warnings
 from pathlib import Path
 from typing import Any, Iterable
 
+import numpy as np
+import torch
+from numpy._core import multiarray
+from torch.torch_version import TorchVersion
+
 from modi.errors import CheckpointError
 
 _GLOBAL = re.compile(r"GLOBAL ([\w.]+)")
@@ -40,9 +45,6 @@ class UnsafeFileError(CheckpointError):
 def numpy_data_globals() -> list:
     """numpy's array and scalar reconstruction (numeric dtypes only; object arrays stay refused), under numpy 2's
     names and the ``numpy.core`` names files written with numpy 1 carry: data, safe to allow."""
-    import numpy as np
-    from numpy._core import multiarray
-
     dtypes = [type(np.dtype(t)) for t in ("float64", "float32", "float16", "int64", "int32", "int16", "int8",
                                           "uint8", "bool")]
     return [multiarray._reconstruct, np.ndarray, np.dtype, *dtypes, multiarray.scalar,
@@ -53,8 +55,6 @@ def numpy_data_globals() -> list:
 def earlier_modi_globals() -> list:
     """Data classes that files written by earlier modi drafts may hold: ``TorchVersion`` (a ``str`` subclass)
     and numpy arrays and scalars; every modi reader allows them."""
-    from torch.torch_version import TorchVersion
-
     return [TorchVersion, *numpy_data_globals()]
 
 
@@ -87,8 +87,6 @@ def load_data(path: str | os.PathLike, what: str = "modi file", allowed: Iterabl
     """``torch.load`` of ``path`` as data only (on the CPU), with the classes in ``allowed`` (as for
     ``torch.serialization.safe_globals``) also accepted. Raises one ``CheckpointError`` line: missing file,
     :class:`UnreadableFileError`, or :class:`UnsafeFileError` (``hint`` appended: what to do instead)."""
-    import torch
-
     p = Path(path)
     if not p.is_file():
         raise CheckpointError(f"{p}: no such {what} file" if not p.is_dir() else f"{p}: is a folder, not a {what}")

@@ -16,7 +16,15 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from modi.core.body import Body, metres_scale, side_of
+from modi.core.contacts import feet_of, foot_joints_by_name, preview_contacts  # noqa: F401  (foot_joints_by_name: public here too)
+from modi.core.kinematics import bvh_positions
 from modi.errors import UserError
+from modi.faults import atomic_output
+from modi.io import bvh as bvh_io
+from modi.io.gltf import guess_unit
+from modi.viz.pages import view_pages_enabled
+from modi.viz.viewer import write_beside
 
 _BG, _GRID, _GRID_MAJOR, _SHADOW, _TEXT, _CONTACT, _BORDER = range(7)
 _BASE_COLORS = [(247, 247, 244), (214, 214, 210), (185, 185, 180), (208, 208, 204), (40, 40, 40), (225, 40, 40),
@@ -27,7 +35,6 @@ _CHAR_COLORS = [(c, _LEFT_RGB, _RIGHT_RGB) for c in (
     (40, 60, 110), (35, 95, 55), (95, 55, 35), (80, 40, 100), (20, 90, 100), (100, 90, 30), (90, 30, 50),
     (140, 30, 90))]  # no grey: a figure never reads as text
 _FOV = math.radians(40.0)
-_FOOT_WORDS = ("foot", "toe", "ankle", "heel")
 
 
 # Twins: same colour, other palette index. Toggling a corner pixel to its twin keeps a frame that repeats the
@@ -52,22 +59,13 @@ def _char_index(i: int, part: int) -> int:
 
 def _side_of(name: str) -> int:
     """0 centre, 1 left, 2 right (:func:`modi.core.body.side_of`, shared with the viewer and the glTF export)."""
-    from modi.core.body import side_of
-
     return side_of(name)
-
-
-def foot_joints_by_name(names: Sequence[str]) -> list[int]:
-    """Joints whose names say foot/toe/ankle/heel (what contact highlighting marks when no list is given)."""
-    return [j for j, n in enumerate(names) if any(w in n.lower() for w in _FOOT_WORDS)]
 
 
 def foot_contacts(positions: np.ndarray, feet: Sequence[int], fps: float, up: str = "y",
                   parents: Sequence[int] | None = None, names: Sequence[str] | None = None) -> np.ndarray:
     """(T, J) bool contact labels by the one rule every preview uses (:func:`modi.core.contacts.preview_contacts`:
     low above the floor and slow, in standing heights, short runs removed), for ``up`` = "y" or "z" data."""
-    from modi.core.contacts import preview_contacts
-
     p = _to_y_up(np.asarray(positions, dtype=np.float64), up)
     if p.ndim != 3 or p.shape[-1] != 3:
         raise ValueError(f"positions must be (T, J, 3), got {p.shape}")
@@ -283,9 +281,7 @@ def render_frames(positions, parents: Sequence[int] | Sequence[Sequence[int]], f
     if w < 16 or h < 16:
         raise ValueError(f"size must be at least 16x16 pixels, got {w}x{h}")
 
-    from modi.core.body import Body
 
-    from modi.core.body import metres_scale
 
     bodies = [Body.of(p, par[i], nm[i]) for i, p in enumerate(pos)]   # ground root, sides, fingers, height
     # every motion in metres (a crab in m beside a human in cm): the scene layout compares true sizes
@@ -438,8 +434,6 @@ def save_frames(frames: list[Image.Image], out_path: str | Path, fps: float = 30
     if not frames:
         raise ValueError("no frames to save")
     if out.suffix.lower() == ".gif":
-        from modi.faults import atomic_output
-
         frames = _distinct(frames)
         with atomic_output(out, "wb") as fh:
             frames[0].save(fh, format="GIF", save_all=True, append_images=frames[1:],
@@ -484,10 +478,8 @@ def render_positions(positions, parents: Sequence[int] | Sequence[Sequence[int]]
     frames = render_frames(positions, parents, fps=fps, size=size, titles=titles, layout=layout, contacts=contacts,
                            names=names, up=up, azimuth=azimuth, elevation=elevation)
     path = save_frames(frames, out, fps)
-    from modi.viz import view_pages_enabled
 
     if view and view_pages_enabled():  # ``--no-view`` switches it off for a whole command
-        from modi.viz.viewer import write_beside
 
         pos = [_to_y_up(p, up) for p in _as_list(positions)]
         write_beside(out, pos, parents, names=names, fps=fps, contacts=contacts, titles=titles, layout=layout,
@@ -511,10 +503,6 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
     """Preview one or more BVH files (in real time at ``fps``), each scaled to metres (``scale``, or its unit
     guessed from the body size as :func:`modi.io.gltf.guess_unit` does), so a crab in metres stands beside a
     human in centimetres at their true sizes. Missing files raise ``UserError``."""
-    from modi.io.gltf import guess_unit
-
-    from modi.io import bvh as bvh_io
-    from modi.core.kinematics import bvh_positions
 
     if isinstance(paths, (str, Path)):
         paths = [paths]
@@ -536,9 +524,8 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
         xyz = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
         keep = _resample_frames(len(xyz), b.fps, fps, max_frames)
         if contacts:   # labelled on the clip's own frames, as the viewer page and the glTF export do
-            from modi.core.contacts import preview_contacts
 
-            con.append(preview_contacts(xyz, _feet_of(b), b.fps, b.parents, b.names)[keep])
+            con.append(preview_contacts(xyz, feet_of(b), b.fps, b.parents, b.names)[keep])
         xyz = xyz[keep] * (guess_unit(b.skeleton().height()).scale if scale is None else float(scale))
         pos.append(xyz)
         parents.append(list(b.parents))
@@ -546,16 +533,3 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
     return render_positions(pos, parents, out, fps=fps, size=size, titles=titles or [p.stem for p in paths],
                             layout=layout, contacts=con if contacts else None, names=names, up="y",
                             azimuth=azimuth, elevation=elevation)
-
-
-def _feet_of(b) -> list[int]:
-    """Foot joints: the skeleton's own detection when available, else by name."""
-    sk = b.skeleton()
-    if hasattr(sk, "detect_feet"):
-        try:
-            feet = list(sk.detect_feet(per_side=2))
-        except (ValueError, KeyError):   # detection is a convenience for previews: fall back to names
-            feet = []
-        if feet:
-            return feet
-    return foot_joints_by_name(b.names)

@@ -20,7 +20,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from modi.errors import UserError
+from modi.core.body import Body, side_of
+from modi.core.contacts import feet_of, preview_contacts
+from modi.core.kinematics import bvh_positions
+from modi.errors import BvhError, UserError
+from modi.faults import atomic_write
+from modi.io import bvh as bvh_io
+from modi.io.gltf import guess_unit, load_positions
 
 INPUT_SUFFIXES = (".bvh", ".glb", ".gltf")
 _LEFT, _RIGHT = "#1e6edc", "#eb781e"  # one meaning everywhere (page legend, GIF): left blue, right orange
@@ -72,8 +78,6 @@ class ViewMotion:
 def guess_scale(height: float) -> tuple[float, str]:
     """(metres per file unit, unit name) from a body size in file units: BVH has no unit field. The same guess as
     the glTF export (:func:`modi.io.gltf.guess_unit`), so a BVH and its .glb show at the same size."""
-    from modi.io.gltf import guess_unit
-
     g = guess_unit(height)
     return g.scale, g.unit
 
@@ -87,18 +91,12 @@ def _to_y_up(p: np.ndarray, up: str) -> np.ndarray:
 
 
 def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> ViewMotion:
-    from modi.core.contacts import preview_contacts
-    from modi.io import bvh as bvh_io
-    from modi.core.kinematics import bvh_positions
-    from modi.viz.render import _feet_of
-
     b = bvh_io.load(path)
     pos = _to_y_up(np.asarray(bvh_positions(b), dtype=np.float64), up)
     height = b.skeleton().height()
     con = None
     if contacts:  # the previews' one rule (modi.core.contacts.PREVIEW_RULE), as the GIF and the glTF export show
-        con = preview_contacts(pos, _feet_of(b), b.fps, b.parents, b.names)
-    from modi.core.body import Body
+        con = preview_contacts(pos, feet_of(b), b.fps, b.parents, b.names)
 
     standing = Body.of(pos, b.parents, b.names).standing_height
     if scale is None:
@@ -111,10 +109,6 @@ def _bvh_motion(path: Path, scale: float | None, up: str, contacts: bool) -> Vie
 
 
 def _gltf_motion(path: Path, scale: float | None, contacts: bool) -> ViewMotion:
-    try:
-        from modi.io.gltf import load_positions
-    except ImportError:
-        raise UserError(f"{path}: reading glTF needs modi.io.gltf, which this install lacks") from None
     names, parents, pos, fps, con = load_positions(path)
     pos = np.asarray(pos, dtype=np.float64) * (1.0 if scale is None else scale)  # glTF is metres, Y up
     mask = None
@@ -130,8 +124,6 @@ def load_motion(path: str | os.PathLike, scale: float | None = None, up: str = "
                 contacts: bool = True) -> ViewMotion:
     """A .bvh (file units guessed, see :func:`guess_scale`) or .glb/.gltf file as a :class:`ViewMotion`.
     Any problem with the file is one :class:`UserError` naming it."""
-    from modi.errors import BvhError
-
     p = Path(path)
     if p.is_dir():
         raise UserError(f"{p}: is a folder, expected a .bvh, .glb or .gltf file")
@@ -184,7 +176,6 @@ def as_view_motions(items: Sequence[Any], **kwargs) -> list[ViewMotion]:
 
 # ------------------------------------------------------------------------------------------------ the page
 def _side_codes(names: Sequence[str]) -> list[int]:
-    from modi.core.body import side_of
     return [side_of(n) for n in names]
 
 
@@ -201,7 +192,6 @@ def _pack(m: ViewMotion, index: int) -> dict:
     span = float((p.reshape(-1, 3).max(0) - lo).max())
     step = max(span / 65535.0, 1e-9)
     qv = np.clip(np.round((p - lo) / step) - 32768, -32768, 32767).astype("<i2")
-    from modi.core.body import Body
 
     body = Body.of(p, m.parents, m.names)  # the same body as the GIF and the glTF: a floor root is no bone
     hide = [int(par in body.ground) for par in m.parents]
@@ -269,8 +259,6 @@ def page_html(motions: Sequence[ViewMotion], title: str = "modi view", layout: s
 def write_view(path: str | os.PathLike, motions: Sequence[ViewMotion], title: str | None = None,
                layout: str = "grid") -> Path:
     """Write the viewer page for ``motions`` to ``path`` (atomically)."""
-    from modi.faults import atomic_write
-
     path = Path(path)
     page = page_html(motions, title=title or path.stem, layout=layout)
     atomic_write(path, page)
@@ -317,8 +305,6 @@ class Viewer:
                 'border:1px solid #ddd" sandbox="allow-scripts"></iframe>')
 
     def save(self, path: str | os.PathLike) -> Path:
-        from modi.faults import atomic_write
-
         atomic_write(path, self.html)
         return Path(path)
 
@@ -337,7 +323,7 @@ def show(*items: Any, layout: str = "grid", height: int = 480, **load_kwargs) ->
         items = tuple(items[0])
     viewer = Viewer(as_view_motions(items, **load_kwargs), layout=layout, height=height)
     try:
-        from IPython import get_ipython
+        from IPython import get_ipython  # optional: only inside a notebook
         from IPython.display import HTML, display
     except ImportError:
         return viewer

@@ -81,14 +81,13 @@ def run_gltf(args: argparse.Namespace) -> int:
     if not args.no_contacts:  # the same labels as the GIF and the viewer page (modi.core.contacts.preview_contacts)
         import numpy as np
 
-        from modi.core.contacts import preview_contacts
+        from modi.core.contacts import feet_of, preview_contacts
         from modi.core.kinematics import bvh_positions
-        from modi.viz.render import _feet_of
 
         p = np.asarray(bvh_positions(b), dtype=np.float64)
         if args.up == "z":
             p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
-        feet = _feet_of(b)
+        feet = feet_of(b)
         lab = preview_contacts(p, feet, b.fps, b.parents, b.names)
         contacts = {b.names[f]: lab[:, f] for f in feet}
     unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer, contacts=contacts, mesh=args.mesh,
@@ -100,8 +99,8 @@ def run_gltf(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from modi.io import bvh
     from modi.core.kinematics import bvh_positions
+    from modi.io import bvh
 
     if os.path.isdir(args.input):
         raise UserError(f"{args.input}: is a folder, expected a .bvh file")

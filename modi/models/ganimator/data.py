@@ -27,9 +27,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from modi.errors import UserError
 from modi.core.joint_reduction import reduce_joints  # noqa: F401  (re-exported: GANimator's joint reduction)
+from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import euler_to_quat, quat_to_6d, sixd_to_quat
 from modi.core.skeleton import Skeleton, strip_namespace  # noqa: F401  (strip_namespace: re-exported)
+from modi.data.motion import Motion, fold_dummy_root
+from modi.errors import UserError
+from modi.io import bvh as bvh_io
+from modi.models.ganimator.config import GanimatorConfig
 
 K = 6  # feature width of every entity (6D rotation)
 
@@ -90,8 +95,6 @@ def motion_to_features(rotations: Tensor, root_positions: Tensor, contacts: Tens
                        sixd: str = "rows") -> Tensor:
     """``rotations (T,J,4)`` unit quats, ``root_positions (T,3)``, ``contacts (T,C)`` -> ``(6, J+1+C, T)``;
     ``sixd``: 6D from the first two ``"rows"`` or ``"columns"`` of each rotation matrix."""
-    from modi.core.rotations import quat_to_6d
-
     T, J = rotations.shape[:2]
     rot6 = quat_to_6d(rotations.to(torch.float32), layout=sixd)  # (T, J, 6)
     root = root_positions.to(torch.float32)
@@ -125,8 +128,6 @@ def features_to_motion(features: Tensor, n_joints: int, root_start: Tensor | Non
                        ) -> tuple[Tensor, Tensor, Tensor]:
     """``(..., 6, E, T)`` -> local quats ``(..., T, J, 4)``, root positions ``(..., T, 3)``, contact logits
     ``(..., T, C)`` (raw label channel). ``sixd``: the features' 6D layout (``Sequence.sixd``)."""
-    from modi.core.rotations import sixd_to_quat
-
     rot6 = features[..., :, :n_joints, :]  # (..., 6, J, T)
     rot6 = rot6.movedim(-3, -1).movedim(-3, -2)  # (..., T, J, 6)
     quats = sixd_to_quat(rot6, layout=sixd)
@@ -238,10 +239,6 @@ def read_clip(path: str | Path) -> RawClip:
     """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET; other
     joints' position channels are not used, as in the authors' loader, except Bandai's pattern, see
     :func:`modi.data.motion.fold_dummy_root`)."""
-    from modi.io import bvh as bvh_io
-    from modi.data.motion import fold_dummy_root
-    from modi.core.rotations import euler_to_quat
-
     p = Path(path)
     if not p.is_file():
         raise UserError(f"BVH file not found: {p}")
@@ -281,7 +278,6 @@ def subset_clip(clip: RawClip, keep: list[int]) -> RawClip:
                       s.offsets[keep], {remap[k]: v for k, v in s.end_sites.items() if k in remap},
                       [s.rotation_orders[j] for j in keep] if s.rotation_orders else None)
         return RawClip(sk, clip.rotations[:, keep], clip.root_positions, clip.fps)
-    from modi.data.motion import Motion
 
     m = Motion(s, clip.rotations, clip.root_positions, clip.fps).subset(keep)
     return RawClip(m.skeleton, m.rotations, m.root_positions, m.fps)
@@ -316,9 +312,6 @@ def load_sequence(path: str | Path, cfg=None, *, keep_joints: Seq[str] | None = 
 def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq[str] | None = None,
                        feet: Seq[str] | None = None, like: Sequence | None = None, where: str = "") -> Sequence:
     """:func:`load_sequence` for a clip already in memory (rotations + root track)."""
-    from modi.core.kinematics import forward_kinematics
-
-    from modi.models.ganimator.config import GanimatorConfig
 
     cfg = cfg or GanimatorConfig()
     path = where or name

@@ -32,8 +32,10 @@ import torch
 from torch import Tensor
 
 from modi.errors import UserError
+from modi.evaluation.single import single_sequence_metrics
 from modi.models.ganimator.data import pyramid_lengths
 from modi.models.ganimator.networks import GanimatorModel, make_noise, synthesize
+from modi.models.ganimator.training import load_model
 
 METRICS = ("coverage", "global_diversity", "local_diversity")
 N_SAMPLES = 200
@@ -84,8 +86,6 @@ def _mean(values: Sequence[float]) -> float:
 def score_samples(features: Sequence[Tensor], sources: Sequence[Tensor], names: Sequence[str]) -> dict[str, Any]:
     """Per-sample scores of ``features`` (each ``(T, F)``) against every source ``(N, F)``:
     ``{name: {"coverage": [...], "global_diversity": [...], "local_diversity": [...]}}``."""
-    from modi.evaluation.single import single_sequence_metrics
-
     out: dict[str, Any] = {}
     for name, src in zip(names, sources):
         try:
@@ -118,8 +118,6 @@ def summarise(scores: dict[str, dict[str, list[float]]], n_samples: int, n_frame
 def evaluate_paper(run: str | Path | GanimatorModel, n: int = N_SAMPLES, n_frames: int | None = None,
                    seed: int = 0, batch: int = 8, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """The released protocol on a run directory (or a loaded model); see the module docstring."""
-    from modi.models.ganimator.training import load_model
-
     if n < 1:
         raise UserError("--n must be at least 1")
     model = run if isinstance(run, GanimatorModel) else load_model(run)

@@ -17,9 +17,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.core.ik import fix_foot_contact
+from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import quat_to_euler
 from modi.errors import UserError
-from modi.models.ganimator.data import K, Sequence as Clip, features_to_motion, load_sequence, resample
+from modi.evaluation.single import rotation_features, single_sequence_metrics
+from modi.io.bvh import Bvh
+from modi.io.formats import check_finite, save_motion
+from modi.models.ganimator.data import K, features_to_motion, load_sequence, resample
+from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, make_noise, synthesize
+from modi.models.ganimator.training import load_model, run_summary
+from modi.viz.render import render_positions
 
 # ------------------------------------------------------------------------------------------- decoding / output
 
@@ -35,8 +44,6 @@ def decode(model: GanimatorModel, feats: Tensor, base: int = 0, root_start: Tens
 
 
 def positions_of(seq: Clip, quats: Tensor, root: Tensor) -> Tensor:
-    from modi.core.kinematics import forward_kinematics
-
     pos, _ = forward_kinematics(quats.to(torch.float64), torch.as_tensor(seq.skeleton.offsets), seq.skeleton.parents,
                                 root.to(torch.float64))
     return pos
@@ -46,7 +53,6 @@ def fix_contacts(seq: Clip, quats: Tensor, root: Tensor, contacts: Tensor) -> tu
     """IK clean-up: pin each foot while its predicted label is on (``modi.core.ik.fix_foot_contact``)."""
     if not seq.feet:
         return quats, root
-    from modi.core.ik import fix_foot_contact
 
     q, r = fix_foot_contact(quats.to(torch.float64), root.to(torch.float64), seq.skeleton, list(seq.feet),
                             contacts > 0.5, tol=1e-5 * seq.size)
@@ -55,9 +61,6 @@ def fix_contacts(seq: Clip, quats: Tensor, root: Tensor, contacts: Tensor) -> tu
 
 def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
     """A ``modi.io.bvh.Bvh`` in the *source file's* units (root: 6 channels, other joints: 3 rotation channels)."""
-    from modi.io.bvh import Bvh
-    from modi.core.rotations import quat_to_euler
-
     sk = seq.skeleton
     inv = 1.0 / seq.scale
     orders = list(sk.rotation_orders or ["ZYX"] * sk.n_joints)
@@ -85,8 +88,6 @@ def to_bvh(seq: Clip, quats: Tensor, root: Tensor, fps: float | None = None):
 def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path, contacts: Tensor | None = None) -> Path:
     """Write the motion at ``path`` in the requested ``--format`` formats (``modi.io.formats``); ``contacts`` (T, F) in
     ``seq.feet`` order go into glTF extras. Returns the first format's path."""
-    from modi.io.formats import save_motion
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     labels = None
@@ -101,16 +102,12 @@ def write_bvh(seq: Clip, quats: Tensor, root: Tensor, path: str | Path, contacts
 
 def rotation_frames(quats: Tensor) -> Tensor:
     """Per-frame pose vectors for the single-sequence metrics (6D of every local rotation, as the authors)."""
-    from modi.evaluation.single import rotation_features
-
     return rotation_features(quats.to(torch.float64), representation="6d")
 
 
 def metrics_against_sources(model: GanimatorModel, samples: Seq[Tensor]) -> dict:
     """Coverage (30-frame windows, threshold 2.0), global diversity (PNN, segments >= 30) and local diversity
     (15-frame windows) of decoded samples against each training clip."""
-    from modi.evaluation.single import single_sequence_metrics
-
     gens = [rotation_frames(decode(model, s)[0]) for s in samples]
     out = {}
     for seq in model.seqs:
@@ -122,8 +119,6 @@ def metrics_against_sources(model: GanimatorModel, samples: Seq[Tensor]) -> dict
 
 def evaluate_run(run: str | Path, n: int = 10, n_frames: int | None = None, seed: int = 0) -> dict:
     """Sample ``n`` motions and report the metrics per training clip, plus the run's schedule and timings."""
-    from modi.models.ganimator.training import load_model, run_summary
-
     model = load_model(run)
     T = n_frames or model.seqs[0].n_frames
     gen = torch.Generator().manual_seed(seed)
@@ -353,16 +348,12 @@ class TrajectoryStream:
 
 
 def _render(seqs_and_positions, parents, path: Path, fps: float, names, contacts=None, layout="grid") -> None:
-    from modi.viz.render import render_positions
-
     render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout,
                      view="view.html")
 
 
 def generate_command(args) -> dict:
     """Implements ``modi ganimator generate`` (see ``modi.cli.commands.ganimator``)."""
-    from modi.models.ganimator.training import load_model
-
     model = load_model(args.run)
     seq = model.seqs[0]
     out = Path(args.out)
@@ -408,7 +399,6 @@ def generate_command(args) -> dict:
         for i in range(args.n):
             samples.append(model.sample(T, 1, fine_noise=args.fine_noise, generator=gen)[0])
         extra["mode"] = "random"
-    from modi.io.formats import check_finite
 
     check_finite(samples)
     spacing = args.crowd_spacing if args.crowd_spacing is not None else 1.5 * seq.size

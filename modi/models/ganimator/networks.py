@@ -19,7 +19,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from modi.models.ganimator.data import K, resample
+from modi.core.topology import neighbors as tree_neighbors
+from modi.models.ganimator.data import K, real_pyramid, resample
+from modi_ext.layers import SkeletalConv
 
 
 def ganimator_neighbors(parents: Sequence[int], feet: Sequence[int], distance: int = 2) -> list[list[int]]:
@@ -29,8 +31,6 @@ def ganimator_neighbors(parents: Sequence[int], feet: Sequence[int], distance: i
     and the root-motion entity; foot ``f`` also sees its contacts. Root motion: the root's neighbours, every
     contact and itself; those all see the root motion in turn.
     """
-    from modi.core.topology import neighbors as tree_neighbors
-
     J = len(parents)
     rm = J
     base = [set(n) for n in tree_neighbors(list(parents), distance, siblings=False)]
@@ -93,7 +93,6 @@ class SkeletalStack(nn.Module):
     def __init__(self, channels: Sequence[int], neighbors: list[list[int]], kernel_size: int, padding_mode: str,
                  last_activation: bool = False, bias_init: str = "uniform") -> None:
         super().__init__()
-        from modi_ext.layers import SkeletalConv
 
         if bias_init not in ("uniform", "zeros"):
             raise ValueError(f"bias_init must be 'uniform' or 'zeros', got {bias_init!r}")
@@ -318,8 +317,6 @@ class GanimatorModel(nn.Module):
         """The fixed-noise reconstruction of training clip ``m`` at full rate ``(1, 6, E, T)``."""
         conds = None
         if self.cond_entities:
-            from modi.models.ganimator.data import real_pyramid
-
             reals = real_pyramid(self.seqs[m], self.lengths[m])
             conds = [r.unsqueeze(0)[:, :, self.cond_entities].to(self.device) for r in reals]
         outs = synthesize(self.gens, self.rates[m], self.lengths[m], self.rec_noises(m), self.n_entities,

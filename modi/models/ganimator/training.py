@@ -23,14 +23,19 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 from torch import Tensor, nn
+from tqdm import tqdm
 
-import modi
 from modi import faults
-from modi.errors import CheckpointError, UserError
-from modi.models.ganimator.config import GanimatorConfig
-from modi.models.ganimator.data import K, Sequence as Clip, check_compatible, real_pyramid, resample, sequence_pyramid
-from modi.models.ganimator.networks import GanimatorModel, synthesize
+from modi._version import __version__ as modi_version
+from modi.core.rotations import sixd_to_quat
 from modi.core.skeleton import Skeleton
+from modi.errors import CheckpointError, UserError
+from modi.io.safe_load import UnreadableFileError, earlier_modi_globals, load_data
+from modi.models.ganimator.config import GanimatorConfig
+from modi.models.ganimator.data import K, check_compatible, real_pyramid, resample, sequence_pyramid
+from modi.models.ganimator.data import Sequence as Clip
+from modi.models.ganimator.networks import GanimatorModel, synthesize
+from modi_ext.layers import ForwardKinematics
 
 FORMAT = "modi.models.ganimator/1"
 CHECKPOINT_NAME = "ganimator.ckpt"
@@ -118,8 +123,6 @@ def read_checkpoint(run: str | Path) -> dict:
     """The checkpoint of a run folder (or ``.ckpt`` file), read as data only (``modi.io.safe_load``): every
     ``modi.models.ganimator/1`` file modi has written holds plain containers and tensors; one that names any other code is
     refused, unrun, with one line."""
-    from modi.io.safe_load import UnreadableFileError, earlier_modi_globals, load_data
-
     path = checkpoint_path(run)
     if not path.is_file():
         if path.parent.is_dir() and (path.parent / "gen000.pt").is_file():
@@ -208,7 +211,6 @@ class ContactConsistency(nn.Module):
 
     def __init__(self, skeleton: Skeleton, feet: Sequence[int], sixd: str = "rows") -> None:
         super().__init__()
-        from modi_ext.layers import ForwardKinematics
 
         self.fk = ForwardKinematics(skeleton.parents, torch.as_tensor(skeleton.offsets, dtype=torch.float32))
         self.feet = list(feet)
@@ -218,7 +220,6 @@ class ContactConsistency(nn.Module):
     def forward(self, x: Tensor, rate: float = 1.0) -> Tensor:
         if not self.feet:
             return x.new_zeros(())
-        from modi.core.rotations import sixd_to_quat
 
         J = self.J
         # (B, T, J, 6), contiguous: the Gram-Schmidt norms over a strided last axis ran ~10x slower than this copy
@@ -295,7 +296,7 @@ class Trainer:
             "rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "cond_source": model_payload(self.cond_source) if self.cond_source is not None else None,
-            "modi_version": modi.__version__,
+            "modi_version": modi_version,
         }
 
     def save(self) -> None:
@@ -312,6 +313,15 @@ class Trainer:
                 else "nothing was saved")
         raise NonFiniteLossError(f"{what}: GANimator training stopped; {kept}. Try another --seed, or check the "
                                  "BVH for NaN or huge values")
+
+    def _generator_step(self, loss: Tensor, levels: Sequence[int], what: str) -> None:
+        """One optimiser step of the generators of ``levels`` on ``loss`` (after the finiteness check)."""
+        self._check_finite(loss, f"{what}, levels {levels[0]}-{levels[-1]}")
+        for l in levels:
+            self.opt_g[l].zero_grad(set_to_none=True)
+        loss.backward()
+        for l in levels:
+            self.opt_g[l].step()
 
     def _check_finite(self, loss: Tensor, name: str) -> None:
         """Before a backward pass: a NaN/inf loss stops the run (see ``NonFiniteLossError``)."""
@@ -430,11 +440,9 @@ class Trainer:
 
     def _run_blocks(self, progress: bool, log: Callable[[str], None] | None, max_seconds: float | None,
                     stop: Any) -> GanimatorModel:
-        from tqdm import tqdm
-
         cfg, model = self.cfg, self.model
         try:
-            from torch.utils.tensorboard import SummaryWriter
+            from torch.utils.tensorboard import SummaryWriter  # lazy: tensorboard costs ~1 s to import, only here
 
             with faults.output_errors(self.run_dir / "tb"):
                 self.writer = SummaryWriter(str(self.run_dir / "tb"))
@@ -570,7 +578,6 @@ class Trainer:
 
     def _iteration(self, levels: list[int], M: int, n_sub: int, cached_prev: dict) -> dict[str, float]:
         cfg, model = self.cfg, self.model
-        lo = levels[0]
         out: dict[str, float] = {}
         for sub in range(n_sub):
             kind = "D" if sub < cfg.d_steps else ("G" if sub < cfg.d_steps + cfg.g_steps else "R")
@@ -614,12 +621,7 @@ class Trainer:
                         loss = loss + adv + cfg.lambda_contact * c
                         g_adv += float(adv.detach())
                         con += float(c.detach())
-                    self._check_finite(loss, f"generator adversarial + contact, levels {levels[0]}-{levels[-1]}")
-                    for l in levels:
-                        self.opt_g[l].zero_grad(set_to_none=True)
-                    loss.backward()
-                    for l in levels:
-                        self.opt_g[l].step()
+                    self._generator_step(loss, levels, "generator adversarial + contact")
                     out["G"], out["con"] = g_adv / len(levels), con / len(levels)
                 else:
                     recs = self._forward(m, levels, "rec", True, cached_prev)
@@ -630,12 +632,7 @@ class Trainer:
                         loss = loss + cfg.lambda_rec * r
                         rec_total += float(r.detach())
                         out[f"rec{l}"] = float(r.detach())
-                    self._check_finite(loss, f"reconstruction, levels {levels[0]}-{levels[-1]}")
-                    for l in levels:
-                        self.opt_g[l].zero_grad(set_to_none=True)
-                    loss.backward()
-                    for l in levels:
-                        self.opt_g[l].step()
+                    self._generator_step(loss, levels, "reconstruction")
                     out["rec"] = rec_total / len(levels)
         return out
 

@@ -9,7 +9,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from modi.core.kinematics import forward_kinematics
+from modi.core.skeleton import _TOE
+from modi.data.motion import Motion
+from modi.data.normalization import Normalizer
+from modi.data.representation import MotionRepresentation
 from modi.errors import UserError
+from modi_ext.layers import ForwardKinematics
 
 
 class MotionCodec:
@@ -42,8 +48,6 @@ class MotionCodec:
 
     def _fk_module(self, device: torch.device) -> nn.Module:
         if self._fk is None:
-            from modi_ext.layers import ForwardKinematics
-
             self._fk = ForwardKinematics(list(self.skeleton.parents),
                                          torch.as_tensor(self.skeleton.offsets, dtype=torch.float32))
         return self._fk.to(device)
@@ -68,8 +72,6 @@ class MotionCodec:
         """Per contact label, the ankle joint the released MoDi's contact loss measures: the parent of a toe/ball
         label joint (Bandai ``Toes_L`` -> ``Foot_L``), the label joint itself otherwise (already an ankle, or a
         non-biped leg tip)."""
-        from modi.core.skeleton import _TOE
-
         sk = self.skeleton
         out = []
         for f in self.feet:
@@ -91,7 +93,6 @@ class MotionCodec:
         if self.positions_mode:
             raise UserError("this model generates joint positions (the 'positions' ablation), not rotations; "
                             "use sample_positions() instead of BVH output")
-        from modi.data.motion import Motion
 
         d = self.decode(x.detach().float())
         return [Motion(self.skeleton, d["rotations"][i].cpu(), d["root"][i].cpu(), self.fps)
@@ -101,7 +102,6 @@ class MotionCodec:
     def positions_from_raw_quat(self, raw: Tensor, quat_rep: Any) -> Tensor:
         """Raw quaternion tensors (N, K, E, T) of ``quat_rep`` -> raw positions-representation tensors."""
         quats, root, _ = quat_rep.decode_parts(raw)
-        from modi.core.kinematics import forward_kinematics
 
         offsets = torch.as_tensor(self.skeleton.offsets, dtype=raw.dtype)
         pos = forward_kinematics(quats, offsets, list(self.skeleton.parents), root)[0]  # (N, T, J, 3)
@@ -120,9 +120,6 @@ class MotionCodec:
 
     @classmethod
     def from_state_dict(cls, d: dict[str, Any]) -> "MotionCodec":
-        from modi.data.normalization import Normalizer
-        from modi.data.representation import MotionRepresentation
-
         return cls(MotionRepresentation.from_dict(d["representation"]), Normalizer.from_state_dict(d["normalizer"]),
                    float(d["fps"]), bool(d.get("positions", False)))
 

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from modi.models.modi.config import ModelConfig
+from modi_ext import layers as ext
 
 SQRT2 = math.sqrt(2.0)
 
@@ -236,14 +237,6 @@ class PseudoImageConv(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------- layer factories
-def _ext():
-    try:
-        from modi_ext import layers
-    except ImportError as exc:  # pragma: no cover - depends on install state
-        raise ImportError(f"modi_ext.layers is required for the skeleton-aware MoDi model: {exc}") from exc
-    return layers
-
-
 class _PooledUp(nn.Module):
     """Pooling ablation, generator side: skeletal unpool (copy) + FIR time upsample, then an in-place modulated conv."""
 
@@ -279,16 +272,15 @@ def _modconv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, mode: str,
         size = (level.n_entities, level.n_frames)
         return PseudoImageConv(cin, cout, k, style_dim=cfg.latent_dim, demodulate=demodulate,
                                out_size=size, resize="before" if mode == "up" else None)
-    layers = _ext()
     if mode == "up":
         if cfg.scaler == "pool":
-            conv = layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.neighbors, kernel_size=k,
+            conv = ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.neighbors, kernel_size=k,
                                                 mode="same", demodulate=demodulate)
             return _PooledUp(conv, level.up_pooling, level.n_entities)
-        return layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.up_pooling, kernel_size=k,
+        return ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.up_pooling, kernel_size=k,
                                             mode="up", demodulate=demodulate)
     topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
-    return layers.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, topo, kernel_size=k, mode="same",
+    return ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, topo, kernel_size=k, mode="same",
                                         demodulate=demodulate)
 
 
@@ -299,7 +291,7 @@ def _conv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, kernel_size: 
     if not cfg.skeleton_aware:
         return _NoStyle(PseudoImageConv(cin, cout, k))
     topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
-    return _ext().SkeletalConv(cin, cout, topo, kernel_size=k, bias=False)
+    return ext.SkeletalConv(cin, cout, topo, kernel_size=k, bias=False)
 
 
 def _down(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: LevelSpec, kernel_size: int) -> nn.Module:
@@ -307,15 +299,14 @@ def _down(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: LevelS
     if not cfg.skeleton_aware:
         return _NoStyle(PseudoImageConv(cin, cout, kernel_size, out_size=(coarse.n_entities, coarse.n_frames),
                                         resize="after"))
-    layers = _ext()
     if cfg.scaler == "pool":
         topo = fine.neighbors if kernel_size > 1 else [[j] for j in range(fine.n_entities)]
-        return nn.Sequential(layers.SkeletalConv(cin, cout, topo, kernel_size=kernel_size, bias=False),
+        return nn.Sequential(ext.SkeletalConv(cin, cout, topo, kernel_size=kernel_size, bias=False),
                              _SkeletalPoolDown(fine.up_pooling, fine.n_entities))
     if cfg.time_padding == "stylegan2":  # 2 more zero frames before the blur, the extra coarse frame cropped
-        return nn.Sequential(_Blur(2), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
+        return nn.Sequential(_Blur(2), ext.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
                                                                  bias=False), _CropStart(1))
-    return nn.Sequential(_Blur(), layers.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
+    return nn.Sequential(_Blur(), ext.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
                                                             bias=False))
 
 

@@ -15,17 +15,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.core.ik import fix_foot_contact
+from modi.data.motion import Motion
 from modi.errors import CheckpointError, UserError
 from modi.faults import atomic_save_npy
+from modi.io.formats import save_motion
 from modi.models.modi.checkpoint import REQUIRED_KEYS, load_checkpoint  # noqa: F401 - re-exported
+from modi.models.modi.codec import MotionCodec
+from modi.models.modi.config import MoDiConfig
+from modi.models.modi.networks import Generator, LevelSpec
+from modi.viz.render import render_positions
 
 
 def load_generator(ckpt: str | os.PathLike | dict, *, ema: bool = True, device: str | torch.device = "cpu"):
     """``(Generator in eval mode, MotionCodec, MoDiConfig)`` from a checkpoint (the EMA weights by default)."""
-    from modi.models.modi.config import MoDiConfig
-    from modi.models.modi.networks import Generator, LevelSpec
-    from modi.models.modi.codec import MotionCodec
-
     st = load_checkpoint(ckpt)
     try:
         cfg = MoDiConfig.from_dict(st["config"])
@@ -110,9 +113,6 @@ def sample_positions(ckpt: str | os.PathLike | dict, n: int, seed: int = 0, psi:
 
 def cleanup_feet(motion: Any, contacts: np.ndarray, feet: Sequence[int]) -> Any:
     """Pin each foot while its label is on (``modi.core.ik.fix_foot_contact``); returns a new Motion."""
-    from modi.core.ik import fix_foot_contact
-    from modi.data.motion import Motion
-
     rot, root = fix_foot_contact(motion.rotations, motion.root_positions, motion.skeleton, list(feet),
                                  np.asarray(contacts, dtype=bool))
     return Motion(motion.skeleton, rot, root, motion.fps)
@@ -123,8 +123,6 @@ def write_outputs(codec: Any, x: Tensor, out_dir: str | os.PathLike, *, bvh: boo
                   prefix: str = "motion", start_index: int = 0) -> list[Path]:
     """Write generated tensors: ``{prefix}_NNNN.bvh`` (+ ``_contacts.npy``, (T, F) uint8 in ``codec.feet``
     order) per motion and one GIF grid of the first ``max_gif``; returns the BVH paths."""
-    from modi.io.formats import save_motion
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     x = x.detach().float().cpu()
@@ -157,8 +155,6 @@ def render_gif(codec: Any, positions: Sequence[np.ndarray], contacts: Sequence[n
                size: tuple[int, int] = (200, 200), view: str | None = "view.html") -> Path:
     """Stick-figure GIF grid of global positions with the feet drawn red while labelled in contact, and the 3D
     viewer page ``view`` beside it (see ``modi.viz``; None: no page)."""
-    from modi.viz.render import render_positions
-
     sk = codec.skeleton
     per_joint = None
     if contacts is not None:

@@ -13,28 +13,45 @@ folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
 """
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import tempfile
 import time
 import warnings
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import torch
+import torch.distributed as dist
 from torch import Tensor, nn
+from torch.nn.parallel import DistributedDataParallel as DDP
+from tqdm import tqdm
 
-from modi import __version__ as modi_version, faults
+from modi import faults
+from modi.core.skeleton import Skeleton
+from modi.core.topology import build_hierarchy
+from modi.data.dataset import DatasetConfig, build_dataset
+from modi.data.normalization import Normalizer
+from modi.data.procedural import write_dataset
 from modi.errors import CheckpointError, UserError
-from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, atomic_torch_save, load_checkpoint
+from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict, load_checkpoint
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
-from modi.models.modi.losses import (d_logistic_loss, d_r1_penalty, foot_contact_consistency_loss,
-                                    foot_contact_speed_loss, foot_touch_loss,
-                                    g_nonsaturating_loss, lazy_regularization_adam_params, path_length_penalty)
+from modi.models.modi.losses import (
+    d_logistic_loss,
+    d_r1_penalty,
+    foot_contact_consistency_loss,
+    foot_contact_speed_loss,
+    foot_touch_loss,
+    g_nonsaturating_loss,
+    lazy_regularization_adam_params,
+    path_length_penalty,
+)
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
-
+from modi.models.modi.sampling import write_outputs
 
 
 class NonFiniteLossError(RuntimeError):
@@ -58,8 +75,6 @@ class TrainingData:
 
 
 def _dataset_config(cfg: MoDiConfig) -> Any:
-    from modi.data.dataset import DatasetConfig
-
     return DatasetConfig(fps=cfg.data.fps, window=cfg.data.n_frames, stride=cfg.data.stride, root=cfg.data.root,
                          rotation="quat", feet=cfg.data.feet, drop_patterns=cfg.data.drop_patterns,
                          keep_joints=cfg.data.keep_joints, drop_root_anchor=cfg.data.drop_root_anchor,
@@ -69,11 +84,25 @@ def _dataset_config(cfg: MoDiConfig) -> Any:
 def write_procedural_data(out_dir: str | os.PathLike, n_clips: int = 48, frames: int = 160, seed: int = 0,
                           fps: float = 30.0) -> Path:
     """Write the built-in procedural clips (walk/run/jump/wave/squat/idle) as BVH files; returns the folder."""
-    from modi.data.procedural import write_dataset
-
     out = Path(out_dir)
     write_dataset(out, n_clips=n_clips, frames=frames, seed=seed, fps=fps)
     return out
+
+
+def data_root(source: str | os.PathLike, fps: float, work_dir: str | os.PathLike | None = None,
+              what: str = "training data") -> Path:
+    """The BVH folder ``source`` names: itself, or for the word ``procedural`` the built-in clips written (once) to
+    ``work_dir/procedural_data`` (a temp dir when ``work_dir`` is None)."""
+    if str(source) == "procedural":
+        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_proc_"))
+        folder = base / "procedural_data"
+        if not any(folder.glob("*.bvh")):
+            write_procedural_data(folder, fps=fps)
+        return folder
+    root = Path(source)
+    if not root.exists():
+        raise UserError(f"{what} not found: {root} (give a BVH folder or the word 'procedural')")
+    return root
 
 
 def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | os.PathLike | None = None,
@@ -83,21 +112,9 @@ def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | 
     ``procedural`` writes the built-in clips under ``work_dir/procedural_data`` first (or a temp dir).
     ``normalizer`` (e.g. a resumed checkpoint's) replaces the statistics fitted on the data.
     """
-    from modi.data.dataset import build_dataset
-    from modi.data.normalization import Normalizer
-
     cfg.validate()
     src = str(source)
-    if src == "procedural":
-        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_proc_"))
-        folder = base / "procedural_data"
-        if not any(folder.glob("*.bvh")):
-            write_procedural_data(folder, fps=cfg.data.fps)
-        root = folder
-    else:
-        root = Path(src)
-        if not root.exists():
-            raise UserError(f"training data not found: {root} (give a BVH folder or the word 'procedural')")
+    root = data_root(source, cfg.data.fps, work_dir)
     ds = build_dataset(root, _dataset_config(cfg), cache=cache, progress=progress)
     windows = ds.train
     codec = MotionCodec(ds.representation, ds.normalizer, cfg.data.fps, positions=False)
@@ -117,8 +134,6 @@ def prepare_data(source: str | os.PathLike, cfg: MoDiConfig, *, work_dir: str | 
 
 
 def build_hierarchy_for(codec: MotionCodec, cfg: MoDiConfig) -> Any:
-    from modi.core.topology import build_hierarchy
-
     return build_hierarchy(codec.skeleton, codec.feet, neighbor_distance=cfg.model.neighbor_distance,
                            siblings=cfg.model.neighbors == "siblings", pooling=cfg.model.pooling)
 
@@ -144,8 +159,6 @@ def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
 
 
 def _dist() -> tuple[bool, int, int]:
-    import torch.distributed as dist
-
     if dist.is_available() and dist.is_initialized():
         return True, dist.get_rank(), dist.get_world_size()
     return False, 0, 1
@@ -156,8 +169,6 @@ def init_distributed_from_env(device: torch.device | None = None) -> tuple[int, 
 
     Returns ``(rank, world_size)``; a no-op (0, 1) for a single process.
     """
-    import torch.distributed as dist
-
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return 0, 1
@@ -251,9 +262,6 @@ class Trainer:
         self.g_train: nn.Module = self.G
         self.d_train: nn.Module = self.D
         if self.distributed:
-            from torch.nn.parallel import DistributedDataParallel as DDP
-
-            import inspect
 
             ids = [self.device.index] if self.device.type == "cuda" else None
             # Buffers (w_avg, constant noise) are identical on every rank by construction and updated with
@@ -268,7 +276,7 @@ class Trainer:
         self.writer = None
         if tensorboard and self.rank == 0:
             try:
-                from torch.utils.tensorboard import SummaryWriter
+                from torch.utils.tensorboard import SummaryWriter  # lazy: tensorboard costs ~1 s to import, only here
 
                 with faults.output_errors(self.run_dir / "tb"):
                     self.writer = SummaryWriter(str(self.run_dir / "tb"))
@@ -295,8 +303,6 @@ class Trainer:
         vals = torch.stack([v.detach().float().reshape(()) for v in losses.values()])
         bad = (~torch.isfinite(vals)).float()
         if self.distributed:
-            import torch.distributed as dist
-
             dist.all_reduce(bad)
         if bad.sum() > 0:
             names = [k for k, b in zip(losses, bad.tolist()) if b > 0]
@@ -308,8 +314,6 @@ class Trainer:
 
     def _all_mean(self, t: Tensor) -> Tensor:
         if self.distributed:
-            import torch.distributed as dist
-
             t = t.clone()
             dist.all_reduce(t)
             t /= self.world
@@ -406,8 +410,6 @@ class Trainer:
         """Run until ``iters`` total steps (default ``cfg.train.iters``). Ctrl-C or SIGTERM (on any rank) finishes
         the step, saves a checkpoint and returns (``interrupted``; ``exit_code`` 130 / 143). Rank 0 holds the run
         folder's lock meanwhile."""
-        from contextlib import nullcontext
-
         tc = self.cfg.train
         target = tc.iters if iters is None else int(iters)
         self.stop = faults.StopRequest()
@@ -422,8 +424,6 @@ class Trainer:
         t0 = time.time()
         bar = None
         if self.progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=target, initial=min(self.step, target), dynamic_ncols=True, smoothing=0.05,
                        desc="modi train")
         interrupted = False
@@ -497,7 +497,6 @@ class Trainer:
         """Fixed latents through G_ema -> ``samples/step_XXXXXXX/`` (BVH per motion + one GIF grid). Rank 0 only."""
         if self.rank != 0:
             return None
-        from modi.models.modi.sampling import write_outputs
 
         out = self.run_dir / "samples" / f"step_{self.step:07d}"
         with torch.no_grad():
@@ -521,33 +520,21 @@ class Trainer:
         rng = self._rng_state()
         rngs = [rng]
         if self.distributed:
-            import torch.distributed as dist
-
             rngs = [None] * self.world
             dist.all_gather_object(rngs, rng)
-        return {
-            "format": CHECKPOINT_FORMAT,
-            "version": CHECKPOINT_VERSION,
-            "config": self.cfg.to_dict(),
-            "codec": self.codec.state_dict(),
-            "skeleton": self.codec.skeleton.to_dict(),
-            "hierarchy": self.data.hierarchy.to_dict(),
-            "levels": [lv.to_dict() for lv in self.levels],
-            "G": self.G.state_dict(),
-            "G_ema": self.G_ema.state_dict(),
-            "D": self.D.state_dict(),
-            "g_optim": self.g_optim.state_dict(),
-            "d_optim": self.d_optim.state_dict(),
-            "step": self.step,
-            "mean_path_length": float(self.mean_path_length),
-            "rng": rngs,
-            "world_size": self.world,
-            "data_source": self.data.source,
-            "data_summary": _plain(self.data.summary),
-            "last_losses": dict(self.last_losses),
-            "torch_version": str(torch.__version__),
-            "modi_version": modi_version,  # for 'modi info'
-        }
+        return checkpoint_dict(
+            config=self.cfg, codec=self.codec, levels=self.levels, G=self.G, G_ema=self.G_ema, D=self.D,
+            step=self.step,
+            hierarchy=self.data.hierarchy.to_dict(),
+            g_optim=self.g_optim.state_dict(),
+            d_optim=self.d_optim.state_dict(),
+            mean_path_length=float(self.mean_path_length),
+            rng=rngs,
+            world_size=self.world,
+            data_source=self.data.source,
+            data_summary=_plain(self.data.summary),
+            last_losses=dict(self.last_losses),
+        )
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
         """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states)."""
@@ -561,7 +548,6 @@ class Trainer:
             except faults.OutputError as exc:
                 error = exc
         if self.distributed:  # doubles as the barrier: every rank learns whether rank 0's write failed
-            import torch.distributed as dist
 
             failed = torch.tensor([int(error is not None)], device=self.device)
             dist.all_reduce(failed)
@@ -635,8 +621,6 @@ def _plain(obj: Any) -> Any:
 
 
 def _skeleton_from(st: dict[str, Any]) -> Any:
-    from modi.core.skeleton import Skeleton
-
     return Skeleton.from_dict(st["skeleton"])
 
 

@@ -7,10 +7,11 @@ import pytest
 from PIL import Image
 
 from modi.cli import main
-from modi.io import bvh as bvh_io
-from modi.io import gltf
+from modi.core.contacts import feet_of
 from modi.core.kinematics import bvh_positions
 from modi.data.procedural import generate_clip
+from modi.io import bvh as bvh_io
+from modi.io import gltf
 from modi.viz import render as R
 from modi.viz import view_pages
 from modi.viz.viewer import load_motion
@@ -72,7 +73,7 @@ def test_contacts_do_not_blink_and_need_the_floor(shared_data):
             pytest.skip(f"{p} absent")
         b = bvh_io.load(p)
         pos = bvh_positions(b)
-        feet = R._feet_of(b)
+        feet = feet_of(b)
         lab = preview_contacts(pos, feet, b.fps, b.parents, b.names)[:, feet]
         for f in range(lab.shape[1]):   # runs inside the clip (not touching its ends) last >= 0.1 s
             d = np.diff(np.r_[0, lab[:, f].astype(int), 0])

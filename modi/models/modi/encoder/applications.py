@@ -24,8 +24,13 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from modi.models.modi.encoder.training import EncoderBundle
+from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import axis_angle_to_quat, quat_inverse, quat_mul, quat_normalize
+from modi.data.representation import continuous_quats
 from modi.errors import UserError
+from modi.models.modi.encoder.training import EncoderBundle
+from modi.models.modi.latent.editing import bone_elevation, find_right_arm, gral_score
+from modi.models.modi.latent.inversion import invert
 from modi.models.modi.latent.space import mean_motion, write_motions
 
 
@@ -59,8 +64,6 @@ def invert_motions(bundle: EncoderBundle, x: Tensor, out_dir: str | Path, names:
                    optim_steps: int = 200, progress: bool = True) -> list[dict[str, Any]]:
     """Invert unseen motions: the encoder's one-pass projection beside optimisation-based inversion (``optim_steps``
     Adam steps in W+; 0 puts the mean motion there instead)."""
-    from modi.models.modi.latent.inversion import invert
-
     x = _check(bundle, x)
     names = list(names) if names is not None else [f"motion{i:03d}" for i in range(len(x))]
     _, rec = bundle.project(x)
@@ -199,10 +202,6 @@ def raise_arm(codec: Any, x: Tensor, angle: float = 90.0, start: int | None = No
     """A crude spatial edit: from frame ``start`` on, turn the right upper arm (``joint``: default the right
     shoulder found by name) by ``angle`` degrees *toward the sky* (about the world axis perpendicular to the bone
     and the vertical) -- abruptly, the way a quick keyframe edit would."""
-    from modi.models.modi.latent.editing import find_right_arm
-    from modi.data.representation import continuous_quats
-    from modi.core.rotations import axis_angle_to_quat, quat_inverse, quat_mul, quat_normalize
-
     x = x.float().cpu()
     T = x.shape[-1]
     start = T // 2 if start is None else int(start)
@@ -217,7 +216,6 @@ def raise_arm(codec: Any, x: Tensor, angle: float = 90.0, start: int | None = No
             raise UserError(f"joint {sk.names[joint]!r} has no child bone to raise")
         elbow = kids[0]
     parent = sk.parents[joint]
-    from modi.core.kinematics import forward_kinematics
 
     dec = codec.decode(x)
     rot = dec["rotations"]  # (B, T, J, 4)
@@ -241,8 +239,6 @@ def edit_motions(bundle: EncoderBundle, x: Tensor, out_dir: str | Path, names: S
                  angle: float = 90.0, start: int | None = None, joint: int | None = None) -> list[dict[str, Any]]:
     """Raise the right arm crudely from frame ``start`` and let G∘I turn the edit into a natural motion; reports
     the arm's mean elevation (degrees) over the edited frames and the gral score for all three."""
-    from modi.models.modi.latent.editing import bone_elevation, find_right_arm, gral_score
-
     x = _check(bundle, x)
     names = list(names) if names is not None else [f"motion{i:03d}" for i in range(len(x))]
     T = x.shape[-1]

@@ -27,6 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from modi.models.modi.encoder.model import encode
 from modi.models.modi.latent.space import mean_motion, mm_per_unit, synthesize
 
 PAPER_TABLE5 = {"l2": 0.293, "l1": 0.316, "root_mm": 59.0, "local_mm": 20.4, "global_mm": 78.2}
@@ -88,8 +89,6 @@ def evaluate_encoder(encoder: Any, g: Any, codec: Any, windows: Tensor, batch: i
                      baselines: bool = True) -> dict[str, Any]:
     """Metrics of G(I(m)) over ``windows`` (normalised), plus two trivial baselines: the mean motion G(w̄) for every
     input, and the data mean (an all-zero normalised tensor, i.e. the average pose and velocity per frame)."""
-    from modi.models.modi.encoder.model import encode
-
     if windows.shape[0] == 0:
         raise ValueError("no windows to evaluate")
     mm = mm_per_unit(codec.height, units)

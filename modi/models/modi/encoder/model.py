@@ -21,7 +21,9 @@ import torch
 from torch import Tensor, nn
 
 from modi.models.modi.config import ModelConfig
+from modi.models.modi.latent.space import mean_w
 from modi.models.modi.networks import ConvAct, EqualLinear, LevelSpec, PseudoImageConv, ResBlock
+from modi_ext.layers import SkeletalConv
 
 ENCODER_HEADS = ("released", "bottleneck")
 
@@ -84,8 +86,6 @@ class _EntityProjection(nn.Module):
         super().__init__()
         out_ch = level.channels
         if model_cfg.skeleton_aware:
-            from modi_ext.layers import SkeletalConv
-
             conv: nn.Module = SkeletalConv(in_ch, out_ch, [[j] for j in range(level.n_entities)], kernel_size=1,
                                            bias=False)
         else:
@@ -135,8 +135,6 @@ class MotionEncoder(nn.Module):
         self.blocks = nn.Sequential(*[ResBlock(block_cfg, lv[i], lv[i - 1]) for i in range(len(lv) - 1, 0, -1)])
         lv0 = lv[0]
         if model_cfg.skeleton_aware:
-            from modi_ext.layers import SkeletalConv
-
             final: nn.Module = SkeletalConv(lv0.channels, lv0.channels, lv0.neighbors,
                                             kernel_size=model_cfg.kernel_size, bias=False)
         else:
@@ -178,7 +176,6 @@ def build_encoder(g: Any, channel_multiplier: float = 1.0, prefix_frames: int | 
                         channel_multiplier=channel_multiplier,
                         mask_channel=(prefix_frames is not None) if mask_channel is None else bool(mask_channel),
                         prefix_frames=prefix_frames, hidden=hidden, head=head, inplace_convs=inplace_convs)
-    from modi.models.modi.latent.space import mean_w
 
     return MotionEncoder(g.cfg, g.levels, cfg, w_avg=mean_w(g).cpu()).to(next(g.parameters()).device)
 

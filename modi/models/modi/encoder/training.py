@@ -36,12 +36,20 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from tqdm import tqdm
 
-from modi import __version__ as modi_version, faults
-from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder, build_encoder, encode
+from modi import faults
+from modi._version import __version__ as modi_version
+from modi.data.dataset import build_dataset
 from modi.errors import CheckpointError, UserError
 from modi.io.safe_load import load_data
-from modi.models.modi.latent.space import position_scale
+from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_tagged
+from modi.models.modi.config import DataConfig, MoDiConfig
+from modi.models.modi.encoder.metrics import evaluate_encoder
+from modi.models.modi.encoder.model import ENCODER_HEADS, EncoderConfig, MotionEncoder, build_encoder, encode
+from modi.models.modi.latent.space import load_model, position_scale, random_w, synthesize
+from modi.models.modi.losses import contact_probability
+from modi.models.modi.training import _dataset_config, data_root
 
 ENCODER_FORMAT = "modi-encoder"
 ENCODER_VERSION = 1
@@ -102,8 +110,6 @@ class EncoderTrainConfig:
                 setattr(self, name, value)
 
     def validate(self) -> "EncoderTrainConfig":
-        from modi.models.modi.encoder.model import ENCODER_HEADS
-
         if self.losses not in LOSS_WEIGHTS:
             raise UserError(f"losses must be one of {', '.join(LOSS_WEIGHTS)}, not {self.losses!r}")
         if self.optimizer not in OPTIMIZERS:
@@ -143,32 +149,11 @@ def load_encoder_data(codec: Any, gcfg: Any, source: str | os.PathLike, *, cache
                       progress: bool = False, work_dir: str | os.PathLike | None = None) -> EncoderData:
     """Windows of ``source`` (BVH folder or 'procedural') cut and split like the generator's training data,
     normalised with the generator's statistics."""
-    import tempfile
-
-    from modi.data.dataset import DatasetConfig, build_dataset
-
     if getattr(codec, "positions_mode", False):
         raise UserError("the encoder needs a rotation model; this checkpoint is the 'positions' ablation")
     src = str(source)
-    if src == "procedural":
-        from modi.models.modi.training import write_procedural_data
-
-        base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_enc_proc_"))
-        root = base / "procedural_data"
-        if not any(root.glob("*.bvh")):
-            write_procedural_data(root, fps=gcfg.data.fps)
-    else:
-        root = Path(src)
-        if not root.exists():
-            raise UserError(f"data not found: {root} (give a BVH folder or the word 'procedural')")
-    try:  # the generator's own mapping from its config to the dataset: identical windows and split
-        from modi.models.modi.training import _dataset_config
-
-        dcfg = _dataset_config(gcfg)
-    except ImportError:  # pragma: no cover - older/newer trainer without the helper
-        dc = gcfg.data
-        dcfg = DatasetConfig(fps=dc.fps, window=dc.n_frames, stride=dc.stride, root=dc.root, rotation="quat",
-                             feet=dc.feet, keep_joints=getattr(dc, "keep_joints", None))
+    root = data_root(source, gcfg.data.fps, work_dir, what="data")
+    dcfg = _dataset_config(gcfg)  # the generator's own mapping from its config to the dataset: same windows, split
     ds = build_dataset(root, dcfg, cache=cache, progress=progress)
     if not ds.skeleton.same_as(codec.skeleton):
         a, b = ds.skeleton, codec.skeleton
@@ -219,8 +204,6 @@ def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainCo
     on the root-motion entity plus the real root rotation ``root_entity`` (``root_rotation_entity``), the position
     term the MSE of FK positions with the root translation zeroed, in the data's units. ``"ours"``: root term on
     entity 0, position term on global positions times ``scale`` (tenths of the body size)."""
-    from modi.models.modi.losses import contact_probability
-
     J = codec.rep.n_joints
     rec = F.mse_loss(pred, target)
     r = root_entity if cfg.losses == "released" else 0
@@ -254,9 +237,6 @@ def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainCo
 # =============================================================================================== checkpoints
 def generator_bundle(g: Any, codec: Any, gcfg: Any = None, step: int = 0) -> dict[str, Any]:
     """A MoDi-checkpoint-shaped dict holding just what generation needs (loadable by ``load_generator``)."""
-    from modi.models.modi.config import DataConfig, MoDiConfig
-    from modi.models.modi.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-
     if gcfg is None:
         _, _, t = g.output_shape
         gcfg = MoDiConfig(model=g.cfg, data=DataConfig(n_frames=t, fps=codec.fps), preset="custom")
@@ -285,8 +265,6 @@ class EncoderBundle:
     @torch.no_grad()
     def project(self, x: Tensor, prefix_frames: int | None = None) -> tuple[Tensor, Tensor]:
         """(W+ latents, G(I(x))) of normalised motions x."""
-        from modi.models.modi.latent.space import synthesize
-
         self.encoder.eval()
         dev = next(self.encoder.parameters()).device
         wplus = encode(self.encoder, x.to(dev).float(), prefix_frames)
@@ -295,22 +273,12 @@ class EncoderBundle:
 
 def load_encoder(path: str | os.PathLike | dict, device: str | torch.device = "cpu") -> EncoderBundle:
     """Read an encoder checkpoint (``CheckpointError`` for anything else) and rebuild encoder + generator."""
-    from modi.models.modi.latent.space import load_model
+    def foreign(st: Any) -> str:
+        generator = isinstance(st, dict) and st.get("format") == CHECKPOINT_FORMAT
+        return " (this is a generator checkpoint; train an encoder with 'modi encoder train')" if generator else ""
 
-    if isinstance(path, dict):
-        st, where = path, "encoder checkpoint"
-    else:
-        p = Path(path)
-        where = str(p)
-        if not p.is_file():
-            raise CheckpointError(f"{p}: no such encoder checkpoint")
-        st = load_data(p, "encoder checkpoint")  # as data only: code in the file is refused unrun
-    if not isinstance(st, dict) or st.get("format") != ENCODER_FORMAT:
-        hint = " (this is a generator checkpoint; train an encoder with 'modi encoder train')" \
-            if isinstance(st, dict) and st.get("format") == "modi-checkpoint" else ""
-        raise CheckpointError(f"{where}: not a MoDi encoder checkpoint{hint}")
-    if int(st.get("version", 0)) > ENCODER_VERSION:
-        raise CheckpointError(f"{where}: encoder checkpoint version {st['version']} is newer than this modi")
+    st, where = read_tagged(path, "encoder checkpoint", ENCODER_FORMAT, ENCODER_VERSION, label="encoder checkpoint",
+                            foreign=foreign)
     g, codec, gcfg = load_model(st["generator"], device=device)
     try:
         cfg = EncoderConfig.from_dict(st["encoder_config"], generator_inplace_convs=g.cfg.n_inplace_convs)
@@ -385,8 +353,6 @@ class EncoderTrainer:
         self.gen_rng = torch.Generator().manual_seed(self.cfg.seed * 104729 + 11)
         self.w_std = None
         if self.cfg.generated > 0:
-            from modi.models.modi.latent.space import random_w
-
             self.w_std = random_w(g, 4096, seed=self.cfg.seed + 5).std(0).clamp_min(1e-3)
         self.step = 0
         self._saved_step: int | None = None  # step of the checkpoint on disk (named by a disk-full error)
@@ -439,8 +405,6 @@ class EncoderTrainer:
         return torch.where(second, w2.unsqueeze(1), w1.unsqueeze(1)).contiguous()
 
     def evaluate(self, split: str = "test") -> dict[str, Any]:
-        from modi.models.modi.encoder.metrics import evaluate_encoder
-
         x = self.data.test if split == "test" else self.data.train
         return evaluate_encoder(self.encoder, self.g, self.codec, x, units=self.cfg.units)
 
@@ -454,8 +418,6 @@ class EncoderTrainer:
             faults.remove_stale_temps(self.out)
             bar = None
             if self.progress:
-                from tqdm import tqdm
-
                 bar = tqdm(total=target, initial=min(self.step, target), desc="encoder train", dynamic_ncols=True)
             try:
                 self._train_to(target, bar, stop)

@@ -6,21 +6,5 @@
 * ``crowd``      -- variations around one latent, rendered as one scene
 * ``inversion``  -- optimisation into W+ (representation + FK-position loss)
 
-Submodules import lazily so ``import modi.models.modi.latent`` stays cheap.
+Import the submodule you need (``from modi.models.modi.latent import space``); the package itself imports nothing.
 """
-from __future__ import annotations
-
-import importlib
-from typing import Any
-
-_SUBMODULES = ("space", "clustering", "editing", "crowd", "inversion")
-
-
-def __getattr__(name: str) -> Any:
-    if name in _SUBMODULES:
-        return importlib.import_module(f"modi.models.modi.latent.{name}")
-    for sub in _SUBMODULES:
-        mod = importlib.import_module(f"modi.models.modi.latent.{sub}")
-        if name in getattr(mod, "__all__", ()):
-            return getattr(mod, name)
-    raise AttributeError(f"module 'modi.models.modi.latent' has no attribute {name!r}")

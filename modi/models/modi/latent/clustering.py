@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from modi.errors import UserError
-from modi.models.modi.latent.space import decode_positions, random_w, synthesize, write_motions
+from modi.models.modi.latent.space import decode_positions, random_w, save_figure, synthesize, write_motions
+from modi.models.modi.sampling import render_gif
 
 
 @dataclass
@@ -38,7 +39,7 @@ class ClusterResult:
 
 def kmeans(w: np.ndarray, k: int = 8, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(labels (N,), centers (k, D)) of K-means with k-means++ init and 4 restarts."""
-    from sklearn.cluster import KMeans
+    from sklearn.cluster import KMeans  # lazy: scikit-learn costs ~1 s to import; only clustering needs it
 
     w = np.asarray(w, dtype=np.float64)
     if k < 1:
@@ -52,7 +53,7 @@ def kmeans(w: np.ndarray, k: int = 8, seed: int = 0) -> tuple[np.ndarray, np.nda
 def tsne_embed(w: np.ndarray, n_max: int = 2000, seed: int = 0,
                perplexity: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
     """2-D t-SNE of at most ``n_max`` random rows of ``w``: (embedding (M, 2), row indices (M,))."""
-    from sklearn.manifold import TSNE
+    from sklearn.manifold import TSNE  # lazy: as KMeans above
 
     w = np.asarray(w, dtype=np.float64)
     rng = np.random.default_rng(seed)
@@ -66,10 +67,10 @@ def tsne_embed(w: np.ndarray, n_max: int = 2000, seed: int = 0,
 
 def plot_clusters(emb: np.ndarray, labels: np.ndarray, path: str | Path, title: str = "") -> Path:
     """Scatter of a 2-D embedding coloured by cluster label, with each cluster's number at its median."""
-    import matplotlib
+    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after use("Agg")
 
     k = int(labels.max()) + 1 if len(labels) else 0
     cmap = plt.get_cmap("tab10" if k <= 10 else "tab20")
@@ -86,12 +87,7 @@ def plot_clusters(emb: np.ndarray, labels: np.ndarray, path: str | Path, title: 
     ax.set_yticks([])
     ax.set_title(title or f"t-SNE of W, {k} K-means clusters", fontsize=10)
     ax.legend(markerscale=3, fontsize=7, loc="best", frameon=False)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def pick_members(labels: np.ndarray, per_cluster: int, seed: int = 0, w: np.ndarray | None = None,
@@ -133,8 +129,6 @@ def cluster_latent_space(g: Any, codec: Any, out_dir: str | Path, n: int = 10_00
                                               f"t-SNE of W ({len(res.tsne_index)} of {n} samples), "
                                               f"K-means k={k}"))
     if render:
-        from modi.models.modi.sampling import render_gif
-
         gifs = []
         for c, members in enumerate(res.members):
             if not members:

@@ -17,8 +17,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.data.motion import Motion
 from modi.errors import UserError
+from modi.io.formats import check_finite, save_motion
 from modi.models.modi.latent.space import check_latent, synthesize
+from modi.viz.render import render_positions
 
 SIGMA_RANGE = (0.1, 0.8)
 
@@ -61,10 +64,6 @@ def simulate_crowd(g: Any, codec: Any, w: Tensor, out_dir: str | Path, k: int = 
                    gif: bool = True, size: tuple[int, int] = (520, 400)) -> Crowd:
     """Sample ``k`` variations of the motion of ``w`` and write ``crowd_NN.bvh`` (placed on a grid) plus
     ``crowd.gif`` with every character in one scene. ``include_source`` adds the original motion as ``crowd_00``."""
-    from modi.io.formats import check_finite, save_motion
-    from modi.data.motion import Motion
-    from modi.viz.render import render_positions
-
     w = check_latent(g, w.unsqueeze(0), "w")[0]
     lat = crowd_latents(w, k, sigma, seed)
     if include_source:

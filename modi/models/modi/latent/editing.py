@@ -25,6 +25,7 @@ Attributes (all computed from decoded motions, so any rig works):
 """
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import asdict, dataclass, field
@@ -36,7 +37,7 @@ import torch
 from torch import Tensor
 
 from modi.errors import UserError
-from modi.models.modi.latent.space import random_w, seed_w, synthesize
+from modi.models.modi.latent.space import random_w, save_figure, seed_w, synthesize
 
 UP = torch.tensor([0.0, 1.0, 0.0])
 
@@ -245,8 +246,6 @@ class Boundary:
         return cls(**d)
 
     def save(self, path: str | Path) -> Path:
-        import json
-
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(self.to_dict()))
@@ -254,8 +253,6 @@ class Boundary:
 
     @classmethod
     def load(cls, path: str | Path) -> "Boundary":
-        import json
-
         try:
             return cls.from_dict(json.loads(Path(path).read_text()))
         except (OSError, ValueError, TypeError, KeyError) as exc:
@@ -273,7 +270,7 @@ def fit_boundary(w: np.ndarray | Tensor, scores: np.ndarray | Tensor, ratio: flo
     them. ``method="released"`` (the authors' ``train_boundary``, from InterFaceGAN): ``SVC(kernel="linear")``
     trained on 70% of each class, accuracy on the other 30%, no refit.
     Raises ``UserError`` when the scores do not separate (all equal)."""
-    from sklearn.svm import SVC, LinearSVC
+    from sklearn.svm import SVC, LinearSVC  # lazy: scikit-learn costs ~1 s to import; only boundaries need it
 
     if method not in SVM_METHODS:
         raise ValueError(f"method must be one of {', '.join(SVM_METHODS)}, not {method!r}")
@@ -384,7 +381,7 @@ def _is_monotone(v: np.ndarray, tol: float = 1e-9) -> bool:
 def edit_report(g: Any, codec: Any, boundary: Boundary, seeds: Sequence[int], alphas_sigma: Sequence[float],
                 attribute: str | ScoreFn | None = None) -> EditReport:
     """Edit held-out seeds by ``α = a · sigma`` for each ``a`` in ``alphas_sigma`` and score them."""
-    from scipy.stats import spearmanr
+    from scipy.stats import spearmanr  # lazy: scipy.stats costs ~0.5 s to import
 
     attribute = boundary.attribute if attribute is None else attribute
     alphas_sigma = [float(a) for a in alphas_sigma]
@@ -406,10 +403,10 @@ def edit_report(g: Any, codec: Any, boundary: Boundary, seeds: Sequence[int], al
 
 def plot_report(report: EditReport, path: str | Path) -> Path:
     """PNG of score vs α: each held-out seed thin, the mean thick."""
-    import matplotlib
+    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after use("Agg")
 
     fig, ax = plt.subplots(figsize=(5, 3.6), dpi=120)
     for row in report.scores:
@@ -420,12 +417,7 @@ def plot_report(report: EditReport, path: str | Path) -> Path:
     ax.set_title(f"{report.attribute}: Spearman {report.spearman:.2f}, monotone mean: "
                  f"{'yes' if report.monotonic else 'no'}", fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 __all__ = ["find_right_arm", "find_head", "bone_elevation", "rotation_angle", "window_means", "rising_fraction",

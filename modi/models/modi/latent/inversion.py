@@ -14,6 +14,7 @@ from typing import Any, Callable
 
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from modi.models.modi.latent.space import as_wplus, mean_w, position_scale, random_w
 
@@ -77,8 +78,6 @@ def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.0
     res = InversionResult(wplus=wplus, motion=target)
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=steps, desc="invert", dynamic_ncols=True, leave=False)
     try:
         for i in range(steps + 1):

@@ -22,7 +22,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.data.dataset import motion_from_bvh
+from modi.data.motion import Motion
 from modi.errors import UserError
+from modi.faults import atomic_save_npy
+from modi.io import bvh as bvh_io
+from modi.io.formats import check_finite, save_motion
+from modi.models.modi.sampling import latents_and_noise, load_generator, render_gif
 
 ModelBundle = tuple  # (Generator, MotionCodec, MoDiConfig), as returned by ``load_model``
 
@@ -30,8 +36,6 @@ ModelBundle = tuple  # (Generator, MotionCodec, MoDiConfig), as returned by ``lo
 # --------------------------------------------------------------------------------------------- model
 def load_model(ckpt: str | os.PathLike | dict, device: str | torch.device = "cpu", ema: bool = True) -> ModelBundle:
     """``(generator in eval mode with frozen weights, codec, config)`` from a MoDi checkpoint."""
-    from modi.models.modi.sampling import load_generator
-
     g, codec, cfg = load_generator(ckpt, ema=ema, device=device)
     for p in g.parameters():
         p.requires_grad_(False)
@@ -45,8 +49,6 @@ def _device(g: Any) -> torch.device:
 # --------------------------------------------------------------------------------------------- latents
 def seed_z(g: Any, seeds: Sequence[int]) -> Tensor:
     """z of "seed s" for each seed: the latent of motion 0 of ``modi generate --seed s``."""
-    from modi.models.modi.sampling import latents_and_noise
-
     if len(seeds) == 0:
         return torch.zeros(0, g.latent_dim)
     return torch.cat([latents_and_noise(g, [0], int(s))[0] for s in seeds]).to(_device(g))
@@ -194,7 +196,6 @@ def save_latent(path: str | os.PathLike, w: Tensor) -> Path:
     """Write one latent ((D,) W or (L, D) W+) or a batch as float32 ``.npy``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    from modi.faults import atomic_save_npy
 
     atomic_save_npy(path, w.detach().cpu().float().numpy())
     return path
@@ -264,9 +265,6 @@ def model_window_from_motion(codec: Any, motion: Any, n_frames: int, start: int 
 
 def load_bvh_window(codec: Any, path: str | os.PathLike, n_frames: int, start: int = 0) -> Tensor:
     """Read a BVH clip onto the model's skeleton (joints matched by name), resample, cut one window (K, E, T)."""
-    from modi.io import bvh as bvh_io
-    from modi.data.dataset import motion_from_bvh
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such BVH file")
@@ -281,7 +279,6 @@ def load_bvh_window(codec: Any, path: str | os.PathLike, n_frames: int, start: i
         motion = motion.subset(keep)
     if list(motion.skeleton.parents) != list(sk.parents):
         raise UserError(f"{path}: joint hierarchy differs from the model's skeleton")
-    from modi.data.motion import Motion
 
     motion = Motion(sk, motion.rotations, motion.root_positions, motion.fps)  # the model's bone lengths
     if abs(motion.fps - codec.fps) > 1e-3 * codec.fps:
@@ -302,9 +299,6 @@ def write_motions(codec: Any, x: Tensor, out_dir: str | os.PathLike, names: Sequ
                   size: tuple[int, int] = (220, 220), view: str | None = "view.html") -> list[Path]:
     """Write each motion as ``{name}.bvh`` (and/or the other ``--format`` formats) and all of them side by side in one
     GIF; returns the motion paths."""
-    from modi.io.formats import check_finite, save_motion
-    from modi.models.modi.sampling import render_gif
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     x = x.detach().float().cpu()
@@ -329,3 +323,15 @@ __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean
            "lerp_sequence", "truncation_sequence",
            "interpolation_sequence", "save_latent", "load_latent", "parse_latent", "model_window_from_motion",
            "load_bvh_window", "decode_positions", "write_motions"]
+
+
+def save_figure(fig, path: str | os.PathLike) -> Path:
+    """Lay out, write (making the folder) and close a matplotlib figure; returns the path."""
+    import matplotlib.pyplot as plt  # lazy: only the plotting functions, which chose the Agg backend, get here
+
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
