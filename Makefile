@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip
 
-.PHONY: install demo test test-cuda-emulated cmake-build bench
+.PHONY: install demo test test-cuda-emulated cmake-build bench docs
 
 install:
 	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy
@@ -27,3 +27,12 @@ cmake-build:
 
 bench: install
 	$(PYTHON) benchmarks/compare.py --json benchmarks/results/cpu.json
+
+# The docs (mkdocs.yml, docs/) into build/docs-site/, strictly: a warning (a broken link or anchor) fails the build.
+# Needs only the docs tools (mkdocstrings reads the sources, so neither torch nor modi need be installed);
+# the pins are setup.py's `docs` extra.
+DOCS_REQUIRES = "mkdocs==1.6.1" "mkdocstrings==1.0.8" "mkdocstrings-python==2.0.11"
+
+docs:
+	$(PIP) install -q $(DOCS_REQUIRES)
+	$(PYTHON) -m mkdocs build --strict
