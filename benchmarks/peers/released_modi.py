@@ -45,7 +45,8 @@ PEER_PACKAGES = ("op", "models", "utils", "Motion", "motion_class", "train", "ev
 # narrow channel widths (coarse -> fine, as their n_channels_max) and a small mapping for fast tests
 SMALL_CHANNELS = (32, 16, 16, 8, 8)
 SMALL_ARGS = ("--latent", "32", "--n_mlp", "2", "--batch", "4")
-# the released Mixamo model's flags (README), minus --foot (Bandai's feet are added by `feet=True`)
+# the released Mixamo model's flags (docs/results.md, "The authors' code"), minus --foot (Bandai's feet are added
+# by `feet=True`)
 RELEASED_FLAGS = ("--skeleton", "--conv3fast", "--glob_pos", "--normalize", "--use_velocity")
 
 

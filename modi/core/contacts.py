@@ -105,7 +105,6 @@ def preview_contacts(positions, feet: Sequence[int], fps: float, parents: Sequen
     lowest point, so a foot that never comes down is never in contact. Label once on the clip's own frames and
     resample the labels with the positions: every output then shows the same labels.
     """
-
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 3 or p.shape[-1] != 3:
         raise ValueError(f"positions must be (T, J, 3), got {p.shape}")

@@ -328,7 +328,6 @@ def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: floa
                raw: Any = None) -> Any:
     """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels);
     ``raw``: the BVH already read (``read_clip``)."""
-
     raw = read_clip(bvh) if raw is None else raw
     sub = subset_clip(raw, sorted(order))
     srt = sorted(order)

@@ -57,7 +57,6 @@ def load_released_npy(path: str | os.PathLike) -> np.ndarray:
     """A released ``.npy`` of pickled per-clip dicts (their ``preprocess_edges.py`` output), read with a pickle
     loader that builds only numpy arrays, plain containers and :class:`ReleasedQuaternions`; any other class or
     function named in the file is refused instead of imported."""
-
     p = Path(path)
 
     class Restricted(pickle.Unpickler):

@@ -122,7 +122,6 @@ def _num(v) -> float | int:
 
 def _local_motion(bvh) -> tuple[np.ndarray, np.ndarray]:
     """(local quaternions (F, J, 4) w,x,y,z; local translations (F, J, 3)) in file units, float64."""
-
     euler = torch.from_numpy(bvh.euler_degrees())
     orders = bvh.rotation_orders
     quats = torch.empty(euler.shape[:-1] + (4,), dtype=torch.float64)
@@ -423,7 +422,6 @@ def _accessor(doc: dict, buffers: list[bytes], i: int) -> np.ndarray:
 
 def _sample(times: np.ndarray, keys: np.ndarray, values: np.ndarray, mode: str, rotation: bool) -> np.ndarray:
     """A sampler's value at each of ``times`` (LINEAR: lerp/slerp, STEP, CUBICSPLINE: Hermite), clamped at the ends."""
-
     n = len(keys)
     if mode == "CUBICSPLINE":
         tan_in, vals, tan_out = values[0::3], values[1::3], values[2::3]
@@ -476,7 +474,6 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
     and turned into positions by :func:`modi.core.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
     the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
     """
-
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such glTF file")

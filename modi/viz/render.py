@@ -503,7 +503,6 @@ def render_bvh(paths: Sequence[str | Path] | str | Path, out_path: str | Path, f
     """Preview one or more BVH files (in real time at ``fps``), each scaled to metres (``scale``, or its unit
     guessed from the body size as :func:`modi.io.gltf.guess_unit` does), so a crab in metres stands beside a
     human in centimetres at their true sizes. Missing files raise ``UserError``."""
-
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [Path(p) for p in paths]

@@ -94,7 +94,7 @@ def _ganimator(st: dict) -> dict[str, Any]:
 
 
 _KINDS = {"modi-checkpoint": _modi, "modi-encoder": _encoder, "modi-features-v1": _features,
-          "modi.models.ganimator/1": _ganimator}
+          "modi.ganimator/1": _ganimator}
 
 
 def describe(path: str | Path) -> dict[str, Any]:

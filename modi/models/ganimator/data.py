@@ -312,7 +312,6 @@ def load_sequence(path: str | Path, cfg=None, *, keep_joints: Seq[str] | None = 
 def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq[str] | None = None,
                        feet: Seq[str] | None = None, like: Sequence | None = None, where: str = "") -> Sequence:
     """:func:`load_sequence` for a clip already in memory (rotations + root track)."""
-
     cfg = cfg or GanimatorConfig()
     path = where or name
     skel = motion.skeleton

@@ -37,7 +37,7 @@ from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, synthesize
 from modi_ext.layers import ForwardKinematics
 
-FORMAT = "modi.models.ganimator/1"
+FORMAT = "modi.ganimator/1"
 CHECKPOINT_NAME = "ganimator.ckpt"
 LOG_EVERY = 10  # iterations between lines of RUN/log.jsonl
 PROGRESS_NAME = "progress.json"  # RUN/progress.json: block, iteration, totals, ETA, state (see Trainer._progress)
@@ -121,7 +121,7 @@ _INSTEAD = ("re-train it with 'modi ganimator train', or convert a run of the au
 
 def read_checkpoint(run: str | Path) -> dict:
     """The checkpoint of a run folder (or ``.ckpt`` file), read as data only (``modi.io.safe_load``): every
-    ``modi.models.ganimator/1`` file modi has written holds plain containers and tensors; one that names any other code is
+    ``modi.ganimator/1`` file modi has written holds plain containers and tensors; one that names any other code is
     refused, unrun, with one line."""
     path = checkpoint_path(run)
     if not path.is_file():

@@ -89,7 +89,8 @@ class DataConfig:
     keep_joints: list[str] | None = None  # joints never dropped
     # True / "drop" = the released preprocessing: no root anchor that only repeats its child (Bandai's joint_Root), no
     # rotation for joints without children (they move nothing). Not the default: its one equal-budget run was the
-    # worst arm (FID 40.6), though within the run-to-run spread measured so far (README); needs more seeds
+    # worst arm (FID 40.6), though within the run-to-run spread measured so far (docs/results.md, "Equal-budget
+    # arms"); needs more seeds
     drop_root_anchor: bool = False
     leaf_rotations: str = "keep"
 
@@ -218,7 +219,8 @@ ABLATIONS = {
     "noise": {"model.noise_injection": True},
     "squared-contact": {"train.contact_loss": "squared"},
     "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared"},
-    # the released code's skeleton topology and representation (not the defaults: see the README's measurements)
+    # the released code's skeleton topology and representation (not the defaults: docs/results.md, "Equal-budget
+    # arms")
     "tree-neighbors": {"model.neighbors": "tree"},
     "released-representation": {"data.drop_root_anchor": True, "data.leaf_rotations": "drop"},
     "released-pooling": {"model.pooling": "released"},

@@ -25,7 +25,7 @@ import bpy
 a = sys.argv[sys.argv.index("--") + 1:]
 bpy.ops.wm.read_factory_settings(use_empty=True)
 sc = bpy.context.scene
-sc.render.fps = int(a[1])                  # the README's step: the scene at the clip's rate before importing
+sc.render.fps = int(a[1])                  # docs/gltf.md's step: the scene at the clip's rate before importing
 bpy.ops.import_scene.gltf(filepath=a[0])   # the dialog's defaults (Shading: Use Normals)
 arm = next(o for o in bpy.data.objects if o.type == "ARMATURE")
 out = {"meshes": len(bpy.data.meshes), "frames": []}

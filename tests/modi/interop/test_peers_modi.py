@@ -372,7 +372,7 @@ def test_g_step_foot_terms_equal(files, peer):
     """The two foot terms of their G step with --foot (``g_foot_contact_loss_v2``: sigmoid contact x ankle speed
     per frame; ``g_encourage_contact``) against modi's released forms (``foot_contact_speed_loss`` on
     ``codec.ankles``, ``foot_touch_loss``) and their weights, on their --foot data with contact channels
-    perturbed off the labels. (A --foot generator on this skeleton does not import: see the README.)"""
+    perturbed off the labels. (A --foot generator on this skeleton does not import: see docs/authors.md.)"""
     from modi.interop.released_files import load_released_npy
     from modi.models.modi import losses
     from modi.models.modi.config import TrainConfig

@@ -171,7 +171,7 @@ def test_a_planted_file_is_refused_unrun_by_every_reading_command(line, work, tm
     marker = tmp_path / "MARKER"
     evil = _plant(tmp_path / "shared" / "model.pt", marker)
     run = tmp_path / "shared" / "run"
-    _plant(run / "ganimator.ckpt", marker, outer={"format": "modi.models.ganimator/1"})
+    _plant(run / "ganimator.ckpt", marker, outer={"format": "modi.ganimator/1"})
     npy = tmp_path / "shared" / "w.npy"
     np.save(npy, np.array([_Payload(marker)], dtype=object), allow_pickle=True)
     argv = shlex.split(line.format(evil=evil, run=run, npy=npy, out=tmp_path / "out", **work))
@@ -254,7 +254,7 @@ def test_info_describes_a_ganimator_run_from_its_data(work, trained, capsys):
 
     d = _info(capsys, trained["gan"])
     joints = _bvh_joints(work["clip"])
-    assert d["kind"] == "GANimator checkpoint" and d["format"] == "modi.models.ganimator/1" and d["version"] == 1
+    assert d["kind"] == "GANimator checkpoint" and d["format"] == "modi.ganimator/1" and d["version"] == 1
     assert d["skeleton"]["names"] == joints and d["skeleton"]["root"] == joints[0]
     assert d["config"]["preset"] == "tiny" and d["config"]["iterations"] == 1 and not d["config"]["joint_reduction"]
     assert d["step"].startswith("fully trained") and d["data"].startswith("0000_walk (40 frames at 30 fps")
