@@ -235,10 +235,11 @@ class RawClip:
     fps: float
 
 
-def read_clip(path: str | Path) -> RawClip:
+def read_clip(path: str | Path, fold_root: bool = True) -> RawClip:
     """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET; other
     joints' position channels are not used, as in the authors' loader, except Bandai's pattern, see
-    :func:`modi.data.motion.fold_dummy_root`)."""
+    :func:`modi.data.motion.fold_dummy_root`). ``fold_root=False`` reads that pattern as the authors' loader did:
+    the static floor root's channels are the root track and its child stays at its OFFSET."""
     p = Path(path)
     if not p.is_file():
         raise UserError(f"BVH file not found: {p}")
@@ -254,7 +255,7 @@ def read_clip(path: str | Path) -> RawClip:
     trans = b.local_translations()
     skeleton = b.skeleton()
     scale = float(np.ptp(skeleton.rest_positions(), axis=0).max()) or 1.0
-    folded = fold_dummy_root(b.parents, trans, b.euler_degrees(), quats[0, 0], scale)
+    folded = fold_dummy_root(b.parents, trans, b.euler_degrees(), quats[0, 0], scale) if fold_root else None
     if folded is None:
         root = trans[:, 0].copy()
     else:  # Bandai's static joint_Root above an animated Hips: the pelvis motion goes into the root track
