@@ -23,6 +23,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from modi._version import __version__
 from modi.errors import UserError
 
 TRACEBACK_ENV = "MODI_TRACEBACK"
@@ -48,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="MoDi and GANimator motion synthesis: data tools, training, generation, evaluation.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=version_line(),
+                        help="print modi's version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=ModiArgumentParser)
     import modi.cli.commands as commands
 
@@ -94,7 +97,15 @@ def _remove_if_empty(root: Path) -> None:
         pass
 
 
+def version_line() -> str:
+    """What ``modi --version`` prints: the one version string (``modi/_version.py``)."""
+    return f"modi {__version__}"
+
+
 def _run(argv: list[str] | None) -> int:
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["--version"]:  # answered before torch is imported
+        print(version_line())
+        return 0
     import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
 
     parser = build_parser()

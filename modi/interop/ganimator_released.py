@@ -36,6 +36,7 @@ from modi.core.kinematics import forward_kinematics
 from modi.core.rotations import quat_apply, quat_mul
 from modi.core.skeleton import Skeleton, strip_namespace
 from modi.errors import CheckpointError, UserError
+from modi.interop.provenance import file_record, folder_record, record
 from modi.io.safe_load import load_data
 from modi.models.ganimator.config import GanimatorConfig
 from modi.models.ganimator.data import Sequence as Clip
@@ -110,8 +111,9 @@ def _typed(name: str, text: str) -> Any:
     return text
 
 
-def read_args(run: Path) -> dict[str, Any]:
-    """The options of their ``train.py`` from ``args.txt`` (its first line, as their loader reads it)."""
+def stated_args(run: Path) -> dict[str, Any]:
+    """The options ``args.txt`` states (its first line, as their loader reads it), typed as their parser types
+    them; their defaults are not added."""
     try:
         line = (run / ARGS_FILE).read_text(encoding="utf-8", errors="replace").splitlines()[:1]
     except OSError as exc:
@@ -120,7 +122,7 @@ def read_args(run: Path) -> dict[str, Any]:
         tokens = shlex.split(line[0]) if line else []
     except ValueError:
         tokens = line[0].split()
-    args = dict(_DEFAULTS)
+    args: dict[str, Any] = {}
     i = 0
     while i < len(tokens):
         tok = tokens[i]
@@ -136,6 +138,12 @@ def read_args(run: Path) -> dict[str, Any]:
             value = tokens[i + 1]
             i += 2
         args[name] = _typed(name, value)
+    return args
+
+
+def read_args(run: Path) -> dict[str, Any]:
+    """The options of their ``train.py``: ``args.txt`` over their defaults, checked for what modi imports."""
+    args = {**_DEFAULTS, **stated_args(run)}
     for name, want, what in _REQUIRED:
         if args[name] != want:
             raise UserError(f"{run}: trained with --{name}={args[name]}; modi imports released runs with {what} "
@@ -159,15 +167,23 @@ def _load(path: Path, what: str) -> Any:
     return load_data(path, what, hint="; a released GANimator file holds tensors only")
 
 
-def read_generators(run: Path) -> list[dict[str, Tensor]]:
-    """``gen000.pt``, ``gen001.pt``, ... (their loader also accepts ``gen0.pt``) as state dicts of tensors."""
+def generator_files(run: Path) -> list[Path]:
+    """``gen000.pt``, ``gen001.pt``, ... of the run (their loader also accepts ``gen0.pt``), coarsest first."""
     out = []
     for level in itertools.count():
         path = run / f"gen{level:03d}.pt"
         if not path.is_file():
             path = run / f"gen{level}.pt"
         if not path.is_file():
-            break
+            return out
+        out.append(path)
+    return out
+
+
+def read_generators(run: Path) -> list[dict[str, Tensor]]:
+    """``gen000.pt``, ``gen001.pt``, ... (their loader also accepts ``gen0.pt``) as state dicts of tensors."""
+    out = []
+    for path in generator_files(run):
         sd = _load(path, "released GANimator generator")
         if not isinstance(sd, dict) or not all(isinstance(v, Tensor) for v in sd.values()):
             raise UserError(f"{path}: not a generator state_dict (expected a dict of tensors)")
@@ -598,7 +614,7 @@ def config_for(args: dict, clip: Any, n_levels: int) -> Any:
     """modi's config for the released options (the released forms of every loss-level option)."""
     limit = int(args["num_stages_limit"])
     return GanimatorConfig(
-        fps=30.0, keep_joints=list(clip.skeleton.names), feet=[clip.skeleton.names[f] for f in clip.feet],
+        fps=clip.fps, keep_joints=list(clip.skeleton.names), feet=[clip.skeleton.names[f] for f in clip.feet],
         contacts=bool(clip.feet), contact_velocity=clip.contact_threshold / clip.size * (clip.fps / 30.0),
         contact_first_frame="zero", sixd="rows", coarse_ratio=_fraction(args["ratio"]),
         scale_factor=float(args["scaling_rate"]), max_levels=limit if limit != -1 else None,
@@ -671,7 +687,8 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     if len(lengths) != len(sds) or lengths[0] != r["z_star"].shape[-1]:
         raise UserError(f"{run}: {len(sds)} levels with a coarsest of {r['z_star'].shape[-1]} frames, but the BVH "
                         f"{r['bvh']} gives levels {lengths}; pass the BVH the model was trained on")
-    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"], raw)
+    notes: dict[str, Any] = {}
+    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"], raw, notes)
     cfg = config_for(args, clip, len(sds))
     got, _ = sequence_pyramid([clip], cfg)
     if got[0] != lengths:
@@ -688,11 +705,35 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     model.z_stars[0].data.copy_(to_modi_layout(r["z_star"].to(torch.float32), perm))
     model.amps = [list(r["amps"])]
     n_blocks = len(blocks_of(model.n_levels, cfg.group_size))
-    trainer.state.update(block=n_blocks, iteration=0, levels_done=model.n_levels, imported_from=str(run))
+    trainer.state.update(block=n_blocks, iteration=0, levels_done=model.n_levels,
+                         imported_from=provenance(r, clip, lengths, n_blocks, notes))
     trainer.save()
     return out
 
 
+def provenance(r: dict[str, Any], clip: Any, lengths: Sequence[int], n_blocks: int, notes: dict[str, Any]
+               ) -> dict[str, Any]:
+    """What the run folder and its BVH say (``imported_from`` of the modi run): their options as ``args.txt``
+    states them, their iterations (``--num_iters`` per block of levels; their ``train.py`` writes the generators
+    when a block is done), the clip as their loader read it (the rate its Frame Time states, their frame stride,
+    units, contact threshold and the labels the amplitudes settled) and every file's SHA-256."""
+    run, args, raw = r["run"], r["args"], r["raw"]
+    stride = released_stride(raw.fps)
+    files = [run / ARGS_FILE, *generator_files(run), run / "z_star.pt", run / "amps.pt"]
+    line = (run / ARGS_FILE).read_text(encoding="utf-8", errors="replace").splitlines()[:1]
+    data = {**file_record(r["bvh"]), "frame_time": 1.0 / raw.fps, "fps": raw.fps, "stride": stride,
+            "clip_fps": clip.fps, "frames": int(raw.rotations.shape[0]), "clip_frames": clip.n_frames,
+            "window": clip.n_frames, "pyramid": list(lengths), "joints": list(clip.skeleton.names),
+            "contacts": [clip.skeleton.names[f] for f in clip.feet], "floor_root": floor_root(raw),
+            **notes}
+    return record("ganimator-released", folder_record(run, files), iterations=int(args["num_iters"]) * n_blocks,
+                  iterations_from=f"from args.txt (--num_iters {int(args['num_iters'])} per block, {n_blocks} blocks; "
+                                  "their train.py writes the generators when a block is done)",
+                  args=stated_args(run), command=line[0] if line else "", data=data,
+                  seed=args.get("seed"))
+
+
 __all__ = ["import_checkpoint", "read_released", "find_run", "read_args", "read_generators", "entity_perm",
            "to_modi_layout", "to_released_layout", "entity_adjacency", "joint_subsets", "match_skeleton",
-           "build_clip", "match_clip", "released_stride", "generator_state", "discriminator_state", "config_for"]
+           "build_clip", "match_clip", "released_stride", "their_reading", "floor_root", "ambiguous_labels",
+           "settle_labels", "stated_args", "generator_files", "provenance", "generator_state", "discriminator_state", "config_for"]
