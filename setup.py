@@ -151,6 +151,10 @@ setup(
         "scikit-learn>=1.3",
     ],
     extras_require={"test": ["pytest>=7", "hypothesis>=6.80", "pytest-benchmark>=4", "expecttest"],
+                    # what the authors' released sources (../shared/peers) import when the tests and
+                    # benchmarks/peers run them, beyond install_requires (tqdm, matplotlib, scipy, scikit-learn,
+                    # tensorboard); without it those tests skip, naming the package
+                    "peers": ["pyyaml>=5.4", "networkx>=2.6"],
                     "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"]},
     entry_points={"console_scripts": ["modi=modi.cli:main"]},
     ext_modules=ext_modules,

@@ -29,6 +29,8 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import torch
 
+from benchmarks.peers import unavailable_reason
+
 REPO = Path(__file__).resolve().parents[2]
 PEER = REPO.parent / "shared" / "peers" / "ganimator"
 DATA = REPO.parent / "shared" / "data" / "bvh" / "ganimator"
@@ -65,21 +67,16 @@ class PeerUnavailable(RuntimeError):
     """The released sources or the BVH data are not beside the repository."""
 
 
-THIRD_PARTY = ("tqdm", "matplotlib", "torch.utils.tensorboard")  # what their train.py / models import
+# what their train.py / models import (import name -> pip name; setup.py's 'peers' extra)
+THIRD_PARTY = {"tqdm": "tqdm", "matplotlib": "matplotlib", "torch.utils.tensorboard": "tensorboard"}
 
 
 def require_peer() -> Path:
     if not (PEER / "models" / "gan1d.py").is_file():
         raise PeerUnavailable(f"the authors' GANimator sources are not at {PEER} (../shared/peers/ganimator)")
-    import importlib.util
-
-    for name in THIRD_PARTY:
-        try:
-            found = importlib.util.find_spec(name) is not None
-        except ImportError:
-            found = False
-        if not found:
-            raise PeerUnavailable(f"the authors' GANimator imports {name}, which is not installed")
+    why = unavailable_reason("GANimator", THIRD_PARTY)
+    if why is not None:
+        raise PeerUnavailable(why)
     return PEER
 
 
