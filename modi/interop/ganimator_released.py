@@ -99,8 +99,13 @@ def find_run(ckpt: str | Path) -> Path:
     return run
 
 
+# their other options (option.py) that are numbers, typed as their parser types them (the rest are text)
+_OTHER_TYPES: dict[str, Any] = {"debug": 0, "silent": 0, "no_gan": 0, "num_conditional_generator": 0, "lr_d": 0.0,
+                                "detach_label": 0, "use_sigmoid": 0, "save_freq": 0, "use_6d_fk": 0}
+
+
 def _typed(name: str, text: str) -> Any:
-    d = _DEFAULTS.get(name)
+    d = _DEFAULTS.get(name, _OTHER_TYPES.get(name))
     try:
         if isinstance(d, bool) or isinstance(d, int):
             return int(text)
