@@ -501,14 +501,16 @@ def match_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], lengths: Se
                 break
     if err > ACCEPT:
         e0, level, mine, c0 = tried[0][:4]
-        cause = (f"{n_near} contact labels lie within float32 rounding of the threshold, more than the "
-                 f"{MAX_FLIPS} searched; " if n_near > MAX_FLIPS else "")
+        if n_near > MAX_FLIPS:
+            cause = (f"{n_near} of its contact labels lie within float32 rounding of the threshold, more than the "
+                     f"{MAX_FLIPS} this import tries both ways, so their labels cannot be settled")
+        else:
+            cause = "the skeleton and length match, the motion is not the one this run was trained on"
         raise UserError(
             f"{bvh}: read as their loader reads it (root track from {raw.skeleton.names[0]}'s channels, joints at "
             f"their OFFSETs, units x{c0.scale:g}, contact threshold {c0.contact_threshold:g}), this BVH gives level "
             f"{level}'s noise amplitude {mine[level]:.6g} where amps.pt holds {amps[level]:.6g} (the noise "
-            f"amplitudes are off by {e0:.1%}): {cause}the skeleton and length match, the motion is not the one "
-            "this run was trained on")
+            f"amplitudes are off by {e0:.1%}): {cause}")
     if notes is not None:
         notes.update(scale=clip.scale, threshold=clip.contact_threshold, amplitude_error=err,
                      flipped_labels=[{"frame": t, "joint": clip.skeleton.names[clip.feet[k]]} for t, k in flips])
