@@ -151,7 +151,10 @@ setup(
         "scikit-learn>=1.3",
     ],
     extras_require={"test": ["pytest>=7", "hypothesis>=6.80", "pytest-benchmark>=4", "expecttest"],
-                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"]},
+                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"],
+                    # modi export onnx (onnx, onnxscript: torch.onnx.export(dynamo=True)) and running the models
+                    # (onnxruntime: modi.export.onnx_runner, the tests)
+                    "onnx": ["onnx>=1.17", "onnxscript>=0.5", "onnxruntime>=1.20"]},
     entry_points={"console_scripts": ["modi=modi.cli:main"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
