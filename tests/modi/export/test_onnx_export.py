@@ -116,6 +116,7 @@ def test_ganimator_onnx_equals_modi_for_several_lengths(gan):
     T = model.seqs[0].n_frames
     assert model.seqs[0].feet and side["feet"] == ["LeftToe", "RightToe"]
     rng = np.random.default_rng(0)
+    worst: dict[str, float] = {}
     for frames in (n_min, 37, T, 2 * T + 5):
         L0 = model.level_lengths(frames)[0]
         noise = rng.standard_normal((2, L0)).astype(np.float32)
@@ -124,6 +125,8 @@ def test_ganimator_onnx_equals_modi_for_several_lengths(gan):
         for k in ("rotations", "root_position", "contacts"):
             assert out[k].shape[:2] == (2, frames)
             assert close(out[k], ref[k]) < 1e-4, (frames, k, close(out[k], ref[k]))
+            worst[k] = max(worst.get(k, 0.0), close(out[k], ref[k]))
+    print(f"\nGANimator, frames {n_min}, 37, {T}, {2 * T + 5}: max |onnx - modi| / scale {worst}")
 
 
 def test_ganimator_sidecar_describes_the_rig(gan):
@@ -156,6 +159,7 @@ def test_numpy_runner_writes_modis_own_sample(gan):
     ours, theirs = positions(tmp / "onnx.bvh", tmp), positions(tmp / "own" / "sample.bvh", tmp)
     assert ours.shape == theirs.shape == (frames, 11, 3)
     assert close(ours, theirs) < 1e-4
+    print(f"\nGANimator BVH via the runner vs modi ganimator generate: positions {close(ours, theirs):.2e} of scale")
     assert bvh.load(str(tmp / "onnx.bvh")).names == bvh.load(str(tmp / "own" / "sample.bvh")).names
     assert np.load(tmp / "onnx_contacts.npy").shape == (frames, 2)
 
@@ -220,6 +224,7 @@ def test_conditional_run(gan, tmp_path):
     run = rx.Runner(tmp_path / "cond.onnx")
     scale = torch.ones(1, 6, 2, 1)
     scale[0, :3, 0] = model.seqs[0].scale
+    worst: dict[str, float] = {}
     for frames in (side["dims"]["frames"]["min"], 48, 90):
         traj = uncond.sample(frames, 2, generator=torch.Generator().manual_seed(frames))[:, :, model.cond_entities]
         noise = np.random.default_rng(frames).standard_normal((2, model.level_lengths(frames)[0])).astype(np.float32)
@@ -227,6 +232,8 @@ def test_conditional_run(gan, tmp_path):
         ref = reference_ganimator(model, noise, frames, traj)
         for k in ref:
             assert close(out[k], ref[k]) < 1e-4, (frames, k, close(out[k], ref[k]))
+            worst[k] = max(worst.get(k, 0.0), close(out[k], ref[k]))
+    print(f"\nGANimator conditional: max |onnx - modi| / scale {worst}")
     with pytest.raises(rx.ContractError, match="coarse_frames must be"):
         run(noise=noise, trajectory=(traj[..., :-7] / scale).numpy())
 
@@ -252,6 +259,7 @@ def test_modi_onnx_equals_modi(modi_ckpt):
     assert [i["name"] for i in side["inputs"]] == ["z", "psi", "noise"] and side["dims"]["frames"] == {"fixed": 64}
     model = load_generator(ckpt)
     g, codec, _ = model
+    worst: dict[str, float] = {}
     for psi, n in ((1.0, 3), (0.6, 1)):
         z, noise = latents_and_noise(g, list(range(n)), seed=5)
         x, _ = generate_tensors(ckpt, n, seed=5, psi=psi, model=model)
@@ -259,6 +267,8 @@ def test_modi_onnx_equals_modi(modi_ckpt):
         out = run(z=z.numpy(), psi=np.array([psi], np.float32), noise=torch.cat([m.flatten(1) for m in noise], 1).numpy())
         for k, ref in (("rotations", d["rotations"]), ("root_position", d["root"]), ("contacts", d["contacts"])):
             assert close(out[k], ref.numpy()) < 1e-4, (psi, k, close(out[k], ref.numpy()))
+            worst[k] = max(worst.get(k, 0.0), close(out[k], ref.numpy()))
+    print(f"\nMoDi (noise injection), psi 1 and 0.6: max |onnx - modi| / scale {worst}")
     with pytest.raises(rx.ContractError, match="values must be <= 2"):
         run(z=z.numpy(), psi=np.array([2.5], np.float32), noise=np.zeros((n, side["inputs"][2]["shape"][1]), np.float32))
     with pytest.raises(rx.ContractError, match="batch"):
@@ -278,6 +288,7 @@ def test_modi_runner_writes_modis_own_sample(modi_ckpt):
     assert r.returncode == 0, r.stderr
     ours, theirs = positions(tmp / "onnx.bvh", tmp), positions(tmp / "own" / "motion_0000.bvh", tmp)
     assert ours.shape == theirs.shape and close(ours, theirs) < 1e-4
+    print(f"\nMoDi BVH via the runner vs modi generate: positions {close(ours, theirs):.2e} of scale")
 
 
 # ------------------------------------------------------------------------------------------- refusals
