@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -191,6 +193,22 @@ def plain_torch_ops() -> Iterator[None]:
             os.environ["MODI_EXT_IMPL"] = before
 
 
+@contextlib.contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    """Silence what the exporter says that is not about the model: its optional torchvision operators, torch's own
+    deprecation notices, and its note that two inputs share the batch dimension (they do, on purpose)."""
+    log = logging.getLogger("torch.onnx")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
+            warnings.filterwarnings("ignore", message=".*shares the same shape constraints.*", category=UserWarning)
+            yield
+    finally:
+        log.setLevel(level)
+
+
 def _need_onnx() -> None:
     missing = []
     for name in ("onnx", "onnxscript"):
@@ -236,7 +254,7 @@ def _export(module: nn.Module, args: tuple, out: Path, input_names: list[str], d
     import onnx  # optional dependency (the 'onnx' extra)
 
     module.eval()
-    with plain_torch_ops(), torch.no_grad():
+    with plain_torch_ops(), torch.no_grad(), _quiet_exporter():
         prog = torch.onnx.export(module, args, dynamo=True, input_names=input_names,
                                  output_names=["rotations", "root_position", "contacts"], opset_version=opset,
                                  dynamic_shapes=dynamic, custom_translation_table=_translations(),

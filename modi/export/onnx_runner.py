@@ -141,9 +141,10 @@ def _shape_text(shape: list) -> str:
 
 
 def draw_inputs(side: dict, frames: int | None = None, batch: int = 1, seed: int = 0,
-                psi: float | None = None) -> dict[str, np.ndarray]:
+                psi: float | None = None, skip: tuple | list | set = ()) -> dict[str, np.ndarray]:
     """Inputs for ``batch`` motions: standard-normal noise / latents from NumPy's generator ``seed`` (not torch's:
-    the same seed gives other motions than ``modi``'s own sampler), ``frames`` frames where the length is free."""
+    the same seed gives other motions than ``modi``'s own sampler), ``frames`` frames where the length is free;
+    the inputs named in ``skip`` are left out (given by the caller)."""
     rng = np.random.default_rng(seed)
     fr = side["dims"].get("frames", {})
     if frames is None:
@@ -154,6 +155,8 @@ def draw_inputs(side: dict, frames: int | None = None, batch: int = 1, seed: int
             sizes[d] = dim_rule(side, d, frames)
     feeds: dict[str, np.ndarray] = {}
     for spec in side["inputs"]:
+        if spec["name"] in skip:
+            continue
         shape = [sizes.get(d, d) if isinstance(d, str) else d for d in spec["shape"]]
         if any(isinstance(d, str) for d in shape):
             raise ContractError(f"{spec['name']}: no default for dimensions {shape}; pass the input")
@@ -173,9 +176,13 @@ class Runner:
     """An onnxruntime session of ``model.onnx`` with its sidecar; calls check every input first."""
 
     def __init__(self, model: str | Path, providers: list[str] | None = None) -> None:
-        import onnxruntime as ort  # the one optional dependency: imported only when a model is run
-
+        try:
+            import onnxruntime as ort  # the one optional dependency: imported only when a model is run
+        except ImportError:
+            raise ImportError("running an ONNX model needs onnxruntime: pip install onnxruntime") from None
         self.path = Path(model)
+        if not self.path.is_file():
+            raise ContractError(f"{model}: no such model file")
         self.sidecar = read_sidecar(model)
         self.session = ort.InferenceSession(str(self.path), providers=providers or ["CPUExecutionProvider"])
         self.output_names = [o.name for o in self.session.get_outputs()]
@@ -325,10 +332,9 @@ def main(argv: list[str] | None = None) -> int:
         if frames is None:
             frames = frames_of(side, given) or _frames_from_given(side, given)
         batch = next((int(np.shape(v)[0]) for n, v in given.items() if _first_dim(side, n) == "batch"), args.batch)
-        feeds = {**draw_inputs(side, frames, batch, args.seed, args.psi), **given} if \
-            len(given) < len(side["inputs"]) else given
+        feeds = {**draw_inputs(side, frames, batch, args.seed, args.psi, skip=set(given)), **given}
         out = runner(**feeds)
-    except ContractError as exc:
+    except (ContractError, ImportError, OSError) as exc:
         print(f"onnx_runner: {exc}", file=sys.stderr)
         return 2
     n = out["rotations"].shape[0]
