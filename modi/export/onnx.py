@@ -340,7 +340,8 @@ def export_ganimator(run: str | Path, out: str | Path, *, frames: int | None = N
         names = ["noise", "trajectory"]
         dynamic = {"noise": noise_dims, "frames_or_trajectory": {0: batch} if frames is not None else
                    {0: batch, 3: torch.export.Dim("frames", min=n_min)}}
-        inputs.append({"name": "trajectory", "dtype": "float32", "shape": ["batch", K, 2, "frames"], "finite": True,
+        inputs.append({"name": "trajectory", "dtype": "float32", "shape": ["batch", K, 2, "frames" if frames is None
+                                                                            else N], "finite": True,
                        "values": f"the root trajectory the motion follows, as the run's features: [:, :, 0, t] = "
                                  f"[dx, y, dz, 0, 0, 0] (root displacement from frame t-1 to t in x and z, frame 0: "
                                  f"the displacement to frame 1; root height y; skeleton.unit), [:, :, 1, t] = the "
