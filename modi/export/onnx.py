@@ -134,7 +134,7 @@ def ganimator_min_frames(model: GanimatorModel) -> int:
     n = 1
     while True:
         ls = [-(-n * a // b) for a in lengths]
-        if min(ls) > h and all(L < n for L in ls[:-1]):
+        if min(ls) > h and (not model.cond_entities or all(L < n for L in ls[:-1])):
             return n
         n += 1
 
