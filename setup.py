@@ -155,7 +155,10 @@ setup(
                     # benchmarks/peers run them, beyond install_requires (tqdm, matplotlib, scipy, scikit-learn,
                     # tensorboard); without it those tests skip, naming the package
                     "peers": ["pyyaml>=5.4", "networkx>=2.6"],
-                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"]},
+                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"],
+                    # modi export onnx (onnx, onnxscript: torch.onnx.export(dynamo=True)) and running the models
+                    # (onnxruntime: modi.export.onnx_runner, the tests)
+                    "onnx": ["onnx>=1.17", "onnxscript>=0.5", "onnxruntime>=1.20"]},
     entry_points={"console_scripts": ["modi=modi.cli:main"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,
