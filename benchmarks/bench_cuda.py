@@ -40,9 +40,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from modi_ext import dense, ops, reference  # noqa: E402
+from modi_ext.skeletal import dense, ops, reference  # noqa: E402
 from modi_ext.fk import fk_reference  # noqa: E402
-from modi_ext.topology_tensors import csr_from_lists  # noqa: E402
+from modi_ext.topology import csr_from_lists  # noqa: E402
 
 BATCHES = (16, 256)
 FK_B, FK_T = 4096, 64

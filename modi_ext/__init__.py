@@ -9,12 +9,12 @@ Imported before torch, it first chooses how long idle OpenMP threads spin (``mod
 processes keep a CPU busy, where a long spin stalls every parallel region); ``omp_wait_policy()`` says which setting
 this process runs with.
 """
-from modi_ext import omp_wait as _omp_wait
+from modi_ext.runtime import omp_wait as _omp_wait
 
 _omp_wait.apply()  # before anything imports torch
 
-from modi_ext._loader import HAS_EXT, LOAD_ERROR, impl_choice
-from modi_ext.dispatch import dispatch_report
+from modi_ext.runtime.loader import HAS_EXT, LOAD_ERROR, impl_choice
+from modi_ext.runtime.dispatch import dispatch_report
 
 __all__ = ["HAS_EXT", "LOAD_ERROR", "impl_choice", "dispatch_report", "omp_wait_policy"]
 

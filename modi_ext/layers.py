@@ -14,10 +14,10 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from modi_ext import ops
 from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
-from modi_ext.reference import to_dense
-from modi_ext.topology_tensors import SparseTopology, csr_from_lists
+from modi_ext.skeletal import ops
+from modi_ext.skeletal.reference import to_dense
+from modi_ext.topology import SparseTopology, csr_from_lists
 
 __all__ = ["SkeletalConv", "SkeletalDownsample", "SkeletalUpsample", "ModulatedSkeletalConv", "EqualLinear",
            "ForwardKinematics"]

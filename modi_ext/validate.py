@@ -10,7 +10,7 @@ ran and passed; a skipped step makes it ``incomplete`` (exit 1) unless ``--allow
 
 1. ``dispatch``   first-use self-check of the kernels in fp32/bf16/fp16 and ``auto``'s ext-vs-dense choice on MoDi's
                   finest-level shapes (``modi_ext.dispatch_report()``);
-2. ``cuda_tests`` ``pytest tests/test_cuda_ops.py`` (every op against the float64 reference, gradcheck, opcheck, half
+2. ``cuda_tests`` ``pytest tests/modi_ext/test_cuda_ops.py`` (every op against the float64 reference, gradcheck, opcheck, half
                   precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated`` suite;
 3. ``sanitizer_*`` ``compute-sanitizer`` memcheck / racecheck / synccheck / initcheck over one small call of every
                   kernel, forward and backward, filtered to modi_ext's kernels, with torch's caching allocator off
@@ -100,7 +100,7 @@ def find_sanitizer(env: dict | None = None, site_dirs: list[Path] | None = None)
 def plan(work: Path, emulated: bool = False) -> list[Step]:
     """The steps in order, with their timeouts (seconds) -- together within the default budget."""
     py = sys.executable
-    tests = ROOT / "tests" / "test_cuda_ops.py"
+    tests = ROOT / "tests" / "modi_ext" / "test_cuda_ops.py"
     bench = ROOT / "benchmarks"
     steps = [
         Step("dispatch", [py, "-m", "modi_ext.validate", "--payload", "dispatch", "--out", str(work / "dispatch.json")],
@@ -108,10 +108,10 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
         Step("cuda_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(tests)], 110, needs=[tests]),
     ]
     if emulated:  # the AddressSanitizer rebuild of the emulated module is CPU CI's (minutes of compiling)
+        ext_tests = ROOT / "tests" / "modi_ext"
         steps.append(Step("emulated_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m",
-                                             "cuda_emulated", "--ignore", str(ROOT / "tests" /
-                                                                               "test_cuda_emulated_asan.py"),
-                                             str(ROOT / "tests")], 120, needs=[ROOT / "tests"]))
+                                             "cuda_emulated", "--ignore", str(ext_tests / "test_cuda_emulated_asan.py"),
+                                             str(ext_tests)], 120, needs=[ext_tests]))
     for tool in SANITIZER_TOOLS:
         extra = ["--leak-check", "full"] if tool == "memcheck" else []
         steps.append(Step(f"sanitizer_{tool}", [SANITIZER, "--tool", tool, *extra, "--kernel-name", KERNEL_FILTER,
@@ -191,7 +191,7 @@ def _payload_kernels(device: str) -> dict:
     watches.  ``errors`` names any case that disagreed with the oracle (the step then fails)."""
     import torch
 
-    from modi_ext import kernels, payload
+    from modi_ext.runtime import kernels, payload
 
     cuda = device.startswith("cuda")
     res = payload.run(kernels.KERNELS, device, payload.DTYPES if cuda else (torch.float32, torch.float64))
@@ -205,7 +205,7 @@ def _payload_dispatch(device: str) -> dict:
     import torch
 
     import modi_ext
-    from modi_ext import dispatch
+    from modi_ext.runtime import dispatch
     from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
 
     os.environ["MODI_EXT_IMPL"] = "auto"
@@ -305,7 +305,7 @@ def _cuda_kernels_run() -> bool:
     another arch fails with 'no kernel image is available')."""
     import torch
 
-    from modi_ext import dispatch
+    from modi_ext.runtime import dispatch
 
     if not (dispatch.kernels_built("cuda") and dispatch.kernels_built("cuda", "fk")):
         return False

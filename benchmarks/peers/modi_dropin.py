@@ -27,9 +27,9 @@ import torch
 import torch.nn.functional as F
 
 from modi.interop.modi_released import MaskViolation, check_masks
-from modi_ext import ops
-from modi_ext.reference import from_dense, to_dense
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.skeletal import ops
+from modi_ext.skeletal.reference import from_dense, to_dense
+from modi_ext.topology import csr_from_lists
 
 SUPPORTED_TRAITS = ("SkeletonAwareFastConvTraits",)
 

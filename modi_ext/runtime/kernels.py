@@ -18,7 +18,7 @@ from typing import Callable
 
 import torch
 
-from modi_ext._loader import HAS_EXT
+from modi_ext.runtime.loader import HAS_EXT
 
 __all__ = ["LIB", "FAMILY_OPS", "KERNELS", "kernel_table", "registered", "kernels_built", "device_key"]
 

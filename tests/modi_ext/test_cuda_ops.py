@@ -5,8 +5,8 @@ The oracle is always the pure-torch reference evaluated in float64 on the CPU fr
 so nothing here compares the kernels with themselves.  The whole module is skipped, with the reason, on machines
 without a CUDA device or without the CUDA part of the extension.
 
-    pytest tests/test_cuda_ops.py -q                                   # on a GPU machine
-    compute-sanitizer --tool memcheck python -m pytest tests/test_cuda_ops.py -q -k "not subprocess"
+    pytest tests/modi_ext/test_cuda_ops.py -q                                   # on a GPU machine
+    compute-sanitizer --tool memcheck python -m pytest tests/modi_ext/test_cuda_ops.py -q -k "not subprocess"
 """
 from __future__ import annotations
 
@@ -19,9 +19,11 @@ import textwrap
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, kernels, ops, payload, reference
+from modi_ext import HAS_EXT
+from modi_ext.runtime import kernels, payload
+from modi_ext.skeletal import ops, reference
 from modi_ext.fk import fk, fk_reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.topology import csr_from_lists
 
 
 def _has_cuda_kernels() -> bool:
@@ -414,7 +416,7 @@ def _run_subprocess(code: str) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize("dtype", payload.DTYPES, ids=str)
 def test_shared_payload_matches_the_reference(dtype):
     """modi_ext.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
-    tests/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
+    tests/modi_ext/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
     res = payload.run(kernels.KERNELS, DEV, (dtype,))
     assert res["ran"] and not res["errors"], res["errors"]
 
@@ -635,7 +637,7 @@ def test_public_ops_validate_the_csr_on_the_host():
 
 def test_auto_dispatch_self_checks_and_times_on_cuda(monkeypatch):
     import modi_ext
-    from modi_ext import dispatch
+    from modi_ext.runtime import dispatch
 
     monkeypatch.setenv("MODI_EXT_IMPL", "auto")
     dispatch.reset()

@@ -9,7 +9,7 @@ trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / c
 and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
 plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
 ops hand to the kernels (``modi_ext.demod``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
-on the CPU emulator (``tests/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
+on the CPU emulator (``tests/modi_ext/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
 
 It calls the raw kernels of a table (``modi_ext.kernels``), not the autograd ops, so it imports nothing above it.
 """
@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import torch
 
-from modi_ext import demod, kernels, payload
+from modi_ext.demod import ops as demod
+from modi_ext.runtime import kernels, payload
 
 TOL = payload.TOL
 

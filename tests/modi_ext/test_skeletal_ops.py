@@ -7,9 +7,10 @@ import random
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, ops
-from modi_ext import reference as R
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext import HAS_EXT
+from modi_ext.skeletal import ops
+from modi_ext.skeletal import reference as R
+from modi_ext.topology import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 KINDS = ("conv", "down", "up")
@@ -183,7 +184,7 @@ def test_demod_scale_matches_per_sample_weights():
 def test_square_segment_sum_matches_autograd_of_the_plain_form(taps):
     """The demodulation's weight term (a Function with a hand-written backward) against ``w.pow(2).sum(-1)``
     segment-summed by autograd: values, gradients, and second-order gradients, with an empty segment included."""
-    from modi_ext.dense import segment_sum, square_segment_sum
+    from modi_ext.skeletal.dense import segment_sum, square_segment_sum
 
     g = torch.Generator().manual_seed(taps)
     n_seg, nnz = 6, 11

@@ -20,9 +20,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from modi_ext import dispatch
-from modi_ext._loader import HAS_EXT, requested_impl
-from modi_ext.reference import fk_reference  # noqa: F401  (re-exported: the oracle lives with the others)
+from modi_ext.runtime import dispatch
+from modi_ext.runtime.loader import HAS_EXT, requested_impl
+from modi_ext.skeletal.reference import fk_reference  # noqa: F401  (re-exported: the oracle lives with the others)
 
 __all__ = ["fk", "fk_reference", "ForwardKinematics", "check_parents"]
 

@@ -25,10 +25,11 @@ import weakref
 
 import torch
 
-from modi_ext import dense, dispatch, eager, reference
-from modi_ext._loader import HAS_EXT
-from modi_ext.demod import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
-from modi_ext.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
+from modi_ext.demod.ops import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
+from modi_ext.runtime import dispatch, eager
+from modi_ext.runtime.loader import HAS_EXT
+from modi_ext.skeletal import dense, reference
+from modi_ext.skeletal.reference import from_dense, to_dense  # noqa: F401  (re-exported: compact <-> dense weights)
 
 __all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_dense", "demod_scale", "validate_csr"]
 
@@ -407,6 +408,6 @@ def _register_ext() -> None:
 
 
 if HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_conv"):
-    from modi_ext import gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
+    from modi_ext.skeletal import autograd as gradfix  # registers the differentiable backward ops (needs the C++ schemas loaded)
 
     _register_ext()

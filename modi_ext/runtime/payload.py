@@ -1,7 +1,7 @@
 """One shape list that launches every CUDA kernel instantiation, with its float64 oracle.
 
-Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/test_cuda_ops.py``), the
-first-use self-check (``modi_ext.selfcheck``) and the CPU proof of coverage (``tests/test_cuda_emulated.py`` runs it
+Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/test_cuda_ops.py``), the
+first-use self-check (``modi_ext.selfcheck``) and the CPU proof of coverage (``tests/modi_ext/test_cuda_emulated.py`` runs it
 on the emulated kernels and compares the instantiations launched with all the emulator registered).
 
 What each case reaches, per dtype (the kernels' template arguments are the dtype, the tile height BM and the
@@ -28,8 +28,8 @@ from typing import Callable, Mapping
 
 import torch
 
-from modi_ext import reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.skeletal import reference
+from modi_ext.topology import csr_from_lists
 
 __all__ = ["SkeletalCase", "FkCase", "SKELETAL_CASES", "FK_PLANS", "fk_cases", "DTYPES", "TOL", "run_case",
            "run", "fk_plan"]

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import torch
 
-from modi_ext import reference
-from modi_ext.topology_tensors import pair_entity
+from modi_ext.skeletal import reference
+from modi_ext.topology import pair_entity
 
 __all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "demod_scale", "segment_sum"]
 

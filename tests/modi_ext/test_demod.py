@@ -9,7 +9,9 @@ import random
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, demod, dense, ops
+from modi_ext import HAS_EXT
+from modi_ext.demod import ops as demod
+from modi_ext.skeletal import dense, ops
 
 from test_skeletal_ops import KINDS, make_case
 

@@ -26,7 +26,7 @@ import pytest
 
 pytestmark = pytest.mark.cuda_emulated
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CSRC = REPO / "csrc"
 SOURCES = ("skeletal_emu.cpp", "fk_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")
 NAME, LIB = "_C_emu_asan", "modi_ext_emu_asan"
@@ -85,7 +85,7 @@ RUNNER = textwrap.dedent("""
     spec = importlib.util.spec_from_file_location("{name}", path)
     emu = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(emu)
-    from modi_ext import kernels, payload
+    from modi_ext.runtime import kernels, payload
     emu.set_injected_defect(defect)
     table = kernels.kernel_table(emu.LIBRARY)
     ran, errors = [], {{}}

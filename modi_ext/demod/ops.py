@@ -15,9 +15,10 @@ import os
 
 import torch
 
-from modi_ext import dense, eager, reference
-from modi_ext.eager import needed
-from modi_ext._loader import HAS_EXT
+from modi_ext.runtime import eager
+from modi_ext.runtime.eager import needed
+from modi_ext.runtime.loader import HAS_EXT
+from modi_ext.skeletal import dense, reference
 
 __all__ = ["demod_scale", "kernel_available"]
 

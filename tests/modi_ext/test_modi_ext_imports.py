@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-PKG = Path(__file__).resolve().parents[1] / "modi_ext"
+PKG = Path(__file__).resolve().parents[2] / "modi_ext"
 NAME = "modi_ext"
 
 

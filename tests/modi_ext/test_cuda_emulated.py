@@ -10,7 +10,7 @@ What this proves without a GPU: the kernels' index math, padding/blur adjoints, 
 barrier placement and the host code's launch geometry; that the shared payload (modi_ext.payload: validate's
 sanitizer steps, the GPU tests and the self-check) launches every instantiation the emulator registered; and that
 injected defects are caught -- through NaN poison (a dropped barrier, an off-by-one) and through the tolerance alone
-(a finite wrong scale).  Global memory bounds: tests/test_cuda_emulated_asan.py.  What it does not: real concurrency
+(a finite wrong scale).  Global memory bounds: tests/modi_ext/test_cuda_emulated_asan.py.  What it does not: real concurrency
 (memory-model races between warps that happen to be ordered here), speed, register/occupancy limits.
 
 Tolerances, relative to the largest reference magnitude: fp64 1e-9, fp32 5e-5, fp16 5e-3, bf16 3e-2 (inputs are
@@ -31,9 +31,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from modi_ext import reference
+from modi_ext.skeletal import reference
 from modi_ext.fk import fk_reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.topology import csr_from_lists
 
 try:
     from modi_ext import _C_emu as EMU
@@ -44,7 +44,7 @@ except ImportError as exc:  # a build problem must fail the suite, not skip it
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SEEDS = (0, 0x5EED)  # schedule seeds: index order, then a permutation of threads within phases and of blocks
 TOL = {torch.float64: 1e-9, torch.float32: 5e-5, torch.float16: 5e-3, torch.bfloat16: 3e-2}
 DTYPES = (torch.float64, torch.float32, torch.float16, torch.bfloat16)
@@ -462,7 +462,7 @@ def test_injected_finite_wrong_value_is_caught_by_the_tolerance():
     """wrong_scale (a run-time defect): style_finish_kernel scales the style gradient by 1 + 2^-9.  Every value stays
     finite -- no NaN poison to trip over -- so only the tolerance against the float64 reference can see it: the
     suite's check does, and so does the first-use self-check (which then refuses the kernels)."""
-    from modi_ext import selfcheck
+    from modi_ext.runtime import selfcheck
 
     p = Problem("conv", "style", "reflect", U=3, seed=4, B=2, cin=5, cout=6, T=40)
     check_problem(p)  # the clean kernels pass the same case
@@ -583,7 +583,7 @@ def test_the_emulator_registers_every_instantiation():
 def test_the_shared_payload_launches_every_instantiation():
     """modi_ext.payload (what validate's sanitizer steps, the GPU tests and the self-check run) launches every
     kernel instantiation the emulator registered, in fp32/fp64/fp16/bf16, and matches the float64 oracle."""
-    from modi_ext import kernels, payload
+    from modi_ext.runtime import kernels, payload
 
     before = EMU.launch_counts()
     res = payload.run(kernels.kernel_table("modi_ext_emu"), "cpu", payload.DTYPES)
@@ -600,7 +600,7 @@ def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
     kernels: it passes, and it launched all 20 instantiations of its dtype and the topology kernel -- the 64-row
     tiles, split-K and FK offsets gradients on every plan that training runs included.  Its first-use time on this
     CPU is printed (-s), not asserted (the machine may be shared)."""
-    from modi_ext import selfcheck
+    from modi_ext.runtime import selfcheck
 
     before = EMU.launch_counts()
     t0 = time.perf_counter()

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import torch
 
-from modi_ext import eager
-from modi_ext.eager import needed
+from modi_ext.runtime import eager
+from modi_ext.runtime.eager import needed
 
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2
 

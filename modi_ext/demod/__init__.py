@@ -1,0 +1,1 @@
+"""The demodulation coefficients (filled in below)."""

@@ -1,0 +1,1 @@
+"""How a call finds its path and checks it (filled in below)."""

@@ -1,0 +1,1 @@
+"""The skeletal ops (filled in below)."""
