@@ -13,8 +13,12 @@ from modi_ext.runtime import omp_wait as _omp_wait
 
 _omp_wait.apply()  # before anything imports torch
 
-from modi_ext.runtime.loader import HAS_EXT, LOAD_ERROR, impl_choice
+from modi_ext.runtime import dispatch as _dispatch
+from modi_ext.runtime import selfcheck as _selfcheck
 from modi_ext.runtime.dispatch import dispatch_report
+from modi_ext.runtime.loader import HAS_EXT, LOAD_ERROR, impl_choice
+
+_dispatch.SELFCHECK = _selfcheck.run  # dispatch checks the kernels on first use with it (see dispatch.SELFCHECK)
 
 __all__ = ["HAS_EXT", "LOAD_ERROR", "impl_choice", "dispatch_report", "omp_wait_policy"]
 

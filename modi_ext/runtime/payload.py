@@ -28,6 +28,8 @@ from typing import Callable, Mapping
 
 import torch
 
+from modi_ext.demod.reference import DEMOD_EPS
+from modi_ext.fk.reference import fk_reference
 from modi_ext.skeletal import reference
 from modi_ext.topology import csr_from_lists
 
@@ -150,7 +152,7 @@ def skeletal_inputs(case: SkeletalCase, dtype: torch.dtype, seed: int = 1234) ->
         a = torch.einsum("bi,iocfu->bof", s.pow(2), dense.pow(2))
     else:  # dense (Co, Ci, Eo, Ei, U)
         a = torch.einsum("bi,oijnu->boj", s.pow(2), dense.pow(2))
-    d = torch.rsqrt(a + reference.DEMOD_EPS).to(dtype).double()
+    d = torch.rsqrt(a + DEMOD_EPS).to(dtype).double()
     gy = _rnd(g, dtype, case.B, case.cout, n_out, t_out)
     return dict(x=x, w=w, b=b, s=s, d=d, gy=gy, index=topo.index, offsets=topo.offsets, n_out=n_out)
 
@@ -183,7 +185,7 @@ def fk_inputs(case: FkCase, dtype: torch.dtype, seed: int = 99) -> dict:
 
 def fk_oracle(p: dict) -> tuple[tuple, tuple]:
     q, off, root = (p[k].clone().requires_grad_() for k in ("q", "off", "root"))
-    pos, rot = reference.fk_reference(q, off, p["parents"], root, return_rotations=True)
+    pos, rot = fk_reference(q, off, p["parents"], root, return_rotations=True)
     grads = torch.autograd.grad([pos, rot], [q, root, off], [p["gp"], p["gg"]])
     return (pos.detach(), rot.detach()), tuple(gr.detach() for gr in grads)
 

@@ -31,8 +31,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from modi_ext.skeletal import reference
+from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk import fk_reference
+from modi_ext.skeletal import reference
 from modi_ext.topology import csr_from_lists
 
 try:
@@ -181,7 +182,7 @@ class Problem:
         else:  # dense (Co, Ci, Eo, Ei, U)
             a = torch.einsum("bi,oijnu->boj", s.pow(2), dense.pow(2))
         a = a.expand(self.x.shape[0], -1, -1)
-        return torch.rsqrt(a + reference.DEMOD_EPS)
+        return torch.rsqrt(a + DEMOD_EPS)
 
     def ref(self, x, w, b, s, d):
         """y = d * A_W(x * s) + b, float64 (d and s independent inputs, as the kernels take them)."""

@@ -358,7 +358,7 @@ def test_opcheck(kind, requires_grad):
 
 def test_backward_is_deterministic():
     # No atomics anywhere: two backward passes give bit-identical gradients.  (The demodulation sums per output
-    # entity are a one-hot matmul, modi_ext.dense.segment_sum; they used index_add, whose CUDA atomics made this
+    # entity are a one-hot matmul, modi_ext.demod.dense.segment_sum; they used index_add, whose CUDA atomics made this
     # premise false.)
     for kind in KINDS:
         c = Case(kind, seed=9, mod="style_demod", B=16, T=32, cin=32, cout=32, n_ent=20)

@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from modi_ext import HAS_EXT
+from modi_ext.demod import dense
 from modi_ext.demod import ops as demod
-from modi_ext.skeletal import dense, ops
+from modi_ext.skeletal import ops
 
 from test_skeletal_ops import KINDS, make_case
 

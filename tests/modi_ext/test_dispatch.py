@@ -11,10 +11,11 @@ import torch
 
 import modi_ext
 from modi_ext import HAS_EXT
-from modi_ext.runtime import dispatch, selfcheck
-from modi_ext.skeletal import dense, ops, reference
+from modi_ext.demod.reference import demod_coefficients
 from modi_ext.fk import fk, fk_reference
 from modi_ext.layers import ModulatedSkeletalConv
+from modi_ext.runtime import dispatch, selfcheck
+from modi_ext.skeletal import checks, dense, ops, reference
 from modi_ext.topology import csr_from_lists
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -310,7 +311,7 @@ def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch):
 
 def test_one_selfcheck_key_per_device(monkeypatch):
     """'cuda' and 'cuda:0' (the current device) are one cache entry; validate and routing share it."""
-    from modi_ext.runtime import kernels, selfcheck
+    from modi_ext.runtime import kernels
 
     calls = []
 
@@ -318,7 +319,7 @@ def test_one_selfcheck_key_per_device(monkeypatch):
         calls.append((device, dtype))
         return {"ok": True, "errors": {}, "max_error": {}}
 
-    monkeypatch.setattr(selfcheck, "run", fake_run)
+    monkeypatch.setattr(dispatch, "SELFCHECK", fake_run)
     index = torch.cuda.current_device() if torch.cuda.is_available() else 0
     assert kernels.device_key("cuda") == kernels.device_key(f"cuda:{index}") == f"cuda:{index}"
     assert kernels.device_key(torch.device("cpu")) == "cpu"
@@ -530,8 +531,8 @@ def test_malformed_csr_is_a_clear_error(monkeypatch, mutate, match, impl):
 
 def test_csr_validation_is_cached_per_index_tensor(monkeypatch):
     seen = []
-    real = ops._check_csr_values
-    monkeypatch.setattr(ops, "_check_csr_values", lambda *a: seen.append(1) or real(*a))
+    real = checks._check_csr_values
+    monkeypatch.setattr(checks, "_check_csr_values", lambda *a: seen.append(1) or real(*a))
     p = problem("conv")
     idx, off = p["idx"].clone(), p["off"].clone()
     p["idx"], p["off"] = idx, off
@@ -566,7 +567,7 @@ def test_demod_sums_are_deterministic_and_unchanged(monkeypatch, up):
         dw = reference.to_dense(w, idx, off, 5)  # (Ci, Co, Ec, Ef, U)
         want = torch.rsqrt((dw.unsqueeze(0) * s.view(2, -1, 1, 1, 1, 1)).pow(2).sum((1, 3, 5)) + 1e-8)
     else:
-        want = reference.demod_coefficients(reference.to_dense(w, idx, off, 5), s)
+        want = demod_coefficients(reference.to_dense(w, idx, off, 5), s)
     torch.testing.assert_close(d, want, rtol=1e-12, atol=1e-12)
 
 
