@@ -59,7 +59,7 @@ def csr_from_lists(lists: Sequence[Sequence[int]], n_in: int | None = None, *,
         for n in row:
             if isinstance(n, bool) or not isinstance(n, int):
                 try:
-                    import numpy as np  # ints from numpy arrays are fine
+                    import numpy as np  # lazy: numpy is an optional dependency; ints from numpy arrays are fine
                     if isinstance(n, np.integer):
                         n = int(n)
                     else:

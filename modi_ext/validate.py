@@ -34,12 +34,19 @@ import os
 import re
 import shutil
 import signal
+import site
 import subprocess
 import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import torch
+
+import modi_ext
+from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
+from modi_ext.runtime import dispatch, kernels, payload
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_BUDGET_S = 600.0  # the whole command: ten minutes on one H100/H200
@@ -77,8 +84,6 @@ def sanitizer_dirs(env: dict | None = None, site_dirs: list[Path] | None = None)
             dirs += [Path(env[var]) / "bin", Path(env[var]) / "compute-sanitizer"]
     dirs.append(Path("/usr/local/cuda/bin"))
     if site_dirs is None:
-        import site
-
         site_dirs = [Path(p) for p in site.getsitepackages() + [site.getusersitepackages()]]
     for sp in site_dirs:
         nv = sp / "nvidia"
@@ -189,10 +194,6 @@ def _payload_kernels(device: str) -> dict:
     """The shared payload (``modi_ext.payload``): every kernel instantiation, forward and backward with every
     gradient, in every dtype the device's kernels take, against the float64 oracle -- what compute-sanitizer
     watches.  ``errors`` names any case that disagreed with the oracle (the step then fails)."""
-    import torch
-
-    from modi_ext.runtime import kernels, payload
-
     cuda = device.startswith("cuda")
     res = payload.run(kernels.KERNELS, device, payload.DTYPES if cuda else (torch.float32, torch.float64))
     if cuda:
@@ -202,11 +203,7 @@ def _payload_kernels(device: str) -> dict:
 
 def _payload_dispatch(device: str) -> dict:
     """Self-check per dtype and auto's choice on MoDi's finest level (batch 16, 32 channels, 64 frames)."""
-    import torch
 
-    import modi_ext
-    from modi_ext.runtime import dispatch
-    from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
 
     os.environ["MODI_EXT_IMPL"] = "auto"
     nb = [[m for m in (j - 1, j, j + 1) if 0 <= m < 25] for j in range(25)]
@@ -253,8 +250,6 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def no_gpu_message() -> str | None:
     """Why no GPU can be validated here, or None when torch sees one."""
-    import torch
-
     if torch.cuda.is_available():
         return None
     build = f"a CUDA {torch.version.cuda} build" if torch.version.cuda else "a CPU-only build"
@@ -303,10 +298,6 @@ def preflight_message(gpu_visible: bool, torch_cuda: str | None, torch_version: 
 def _cuda_kernels_run() -> bool:
     """Whether the built extension registered CUDA kernels and one of them runs on this GPU's arch (a build for
     another arch fails with 'no kernel image is available')."""
-    import torch
-
-    from modi_ext.runtime import dispatch
-
     if not (dispatch.kernels_built("cuda") and dispatch.kernels_built("cuda", "fk")):
         return False
     saved = os.environ.get("MODI_EXT_IMPL")
@@ -374,12 +365,10 @@ def _kernels_run_in(lib: Path, work: Path, timeout_s: float) -> bool:
 
 def preflight_facts() -> dict:
     """What the preflight decides on: a visible GPU, torch's CUDA version, runnable CUDA kernels, nvcc's version."""
-    import torch
-
     gpu = torch.cuda.is_available()
-    kernels = gpu and torch.version.cuda is not None and _cuda_kernels_run()
+    cuda_kernels = gpu and torch.version.cuda is not None and _cuda_kernels_run()
     return dict(gpu_visible=gpu, torch_cuda=torch.version.cuda, torch_version=torch.__version__,
-                cuda_kernels=kernels, nvcc=nvcc_version() if torch.version.cuda else None)
+                cuda_kernels=cuda_kernels, nvcc=nvcc_version() if torch.version.cuda else None)
 
 
 def preflight() -> str | None:
@@ -463,8 +452,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _validate(steps: list[Step], args: argparse.Namespace, lib: Path | None = None, built: dict | None = None,
               t_start: float | None = None, work: Path | None = None) -> int:
-    import torch
-
     p = torch.cuda.get_device_properties(0)
     path = args.json or ROOT / "benchmarks" / "results" / f"cuda_{gpu_slug(p.name)}.json"
     report = {"gpu": p.name, "sms": p.multi_processor_count, "memory_gib": round(p.total_memory / 2**30, 1),
