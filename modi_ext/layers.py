@@ -1,4 +1,4 @@
-"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.ops``.
+"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.skeletal.ops``.
 
 Topology comes in as plain lists and is turned into CSR buffers (not saved in ``state_dict``: the topology is a
 constructor argument).  Weights are stored compactly, one ``(Cout, Cin, U)`` block per (output entity, input entity)

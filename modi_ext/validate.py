@@ -10,8 +10,9 @@ ran and passed; a skipped step makes it ``incomplete`` (exit 1) unless ``--allow
 
 1. ``dispatch``   first-use self-check of the kernels in fp32/bf16/fp16 and ``auto``'s ext-vs-dense choice on MoDi's
                   finest-level shapes (``modi_ext.dispatch_report()``);
-2. ``cuda_tests`` ``pytest tests/modi_ext/test_cuda_ops.py`` (every op against the float64 reference, gradcheck, opcheck, half
-                  precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated`` suite;
+2. ``cuda_tests`` ``pytest tests/modi_ext/test_cuda_ops.py`` (every op against the float64 reference, gradcheck,
+                  opcheck, half precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated``
+                  suite;
 3. ``sanitizer_*`` ``compute-sanitizer`` memcheck / racecheck / synccheck / initcheck over one small call of every
                   kernel, forward and backward, filtered to modi_ext's kernels, with torch's caching allocator off
                   (the tool is looked for on PATH, in ``$CUDA_HOME/bin`` and in pip's ``nvidia`` package folders);
@@ -191,7 +192,7 @@ def _kill_group(pgid: int) -> None:
 
 # ---------------------------------------------------------------------------------------------------------- payloads
 def _payload_kernels(device: str) -> dict:
-    """The shared payload (``modi_ext.payload``): every kernel instantiation, forward and backward with every
+    """The shared payload (``modi_ext.runtime.payload``): every kernel instantiation, forward and backward with every
     gradient, in every dtype the device's kernels take, against the float64 oracle -- what compute-sanitizer
     watches.  ``errors`` names any case that disagreed with the oracle (the step then fails)."""
     cuda = device.startswith("cuda")

@@ -1,4 +1,4 @@
-"""The demodulation coefficients as MoDi writes them: the oracle of ``modi_ext.demod``.
+"""The demodulation coefficients as MoDi writes them: the oracle of the ``modi_ext.demod`` op.
 
 StyleGAN2's demodulation multiplies output channel ``o`` of output entity ``j`` by
 ``d[b, o, j] = rsqrt(sum_{i, n, u} (W[o, i, j, n, u] s[b, i])^2 + DEMOD_EPS)`` (``s = 1`` without a style), summed in

@@ -29,8 +29,8 @@ from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
 
 __all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
 
-# ``KERNELS`` (modi_ext.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry (then
-# ``reset()``) to inject a wrong kernel.
+# ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
+# (then ``reset()``) to inject a wrong kernel.
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
 
@@ -49,9 +49,10 @@ def _default_timer(name: str, fn: Callable[[], object], device: str) -> float:
 
 TIMER: Callable[[str, Callable[[], object], str], float] = _default_timer  # test hook: a fake clock
 
-# The first-use self-check, ``(device, dtype) -> {"ok", "errors", "max_error", ...}``: ``modi_ext.runtime.selfcheck.run``,
-# installed by ``modi_ext/__init__.py``.  The self-check runs the ops' references, whose packages import the ops,
-# which import this module: it sits above dispatch, so dispatch is handed it instead of importing it.  A test hook too.
+# The first-use self-check, ``(device, dtype) -> {"ok", "errors", "max_error", ...}``:
+# ``modi_ext.runtime.selfcheck.run``, installed by ``modi_ext/__init__.py``.  The self-check runs the ops' references,
+# whose packages import the ops, which import this module: it sits above dispatch, so dispatch is handed it instead
+# of importing it.  A test hook too.
 SELFCHECK: Callable[[str, torch.dtype], dict] | None = None
 
 _lock = threading.RLock()

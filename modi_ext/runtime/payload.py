@@ -1,8 +1,9 @@
 """One shape list that launches every CUDA kernel instantiation, with its float64 oracle.
 
-Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/test_cuda_ops.py``), the
-first-use self-check (``modi_ext.selfcheck``) and the CPU proof of coverage (``tests/modi_ext/test_cuda_emulated.py`` runs it
-on the emulated kernels and compares the instantiations launched with all the emulator registered).
+Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/test_cuda_ops.py``),
+the first-use self-check (``modi_ext.runtime.selfcheck``) and the CPU proof of coverage
+(``tests/modi_ext/test_cuda_emulated.py`` runs it on the emulated kernels and compares the instantiations launched with
+all the emulator registered).
 
 What each case reaches, per dtype (the kernels' template arguments are the dtype, the tile height BM and the
 blur/adjoint flag; FK's are the dtype and where the walk state lives):
@@ -17,7 +18,7 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
   else a global workspace; each at a plan boundary), 40 samples (a partial block and a partial warp), rotation
   and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction.
 
-Everything calls the raw ops of a kernel table (``modi_ext.kernels.kernel_table``), never autograd, so the same
+Everything calls the raw ops of a kernel table (``modi_ext.runtime.kernels.kernel_table``), never autograd, so the same
 list runs on ``torch.ops.modi_ext`` (CPU or CUDA) and on the emulator's ``torch.ops.modi_ext_emu``.
 """
 from __future__ import annotations

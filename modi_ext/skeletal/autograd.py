@@ -1,4 +1,4 @@
-"""Differentiable backward of the skeletal ops: gradients of any order on the sparse kernels.
+"""The skeletal ops' autograd: the kernel call, its registration, and gradients of any order on the kernels.
 
 R1, path length and WGAN-GP differentiate a gradient, so the backward of each op must itself be made of ops that
 have an autograd formula -- the design of StyleGAN2-ADA's ``conv2d_gradfix``.  Every skeletal op is bilinear in
@@ -14,7 +14,14 @@ Both are again bilinear, and their gradients are the three ops themselves::
 
 so ``create_graph=True`` stays on the kernels to any order, on every device the C++ ops are registered for.
 Modulation and demodulation are elementwise scales around the unmodulated op (``graph_backward``), and the bias
-gradient is a sum.  The dense reference is not involved; it remains the oracle in the tests.
+gradient is a sum.  The dense reference is not involved; it remains the oracle in the tests (``MODI_EXT_DOUBLE=ref``
+builds that graph through it instead, the behaviour before, for comparison).
+
+Here too: ``launch``, the kernel call with its autograd -- through the plain ``autograd.Function`` of the eager fast
+path (``modi_ext.runtime.eager``) where it applies, else the registered op -- and the registration with
+``torch.library`` of what the C++ schemas need from Python (fake kernels for compile and meta, autograd rules: the
+fused first-order backward for the inputs whose gradient the engine will use, ``needed``), done on import when the
+extension is built.
 """
 from __future__ import annotations
 
@@ -32,7 +39,7 @@ __all__ = ["NAMES", "launch", "plain_op", "needed", "skeletal_grad_input", "skel
            "grad_weight", "graph_backward"]
 
 NAMES = {KIND_CONV: "skeletal_conv", KIND_DOWN: "skeletal_down", KIND_UP: "skeletal_up"}
-_EAGER: dict[int, type] = {}  # kind -> the op's plain autograd.Function (modi_ext.runtime.eager), filled at registration
+_EAGER: dict[int, type] = {}  # kind -> the op's plain autograd.Function (runtime.eager), filled at registration
 
 
 # the partial backwards as registered ops (``_register_ops``, when the C++ schemas are loaded)
@@ -208,7 +215,7 @@ def _out_shape(kind, x, weight, offsets, n_out):
 
 
 def _autograd_rules(kind: int):
-    """``(setup_context, backward)`` of one op: registered with torch.library and reused by ``modi_ext.eager``."""
+    """``(setup_context, backward)`` of one op: registered with torch.library and reused by its eager Function."""
     up = kind == KIND_UP
 
     def setup_context(ctx, inputs, output):

@@ -50,21 +50,19 @@ def _shared_conv(x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, off
     return y.permute(2, 0, 1, 3)
 
 
-def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
-                  offsets: torch.Tensor, style: torch.Tensor | None = None, demodulate: bool = False,
-                  padding_mode: str = "zeros") -> torch.Tensor:
-    """In-place skeletal conv, same semantics as ``reference.skeletal_conv``."""
+def skeletal_conv(x, weight, bias, index, offsets, style=None, demodulate=False, padding_mode="zeros"):
+    """In-place skeletal conv: the arguments and semantics of ``reference.skeletal_conv``."""
     return _forward(x, weight, bias, index, offsets, style, demodulate, padding_mode, stride=1)
 
 
-def skeletal_down(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
-                  offsets: torch.Tensor, style: torch.Tensor | None = None, demodulate: bool = False,
-                  padding_mode: str = "zeros") -> torch.Tensor:
-    """Convolutional scaler fine -> coarse, same semantics as ``reference.skeletal_down``."""
+def skeletal_down(x, weight, bias, index, offsets, style=None, demodulate=False, padding_mode="zeros"):
+    """Convolutional scaler fine -> coarse: the arguments and semantics of ``reference.skeletal_down``."""
     return _forward(x, weight, bias, index, offsets, style, demodulate, padding_mode, stride=2)
 
 
-def _forward(x, weight, bias, index, offsets, style, demodulate, padding_mode, stride):
+def _forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
+             offsets: torch.Tensor, style: torch.Tensor | None, demodulate: bool, padding_mode: str,
+             stride: int) -> torch.Tensor:
     y = _shared_conv(_styled(x, style), weight, index, offsets, padding_mode, stride)
     d = demod_scale(weight, index, offsets, style, False, offsets.shape[0] - 1, x.shape[0]) if demodulate else None
     return _finish(y, d, bias).contiguous()

@@ -1,22 +1,16 @@
-"""Public skeletal operators: argument checks, then the sparse kernels, the dense form or the reference.
+"""The public skeletal ops: argument checks, then the sparse kernels, the dense form or the reference.
 
-``modi_ext.dispatch.route`` picks the path per call (``MODI_EXT_IMPL=auto|ext|dense|ref``; kernels only where this
-build has them for the device, only after their self-check, on CUDA only where measured faster than ``dense``).  On
-the kernel path the demodulation coefficients ``d[b,o,j]`` are computed first (a ``(B, Cin) x (Cin, Cout*E)``
-product of squared weights, never a per-sample weight tensor; ``modi_ext.demod``: one C++ call on the CPU, the torch
-ops of ``dense.demod_scale`` elsewhere) and handed to the kernel, which applies the style on the input rows and ``d``
-on the output rows.
+``modi_ext.runtime.dispatch.route`` picks the path per call (``MODI_EXT_IMPL=auto|ext|dense|ref``; kernels only where
+this build has them for the device, only after their self-check, on CUDA only where measured faster than ``dense``).
+On the kernel path the demodulation coefficients ``d[b,o,j]`` are computed first (a ``(B, Cin) x (Cin, Cout*E)``
+product of squared weights, never a per-sample weight tensor; ``modi_ext.demod.ops``: one C++ call on the CPU, the
+torch form elsewhere) and handed to the kernel, which applies the style on the input rows and ``d`` on the output rows.
 
 Under ``torch.autocast`` the inputs are cast to one dtype (the autocast dtype on CUDA, where the kernels take half
 types; the widest input dtype elsewhere) and the op runs with autocast off, so standard AMP works.
 
-Autograd rules are registered with ``torch.library.register_autograd`` (what compile, opcheck and functorch use);
-plain eager calls run the same rules through ``torch.autograd.Function``s that skip the dispatcher's round trip into
-Python (``modi_ext.eager``).  First-order gradients use the fused C++ backward kernel, and only for the inputs whose
-gradient the engine will use (``gradfix.needed``); when a graph of the gradient is requested (``create_graph=True``:
-R1, path length, WGAN-GP) the backward is built from ops that are themselves differentiable (``modi_ext.gradfix``),
-so every order stays on the sparse kernels.  ``MODI_EXT_DOUBLE=ref`` routes that graph through the dense reference
-instead (the old behaviour, for comparison).
+The checks are ``modi_ext.skeletal.checks``; the kernel call with its autograd (eager fast path, first-order fused
+backward, differentiable backward of any order, ``MODI_EXT_DOUBLE=ref``) is ``modi_ext.skeletal.autograd``.
 """
 from __future__ import annotations
 
@@ -106,8 +100,8 @@ def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | No
                   padding_mode: str = "zeros") -> torch.Tensor:
     """In-place skeletal conv ``(B, Cin, E, T) -> (B, Cout, E, T)``; weight ``(Cout, nnz, Cin, U)``.
 
-    ``(index, offsets)`` is the CSR neighbor map (``modi_ext.topology_tensors.csr_from_lists``).  Exact semantics in
-    ``modi_ext.reference``.
+    ``(index, offsets)`` is the CSR neighbor map (``modi_ext.topology.csr_from_lists``).  Exact semantics in
+    ``modi_ext.skeletal.reference``.
     """
     return _op(KIND_CONV, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
 

@@ -114,7 +114,7 @@ def test_identical_at_1_2_and_many_threads(kind, shape, kernel, pool, demod, mon
     OpenMP team (MODI_EXT_CPU_POOL=omp, the default when torch was imported first).
 
     The kernels give bit-identical results at any thread count, demodulation included: its coefficients come from
-    the C++ op (``modi_ext.demod``), whose sums run in one order whatever the thread count.  (torch's own small
+    the C++ op (``modi_ext.demod.ops``), whose sums run in one order whatever the thread count.  (torch's own small
     matrix product, which computed them before, rounds differently at 1 and 2 threads on AMD EPYC: 5e-7.)"""
     if kernel == "avx2":
         monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "avx2")

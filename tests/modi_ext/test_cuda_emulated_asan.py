@@ -2,8 +2,8 @@
 
 The emulator models shared memory (bounds-checked arrays, poisoned red zones), but a global load or store is a plain
 host pointer access.  Here the emulated module (csrc/emu + the unchanged csrc/cuda sources) is compiled a second time
-with ``-fsanitize=address`` and the shared payload (``modi_ext.payload``: every kernel instantiation, forward and
-backward, four dtypes) runs on it in a subprocess with libasan preloaded.  Every tensor torch allocates -- inputs,
+with ``-fsanitize=address`` and the shared payload (``modi_ext.runtime.payload``: every kernel instantiation, forward
+and backward, four dtypes) runs on it in a subprocess with libasan preloaded.  Every tensor torch allocates -- inputs,
 outputs, workspaces -- is then a malloc block between red zones, so a kernel that reads or writes even one element
 past any global buffer aborts with a ``heap-buffer-overflow`` report that names the kernel.
 

@@ -150,7 +150,7 @@ class Case:
         return self.index.to(device), self.offsets.to(device)
 
     def run_ops(self, x, w, b, s):
-        """modi_ext.ops (the public wrapper; the extension path on CUDA tensors)."""
+        """modi_ext.skeletal.ops (the public wrapper; the extension path on CUDA tensors)."""
         idx, off = self.topo(x.device.type)
         kw = dict(style=s, demodulate=self.demod, padding_mode=self.padding)
         if self.kind == "conv":
@@ -330,7 +330,7 @@ def test_gradcheck_float64(kind, padding, mod):
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 @pytest.mark.parametrize("mod", ["plain", "style_demod"])
 def test_gradgradcheck_float64(kind, padding, mod):
-    """Second order (R1, path length, WGAN-GP) through modi_ext.gradfix on the CUDA kernels."""
+    """Second order (R1, path length, WGAN-GP) through modi_ext.skeletal.autograd on the CUDA kernels."""
     c = Case(kind, seed=5, U=3, padding=padding, mod=mod, B=2, T=6, cin=2, cout=2, n_ent=5)
     x, w, b, s = c.leaves(DEV, torch.float64, requires_grad=True)
     if s is None:
@@ -415,7 +415,7 @@ def _run_subprocess(code: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("dtype", payload.DTYPES, ids=str)
 def test_shared_payload_matches_the_reference(dtype):
-    """modi_ext.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
+    """modi_ext.runtime.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
     tests/modi_ext/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
     res = payload.run(kernels.KERNELS, DEV, (dtype,))
     assert res["ran"] and not res["errors"], res["errors"]

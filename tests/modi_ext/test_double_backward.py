@@ -1,5 +1,5 @@
-"""Second- and higher-order gradients on the sparse kernels (``modi_ext.gradfix``): gradgradcheck in float64 on
-random trees for every op and option, equality with the dense reference's second-order gradients, opcheck of the
+"""Second- and higher-order gradients on the sparse kernels (``modi_ext.skeletal.autograd``): gradgradcheck in float64
+on random trees for every op and option, equality with the dense reference's second-order gradients, opcheck of the
 backward ops, the graph-building path never touching the reference, and the R1 / path-length / WGAN-GP parameter
 gradients of tiny MoDi and GANimator models equal on both paths."""
 from __future__ import annotations

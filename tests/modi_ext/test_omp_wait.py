@@ -1,4 +1,5 @@
-"""The OpenMP wait setting (modi_ext/runtime/omp_wait.py): who sets it, when it cannot take effect, and that libgomp obeys it.
+"""The OpenMP wait setting (modi_ext/runtime/omp_wait.py): who sets it, when it cannot take effect, and that libgomp
+obeys it.
 
 Each case runs a fresh interpreter, because libgomp reads the setting once, when torch loads it.
 """

@@ -330,7 +330,8 @@ def test_gradcheck_fp64(kind, style, demod, padding):
 
 @needs_ext
 def test_gradgradcheck_modulated_conv():
-    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.gradfix; more in test_double_backward)."""
+    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.skeletal.autograd; more in
+    test_double_backward)."""
     rng = random.Random(5)
     args, kw = make_case("conv", rng, n_joints=3, distance=1, U=3, B=1, cin=2, cout=1, T=4, style=True,
                          demod=True)
@@ -471,7 +472,7 @@ def test_reflect_needs_enough_frames(kind):
 
 @needs_ext
 def test_raw_ops_reject_bad_input_with_runtime_error():
-    """The C++ kernels check their own arguments (callers may bypass modi_ext.ops)."""
+    """The C++ kernels check their own arguments (callers may bypass modi_ext.skeletal.ops)."""
     args, kw = _good()
     x, w, b, index, offsets = args
     op = torch.ops.modi_ext.skeletal_conv
