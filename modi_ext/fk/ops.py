@@ -18,9 +18,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from modi_ext.fk.reference import fk_reference
 from modi_ext.runtime import dispatch
 from modi_ext.runtime.loader import HAS_EXT, requested_impl
-from modi_ext.fk.reference import fk_reference
 
 __all__ = ["fk", "ForwardKinematics", "check_parents"]
 

@@ -24,8 +24,8 @@ from typing import Callable
 
 import torch
 
-from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
 from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
+from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
 
 __all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
 

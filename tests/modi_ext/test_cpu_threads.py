@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from modi_ext import HAS_EXT
+from modi_ext.fk import fk, fk_reference
 from modi_ext.skeletal import ops
 from modi_ext.skeletal import reference as R
-from modi_ext.fk import fk, fk_reference
 from modi_ext.topology import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")

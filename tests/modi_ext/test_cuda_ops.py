@@ -20,9 +20,9 @@ import pytest
 import torch
 
 from modi_ext import HAS_EXT
+from modi_ext.fk import fk, fk_reference
 from modi_ext.runtime import kernels, payload
 from modi_ext.skeletal import ops, reference
-from modi_ext.fk import fk, fk_reference
 from modi_ext.topology import csr_from_lists
 
 

@@ -8,13 +8,12 @@ import random
 
 import pytest
 import torch
+from test_skeletal_ops import KINDS, make_case
 
 from modi_ext import HAS_EXT
 from modi_ext.demod import dense
 from modi_ext.demod import ops as demod
 from modi_ext.skeletal import ops
-
-from test_skeletal_ops import KINDS, make_case
 
 needs_kernel = pytest.mark.skipif(not (HAS_EXT and demod.kernel_available()),
                                   reason="modi_ext C++ extension (with the demod op) not built")

@@ -8,13 +8,12 @@ import random
 
 import pytest
 import torch
+from test_skeletal_ops import KINDS, call, make_case
 
 from modi_ext import HAS_EXT
 from modi_ext.skeletal import ops
 from modi_ext.skeletal import reference as R
 from modi_ext.topology import csr_from_lists
-
-from test_skeletal_ops import KINDS, call, make_case
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 pytestmark = [needs_ext, pytest.mark.usefixtures("one_torch_thread")]

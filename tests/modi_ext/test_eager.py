@@ -7,12 +7,11 @@ import random
 
 import pytest
 import torch
+from test_skeletal_ops import KINDS, call, make_case
 
 from modi_ext import HAS_EXT
 from modi_ext.skeletal import autograd as gradfix
 from modi_ext.skeletal import ops
-
-from test_skeletal_ops import KINDS, call, make_case
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 pytestmark = [needs_ext, pytest.mark.usefixtures("one_torch_thread")]
