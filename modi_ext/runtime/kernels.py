@@ -1,7 +1,7 @@
 """The compiled kernels by name, which device types a build covers, and one cache key per device.
 
-Below ``selfcheck`` and ``dispatch`` in the package's import order (reference -> dense -> kernels -> selfcheck ->
-dispatch -> ops -> layers): everything that runs or asks about the raw ``torch.ops`` kernels goes through here.
+Below ``dispatch`` and ``selfcheck`` in the package's import layers (``tests/modi_ext/test_modi_ext_imports.py``):
+everything that runs or asks about the raw ``torch.ops`` kernels goes through here.
 
 * ``KERNELS``: the raw ops of ``torch.ops.modi_ext`` by name -- a test hook (replace an entry, then
   ``dispatch.reset()``, to inject a wrong kernel); ``kernel_table(lib)`` is the same table for another op namespace
