@@ -42,7 +42,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)
 
-# --busy N starts the other job first; then modi_ext before torch, as the modi command does (modi_ext/omp_wait.py)
+# --busy N starts the other job first; then modi_ext before torch, as the modi command does
+# (modi_ext/runtime/omp_wait.py)
 _EARLY_BUSY = start_early(sys.argv) if __name__ == "__main__" else None
 import modi_ext  # noqa: E402
 

@@ -1,4 +1,5 @@
-"""The OpenMP wait setting (modi_ext/omp_wait.py): who sets it, when it cannot take effect, and that libgomp obeys it.
+"""The OpenMP wait setting (modi_ext/runtime/omp_wait.py): who sets it, when it cannot take effect, and that libgomp
+obeys it.
 
 Each case runs a fresh interpreter, because libgomp reads the setting once, when torch loads it.
 """
@@ -13,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 _REPORT = """
 import json, os, sys
 {imports}
-from modi_ext import omp_wait
+from modi_ext.runtime import omp_wait
 print(json.dumps(dict(omp_wait.state(), env=os.environ.get("GOMP_SPINCOUNT"),
                       pool=os.environ.get("MODI_EXT_CPU_POOL"))))
 """
@@ -81,7 +82,7 @@ def _with_spinner(fn):
 
 @pytest.mark.skipif(not Path("/proc/stat").is_file(), reason="no /proc/stat (not Linux)")
 def test_the_probe_sees_another_process_keeping_a_cpu_busy():
-    from modi_ext import omp_wait
+    from modi_ext.runtime import omp_wait
 
     busy = _with_spinner(omp_wait.busy_cpus)
     assert busy is not None and busy >= 0.7, busy
@@ -92,7 +93,7 @@ def test_auto_chooses_short_when_another_process_holds_a_cpu_and_children_follow
     code = ("import modi_ext, subprocess, sys, json\n"
             "child = subprocess.run([sys.executable, '-c', " + repr(_REPORT.format(imports="import modi_ext")) + "],"
             " capture_output=True, text=True, check=True).stdout\n"
-            "print(json.dumps([modi_ext.omp_wait.state(), json.loads(child)]))")
+            "print(json.dumps([modi_ext.runtime.omp_wait.state(), json.loads(child)]))")
     parent, child = json.loads(_with_spinner(lambda: _run(code)))
     assert parent["source"].startswith("modi_ext (auto: other processes kept"), parent
     assert parent["setting"] == "GOMP_SPINCOUNT=2000" and parent["cpu_pool"] == "own", parent

@@ -12,10 +12,11 @@ import random
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, ops
-from modi_ext import reference as R
+from modi_ext import HAS_EXT
 from modi_ext.fk import fk, fk_reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.skeletal import ops
+from modi_ext.skeletal import reference as R
+from modi_ext.topology import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 KINDS = ("conv", "down", "up")
@@ -113,7 +114,7 @@ def test_identical_at_1_2_and_many_threads(kind, shape, kernel, pool, demod, mon
     OpenMP team (MODI_EXT_CPU_POOL=omp, the default when torch was imported first).
 
     The kernels give bit-identical results at any thread count, demodulation included: its coefficients come from
-    the C++ op (``modi_ext.demod``), whose sums run in one order whatever the thread count.  (torch's own small
+    the C++ op (``modi_ext.demod.ops``), whose sums run in one order whatever the thread count.  (torch's own small
     matrix product, which computed them before, rounds differently at 1 and 2 threads on AMD EPYC: 5e-7.)"""
     if kernel == "avx2":
         monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "avx2")

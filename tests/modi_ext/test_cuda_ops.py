@@ -5,8 +5,8 @@ The oracle is always the pure-torch reference evaluated in float64 on the CPU fr
 so nothing here compares the kernels with themselves.  The whole module is skipped, with the reason, on machines
 without a CUDA device or without the CUDA part of the extension.
 
-    pytest tests/test_cuda_ops.py -q                                   # on a GPU machine
-    compute-sanitizer --tool memcheck python -m pytest tests/test_cuda_ops.py -q -k "not subprocess"
+    pytest tests/modi_ext/test_cuda_ops.py -q                                   # on a GPU machine
+    compute-sanitizer --tool memcheck python -m pytest tests/modi_ext/test_cuda_ops.py -q -k "not subprocess"
 """
 from __future__ import annotations
 
@@ -19,9 +19,11 @@ import textwrap
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, kernels, ops, payload, reference
+from modi_ext import HAS_EXT
 from modi_ext.fk import fk, fk_reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.runtime import kernels, payload
+from modi_ext.skeletal import ops, reference
+from modi_ext.topology import csr_from_lists
 
 
 def _has_cuda_kernels() -> bool:
@@ -148,7 +150,7 @@ class Case:
         return self.index.to(device), self.offsets.to(device)
 
     def run_ops(self, x, w, b, s):
-        """modi_ext.ops (the public wrapper; the extension path on CUDA tensors)."""
+        """modi_ext.skeletal.ops (the public wrapper; the extension path on CUDA tensors)."""
         idx, off = self.topo(x.device.type)
         kw = dict(style=s, demodulate=self.demod, padding_mode=self.padding)
         if self.kind == "conv":
@@ -328,7 +330,7 @@ def test_gradcheck_float64(kind, padding, mod):
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 @pytest.mark.parametrize("mod", ["plain", "style_demod"])
 def test_gradgradcheck_float64(kind, padding, mod):
-    """Second order (R1, path length, WGAN-GP) through modi_ext.gradfix on the CUDA kernels."""
+    """Second order (R1, path length, WGAN-GP) through modi_ext.skeletal.autograd on the CUDA kernels."""
     c = Case(kind, seed=5, U=3, padding=padding, mod=mod, B=2, T=6, cin=2, cout=2, n_ent=5)
     x, w, b, s = c.leaves(DEV, torch.float64, requires_grad=True)
     if s is None:
@@ -356,7 +358,7 @@ def test_opcheck(kind, requires_grad):
 
 def test_backward_is_deterministic():
     # No atomics anywhere: two backward passes give bit-identical gradients.  (The demodulation sums per output
-    # entity are a one-hot matmul, modi_ext.dense.segment_sum; they used index_add, whose CUDA atomics made this
+    # entity are a one-hot matmul, modi_ext.demod.dense.segment_sum; they used index_add, whose CUDA atomics made this
     # premise false.)
     for kind in KINDS:
         c = Case(kind, seed=9, mod="style_demod", B=16, T=32, cin=32, cout=32, n_ent=20)
@@ -413,8 +415,8 @@ def _run_subprocess(code: str) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("dtype", payload.DTYPES, ids=str)
 def test_shared_payload_matches_the_reference(dtype):
-    """modi_ext.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
-    tests/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
+    """modi_ext.runtime.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
+    tests/modi_ext/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
     res = payload.run(kernels.KERNELS, DEV, (dtype,))
     assert res["ran"] and not res["errors"], res["errors"]
 
@@ -635,7 +637,7 @@ def test_public_ops_validate_the_csr_on_the_host():
 
 def test_auto_dispatch_self_checks_and_times_on_cuda(monkeypatch):
     import modi_ext
-    from modi_ext import dispatch
+    from modi_ext.runtime import dispatch
 
     monkeypatch.setenv("MODI_EXT_IMPL", "auto")
     dispatch.reset()

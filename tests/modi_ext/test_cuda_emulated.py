@@ -7,11 +7,11 @@ Each case runs under two thread/block schedules (index order and a seeded permut
 bitwise equal (the kernels have no atomics, so any difference is a race) and match the float64 reference.
 
 What this proves without a GPU: the kernels' index math, padding/blur adjoints, tiling, split-K bookkeeping,
-barrier placement and the host code's launch geometry; that the shared payload (modi_ext.payload: validate's
+barrier placement and the host code's launch geometry; that the shared payload (modi_ext.runtime.payload: validate's
 sanitizer steps, the GPU tests and the self-check) launches every instantiation the emulator registered; and that
 injected defects are caught -- through NaN poison (a dropped barrier, an off-by-one) and through the tolerance alone
-(a finite wrong scale).  Global memory bounds: tests/test_cuda_emulated_asan.py.  What it does not: real concurrency
-(memory-model races between warps that happen to be ordered here), speed, register/occupancy limits.
+(a finite wrong scale).  Global memory bounds: tests/modi_ext/test_cuda_emulated_asan.py.  What it does not: real
+concurrency (memory-model races between warps that happen to be ordered here), speed, register/occupancy limits.
 
 Tolerances, relative to the largest reference magnitude: fp64 1e-9, fp32 5e-5, fp16 5e-3, bf16 3e-2 (inputs are
 rounded to the dtype first; the kernels accumulate half types in fp32, so the error is output rounding plus a few
@@ -31,9 +31,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from modi_ext import reference
+from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk import fk_reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.skeletal import reference
+from modi_ext.topology import csr_from_lists
 
 try:
     from modi_ext import _C_emu as EMU
@@ -44,7 +45,7 @@ except ImportError as exc:  # a build problem must fail the suite, not skip it
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SEEDS = (0, 0x5EED)  # schedule seeds: index order, then a permutation of threads within phases and of blocks
 TOL = {torch.float64: 1e-9, torch.float32: 5e-5, torch.float16: 5e-3, torch.bfloat16: 3e-2}
 DTYPES = (torch.float64, torch.float32, torch.float16, torch.bfloat16)
@@ -171,7 +172,7 @@ class Problem:
         self.gy = rnd(B, cout, self.n_out, self.t_out)
 
     def demod_coefficients(self) -> torch.Tensor:
-        """d[b, o, j] from the masked dense weight, independently of modi_ext.ops (the reference's formula)."""
+        """d[b, o, j] from the masked dense weight, independently of modi_ext.skeletal.ops (the reference's formula)."""
         n_dense = self.n_out if self.kind == "up" else self.n_in
         dense = reference.to_dense(self.w, self.index, self.offsets, n_dense)
         s = self.s if self.s is not None else torch.ones(1, dense.shape[0 if self.kind == "up" else 1],
@@ -181,7 +182,7 @@ class Problem:
         else:  # dense (Co, Ci, Eo, Ei, U)
             a = torch.einsum("bi,oijnu->boj", s.pow(2), dense.pow(2))
         a = a.expand(self.x.shape[0], -1, -1)
-        return torch.rsqrt(a + reference.DEMOD_EPS)
+        return torch.rsqrt(a + DEMOD_EPS)
 
     def ref(self, x, w, b, s, d):
         """y = d * A_W(x * s) + b, float64 (d and s independent inputs, as the kernels take them)."""
@@ -317,9 +318,9 @@ def test_unread_fine_entities_get_bias_and_no_gradient():
 @pytest.mark.parametrize("dtype", (torch.float64, torch.float32, torch.bfloat16), ids=str)
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradfix_partial_backwards(kind, dtype):
-    """The two partial backwards modi_ext.gradfix builds second-order gradients from: the input gradient with no
-    x values (gradfix passes a shape-only tensor: NaN here, so a read of it shows) and the weight gradient with no
-    weight values, each against the reference's gradient of the unmodulated op."""
+    """The two partial backwards modi_ext.skeletal.autograd builds second-order gradients from: the input gradient
+    with no x values (gradfix passes a shape-only tensor: NaN here, so a read of it shows) and the weight gradient with
+    no weight values, each against the reference's gradient of the unmodulated op."""
     p = Problem(kind, "none", "reflect", U=3, bias=False, dtype=dtype, seed=21, B=2, cin=6, cout=9, T=70)
     xl = p.x.clone().requires_grad_(True)
     wl = p.w.clone().requires_grad_(True)
@@ -462,7 +463,7 @@ def test_injected_finite_wrong_value_is_caught_by_the_tolerance():
     """wrong_scale (a run-time defect): style_finish_kernel scales the style gradient by 1 + 2^-9.  Every value stays
     finite -- no NaN poison to trip over -- so only the tolerance against the float64 reference can see it: the
     suite's check does, and so does the first-use self-check (which then refuses the kernels)."""
-    from modi_ext import selfcheck
+    from modi_ext.runtime import selfcheck
 
     p = Problem("conv", "style", "reflect", U=3, seed=4, B=2, cin=5, cout=6, T=40)
     check_problem(p)  # the clean kernels pass the same case
@@ -581,9 +582,9 @@ def test_the_emulator_registers_every_instantiation():
 
 
 def test_the_shared_payload_launches_every_instantiation():
-    """modi_ext.payload (what validate's sanitizer steps, the GPU tests and the self-check run) launches every
+    """modi_ext.runtime.payload (what validate's sanitizer steps, the GPU tests and the self-check run) launches every
     kernel instantiation the emulator registered, in fp32/fp64/fp16/bf16, and matches the float64 oracle."""
-    from modi_ext import kernels, payload
+    from modi_ext.runtime import kernels, payload
 
     before = EMU.launch_counts()
     res = payload.run(kernels.kernel_table("modi_ext_emu"), "cpu", payload.DTYPES)
@@ -596,11 +597,11 @@ def test_the_shared_payload_launches_every_instantiation():
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=str)
 def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
-    """The first-use self-check (modi_ext.selfcheck, the payload against the float64 oracle) on the emulated
+    """The first-use self-check (modi_ext.runtime.selfcheck, the payload against the float64 oracle) on the emulated
     kernels: it passes, and it launched all 20 instantiations of its dtype and the topology kernel -- the 64-row
     tiles, split-K and FK offsets gradients on every plan that training runs included.  Its first-use time on this
     CPU is printed (-s), not asserted (the machine may be shared)."""
-    from modi_ext import selfcheck
+    from modi_ext.runtime import selfcheck
 
     before = EMU.launch_counts()
     t0 = time.perf_counter()

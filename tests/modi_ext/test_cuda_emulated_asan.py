@@ -2,8 +2,8 @@
 
 The emulator models shared memory (bounds-checked arrays, poisoned red zones), but a global load or store is a plain
 host pointer access.  Here the emulated module (csrc/emu + the unchanged csrc/cuda sources) is compiled a second time
-with ``-fsanitize=address`` and the shared payload (``modi_ext.payload``: every kernel instantiation, forward and
-backward, four dtypes) runs on it in a subprocess with libasan preloaded.  Every tensor torch allocates -- inputs,
+with ``-fsanitize=address`` and the shared payload (``modi_ext.runtime.payload``: every kernel instantiation, forward
+and backward, four dtypes) runs on it in a subprocess with libasan preloaded.  Every tensor torch allocates -- inputs,
 outputs, workspaces -- is then a malloc block between red zones, so a kernel that reads or writes even one element
 past any global buffer aborts with a ``heap-buffer-overflow`` report that names the kernel.
 
@@ -26,7 +26,7 @@ import pytest
 
 pytestmark = pytest.mark.cuda_emulated
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CSRC = REPO / "csrc"
 SOURCES = ("skeletal_emu.cpp", "fk_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")
 NAME, LIB = "_C_emu_asan", "modi_ext_emu_asan"
@@ -85,7 +85,7 @@ RUNNER = textwrap.dedent("""
     spec = importlib.util.spec_from_file_location("{name}", path)
     emu = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(emu)
-    from modi_ext import kernels, payload
+    from modi_ext.runtime import kernels, payload
     emu.set_injected_defect(defect)
     table = kernels.kernel_table(emu.LIBRARY)
     ran, errors = [], {{}}

@@ -22,12 +22,12 @@ Conventions (the C++ kernels match these exactly):
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 import torch.nn.functional as F
 
-DEMOD_EPS = 1e-8
+from modi_ext.demod.reference import DEMOD_EPS
+from modi_ext.topology import pair_entity
+
 BLUR_KERNEL = (1.0, 3.0, 3.0, 1.0)
 BLUR_GAIN = 2.0  # the up factor: keeps DC gain after zero-stuffed upsampling (StyleGAN2's convention)
 PADDING_MODES = ("zeros", "reflect")
@@ -37,9 +37,7 @@ def to_dense(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor, n
     """Compact ``(C0, nnz, C1, U)`` -> masked dense ``(C0, C1, E_out, E_in, U)`` (zeros where no pair)."""
     c0, nnz, c1, u = weight.shape
     n_out = offsets.numel() - 1
-    counts = offsets[1:] - offsets[:-1]
-    seg = torch.repeat_interleave(torch.arange(n_out, device=index.device), counts, output_size=nnz)
-    flat = seg * n_in + index  # (nnz,) position in E_out*E_in
+    flat = pair_entity(offsets, nnz) * n_in + index  # (nnz,) position in E_out*E_in
     dense = weight.new_zeros(c0, n_out * n_in, c1, u)
     dense = dense.index_add(1, flat, weight)
     return dense.view(c0, n_out, n_in, c1, u).permute(0, 3, 1, 2, 4)
@@ -50,12 +48,10 @@ def from_dense(dense: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor) 
     c0, c1, n_out, n_in, u = dense.shape
     if offsets.numel() - 1 != n_out:
         raise ValueError(f"dense has {n_out} output entities but offsets describes {offsets.numel() - 1}")
-    counts = offsets[1:] - offsets[:-1]
-    seg = torch.repeat_interleave(torch.arange(n_out, device=index.device), counts, output_size=index.numel())
-    return dense[:, :, seg, index, :].permute(0, 2, 1, 3).contiguous()
+    return dense[:, :, pair_entity(offsets, index.numel()), index, :].permute(0, 2, 1, 3).contiguous()
 
 
-def _pad_time(x: torch.Tensor, h: int, mode: str) -> torch.Tensor:
+def pad_time(x: torch.Tensor, h: int, mode: str) -> torch.Tensor:
     if h == 0:
         return x
     if mode == "zeros":
@@ -66,7 +62,7 @@ def _pad_time(x: torch.Tensor, h: int, mode: str) -> torch.Tensor:
 
 
 def _fold_time(full: torch.Tensor, h: int, length: int, mode: str) -> torch.Tensor:
-    """Adjoint of ``_pad_time``: padded-domain values (length+2h) folded back onto ``[0, length)``."""
+    """Adjoint of ``pad_time``: padded-domain values (length+2h) folded back onto ``[0, length)``."""
     centre = full[..., h:h + length]
     if mode == "zeros" or h == 0:
         return centre
@@ -121,7 +117,7 @@ def _forward(x, weight, bias, index, offsets, style, demodulate, padding_mode, s
     h = u // 2
     n_out = offsets.numel() - 1
     dense = to_dense(weight, index, offsets, n_in)  # (Cout, Cin, Eo, Ei, U)
-    xp = _pad_time(x.reshape(b, cin * n_in, t), h, padding_mode)
+    xp = pad_time(x.reshape(b, cin * n_in, t), h, padding_mode)
     t_out = t if stride == 1 else t // 2
     if style is None and not demodulate:
         wmat = dense.permute(0, 2, 1, 3, 4).reshape(cout * n_out, cin * n_in, u)
@@ -175,58 +171,3 @@ def blur(v: torch.Tensor) -> torch.Tensor:
     k = (k * (BLUR_GAIN / k.sum())).view(1, 1, 4)
     flat = F.pad(v.reshape(-1, 1, shape[-1]), (2, 1))
     return F.conv1d(flat, k).reshape(shape)
-
-
-def demod_coefficients(dense: torch.Tensor, style: torch.Tensor | None) -> torch.Tensor:
-    """``d[b, o, j]`` for a dense ``(Cout, Cin, E_out, E_in, U)`` weight (``b`` is 1 without style)."""
-    w = dense.unsqueeze(0)
-    if style is not None:
-        w = w * style.view(style.shape[0], 1, -1, 1, 1, 1)
-    wf = w.float() if w.dtype in (torch.float16, torch.bfloat16) else w
-    return torch.rsqrt(wf.pow(2).sum((2, 4, 5)) + DEMOD_EPS).to(w.dtype)
-
-
-# ------------------------------------------------------------------------------------------------ forward kinematics
-def _qmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        dim=-1,
-    )
-
-
-def _qrot(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    w, u = q[..., :1], q[..., 1:]
-    t = 2.0 * torch.linalg.cross(u, v.expand_as(u))
-    return v + w * t + torch.linalg.cross(u, t)
-
-
-def fk_reference(
-    local_quats: torch.Tensor,
-    offsets: torch.Tensor,
-    parents: Sequence[int],
-    root_positions: torch.Tensor,
-    return_rotations: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-    """Dense torch FK: one Python step per joint (the oracle the C++ kernel is tested against; ``modi_ext.fk``).
-
-    local_quats (..., J, 4), offsets (J, 3) or (..., J, 3), root_positions (..., 3)
-    -> positions (..., J, 3) [, global_quats (..., J, 4)]. Differentiable through plain torch ops.
-    """
-    J = local_quats.shape[-2]
-    rots: list[torch.Tensor] = [local_quats[..., 0, :]]
-    pos: list[torch.Tensor] = [root_positions]
-    for j in range(1, J):
-        p = parents[j]
-        rots.append(_qmul(rots[p], local_quats[..., j, :]))
-        pos.append(pos[p] + _qrot(rots[p], offsets[..., j, :]))
-    positions = torch.stack(pos, dim=-2)
-    if return_rotations:
-        return positions, torch.stack(rots, dim=-2)
-    return positions

@@ -10,10 +10,13 @@ import pytest
 import torch
 
 import modi_ext
-from modi_ext import HAS_EXT, dense, dispatch, ops, reference
+from modi_ext import HAS_EXT
+from modi_ext.demod.reference import demod_coefficients
 from modi_ext.fk import fk, fk_reference
 from modi_ext.layers import ModulatedSkeletalConv
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.runtime import dispatch, selfcheck
+from modi_ext.skeletal import checks, dense, ops, reference
+from modi_ext.topology import csr_from_lists
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
@@ -250,7 +253,7 @@ def test_selfcheck_catches_a_raising_kernel_and_wrong_fk(monkeypatch):
     monkeypatch.setitem(dispatch.KERNELS, "skeletal_up", boom)
     real_fk = dispatch.KERNELS["fk"]
     monkeypatch.setitem(dispatch.KERNELS, "fk", lambda *a: tuple(t * 1.001 for t in real_fk(*a)))
-    res = __import__("modi_ext.selfcheck", fromlist=["run"]).run("cpu", torch.float32)
+    res = selfcheck.run("cpu", torch.float32)
     assert not res["ok"] and set(res["errors"]) == {"skeletal_up", "fk"}
     assert "no kernel image" in res["errors"]["skeletal_up"]
     q, off, root = fk_inputs(torch.float32)
@@ -264,7 +267,7 @@ def test_selfcheck_covers_what_training_runs(monkeypatch):
     """Kernels wrong only where MoDi's training goes -- a weight gradient wrong only on wide layers (cin > 32: the
     64-row tiles and split-K of the CUDA kernels, B x T > 256) and an FK offsets gradient wrong only when it is
     asked for -- fail the first-use self-check: one warning naming the case, and the calls go to dense."""
-    from modi_ext import payload
+    from modi_ext.runtime import payload
 
     real_bwd, real_fkb = dispatch.KERNELS["skeletal_backward"], dispatch.KERNELS["fk_backward"]
 
@@ -297,7 +300,8 @@ def test_selfcheck_covers_what_training_runs(monkeypatch):
 
 @needs_ext
 def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch):
-    from modi_ext import demod, selfcheck
+    from modi_ext.demod import ops as demod
+    from modi_ext.runtime import selfcheck
 
     real = demod.demod_scale
     monkeypatch.setattr(demod, "demod_scale", lambda *a: real(*a) * 1.01)
@@ -307,7 +311,7 @@ def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch):
 
 def test_one_selfcheck_key_per_device(monkeypatch):
     """'cuda' and 'cuda:0' (the current device) are one cache entry; validate and routing share it."""
-    from modi_ext import kernels, selfcheck
+    from modi_ext.runtime import kernels
 
     calls = []
 
@@ -315,7 +319,7 @@ def test_one_selfcheck_key_per_device(monkeypatch):
         calls.append((device, dtype))
         return {"ok": True, "errors": {}, "max_error": {}}
 
-    monkeypatch.setattr(selfcheck, "run", fake_run)
+    monkeypatch.setattr(dispatch, "SELFCHECK", fake_run)
     index = torch.cuda.current_device() if torch.cuda.is_available() else 0
     assert kernels.device_key("cuda") == kernels.device_key(f"cuda:{index}") == f"cuda:{index}"
     assert kernels.device_key(torch.device("cpu")) == "cpu"
@@ -329,7 +333,7 @@ def test_one_selfcheck_key_per_device(monkeypatch):
 @needs_ext
 def test_selfcheck_with_nothing_to_check_is_not_ok():
     """A device with no kernels registered is not 'ok': nothing was checked (issue 33)."""
-    from modi_ext import selfcheck
+    from modi_ext.runtime import selfcheck
 
     res = selfcheck.run("meta", torch.float32, lib="modi_ext_nonexistent")
     assert not res["ok"] and "nothing was checked" in res["errors"]["build"] and res["cases"] == 0
@@ -527,8 +531,8 @@ def test_malformed_csr_is_a_clear_error(monkeypatch, mutate, match, impl):
 
 def test_csr_validation_is_cached_per_index_tensor(monkeypatch):
     seen = []
-    real = ops._check_csr_values
-    monkeypatch.setattr(ops, "_check_csr_values", lambda *a: seen.append(1) or real(*a))
+    real = checks._check_csr_values
+    monkeypatch.setattr(checks, "_check_csr_values", lambda *a: seen.append(1) or real(*a))
     p = problem("conv")
     idx, off = p["idx"].clone(), p["off"].clone()
     p["idx"], p["off"] = idx, off
@@ -563,7 +567,7 @@ def test_demod_sums_are_deterministic_and_unchanged(monkeypatch, up):
         dw = reference.to_dense(w, idx, off, 5)  # (Ci, Co, Ec, Ef, U)
         want = torch.rsqrt((dw.unsqueeze(0) * s.view(2, -1, 1, 1, 1, 1)).pow(2).sum((1, 3, 5)) + 1e-8)
     else:
-        want = reference.demod_coefficients(reference.to_dense(w, idx, off, 5), s)
+        want = demod_coefficients(reference.to_dense(w, idx, off, 5), s)
     torch.testing.assert_close(d, want, rtol=1e-12, atol=1e-12)
 
 

@@ -7,9 +7,11 @@ import random
 import pytest
 import torch
 
-from modi_ext import HAS_EXT, ops
-from modi_ext import reference as R
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext import HAS_EXT
+from modi_ext.demod.reference import demod_coefficients
+from modi_ext.skeletal import ops
+from modi_ext.skeletal import reference as R
+from modi_ext.topology import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 KINDS = ("conv", "down", "up")
@@ -174,7 +176,7 @@ def test_demod_scale_matches_per_sample_weights():
         else:
             n_out = args[5]
             dense = R.to_dense(w, index, offsets, n_out).permute(1, 0, 3, 2, 4)  # (Co, Ci, Ef, Ec, U)
-        want = R.demod_coefficients(dense, kw["style"])
+        want = demod_coefficients(dense, kw["style"])
         got = ops.demod_scale(w, index, offsets, kw["style"], kind == "up", n_out, x.shape[0])
         torch.testing.assert_close(got, want, rtol=1e-10, atol=0)
 
@@ -183,7 +185,7 @@ def test_demod_scale_matches_per_sample_weights():
 def test_square_segment_sum_matches_autograd_of_the_plain_form(taps):
     """The demodulation's weight term (a Function with a hand-written backward) against ``w.pow(2).sum(-1)``
     segment-summed by autograd: values, gradients, and second-order gradients, with an empty segment included."""
-    from modi_ext.dense import segment_sum, square_segment_sum
+    from modi_ext.demod.dense import segment_sum, square_segment_sum
 
     g = torch.Generator().manual_seed(taps)
     n_seg, nnz = 6, 11
@@ -328,7 +330,8 @@ def test_gradcheck_fp64(kind, style, demod, padding):
 
 @needs_ext
 def test_gradgradcheck_modulated_conv():
-    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.gradfix; more in test_double_backward)."""
+    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.skeletal.autograd; more in
+    test_double_backward)."""
     rng = random.Random(5)
     args, kw = make_case("conv", rng, n_joints=3, distance=1, U=3, B=1, cin=2, cout=1, T=4, style=True,
                          demod=True)
@@ -469,7 +472,7 @@ def test_reflect_needs_enough_frames(kind):
 
 @needs_ext
 def test_raw_ops_reject_bad_input_with_runtime_error():
-    """The C++ kernels check their own arguments (callers may bypass modi_ext.ops)."""
+    """The C++ kernels check their own arguments (callers may bypass modi_ext.skeletal.ops)."""
     args, kw = _good()
     x, w, b, index, offsets = args
     op = torch.ops.modi_ext.skeletal_conv

@@ -1,8 +1,9 @@
 """One shape list that launches every CUDA kernel instantiation, with its float64 oracle.
 
-Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/test_cuda_ops.py``), the
-first-use self-check (``modi_ext.selfcheck``) and the CPU proof of coverage (``tests/test_cuda_emulated.py`` runs it
-on the emulated kernels and compares the instantiations launched with all the emulator registered).
+Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/test_cuda_ops.py``),
+the first-use self-check (``modi_ext.runtime.selfcheck``) and the CPU proof of coverage
+(``tests/modi_ext/test_cuda_emulated.py`` runs it on the emulated kernels and compares the instantiations launched with
+all the emulator registered).
 
 What each case reaches, per dtype (the kernels' template arguments are the dtype, the tile height BM and the
 blur/adjoint flag; FK's are the dtype and where the walk state lives):
@@ -17,7 +18,7 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
   else a global workspace; each at a plan boundary), 40 samples (a partial block and a partial warp), rotation
   and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction.
 
-Everything calls the raw ops of a kernel table (``modi_ext.kernels.kernel_table``), never autograd, so the same
+Everything calls the raw ops of a kernel table (``modi_ext.runtime.kernels.kernel_table``), never autograd, so the same
 list runs on ``torch.ops.modi_ext`` (CPU or CUDA) and on the emulator's ``torch.ops.modi_ext_emu``.
 """
 from __future__ import annotations
@@ -28,8 +29,10 @@ from typing import Callable, Mapping
 
 import torch
 
-from modi_ext import reference
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.demod.reference import DEMOD_EPS
+from modi_ext.fk.reference import fk_reference
+from modi_ext.skeletal import reference
+from modi_ext.topology import csr_from_lists
 
 __all__ = ["SkeletalCase", "FkCase", "SKELETAL_CASES", "FK_PLANS", "fk_cases", "DTYPES", "TOL", "run_case",
            "run", "fk_plan"]
@@ -150,7 +153,7 @@ def skeletal_inputs(case: SkeletalCase, dtype: torch.dtype, seed: int = 1234) ->
         a = torch.einsum("bi,iocfu->bof", s.pow(2), dense.pow(2))
     else:  # dense (Co, Ci, Eo, Ei, U)
         a = torch.einsum("bi,oijnu->boj", s.pow(2), dense.pow(2))
-    d = torch.rsqrt(a + reference.DEMOD_EPS).to(dtype).double()
+    d = torch.rsqrt(a + DEMOD_EPS).to(dtype).double()
     gy = _rnd(g, dtype, case.B, case.cout, n_out, t_out)
     return dict(x=x, w=w, b=b, s=s, d=d, gy=gy, index=topo.index, offsets=topo.offsets, n_out=n_out)
 
@@ -183,7 +186,7 @@ def fk_inputs(case: FkCase, dtype: torch.dtype, seed: int = 99) -> dict:
 
 def fk_oracle(p: dict) -> tuple[tuple, tuple]:
     q, off, root = (p[k].clone().requires_grad_() for k in ("q", "off", "root"))
-    pos, rot = reference.fk_reference(q, off, p["parents"], root, return_rotations=True)
+    pos, rot = fk_reference(q, off, p["parents"], root, return_rotations=True)
     grads = torch.autograd.grad([pos, rot], [q, root, off], [p["gp"], p["gg"]])
     return (pos.detach(), rot.detach()), tuple(gr.detach() for gr in grads)
 

@@ -1,5 +1,5 @@
-"""The eager fast path (``modi_ext.eager``): the same kernels and gradients of every order as the registered ops,
-taken only where nothing but plain tensors is involved; and backward passes that skip the gradients the engine will
+"""The eager fast path (``modi_ext.runtime.eager``): the same kernels and gradients of every order as the registered
+ops, taken only where nothing but plain tensors is involved; and backward passes that skip the gradients the engine will
 not use (``gradfix.needed``)."""
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ import random
 
 import pytest
 import torch
-
-from modi_ext import HAS_EXT, gradfix, ops
-
 from test_skeletal_ops import KINDS, call, make_case
+
+from modi_ext import HAS_EXT
+from modi_ext.skeletal import autograd as gradfix
+from modi_ext.skeletal import ops
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 pytestmark = [needs_ext, pytest.mark.usefixtures("one_torch_thread")]
@@ -49,7 +50,7 @@ def test_eager_path_equals_the_registered_ops(kind, style, demod, padding, monke
     slow = _all_orders(kind, seed, style, demod, padding)
     assert "eager" in fast[3] and "eager" not in slow[3], (fast[3], slow[3])  # each path really ran
     # bitwise, except that with demodulation the eager path takes its coefficients from the C++ op
-    # (modi_ext.demod) and the registered path from torch ops: the same sums in another order
+    # (modi_ext.demod.ops) and the registered path from torch ops: the same sums in another order
     tol = 1e-13 if demod else 0.0
     torch.testing.assert_close(fast[0], slow[0], rtol=tol, atol=tol)
     for a, b in zip(fast[1] + fast[2], slow[1] + slow[2]):

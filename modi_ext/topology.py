@@ -59,7 +59,7 @@ def csr_from_lists(lists: Sequence[Sequence[int]], n_in: int | None = None, *,
         for n in row:
             if isinstance(n, bool) or not isinstance(n, int):
                 try:
-                    import numpy as np  # ints from numpy arrays are fine
+                    import numpy as np  # lazy: numpy is an optional dependency; ints from numpy arrays are fine
                     if isinstance(n, np.integer):
                         n = int(n)
                     else:
@@ -87,37 +87,11 @@ def csr_from_lists(lists: Sequence[Sequence[int]], n_in: int | None = None, *,
                              f"to some coarse entity")
     index = torch.tensor(flat, dtype=torch.int64)
     off = torch.tensor(offsets, dtype=torch.int64)
-    counts = off[1:] - off[:-1]
-    pair_entity = torch.repeat_interleave(torch.arange(len(lists), dtype=torch.int64), counts)
-    return SparseTopology(index=index, offsets=off, pair_entity=pair_entity, n_out=len(lists), n_in=int(n_in))
+    return SparseTopology(index=index, offsets=off, pair_entity=pair_entity(off, len(flat)), n_out=len(lists),
+                          n_in=int(n_in))
 
 
 def pair_entity(offsets: torch.Tensor, nnz: int) -> torch.Tensor:
     """Output entity of each pair, from CSR offsets (compile-friendly: the output size is given)."""
     counts = offsets[1:] - offsets[:-1]
     return torch.repeat_interleave(torch.arange(counts.numel(), device=offsets.device), counts, output_size=nnz)
-
-
-def check_csr(index: torch.Tensor, offsets: torch.Tensor, n_in: int, name: str = "index") -> None:
-    """Validate CSR tensors handed straight to an op (cheap; runs on CPU tensors only)."""
-    for arg, t in ((name, index), ("offsets", offsets)):
-        if not isinstance(t, torch.Tensor):
-            raise TypeError(f"{arg} must be a torch.Tensor, got {type(t).__name__}")
-        if t.dtype != torch.int64:
-            raise TypeError(f"{arg} must be int64, got {t.dtype}")
-        if t.dim() != 1:
-            raise ValueError(f"{arg} must be 1-D, got shape {tuple(t.shape)}")
-    if offsets.numel() < 2:
-        raise ValueError("offsets must have at least 2 entries (one output entity)")
-    if index.device.type == "meta" or torch.compiler.is_compiling():
-        return  # no values to look at while tracing
-    o = offsets.cpu()
-    if int(o[0]) != 0 or int(o[-1]) != index.numel():
-        raise ValueError(f"offsets must start at 0 and end at {name}.numel()={index.numel()}, "
-                         f"got {int(o[0])}..{int(o[-1])}")
-    counts = o[1:] - o[:-1]
-    if bool((counts <= 0).any()):
-        j = int(torch.nonzero(counts <= 0)[0])
-        raise ValueError(f"offsets: output entity {j} has no neighbors")
-    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= n_in):
-        raise ValueError(f"{name} holds an entity index out of range [0, {n_in})")

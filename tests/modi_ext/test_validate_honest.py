@@ -152,8 +152,8 @@ def test_timeout_kills_the_grandchild_too(tmp_path):
 def test_fk_under_ext_raises_on_a_device_without_fk_kernels(monkeypatch):
     import torch
 
-    from modi_ext import dispatch
     from modi_ext.fk import fk
+    from modi_ext.runtime import dispatch
 
     monkeypatch.setenv("MODI_EXT_IMPL", "ext")
     monkeypatch.setattr(dispatch, "kernels_built", lambda dev, family="skeletal": False)

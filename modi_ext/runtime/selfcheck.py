@@ -1,29 +1,32 @@
 """First-use self-check of the kernels on one (device, dtype): the shared payload against the float64 reference.
 
 A kernel that is wrong on some GPU (a miscompile, an architecture the build did not target, a driver issue) must
-never silently train a model: ``modi_ext.dispatch`` runs ``run(device, dtype)`` once per (device, dtype) before the
-kernels get a real call and routes that pair to the dense path if anything here disagrees with the reference.
+never silently train a model: ``modi_ext.runtime.dispatch`` runs ``run(device, dtype)`` once per (device, dtype)
+before the kernels get a real call and routes that pair to the dense path if anything here disagrees with the
+reference.
 
-The problems are ``modi_ext.payload``'s, so the check launches every kernel instantiation of its dtype -- what MoDi
-trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
+The problems are ``modi_ext.runtime.payload``'s, so the check launches every kernel instantiation of its dtype -- what
+MoDi trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
 and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
 plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
-ops hand to the kernels (``modi_ext.demod``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
-on the CPU emulator (``tests/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
+ops hand to the kernels (``modi_ext.demod.ops``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
+on the CPU emulator (``tests/modi_ext/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
 
-It calls the raw kernels of a table (``modi_ext.kernels``), not the autograd ops, so it imports nothing above it.
+It calls the raw kernels of a table (``modi_ext.runtime.kernels``), not the autograd ops; what it imports above the
+runtime is the demod op and the references (so ``dispatch`` is handed ``run`` by ``modi_ext/__init__.py``).
 """
 from __future__ import annotations
 
 import torch
 
-from modi_ext import demod, kernels, payload
+from modi_ext.demod import ops as demod
+from modi_ext.runtime import kernels, payload
 
 TOL = payload.TOL
 
 
 def _demod_error(case: payload.SkeletalCase, device: str, dtype: torch.dtype) -> float:
-    """The demodulation coefficients the public ops hand to the kernels (``modi_ext.demod``: a C++ op on the CPU)
+    """The demodulation coefficients the public ops hand to the kernels (``modi_ext.demod.ops``: a C++ op on the CPU)
     against the float64 formula."""
     p = payload.skeletal_inputs(case, dtype)
     dev = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731

@@ -1,4 +1,4 @@
-"""The C++ demodulation coefficients (``modi_ext.demod``, ``csrc/cpu/demod_cpu.cpp``) against the torch form
+"""The C++ demodulation coefficients (``modi_ext.demod.ops``, ``csrc/cpu/demod_cpu.cpp``) against the torch form
 (``dense.demod_scale``) on random trees: values and gradients in float64, gradcheck and gradgradcheck (the second
 order goes through the torch form), opcheck of both ops, results independent of the thread count, the paths that must
 fall back to the torch form, and clear errors on bad input."""
@@ -8,10 +8,12 @@ import random
 
 import pytest
 import torch
-
-from modi_ext import HAS_EXT, demod, dense, ops
-
 from test_skeletal_ops import KINDS, make_case
+
+from modi_ext import HAS_EXT
+from modi_ext.demod import dense
+from modi_ext.demod import ops as demod
+from modi_ext.skeletal import ops
 
 needs_kernel = pytest.mark.skipif(not (HAS_EXT and demod.kernel_available()),
                                   reason="modi_ext C++ extension (with the demod op) not built")

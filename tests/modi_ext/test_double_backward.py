@@ -1,5 +1,5 @@
-"""Second- and higher-order gradients on the sparse kernels (``modi_ext.gradfix``): gradgradcheck in float64 on
-random trees for every op and option, equality with the dense reference's second-order gradients, opcheck of the
+"""Second- and higher-order gradients on the sparse kernels (``modi_ext.skeletal.autograd``): gradgradcheck in float64
+on random trees for every op and option, equality with the dense reference's second-order gradients, opcheck of the
 backward ops, the graph-building path never touching the reference, and the R1 / path-length / WGAN-GP parameter
 gradients of tiny MoDi and GANimator models equal on both paths."""
 from __future__ import annotations
@@ -8,12 +8,12 @@ import random
 
 import pytest
 import torch
-
-from modi_ext import HAS_EXT, ops
-from modi_ext import reference as R
-from modi_ext.topology_tensors import csr_from_lists
-
 from test_skeletal_ops import KINDS, call, make_case
+
+from modi_ext import HAS_EXT
+from modi_ext.skeletal import ops
+from modi_ext.skeletal import reference as R
+from modi_ext.topology import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 pytestmark = [needs_ext, pytest.mark.usefixtures("one_torch_thread")]
@@ -136,7 +136,7 @@ def test_graph_path_never_calls_the_reference(monkeypatch):
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 def test_opcheck_backward_ops(kind, padding):
-    from modi_ext import gradfix
+    from modi_ext.skeletal import autograd as gradfix
 
     rng = random.Random(5)
     (x, w, b), _, rest, _ = _inputs(kind, rng, False, False, padding, n_joints=6, U=3, B=2, cin=2, cout=3, T=8)
@@ -246,7 +246,7 @@ def test_double_backward_reference_switch(monkeypatch):
 
 def test_backward_ops_accept_non_contiguous_inputs():
     """The registered backward ops are public: strided gradients and weights are made contiguous, not refused."""
-    from modi_ext import gradfix
+    from modi_ext.skeletal import autograd as gradfix
 
     x, w, topo = _disconnected_conv_case()
     y = ops.skeletal_conv(x, w, None, topo.index, topo.offsets)

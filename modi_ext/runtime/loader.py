@@ -46,7 +46,7 @@ def warn_not_built() -> None:
 
 def impl_choice() -> str:
     """The path asked for, device aside: 'ref', 'dense' or 'ext' ('auto' resolves to 'ext' when built, else
-    'dense').  Per-call routing (device kernels, self-check, auto timing) is ``modi_ext.dispatch.route``."""
+    'dense').  Per-call routing (device kernels, self-check, auto timing) is ``modi_ext.runtime.dispatch.route``."""
     want = requested_impl()
     if want in ("ref", "dense", "ext"):
         return want

@@ -5,7 +5,7 @@
 1. this build has kernels for the tensor's device type (probed once per device type and cached -- a per-call probe
    would be traced by ``torch.compile`` and break the graph), else ``dense``;
 2. the kernels passed their self-check for this (device, dtype): on first use a tiny random problem runs through each
-   kernel and the float64 reference (``modi_ext.selfcheck``); a mismatch gives one warning naming the op and the
+   kernel and the float64 reference (``modi_ext.runtime.selfcheck``); a mismatch gives one warning naming the op and the
    error and routes that (device, dtype) to ``dense`` (``MODI_EXT_SELFCHECK=0`` skips the check, ``strict`` raises);
 3. on devices in ``MEASURE_DEVICES`` (CUDA): the kernel measured faster than ``dense`` for this (device, op, shape
    signature) -- both timed once, a few repetitions, like ``cudnn.benchmark``.  On the CPU the kernels always win.
@@ -24,14 +24,13 @@ from typing import Callable
 
 import torch
 
-from modi_ext import selfcheck
-from modi_ext._loader import HAS_EXT, requested_impl, warn_not_built
-from modi_ext.kernels import KERNELS, _built, device_key, kernels_built
+from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
+from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
 
 __all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
 
-# ``KERNELS`` (modi_ext.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry (then
-# ``reset()``) to inject a wrong kernel.
+# ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
+# (then ``reset()``) to inject a wrong kernel.
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
 
@@ -49,6 +48,12 @@ def _default_timer(name: str, fn: Callable[[], object], device: str) -> float:
 
 
 TIMER: Callable[[str, Callable[[], object], str], float] = _default_timer  # test hook: a fake clock
+
+# The first-use self-check, ``(device, dtype) -> {"ok", "errors", "max_error", ...}``:
+# ``modi_ext.runtime.selfcheck.run``, installed by ``modi_ext/__init__.py``.  The self-check runs the ops' references,
+# whose packages import the ops, which import this module: it sits above dispatch, so dispatch is handed it instead
+# of importing it.  A test hook too.
+SELFCHECK: Callable[[str, torch.dtype], dict] | None = None
 
 _lock = threading.RLock()
 _checked: dict[tuple[str, str], dict] = {}
@@ -83,7 +88,9 @@ def kernels_trusted(device: str, dtype_name: str) -> bool:
     key = (device, dtype_name)
     with _lock:
         if key not in _checked:
-            res = selfcheck.run(device, getattr(torch, dtype_name.replace("torch.", "")))
+            if SELFCHECK is None:
+                raise RuntimeError("modi_ext.runtime.dispatch: no self-check installed (import modi_ext)")
+            res = SELFCHECK(device, getattr(torch, dtype_name.replace("torch.", "")))
             _checked[key] = res
             if not res["ok"] and mode != "strict":
                 warnings.warn(_failure_message(device, dtype_name, res), RuntimeWarning, stacklevel=5)

@@ -1,13 +1,14 @@
-"""Demodulation coefficients for the kernels' path: one C++ call on the CPU, torch ops elsewhere.
+"""The demod op: the coefficients the skeletal kernels are handed, one C++ call on the CPU, torch ops elsewhere.
 
-``dense.demod_scale`` computes ``d[b, o, j] = rsqrt(s[b]^2 . sum_{n in j, u} W^2 + eps)`` in about a dozen small torch
-ops, and as many again in its backward.  Each is a parallel region of its own: together they cost a modulated layer a
-few percent on a quiet machine, and as much as its two convolutions when another process holds a core (every region
-waits for its slowest thread).  On the CPU, for plain float32/float64 tensors in eager mode (``eager.usable``), the
-forward and the first-order backward here are one task-pool job each (``csrc/cpu/demod_cpu.cpp``).  A backward that
-must itself be differentiable (``create_graph``: path length, R1) is recomputed from the torch form, so every order of
-gradient stays exact.  Everywhere else (CUDA, half precision, compile, ``MODI_EXT_EAGER=0``) it is the torch form;
-``MODI_EXT_DEMOD=torch`` asks for the torch form everywhere (for comparisons).
+``modi_ext.demod.dense.demod_scale`` computes ``d[b, o, j] = rsqrt(s[b]^2 . sum_{n in j, u} W^2 + eps)`` in about a
+dozen small torch ops, and as many again in its backward.  Each is a parallel region of its own: together they cost a
+modulated layer a few percent on a quiet machine, and as much as its two convolutions when another process holds a core
+(every region waits for its slowest thread).  On the CPU, for plain float32/float64 tensors in eager mode
+(``eager.usable``), the forward and the first-order backward here are one task-pool job each
+(``csrc/cpu/demod_cpu.cpp``).  A backward that must itself be differentiable (``create_graph``: path length, R1) is
+recomputed from the torch form, so every order of gradient stays exact.  Everywhere else (CUDA, half precision, compile,
+``MODI_EXT_EAGER=0``) it is the torch form; ``MODI_EXT_DEMOD=torch`` asks for the torch form everywhere (for
+comparisons).
 """
 from __future__ import annotations
 
@@ -15,9 +16,11 @@ import os
 
 import torch
 
-from modi_ext import dense, eager, reference
-from modi_ext.eager import needed
-from modi_ext._loader import HAS_EXT
+from modi_ext.demod import dense
+from modi_ext.demod.reference import DEMOD_EPS
+from modi_ext.runtime import eager
+from modi_ext.runtime.eager import needed
+from modi_ext.runtime.loader import HAS_EXT
 
 __all__ = ["demod_scale", "kernel_available"]
 
@@ -32,7 +35,7 @@ def kernel_available() -> bool:
 
 def _run(weight, style, index, offsets, up: bool, n_out: int) -> torch.Tensor:
     """``(Bs, Cout, E_out)`` coefficients from the C++ op; ``Bs`` is the style's batch, 1 without a style."""
-    return torch.ops.modi_ext.demod_scale(weight, style, index, offsets, up, n_out, reference.DEMOD_EPS)
+    return torch.ops.modi_ext.demod_scale(weight, style, index, offsets, up, n_out, DEMOD_EPS)
 
 
 def _setup_context(ctx, inputs, output) -> None:

@@ -1,7 +1,7 @@
 """The compiled kernels by name, which device types a build covers, and one cache key per device.
 
-Below ``selfcheck`` and ``dispatch`` in the package's import order (reference -> dense -> kernels -> selfcheck ->
-dispatch -> ops -> layers): everything that runs or asks about the raw ``torch.ops`` kernels goes through here.
+Below ``dispatch`` and ``selfcheck`` in the package's import layers (``tests/modi_ext/test_modi_ext_imports.py``):
+everything that runs or asks about the raw ``torch.ops`` kernels goes through here.
 
 * ``KERNELS``: the raw ops of ``torch.ops.modi_ext`` by name -- a test hook (replace an entry, then
   ``dispatch.reset()``, to inject a wrong kernel); ``kernel_table(lib)`` is the same table for another op namespace
@@ -18,7 +18,7 @@ from typing import Callable
 
 import torch
 
-from modi_ext._loader import HAS_EXT
+from modi_ext.runtime.loader import HAS_EXT
 
 __all__ = ["LIB", "FAMILY_OPS", "KERNELS", "kernel_table", "registered", "kernels_built", "device_key"]
 

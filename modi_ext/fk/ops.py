@@ -1,17 +1,15 @@
-"""Batched forward kinematics: local joint quaternions -> global joint positions (and rotations).
+"""The fk op: argument checks, the fused C++ kernel with its fake kernels and autograd, and the ``nn.Module``.
 
 ``fk`` checks its arguments, then runs the fused C++ kernel (``torch.ops.modi_ext.fk``) when this build has it for
-the tensors' device type (decided once per device type, ``modi_ext.dispatch.kernels_built``, so ``torch.compile``
-traces no probe), else the dense torch reference ``fk_reference`` (the test oracle; FK's dense form).
-``MODI_EXT_IMPL=ref|dense|ext|auto`` picks the path; ``auto`` also requires the kernels' first-use self-check.
-The kernel's backward is first order; when a graph of the gradient is asked for (``create_graph=True``) it is built
-from the reference's torch ops instead, so second-order gradients through FK are exact.
+the tensors' device type (decided once per device type, ``modi_ext.runtime.dispatch.kernels_built``, so
+``torch.compile`` traces no probe), else the torch loop ``modi_ext.fk.reference.fk_reference`` (the test oracle;
+FK's dense form).  ``MODI_EXT_IMPL=ref|dense|ext|auto`` picks the path; ``auto`` also requires the kernels' first-use
+self-check.  The kernel's backward is first order; when a graph of the gradient is asked for (``create_graph=True``)
+it is built from the reference's torch ops instead, so second-order gradients through FK are exact.
 
-Semantics (shared with ``modi.kinematics.forward_kinematics``): quaternions are (w, x, y, z) in the parent's
-frame; joint 0's global position *is* ``root_positions`` (its offset is not added); for ``j > 0`` with
-``p = parents[j]``: ``Q[j] = Q[p] * q[j]`` and ``P[j] = P[p] + rotate(Q[p], offsets[j])``.
-Inputs are expected to be unit quaternions; nothing is normalised (normalise first if a network emits them),
-and for non-unit input both paths evaluate ``rotate(Q, v) = v + 2w (u x v) + 2 u x (u x v)`` identically.
+Semantics: ``modi_ext.fk.reference`` (quaternions (w, x, y, z) in the parent's frame, joint 0 at
+``root_positions``).  Inputs are expected to be unit quaternions; nothing is normalised (normalise first if a network
+emits them), and for non-unit input both paths evaluate ``rotate(Q, v) = v + 2w (u x v) + 2 u x (u x v)``.
 """
 from __future__ import annotations
 
@@ -20,11 +18,11 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from modi_ext import dispatch
-from modi_ext._loader import HAS_EXT, requested_impl
-from modi_ext.reference import fk_reference  # noqa: F401  (re-exported: the oracle lives with the others)
+from modi_ext.fk.reference import fk_reference
+from modi_ext.runtime import dispatch
+from modi_ext.runtime.loader import HAS_EXT, requested_impl
 
-__all__ = ["fk", "fk_reference", "ForwardKinematics", "check_parents"]
+__all__ = ["fk", "ForwardKinematics", "check_parents"]
 
 
 # ---------------------------------------------------------------------------------------------------------
