@@ -39,6 +39,7 @@ LAYERS = [
 ]
 LAZY_ALLOWED_IN = ("modi.cli", "modi.blender", "modi.__main__")  # lazy imports keep `modi --help` fast there
 MAX_LAZY = 40
+EXTENSIONS = {"modi_ext._C", "modi_ext._C_emu"}  # compiled modules: leaves of the graph
 
 
 def _modules(root: Path = REPO) -> dict[str, Path]:
@@ -69,6 +70,8 @@ def _targets(node: ast.AST, current: str, is_pkg: bool, modules: dict[str, Path]
         return set()
     out = set()
     for a in node.names:
+        if f"{mod}.{a.name}" in EXTENSIONS:
+            continue
         out.add(f"{mod}.{a.name}" if f"{mod}.{a.name}" in modules else mod)
     return {m for m in out if m in modules}
 
