@@ -1,4 +1,4 @@
-// A CUDA execution-model emulator for testing: compiles the unchanged kernels of csrc/cuda/*.cu as host C++
+// A CUDA execution-model emulator for testing: compiles the unchanged kernels of csrc/<op>/cuda.cu as host C++
 // (-DMODI_EXT_EMULATE_CUDA) and runs them on the CPU, so CI exercises the CUDA code without a GPU.
 //
 // Model: blocks run one after another (in an order permuted by the schedule seed); every thread of a block is its

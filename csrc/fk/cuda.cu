@@ -1,4 +1,4 @@
-// CUDA kernels of modi_ext::fk (semantics: csrc/fk.h, mirrored from csrc/cpu/fk_cpu.cpp).
+// CUDA kernels of modi_ext::fk (semantics: fk/fk.h, mirrored from fk/cpu.cpp).
 //
 // One thread per sample (flattened batch x time) walks the joints root to leaf (forward) or leaf to root
 // (backward).  The parent list travels by value in the kernel parameters (no host-to-device copy, so the op can be
@@ -16,8 +16,8 @@
 
 #include <vector>
 
-#include "cuda_common.cuh"
-#include "fk.h"
+#include "common/cuda_common.cuh"
+#include "fk/fk.h"
 
 namespace modi_ext {
 namespace {

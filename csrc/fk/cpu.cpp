@@ -1,6 +1,6 @@
 // CPU kernels of modi_ext::fk. One sample (b, t) is a sequential walk down the joint tree; samples
 // are independent, so the flattened batch x time range is cut into fixed blocks that threads claim dynamically
-// (cpu/tasks.h: a thread slowed by another process takes fewer blocks instead of holding up the call).
+// (common/tasks.h: a thread slowed by another process takes fewer blocks instead of holding up the call).
 // The backward walks the tree leaf-to-root, accumulating each joint's position/rotation gradient into
 // its parent, so every joint is visited once per sample in each direction (O(J), no J x J Jacobian).
 #include <ATen/Dispatch.h>
@@ -11,8 +11,8 @@
 #include <algorithm>
 #include <vector>
 
-#include "fk.h"
-#include "cpu/tasks.h"
+#include "fk/fk.h"
+#include "common/tasks.h"
 
 namespace modi_ext {
 namespace {

@@ -1,4 +1,4 @@
-// Shared helpers of the modi_ext CUDA kernels (skeletal_cuda.cu, fk_cuda.cu).
+// Shared helpers of the modi_ext CUDA kernels (skeletal/cuda.cu, fk/cuda.cu).
 //
 // Only torch/ATen/c10-cuda and CUDA runtime headers: <ATen/cuda/CUDAContext.h> is deliberately avoided (it pulls
 // cuBLAS/cuSPARSE headers that a bare nvcc install lacks; see .ci/cuda_compile_check).  Nothing here synchronises

@@ -1,6 +1,6 @@
 // CUDA kernels of the skeletal operators (skeletal_conv, skeletal_down, skeletal_up, skeletal_backward).
 //
-// Semantics: modi_ext/reference.py (the dense oracle) and csrc/cpu/skeletal_cpu.cpp (the CPU kernels these mirror).
+// Semantics: modi_ext/reference.py (the dense oracle) and skeletal/cpu.cpp (the CPU kernels these mirror).
 // Every pass is one small GEMM per entity with the gather fused into the operand load:
 //
 //   row GEMM (kernel `row_gemm`)    out[b, m, row, t]  = sum_k A[m, k] G[k, (b, t)]
@@ -29,8 +29,8 @@
 
 #include <ATen/ATen.h>
 
-#include "cuda_common.cuh"
-#include "skeletal.h"
+#include "common/cuda_common.cuh"
+#include "skeletal/skeletal.h"
 
 namespace modi_ext {
 namespace {
@@ -335,7 +335,7 @@ __global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const RowArgs<T>
   auto store = [&](int buf) {
 #pragma unroll
     for (int i = 0; i < TL::A_PER; ++i) As[buf][a_k][a_m + i * TL::A_STEP] = ra[i];
-    // MODI_EMU_OFF_BY_ONE is 0 outside the emulator's defect-injection build (cuda_common.cuh)
+    // MODI_EMU_OFF_BY_ONE is 0 outside the emulator's defect-injection build (common/cuda_common.cuh)
 #pragma unroll
     for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n + MODI_EMU_OFF_BY_ONE] = rb[i];
   };
@@ -618,7 +618,7 @@ template <typename T>
 __global__ void split_reduce_kernel(const acc_t<T>* __restrict__ ws, int splits, int64_t n, T* __restrict__ out) {
   for (int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
     acc_t<T> s = 0;
-    // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (cuda_common.cuh)
+    // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (common/cuda_common.cuh)
     for (int k = 0; k < splits + MODI_EMU_GLOBAL_OOB; ++k) s += ws[int64_t(k) * n + i];
     st(out + i, s);
   }

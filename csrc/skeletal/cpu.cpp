@@ -7,7 +7,7 @@
 // in the epilogue.  The GEMM is the BLAS that libtorch ships (sgemm_/dgemm_, single-threaded inside the parallel
 // region), with an ATen fallback when it is not exported; fp32 with AVX2/FMA uses the indirect kernels below.
 //
-// Work distribution (cpu/tasks.h): each call is one parallel region of two stages, preparation (operand layouts,
+// Work distribution (common/tasks.h): each call is one parallel region of two stages, preparation (operand layouts,
 // packed weights, bias / scale gradients) then compute (forward tiles; or input-gradient tiles and weight-gradient
 // blocks together), the second waiting only for claimed preparation tasks.  Tasks are claimed dynamically, largest first, with per-slot scratch; every output element is
 // written by exactly one task, and the tiling depends on the shapes only, so results are the same for any thread
@@ -28,8 +28,8 @@
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
-#include "skeletal.h"
-#include "cpu/tasks.h"
+#include "skeletal/skeletal.h"
+#include "common/tasks.h"
 
 extern "C" {
 void sgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const float* alpha,

@@ -9,7 +9,7 @@
 // einsum, rsqrt, and about as many again in the backward), each a parallel region of its own.  On a quiet machine
 // they cost a few percent of a modulated layer; when another process holds a core, every one of them waits for its
 // slowest thread, and they took as long as the layer's two convolutions together (measured in benchmarks/RESULTS.md).
-// Here a call is one job of the task pool (cpu/tasks.h): stages of tasks claimed dynamically, each writing its own
+// Here a call is one job of the task pool (common/tasks.h): stages of tasks claimed dynamically, each writing its own
 // outputs in a fixed summation order, so the result does not depend on the thread count.  Small calls run serially.
 //
 // Second-order gradients are not computed here: modi_ext/demod.py recomputes this in torch ops when autograd needs a
@@ -24,7 +24,7 @@
 #include <ATen/ATen.h>
 #include <torch/library.h>
 
-#include "cpu/tasks.h"
+#include "common/tasks.h"
 
 namespace modi_ext {
 namespace {
