@@ -11,8 +11,9 @@
 #include <algorithm>
 #include <vector>
 
-#include "fk/fk.h"
 #include "common/tasks.h"
+#include "fk/check.h"
+#include "fk/fk.h"
 
 namespace modi_ext {
 namespace {
@@ -61,56 +62,6 @@ inline void qrot(T w, T ux, T uy, T uz, const T* v, T* out) {
   out[0] = v[0] + w * tx + (uy * tz - uz * ty);
   out[1] = v[1] + w * ty + (uz * tx - ux * tz);
   out[2] = v[2] + w * tz + (ux * ty - uy * tx);
-}
-
-// ---- argument checks: every failure names the argument, so a bad call never reaches the kernel ----
-
-std::vector<int64_t> check_parents(at::IntArrayRef parents, int64_t J) {
-  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
-              " entries but local_quats has ", J, " joints (dim -2)");
-  std::vector<int64_t> par(parents.begin(), parents.end());
-  TORCH_CHECK(J >= 1 && par[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
-  for (int64_t j = 1; j < J; ++j) {
-    TORCH_CHECK(par[j] >= 0 && par[j] < j, "modi_ext::fk: parents[", j, "] = ", par[j],
-                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
-  }
-  return par;
-}
-
-void check_tensor(const at::Tensor& t, const char* name, at::ScalarType dtype) {
-  TORCH_CHECK(t.defined(), "modi_ext::fk: ", name, " is undefined");
-  TORCH_CHECK(t.device().is_cpu(), "modi_ext::fk: ", name, " must be on the CPU, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == dtype, "modi_ext::fk: ", name, " has dtype ", t.scalar_type(),
-              ", expected ", dtype, " (same as local_quats)");
-  TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
-}
-
-struct Dims {
-  int64_t N;  // flattened leading dims (batch x time)
-  int64_t J;
-};
-
-Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, const at::Tensor& root_positions) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
-              "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
-              local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
-  const auto dtype = local_quats.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "modi_ext::fk: local_quats must be float32 or float64, got ",
-              dtype);
-  check_tensor(local_quats, "local_quats", dtype);
-  const int64_t J = local_quats.size(-2);
-  TORCH_CHECK(J >= 1, "modi_ext::fk: local_quats has no joints");
-  TORCH_CHECK(local_quats.numel() > 0, "modi_ext::fk: local_quats is empty (shape ", local_quats.sizes(), ")");
-  check_tensor(offsets, "offsets", dtype);
-  TORCH_CHECK(offsets.dim() == 2 && offsets.size(0) == J && offsets.size(1) == 3,
-              "modi_ext::fk: offsets must have shape (J, 3) = (", J, ", 3), got ", offsets.sizes());
-  check_tensor(root_positions, "root_positions", dtype);
-  const auto lead = local_quats.sizes().slice(0, local_quats.dim() - 2);
-  TORCH_CHECK(root_positions.dim() == local_quats.dim() - 1 && root_positions.size(-1) == 3 &&
-                  root_positions.sizes().slice(0, root_positions.dim() - 1) == lead,
-              "modi_ext::fk: root_positions must have shape local_quats.shape[:-2] + (3,), got ",
-              root_positions.sizes(), " for local_quats ", local_quats.sizes());
-  return {local_quats.numel() / (J * 4), J};
 }
 
 // Samples per task: ~8k joint visits (tens of microseconds), so small calls stay on the calling thread.
@@ -243,11 +194,9 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
 
 std::tuple<at::Tensor, at::Tensor> fk_cpu(const at::Tensor& local_quats, const at::Tensor& offsets,
                                           at::IntArrayRef parents, const at::Tensor& root_positions) {
-  const Dims d = check_inputs(local_quats, offsets, root_positions);
-  const auto par = check_parents(parents, d.J);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  at::Tensor positions = at::empty(pos_shape, local_quats.options());
+  const fk::Dims d = fk::check_forward_inputs(kCpuBackend, local_quats, offsets, root_positions);
+  const std::vector<int64_t> par = fk::check_parents(parents, d.J);
+  at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
   at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
   AT_DISPATCH_FLOATING_TYPES(local_quats.scalar_type(), "modi_ext::fk", [&] {
     fk_forward_kernel<scalar_t>(local_quats.data_ptr<scalar_t>(), offsets.data_ptr<scalar_t>(), par.data(),
@@ -261,31 +210,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cpu(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  std::vector<int64_t> root_shape(local_quats.sizes().begin(), local_quats.sizes().end() - 1);
-  if (!root_shape.empty()) root_shape.back() = 3;
-  // The root tensor only contributes its shape to the checks; reuse them by building an empty stand-in.
-  const Dims d = check_inputs(local_quats, offsets, at::empty(root_shape, local_quats.options()));
-  const auto par = check_parents(parents, d.J);
+  const fk::Dims d =
+      fk::check_backward_inputs(kCpuBackend, grad_positions, grad_global_quats, local_quats, global_quats, offsets);
+  const std::vector<int64_t> par = fk::check_parents(parents, d.J);
   const auto dtype = local_quats.scalar_type();
-  check_tensor(global_quats, "global_quats", dtype);
-  TORCH_CHECK(global_quats.sizes() == local_quats.sizes(), "modi_ext::fk_backward: global_quats must have the shape of local_quats");
-  TORCH_CHECK(grad_positions.defined() && grad_positions.scalar_type() == dtype && grad_positions.device().is_cpu(),
-              "modi_ext::fk_backward: grad_positions must be a CPU tensor of dtype ", dtype);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  TORCH_CHECK(grad_positions.sizes() == at::IntArrayRef(pos_shape), "modi_ext::fk_backward: grad_positions must have shape ",
-              at::IntArrayRef(pos_shape), ", got ", grad_positions.sizes());
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;
-  if (grad_global_quats.has_value() && grad_global_quats->defined()) {
-    TORCH_CHECK(grad_global_quats->scalar_type() == dtype && grad_global_quats->device().is_cpu() &&
-                    grad_global_quats->sizes() == local_quats.sizes(),
-                "modi_ext::fk_backward: grad_global_quats must be a CPU tensor of dtype ", dtype, " and shape ",
-                local_quats.sizes());
-    ggq = grad_global_quats->contiguous();
-  }
+  if (grad_global_quats.has_value() && grad_global_quats->defined()) ggq = grad_global_quats->contiguous();
   at::Tensor grad_local = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
-  at::Tensor grad_root = at::empty(root_shape, local_quats.options());
+  at::Tensor grad_root = at::empty(fk::root_shape_of(local_quats), local_quats.options());
   at::Tensor grad_off = at::zeros({d.J, 3}, local_quats.options());
   AT_DISPATCH_FLOATING_TYPES(dtype, "modi_ext::fk_backward", [&] {
     fk_backward_kernel<scalar_t>(gpos.data_ptr<scalar_t>(), ggq.defined() ? ggq.data_ptr<scalar_t>() : nullptr,

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "common/cuda_common.cuh"
+#include "fk/check.h"
 #include "fk/fk.h"
 
 namespace modi_ext {
@@ -27,7 +28,7 @@ using cuda::ceil_div;
 using cuda::ld;
 using cuda::st;
 
-constexpr int kMaxJoints = 1024;
+constexpr int kMaxJoints = fk::kCudaMaxJoints;
 constexpr size_t kSmemBudget = 48 * 1024;
 
 struct FkParents {
@@ -266,59 +267,12 @@ __global__ void fk_offsets_reduce_kernel(const acc_t<T>* __restrict__ part, int6
 }
 
 // ---- host side ----
-FkParents make_parents(at::IntArrayRef parents, int64_t J) {
-  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
-              " entries but local_quats has ", J, " joints (dim -2)");
-  TORCH_CHECK(J >= 1 && parents[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
-  TORCH_CHECK(J <= kMaxJoints, "modi_ext::fk: the CUDA kernel supports at most ", kMaxJoints, " joints, got ", J);
+// The checked parent list (fk::check_parents), as the kernels receive it.
+FkParents make_parents(const std::vector<int64_t>& parents) {
   FkParents par{};
-  par.J = static_cast<int>(J);
-  par.p[0] = -1;
-  for (int64_t j = 1; j < J; ++j) {
-    TORCH_CHECK(parents[j] >= 0 && parents[j] < j, "modi_ext::fk: parents[", j, "] = ", parents[j],
-                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
-    par.p[j] = static_cast<int16_t>(parents[j]);
-  }
+  par.J = static_cast<int>(parents.size());
+  for (size_t j = 0; j < parents.size(); ++j) par.p[j] = static_cast<int16_t>(parents[j]);
   return par;
-}
-
-void check_tensor(const at::Tensor& t, const char* name, const at::Tensor& ref) {
-  TORCH_CHECK(t.defined(), "modi_ext::fk: ", name, " is undefined");
-  TORCH_CHECK(t.device() == ref.device(), "modi_ext::fk: ", name, " is on ", t.device(), " but local_quats is on ",
-              ref.device());
-  TORCH_CHECK(t.scalar_type() == ref.scalar_type(), "modi_ext::fk: ", name, " has dtype ", t.scalar_type(),
-              ", expected ", ref.scalar_type(), " (same as local_quats)");
-  TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
-}
-
-struct Dims {
-  int64_t N, J;
-};
-
-Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, at::IntArrayRef root_sizes) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
-              "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
-              local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
-  TORCH_CHECK(cuda::on_device(local_quats), "modi_ext::fk: local_quats must be a CUDA tensor for the CUDA kernel, got ",
-              local_quats.device());
-  TORCH_CHECK(cuda::is_cuda_float(local_quats.scalar_type()),
-              "modi_ext::fk: local_quats must be float32, float64, float16 or bfloat16, got ",
-              local_quats.scalar_type());
-  TORCH_CHECK(local_quats.is_contiguous(), "modi_ext::fk: local_quats must be contiguous");
-  const int64_t J = local_quats.size(-2);
-  TORCH_CHECK(J >= 1, "modi_ext::fk: local_quats has no joints");
-  TORCH_CHECK(local_quats.numel() > 0, "modi_ext::fk: local_quats is empty (shape ", local_quats.sizes(), ")");
-  check_tensor(offsets, "offsets", local_quats);
-  TORCH_CHECK(offsets.dim() == 2 && offsets.size(0) == J && offsets.size(1) == 3,
-              "modi_ext::fk: offsets must have shape (J, 3) = (", J, ", 3), got ", offsets.sizes());
-  const auto lead = local_quats.sizes().slice(0, local_quats.dim() - 2);
-  TORCH_CHECK(root_sizes.size() == lead.size() + 1 && root_sizes.back() == 3 &&
-                  root_sizes.slice(0, root_sizes.size() - 1) == lead,
-              "modi_ext::fk: root_positions must have shape local_quats.shape[:-2] + (3,), got ", root_sizes,
-              " for local_quats ", local_quats.sizes());
-  const int64_t N = local_quats.numel() / (J * 4);
-  TORCH_CHECK(ceil_div(N, 32) < (int64_t(1) << 31), "modi_ext::fk: too many samples for the CUDA kernel: ", N);
-  return {N, J};
 }
 
 struct Plan {
@@ -337,23 +291,13 @@ Plan plan_launch(int64_t J, size_t acc_bytes) {
   return {128, false, fixed};
 }
 
-std::vector<int64_t> root_shape_of(const at::Tensor& local_quats) {
-  std::vector<int64_t> s(local_quats.sizes().begin(), local_quats.sizes().end() - 1);
-  s.back() = 3;
-  return s;
-}
-
 std::tuple<at::Tensor, at::Tensor> fk_cuda(const at::Tensor& local_quats, const at::Tensor& offsets,
                                            at::IntArrayRef parents, const at::Tensor& root_positions) {
-  TORCH_CHECK(root_positions.defined(), "modi_ext::fk: root_positions is undefined");
-  const Dims d = check_inputs(local_quats, offsets, root_positions.sizes());
-  check_tensor(root_positions, "root_positions", local_quats);
-  const FkParents par = make_parents(parents, d.J);
+  const fk::Dims d = fk::check_forward_inputs(kCudaBackend, local_quats, offsets, root_positions);
+  const FkParents par = make_parents(fk::check_parents(parents, d.J));
   const c10::cuda::CUDAGuard guard(local_quats.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  at::Tensor positions = at::empty(pos_shape, local_quats.options());
+  at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
   at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
   const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());
   const Plan plan = plan_launch(d.J, c10::elementSize(acc_type));
@@ -382,37 +326,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2, "modi_ext::fk_backward: local_quats must have shape "
-              "(..., J, 4)");
-  const std::vector<int64_t> root_shape = root_shape_of(local_quats);
-  const Dims d = check_inputs(local_quats, offsets, root_shape);
-  const FkParents par = make_parents(parents, d.J);
-  TORCH_CHECK(global_quats.defined() && global_quats.sizes() == local_quats.sizes(),
-              "modi_ext::fk_backward: global_quats must have the shape of local_quats");
-  check_tensor(global_quats, "global_quats", local_quats);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  TORCH_CHECK(grad_positions.defined() && grad_positions.sizes() == at::IntArrayRef(pos_shape),
-              "modi_ext::fk_backward: grad_positions must have shape ", at::IntArrayRef(pos_shape), ", got ",
-              grad_positions.defined() ? grad_positions.sizes() : at::IntArrayRef{});
-  TORCH_CHECK(grad_positions.device() == local_quats.device() &&
-                  grad_positions.scalar_type() == local_quats.scalar_type(),
-              "modi_ext::fk_backward: grad_positions must be a ", local_quats.scalar_type(), " tensor on ",
-              local_quats.device());
+  const fk::Dims d =
+      fk::check_backward_inputs(kCudaBackend, grad_positions, grad_global_quats, local_quats, global_quats, offsets);
+  const FkParents par = make_parents(fk::check_parents(parents, d.J));
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;
-  if (grad_global_quats.has_value() && grad_global_quats->defined()) {
-    TORCH_CHECK(grad_global_quats->device() == local_quats.device() &&
-                    grad_global_quats->scalar_type() == local_quats.scalar_type() &&
-                    grad_global_quats->sizes() == local_quats.sizes(),
-                "modi_ext::fk_backward: grad_global_quats must be a ", local_quats.scalar_type(), " tensor on ",
-                local_quats.device(), " of shape ", local_quats.sizes());
-    ggq = grad_global_quats->contiguous();
-  }
+  if (grad_global_quats.has_value() && grad_global_quats->defined()) ggq = grad_global_quats->contiguous();
   const c10::cuda::CUDAGuard guard(local_quats.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
   at::Tensor grad_local = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
-  at::Tensor grad_root = at::empty(root_shape, local_quats.options());
+  at::Tensor grad_root = at::empty(fk::root_shape_of(local_quats), local_quats.options());
   at::Tensor grad_off = offsets_grad ? at::empty({d.J, 3}, local_quats.options())
                                      : at::zeros({d.J, 3}, local_quats.options());
   const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());

@@ -30,6 +30,7 @@
 #include <ATen/ATen.h>
 
 #include "common/cuda_common.cuh"
+#include "skeletal/check.h"
 #include "skeletal/skeletal.h"
 
 namespace modi_ext {
@@ -39,6 +40,9 @@ using cuda::acc_t;
 using cuda::ceil_div;
 using cuda::ld;
 using cuda::st;
+using skeletal::check_backward_inputs;
+using skeletal::check_inputs;
+using skeletal::Geo;
 
 constexpr int kBK = 16;  // reduction depth of one shared-memory stage
 constexpr int kBN = 64;  // output columns (batch x time) per block
@@ -730,114 +734,6 @@ void launch_wgrad(WArgs<T> a, int64_t rows, const at::Tensor& gw, int device, cu
   }
 }
 
-// ------------------------------------------------------------------------------------------------ checks
-struct Geo {
-  int64_t kind, B, Cin, Cout, Ein, Eout, Tin, Tout, U, h, nnz;
-  bool reflect;
-};
-
-bool parse_padding(c10::string_view mode) {
-  if (mode == "zeros") return false;
-  if (mode == "reflect") return true;
-  TORCH_CHECK(false, "padding_mode must be 'zeros' or 'reflect', got '", std::string(mode), "'");
-  return false;
-}
-
-void check_like_x(const at::Tensor& t, const char* name, const at::Tensor& x) {
-  TORCH_CHECK(t.device() == x.device(), name, " is on ", t.device(), " but x is on ", x.device());
-  TORCH_CHECK(t.scalar_type() == x.scalar_type(), name, " has dtype ", t.scalar_type(), " but x has ",
-              x.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-}
-
-void check_index(const at::Tensor& t, const char* name, const at::Tensor& x) {
-  TORCH_CHECK(t.device() == x.device(), name, " is on ", t.device(), " but x is on ", x.device());
-  TORCH_CHECK(t.scalar_type() == at::kLong, name, " must be int64, got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == 1, name, " must be 1-D, got ", t.dim(), " dims");
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-}
-
-Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
-                 const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
-                 const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                 c10::string_view padding_mode) {
-  TORCH_CHECK(cuda::on_device(x), "x must be a CUDA tensor for the CUDA kernel, got ", x.device());
-  TORCH_CHECK(x.dim() == 4, "x must be 4-D (B, C, E, T), got ", x.dim(), " dims");
-  TORCH_CHECK(cuda::is_cuda_float(x.scalar_type()), "x must be float32, float64, float16 or bfloat16, got ",
-              x.scalar_type());
-  TORCH_CHECK(x.is_contiguous(), "x must be contiguous");
-  TORCH_CHECK(weight.dim() == 4, "weight must be 4-D compact (C0, nnz, C1, U), got ", weight.dim(), " dims");
-  check_like_x(weight, "weight", x);
-  check_index(index, "index", x);
-  check_index(offsets, "offsets", x);
-  Geo g{};
-  g.kind = kind;
-  g.reflect = parse_padding(padding_mode);
-  g.B = x.size(0);
-  g.Tin = x.size(3);
-  TORCH_CHECK(g.B > 0, "x has an empty batch (B == 0)");
-  TORCH_CHECK(g.Tin > 0, "x has zero frames (T == 0)");
-  g.U = weight.size(3);
-  TORCH_CHECK(g.U % 2 == 1, "weight kernel width U=", g.U, " must be odd");
-  g.h = g.U / 2;
-  g.nnz = weight.size(1);
-  TORCH_CHECK(index.numel() == g.nnz, "weight has ", g.nnz, " pairs (dim 1) but index has ", index.numel(),
-              " entries");
-  TORCH_CHECK(offsets.numel() >= 2, "offsets must be 1-D with at least 2 entries");
-  const int64_t rows = offsets.numel() - 1;
-  if (kind == kUp) {
-    g.Cin = weight.size(0);
-    g.Cout = weight.size(2);
-    TORCH_CHECK(x.size(2) == rows, "x has ", x.size(2), " coarse entities but offsets describes ", rows);
-    TORCH_CHECK(n_out > 0, "n_out must be positive, got ", n_out);
-    g.Ein = rows;
-    g.Eout = n_out;
-    g.Tout = 2 * g.Tin;
-    TORCH_CHECK(!g.reflect || g.h < g.Tout, "reflect padding of ", g.h, " frames needs more than ", g.h,
-                " frames, got ", g.Tout);
-  } else {
-    g.Cout = weight.size(0);
-    g.Cin = weight.size(2);
-    g.Ein = x.size(2);
-    g.Eout = rows;
-    if (kind == kConv) {
-      TORCH_CHECK(g.Ein == rows, "x has ", g.Ein, " entities but the neighbor lists (offsets) describe ", rows);
-      g.Tout = g.Tin;
-    } else {
-      TORCH_CHECK(g.Tin >= 2, "x needs at least 2 frames to downsample, got ", g.Tin);
-      g.Tout = g.Tin / 2;
-    }
-    TORCH_CHECK(!g.reflect || g.h < g.Tin, "reflect padding of ", g.h, " frames needs more than ", g.h,
-                " frames, got ", g.Tin);
-  }
-  TORCH_CHECK(x.size(1) == g.Cin, "x has ", x.size(1), " channels but weight expects ", g.Cin);
-  TORCH_CHECK(g.Cin > 0 && g.Cout > 0, "weight has zero channels: ", weight.sizes());
-  if (bias.has_value()) {
-    check_like_x(*bias, "bias", x);
-    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == g.Cout, "bias must have shape (", g.Cout, "), got ",
-                bias->sizes());
-  }
-  if (style.has_value()) {
-    check_like_x(*style, "style", x);
-    TORCH_CHECK(style->dim() == 2 && style->size(0) == g.B && style->size(1) == g.Cin, "style must be (B, Cin) = (",
-                g.B, ", ", g.Cin, "), got ", style->sizes());
-  }
-  if (scale.has_value()) {
-    check_like_x(*scale, "scale", x);
-    TORCH_CHECK(scale->dim() == 3 && scale->size(0) == g.B && scale->size(1) == g.Cout && scale->size(2) == g.Eout,
-                "scale must be (B, Cout, E_out) = (", g.B, ", ", g.Cout, ", ", g.Eout, "), got ", scale->sizes());
-  }
-  // Launch geometry limits (grid y / z) and 32-bit frame / channel arithmetic inside the kernels.
-  TORCH_CHECK(g.Ein <= 65535 && g.Eout <= 65535, "at most 65535 entities per level are supported, got ", g.Ein,
-              " -> ", g.Eout);
-  TORCH_CHECK(g.nnz < (int64_t(1) << 24) && g.Cin * g.U * g.nnz < (int64_t(1) << 31) &&
-                  g.Cout * g.U * g.nnz < (int64_t(1) << 31),
-              "weight is too large for the CUDA kernel: ", weight.sizes());
-  TORCH_CHECK(g.B * std::max(g.Tin, g.Tout) < (int64_t(1) << 31) && g.Tout < (int64_t(1) << 30),
-              "batch x frames is too large for the CUDA kernel: ", x.sizes());
-  return g;
-}
-
 cudaStream_t current_stream(const at::Tensor& x) { return c10::cuda::getCurrentCUDAStream(x.device().index()); }
 
 // ------------------------------------------------------------------------------------------------ forward
@@ -845,7 +741,7 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
                         const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                         int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
                         c10::string_view padding_mode) {
-  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+  const Geo g = check_inputs(kCudaBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
   const bool up = kind == kUp;
@@ -932,16 +828,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
     int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
-  TORCH_CHECK(kind == kConv || kind == kDown || kind == kUp, "kind must be 0 (conv), 1 (down) or 2 (up), got ",
-              kind);
-  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
-  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&grad, "grad"}, {&out, "out"}}) {
-    check_like_x(*t, name, x);
-    TORCH_CHECK(t->dim() == 4 && t->size(0) == g.B && t->size(1) == g.Cout && t->size(2) == g.Eout &&
-                    t->size(3) == g.Tout,
-                name, " must have the output shape (", g.B, ", ", g.Cout, ", ", g.Eout, ", ", g.Tout, "), got ",
-                t->sizes());
-  }
+  const Geo g = check_backward_inputs(kCudaBackend, grad, out, x, weight, bias, index, offsets, style, scale,
+                                      padding_mode, kind, n_out);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
   const int device = x.device().index();
