@@ -14,9 +14,11 @@ namespace fk {
 
 constexpr int64_t kCudaMaxJoints = 1024;  // the CUDA kernels pass the parent list by value (kernel parameters)
 
-struct Dims {
-  int64_t N;  // flattened leading dims (batch x time)
+// A checked call: N samples (the flattened leading dims, batch x time) of J joints, and the parent list.
+struct Call {
+  int64_t N;
   int64_t J;
+  std::vector<int64_t> parents;
 };
 
 // local_quats.shape[:-2] + (3,): the shape of root_positions and of its gradient.
@@ -44,9 +46,23 @@ inline void check_like_quats(const at::Tensor& t, const char* name, const at::Te
   TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
 }
 
-// local_quats, offsets and the shape of root_positions (the backward has no root tensor, only its shape).
-inline Dims check_inputs(const Backend& be, const at::Tensor& local_quats, const at::Tensor& offsets,
-                         at::IntArrayRef root_sizes) {
+// The parent list: one per joint, topologically sorted, the root first.
+inline std::vector<int64_t> check_parents(at::IntArrayRef parents, int64_t J) {
+  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
+              " entries but local_quats has ", J, " joints (dim -2)");
+  std::vector<int64_t> par(parents.begin(), parents.end());
+  TORCH_CHECK(J >= 1 && par[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
+  for (int64_t j = 1; j < J; ++j) {
+    TORCH_CHECK(par[j] >= 0 && par[j] < j, "modi_ext::fk: parents[", j, "] = ", par[j],
+                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
+  }
+  return par;
+}
+
+// local_quats, offsets, the parent list and the shape of root_positions (the backward has no root tensor, only
+// its shape).
+inline Call check_inputs(const Backend& be, const at::Tensor& local_quats, const at::Tensor& offsets,
+                         at::IntArrayRef parents, at::IntArrayRef root_sizes) {
   TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
               "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
               local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
@@ -72,37 +88,25 @@ inline Dims check_inputs(const Backend& be, const at::Tensor& local_quats, const
                 " joints, got ", J);
     TORCH_CHECK((N + 31) / 32 < (int64_t(1) << 31), "modi_ext::fk: too many samples for the CUDA kernel: ", N);
   }
-  return {N, J};
+  return {N, J, check_parents(parents, J)};
 }
 
 // fk: the inputs above and the root tensor itself.
-inline Dims check_forward_inputs(const Backend& be, const at::Tensor& local_quats, const at::Tensor& offsets,
-                                 const at::Tensor& root_positions) {
+inline Call check_forward_inputs(const Backend& be, const at::Tensor& local_quats, const at::Tensor& offsets,
+                                 at::IntArrayRef parents, const at::Tensor& root_positions) {
   TORCH_CHECK(root_positions.defined(), "modi_ext::fk: root_positions is undefined");
-  const Dims d = check_inputs(be, local_quats, offsets, root_positions.sizes());
+  Call c = check_inputs(be, local_quats, offsets, parents, root_positions.sizes());
   check_like_quats(root_positions, "root_positions", local_quats);
-  return d;
-}
-
-// The parent list: one per joint, topologically sorted, the root first.
-inline std::vector<int64_t> check_parents(at::IntArrayRef parents, int64_t J) {
-  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
-              " entries but local_quats has ", J, " joints (dim -2)");
-  std::vector<int64_t> par(parents.begin(), parents.end());
-  TORCH_CHECK(J >= 1 && par[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
-  for (int64_t j = 1; j < J; ++j) {
-    TORCH_CHECK(par[j] >= 0 && par[j] < j, "modi_ext::fk: parents[", j, "] = ", par[j],
-                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
-  }
-  return par;
+  return c;
 }
 
 // fk_backward: the forward's inputs (no root), the forward's rotations and the gradients of its two outputs (the
 // rotations' may be absent).
-inline Dims check_backward_inputs(const Backend& be, const at::Tensor& grad_positions,
+inline Call check_backward_inputs(const Backend& be, const at::Tensor& grad_positions,
                                   const std::optional<at::Tensor>& grad_global_quats, const at::Tensor& local_quats,
-                                  const at::Tensor& global_quats, const at::Tensor& offsets) {
-  const Dims d = check_inputs(be, local_quats, offsets, root_shape_of(local_quats));
+                                  const at::Tensor& global_quats, const at::Tensor& offsets,
+                                  at::IntArrayRef parents) {
+  Call c = check_inputs(be, local_quats, offsets, parents, root_shape_of(local_quats));
   TORCH_CHECK(global_quats.defined() && global_quats.sizes() == local_quats.sizes(),
               "modi_ext::fk_backward: global_quats must have the shape of local_quats");
   check_like_quats(global_quats, "global_quats", local_quats);
@@ -121,7 +125,7 @@ inline Dims check_backward_inputs(const Backend& be, const at::Tensor& grad_posi
                 "modi_ext::fk_backward: grad_global_quats must be a ", local_quats.scalar_type(), " tensor on ",
                 local_quats.device(), " of shape ", local_quats.sizes());
   }
-  return d;
+  return c;
 }
 
 }  // namespace fk

@@ -14,54 +14,26 @@
 #include "common/tasks.h"
 #include "fk/check.h"
 #include "fk/fk.h"
+#include "fk/quat.h"
 
 namespace modi_ext {
 namespace {
 
-// ---- quaternion helpers (w, x, y, z), inline so the compiler keeps everything in registers ----
-
-// out = a (x) b (Hamilton product).
-template <typename T>
-inline void qmul(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = a[1], ay = a[2], az = a[3];
-  const T bw = b[0], bx = b[1], by = b[2], bz = b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
-}
+using fk::qmul;
+using fk::qrot;
 
 // out = a (x) conj(b).
 template <typename T>
 inline void qmul_conj_b(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = a[1], ay = a[2], az = a[3];
-  const T bw = b[0], bx = -b[1], by = -b[2], bz = -b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
+  const T bc[4] = {b[0], -b[1], -b[2], -b[3]};
+  qmul(a, bc, out);
 }
 
 // out = conj(a) (x) b.
 template <typename T>
 inline void qmul_conj_a(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = -a[1], ay = -a[2], az = -a[3];
-  const T bw = b[0], bx = b[1], by = b[2], bz = b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
-}
-
-// out = v + 2w (u x v) + 2 u x (u x v); passing -u applies the transpose of that linear map.
-template <typename T>
-inline void qrot(T w, T ux, T uy, T uz, const T* v, T* out) {
-  const T tx = T(2) * (uy * v[2] - uz * v[1]);
-  const T ty = T(2) * (uz * v[0] - ux * v[2]);
-  const T tz = T(2) * (ux * v[1] - uy * v[0]);
-  out[0] = v[0] + w * tx + (uy * tz - uz * ty);
-  out[1] = v[1] + w * ty + (uz * tx - ux * tz);
-  out[2] = v[2] + w * tz + (ux * ty - uy * tx);
+  const T ac[4] = {a[0], -a[1], -a[2], -a[3]};
+  qmul(ac, b, out);
 }
 
 // Samples per task: ~8k joint visits (tens of microseconds), so small calls stay on the calling thread.
@@ -142,16 +114,13 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
         gP[p * 3 + 1] += gy;
         gP[p * 3 + 2] += gz;
         // position term -> gradient of Q[p]
-        const T uxo_x = uy * o[2] - uz * o[1], uxo_y = uz * o[0] - ux * o[2], uxo_z = ux * o[1] - uy * o[0];
-        const T oxg_x = o[1] * gz - o[2] * gy, oxg_y = o[2] * gx - o[0] * gz, oxg_z = o[0] * gy - o[1] * gx;
-        const T u_o = ux * o[0] + uy * o[1] + uz * o[2];
-        const T g_u = gx * ux + gy * uy + gz * uz;
-        const T g_o = gx * o[0] + gy * o[1] + gz * o[2];
         T* gQp = gQ + p * 4;
-        gQp[0] += T(2) * (gx * uxo_x + gy * uxo_y + gz * uxo_z);
-        gQp[1] += T(2) * (w * oxg_x + u_o * gx + g_u * o[0]) - T(4) * g_o * ux;
-        gQp[2] += T(2) * (w * oxg_y + u_o * gy + g_u * o[1]) - T(4) * g_o * uy;
-        gQp[3] += T(2) * (w * oxg_z + u_o * gz + g_u * o[2]) - T(4) * g_o * uz;
+        T pg[4];
+        fk::position_grad(w, ux, uy, uz, o, gx, gy, gz, pg);
+        gQp[0] += pg[0];
+        gQp[1] += pg[1];
+        gQp[2] += pg[2];
+        gQp[3] += pg[3];
         if (goff_acc) {
           const T g[3] = {gx, gy, gz};
           T r[3];
@@ -194,8 +163,8 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
 
 std::tuple<at::Tensor, at::Tensor> fk_cpu(const at::Tensor& local_quats, const at::Tensor& offsets,
                                           at::IntArrayRef parents, const at::Tensor& root_positions) {
-  const fk::Dims d = fk::check_forward_inputs(kCpuBackend, local_quats, offsets, root_positions);
-  const std::vector<int64_t> par = fk::check_parents(parents, d.J);
+  const fk::Call d = fk::check_forward_inputs(kCpuBackend, local_quats, offsets, parents, root_positions);
+  const std::vector<int64_t>& par = d.parents;
   at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
   at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
   AT_DISPATCH_FLOATING_TYPES(local_quats.scalar_type(), "modi_ext::fk", [&] {
@@ -210,9 +179,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cpu(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  const fk::Dims d =
-      fk::check_backward_inputs(kCpuBackend, grad_positions, grad_global_quats, local_quats, global_quats, offsets);
-  const std::vector<int64_t> par = fk::check_parents(parents, d.J);
+  const fk::Call d = fk::check_backward_inputs(kCpuBackend, grad_positions, grad_global_quats, local_quats,
+                                               global_quats, offsets, parents);
+  const std::vector<int64_t>& par = d.parents;
   const auto dtype = local_quats.scalar_type();
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;

@@ -19,14 +19,14 @@
 #include "common/cuda_common.cuh"
 #include "fk/check.h"
 #include "fk/fk.h"
+#include "fk/quat.h"
 
 namespace modi_ext {
 namespace {
 
-using cuda::acc_t;
-using cuda::ceil_div;
-using cuda::ld;
-using cuda::st;
+using namespace cuda;  // acc_t, ld, st, ceil_div, warp_sum, block_sum, ...
+using fk::qmul;
+using fk::qrot;
 
 constexpr int kMaxJoints = fk::kCudaMaxJoints;
 constexpr size_t kSmemBudget = 48 * 1024;
@@ -35,26 +35,6 @@ struct FkParents {
   int J;
   int16_t p[kMaxJoints];
 };
-
-// ---- quaternion helpers (w, x, y, z) ----
-template <typename A>
-__device__ __forceinline__ void qmul(const A* a, const A* b, A* out) {
-  out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
-  out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
-  out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
-  out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
-}
-
-// out = v + 2w (u x v) + 2 u x (u x v); passing -u applies the transpose of that linear map.
-template <typename A>
-__device__ __forceinline__ void qrot(A w, A ux, A uy, A uz, const A* v, A* out) {
-  const A tx = A(2) * (uy * v[2] - uz * v[1]);
-  const A ty = A(2) * (uz * v[0] - ux * v[2]);
-  const A tz = A(2) * (ux * v[1] - uy * v[0]);
-  out[0] = v[0] + w * tx + (uy * tz - uz * ty);
-  out[1] = v[1] + w * ty + (uz * tx - ux * tz);
-  out[2] = v[2] + w * tz + (ux * ty - uy * tx);
-}
 
 // Dynamic shared memory: [state (kSmem only): J * 7 * threads][offsets: J * 3] (accumulator type), [parents: J].
 template <typename A>
@@ -79,6 +59,24 @@ __device__ __forceinline__ FkSmem<acc_t<T>> stage_topology(const T* off, const F
   return s;
 }
 
+// A thread's walk state: joint j, component c (rotation c = 0..3, position c = 4..6) at S[j * sj + c * sc], in
+// shared memory laid out [joint][component][thread] (kSmem), else in the thread's slice of the global workspace.
+template <typename A>
+struct WalkState {
+  A* S;
+  int64_t sj, sc;
+};
+
+template <bool kSmem, typename A>
+__device__ __forceinline__ WalkState<A> walk_state(const FkSmem<A>& sm, A* ws, int64_t n, int J) {
+  const int nt = blockDim.x;
+  if constexpr (kSmem) {
+    return {sm.state + threadIdx.x, int64_t(7) * nt, nt};
+  } else {
+    return {ws + n * J * 7, 7, 1};
+  }
+}
+
 // ---- forward ----
 template <typename T, bool kSmem>
 __global__ void fk_forward_kernel(const T* __restrict__ lq, const T* __restrict__ off, const T* __restrict__ root,
@@ -89,17 +87,7 @@ __global__ void fk_forward_kernel(const T* __restrict__ lq, const T* __restrict_
   const int J = par.J, nt = blockDim.x;
   const int64_t n = int64_t(blockIdx.x) * nt + threadIdx.x;
   if (n >= N) return;  // no barrier below
-  A* S;
-  int64_t sj, sc;  // state (joint j, component c) at S[j * sj + c * sc]: rotation c = 0..3, position c = 4..6
-  if constexpr (kSmem) {
-    S = sm.state + threadIdx.x;
-    sc = nt;
-    sj = int64_t(7) * nt;
-  } else {
-    S = ws + n * J * 7;
-    sc = 1;
-    sj = 7;
-  }
+  const auto [S, sj, sc] = walk_state<kSmem>(sm, ws, n, J);
   const T* q = lq + n * J * 4;
   T* Qo = gq + n * J * 4;
   T* Po = pos + n * J * 3;
@@ -171,17 +159,7 @@ __global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restri
   const int64_t n = active ? gt : 0;
   const int64_t warp = gt >> 5;
   const int lane = threadIdx.x & 31;
-  A* S;
-  int64_t sj, sc;
-  if constexpr (kSmem) {
-    S = sm.state + threadIdx.x;
-    sc = nt;
-    sj = int64_t(7) * nt;
-  } else {
-    S = ws + n * J * 7;
-    sc = 1;
-    sj = 7;
-  }
+  const auto [S, sj, sc] = walk_state<kSmem>(sm, ws, n, J);
   if (active) {
     for (int j = 0; j < J; ++j) {
       A* Sj = S + j * sj;
@@ -205,16 +183,8 @@ __global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restri
       Sp[5 * sc] += gy;
       Sp[6 * sc] += gz;
       // position term -> gradient of Q[p]
-      const A uxo_x = uy * o[2] - uz * o[1], uxo_y = uz * o[0] - ux * o[2], uxo_z = ux * o[1] - uy * o[0];
-      const A oxg_x = o[1] * gz - o[2] * gy, oxg_y = o[2] * gx - o[0] * gz, oxg_z = o[0] * gy - o[1] * gx;
-      const A u_o = ux * o[0] + uy * o[1] + uz * o[2];
-      const A g_u = gx * ux + gy * uy + gz * uz;
-      const A g_o = gx * o[0] + gy * o[1] + gz * o[2];
       A gQp[4];
-      gQp[0] = A(2) * (gx * uxo_x + gy * uxo_y + gz * uxo_z);
-      gQp[1] = A(2) * (w * oxg_x + u_o * gx + g_u * o[0]) - A(4) * g_o * ux;
-      gQp[2] = A(2) * (w * oxg_y + u_o * gy + g_u * o[1]) - A(4) * g_o * uy;
-      gQp[3] = A(2) * (w * oxg_z + u_o * gz + g_u * o[2]) - A(4) * g_o * uz;
+      fk::position_grad(w, ux, uy, uz, o, gx, gy, gz, gQp);
       if (goff_part) {
         const A g[3] = {gx, gy, gz};
         qrot(w, -ux, -uy, -uz, g, r);
@@ -267,7 +237,7 @@ __global__ void fk_offsets_reduce_kernel(const acc_t<T>* __restrict__ part, int6
 }
 
 // ---- host side ----
-// The checked parent list (fk::check_parents), as the kernels receive it.
+// The checked parent list (fk::check_inputs), as the kernels receive it.
 FkParents make_parents(const std::vector<int64_t>& parents) {
   FkParents par{};
   par.J = static_cast<int>(parents.size());
@@ -293,8 +263,8 @@ Plan plan_launch(int64_t J, size_t acc_bytes) {
 
 std::tuple<at::Tensor, at::Tensor> fk_cuda(const at::Tensor& local_quats, const at::Tensor& offsets,
                                            at::IntArrayRef parents, const at::Tensor& root_positions) {
-  const fk::Dims d = fk::check_forward_inputs(kCudaBackend, local_quats, offsets, root_positions);
-  const FkParents par = make_parents(fk::check_parents(parents, d.J));
+  const fk::Call d = fk::check_forward_inputs(kCudaBackend, local_quats, offsets, parents, root_positions);
+  const FkParents par = make_parents(d.parents);
   const c10::cuda::CUDAGuard guard(local_quats.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
   at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
@@ -326,9 +296,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  const fk::Dims d =
-      fk::check_backward_inputs(kCudaBackend, grad_positions, grad_global_quats, local_quats, global_quats, offsets);
-  const FkParents par = make_parents(fk::check_parents(parents, d.J));
+  const fk::Call d = fk::check_backward_inputs(kCudaBackend, grad_positions, grad_global_quats, local_quats,
+                                               global_quats, offsets, parents);
+  const FkParents par = make_parents(d.parents);
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;
   if (grad_global_quats.has_value() && grad_global_quats->defined()) ggq = grad_global_quats->contiguous();

@@ -636,26 +636,19 @@ void with_tile_rows(int M, const F& f) {
   }
 }
 
-// Grid of a row / transposed GEMM: (column tiles of its N columns, BM-row tiles of its M rows, entities).
-inline dim3 gemm_grid(int64_t N, int M, int bm, int64_t ents) {
-  return dim3(static_cast<unsigned>(ceil_div(N, kBN)), static_cast<unsigned>(ceil_div(M, bm)),
-              static_cast<unsigned>(ents));
-}
-
-template <typename T, bool kBlurAdj>
-void launch_row(const GemmArgs<T>& a, int64_t rows, cudaStream_t stream) {
+// The row (kTr = false) or the transposed GEMM over `ents` entities: grid (column tiles of the N columns, row tiles
+// of the M rows, entities).
+template <typename T, bool kTr, bool kBlur>
+void launch_gemm(const GemmArgs<T>& a, int64_t ents, cudaStream_t stream) {
   with_tile_rows(a.M, [&](auto tile) {
     constexpr int BM = decltype(tile)::value;
-    MODI_LAUNCH((row_gemm_kernel<T, BM, kBlurAdj>), gemm_grid(a.N, a.M, BM, rows), Tile<BM>::NT, 0, stream, a);
-  });
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
-}
-
-template <typename T, bool kBlur>
-void launch_tr(const GemmArgs<T>& a, int64_t cols, cudaStream_t stream) {
-  with_tile_rows(a.M, [&](auto tile) {
-    constexpr int BM = decltype(tile)::value;
-    MODI_LAUNCH((tr_gemm_kernel<T, BM, kBlur>), gemm_grid(a.N, a.M, BM, cols), Tile<BM>::NT, 0, stream, a);
+    const dim3 grid(static_cast<unsigned>(ceil_div(a.N, kBN)), static_cast<unsigned>(ceil_div(a.M, BM)),
+                    static_cast<unsigned>(ents));
+    if constexpr (kTr) {
+      MODI_LAUNCH((tr_gemm_kernel<T, BM, kBlur>), grid, Tile<BM>::NT, 0, stream, a);
+    } else {
+      MODI_LAUNCH((row_gemm_kernel<T, BM, kBlur>), grid, Tile<BM>::NT, 0, stream, a);
+    }
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
@@ -758,9 +751,9 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, src, sty, g.Tout), g.Cout,
                                        weight.data_ptr<T>(), topo, epi);
     if (!up) {
-      launch_row<T, false>(a, rows, stream);
+      launch_gemm<T, false, false>(a, rows, stream);
     } else {
-      launch_tr<T, true>(a, cols, stream);
+      launch_gemm<T, true, true>(a, cols, stream);
     }
   });
   return y;
@@ -855,9 +848,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
       const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cout, kind == kConv ? 1 : 2, gsrc, dsc, g.Tin), g.Cin,
                                          weight.data_ptr<T>(), topo, epi);
       if (up) {
-        launch_row<T, true>(a, rows, stream);
+        launch_gemm<T, false, true>(a, rows, stream);
       } else {
-        launch_tr<T, false>(a, cols, stream);
+        launch_gemm<T, true, false>(a, cols, stream);
       }
       if (want_gs) {
         MODI_LAUNCH((style_finish_kernel<T>), static_cast<unsigned>(g.B * g.Cin), 256, 0, stream,
