@@ -217,6 +217,30 @@ void transposed_products(const Cols& src, int64_t Csrc, const Csr& csr, int64_t 
   }
 }
 
+// One weight-gradient block C (nr rows of K, ldc) = L (nr pointer rows) * P^T (K pointer rows) over N columns:
+// wide layers on the AVX-512 NN form (scratch: a 32-wide transpose of L), the others on the dot-product kernel.
+inline void weight_block(bool wide, const float* const* l, int64_t nr, const float* const* p, int64_t K, int64_t N,
+                         float* C, int64_t ldc, SlotScratch<float>& scratch, int slot) {
+  if (wide) {
+    wgrad512(l, nr, p, K, N, C, ldc, scratch.get(slot, static_cast<size_t>(round_up(nr, 32) * N)));
+    return;
+  }
+  for (int64_t i = 0; i < nr; ++i) std::fill(C + i * ldc, C + i * ldc + K, 0.f);
+  nt_gemm(l, nr, p, K, N, C, ldc);
+}
+
+// A backward pass's job: the preparation stage (the caller's phases and the layouts), then the weight-gradient
+// blocks, the caller's compute phases and the input-gradient tiles.
+template <class WeightTask, class InputTask>
+void run_backward(const std::vector<Phase>& prep, const std::vector<Phase>& compute, size_t n_weight,
+                  const WeightTask& weight_task, size_t n_input, const InputTask& input_task, bool par) {
+  std::vector<Phase> own;
+  if (n_weight) own.push_back(phase(static_cast<int64_t>(n_weight), weight_task));
+  own.insert(own.end(), compute.begin(), compute.end());
+  if (n_input) own.push_back(phase(static_cast<int64_t>(n_input), input_task));
+  run_stages({stage(prep), stage(own)}, par);
+}
+
 }  // namespace
 
 void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const float* bias,
@@ -395,19 +419,10 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
       const int64_t c = wb.order[t] / wb.nrb, r0 = (wb.order[t] % wb.nrb) * wb.rb, nr = std::min(wb.rb, Ci - r0);
       const int64_t K = set_ptrs(ptr, c, 0);
       for (int64_t i = 0; i < nr; ++i) lrow[i] = xlb.cl.row(0, r0 + i, c);
-      float* C = gw + r0 * lda + csr.off[c] * Co * U;
-      if (wide_w) {
-        wgrad512(lrow, nr, ptr, K, B * Tq, C, lda, accs.get(slot, static_cast<size_t>(round_up(nr, 32) * B * Tq)));
-        return;
-      }
-      for (int64_t i = 0; i < nr; ++i) std::fill(C + i * lda, C + i * lda + K, 0.f);
-      nt_gemm(lrow, nr, ptr, K, B * Tq, C, lda);
+      weight_block(wide_w, lrow, nr, ptr, K, B * Tq, gw + r0 * lda + csr.off[c] * Co * U, lda, accs, slot);
     };
-    std::vector<Phase> own;
-    if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
-    own.insert(own.end(), compute.begin(), compute.end());
-    if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
-    run_stages({stage(prep), stage(own)}, par);
+    run_backward(prep, compute, gw ? wb.order.size() : 0, weight_task, want_input ? order.size() : 0, input_task,
+                 par);
     return;
   }
   const int64_t S = g.kind == kDown ? 2 : 1;
@@ -504,19 +519,9 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
       for (int64_t c = 0; c < Ci; ++c)
         for (int64_t u = 0; u < U; ++u) ptr[(s * Ci + c) * U + u] = xcb.cl.row(u % S, c, csr.idx[p0 + s]) + u / S;
     for (int64_t o = 0; o < nr; ++o) lrow[o] = gl.row(0, r0 + o, j);
-    float* C = gw + r0 * ldw + p0 * Ci * U;
-    if (wide_w) {
-      wgrad512(lrow, nr, ptr, K, B * Tqw, C, ldw, aux.get(slot, static_cast<size_t>(round_up(nr, 32) * B * Tqw)));
-      return;
-    }
-    for (int64_t o = 0; o < nr; ++o) std::fill(C + o * ldw, C + o * ldw + K, 0.f);
-    nt_gemm(lrow, nr, ptr, K, B * Tqw, C, ldw);
+    weight_block(wide_w, lrow, nr, ptr, K, B * Tqw, gw + r0 * ldw + p0 * Ci * U, ldw, aux, slot);
   };
-  std::vector<Phase> own;
-  if (gw) own.push_back(phase(static_cast<int64_t>(wb.order.size()), weight_task));
-  own.insert(own.end(), compute.begin(), compute.end());
-  if (want_input) own.push_back(phase(static_cast<int64_t>(order.size()), input_task));
-  run_stages({stage(prep), stage(own)}, par);
+  run_backward(prep, compute, gw ? wb.order.size() : 0, weight_task, want_input ? order.size() : 0, input_task, par);
 }
 
 }  // namespace fastk
