@@ -69,8 +69,8 @@ struct WalkState {
 
 template <bool kSmem, typename A>
 __device__ __forceinline__ WalkState<A> walk_state(const FkSmem<A>& sm, A* ws, int64_t n, int J) {
-  const int nt = blockDim.x;
   if constexpr (kSmem) {
+    const int nt = blockDim.x;
     return {sm.state + threadIdx.x, int64_t(7) * nt, nt};
   } else {
     return {ws + n * J * 7, 7, 1};

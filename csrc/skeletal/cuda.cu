@@ -398,8 +398,8 @@ __device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
   const int q0 = eoff[ent];
   const int CU = a.C * a.U;
   const int K = (eoff[ent + 1] - q0) * CU;
-  const T* wblk = a.w + int64_t(q0) * CU;  // row GEMM: the row's weight block
-  const int pos0 = a.s * tp.tt - a.h;      // row GEMM: the column's first frame
+  [[maybe_unused]] const T* wblk = a.w + int64_t(q0) * CU;  // row GEMM only: the row's weight block
+  [[maybe_unused]] const int pos0 = a.s * tp.tt - a.h;      // row GEMM only: the column's first frame
 
   A ra[TL::A_PER], rb[TL::B_PER];
   auto load = [&](int stage) {
