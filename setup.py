@@ -52,8 +52,21 @@ def _nvcc_flags(opt: list[str]) -> list[str]:
     return opt + ["--use_fast_math"]
 
 
+# csrc/ holds one folder per op (schema.cpp, check.h, cpu.cpp, cuda.cu, ...), shared headers in common/, the module
+# shell (module.cpp, registration.cpp) at the top; emu/ (the test-only CUDA emulator) and tools/ are built apart.
+CSRC_APART = ("emu", "tools")
+
+
+def _sources() -> tuple[list[str], list[str]]:
+    """(C++ sources, CUDA sources) of modi_ext._C, relative to the repository root."""
+    def pick(pattern: str) -> list[str]:
+        found = glob.glob(os.path.join("csrc", "**", pattern), recursive=True)
+        return sorted(p for p in found if p.split(os.sep)[1] not in CSRC_APART)
+    return pick("*.cpp"), pick("*.cu")
+
+
 def _emu_module(cpp_extension, cxx_flags: list[str]):
-    """Test-only: the csrc/cuda kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
+    """Test-only: the csrc/<op>/cuda.cu kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
     if _flag("MODI_EXT_EMU") in ("0", "false", "no", "off"):
         return None
     # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI).
@@ -62,7 +75,7 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
     flags += [f for f in cxx_flags if f.startswith("-march")]
     return cpp_extension.CppExtension(
         name="modi_ext._C_emu",
-        sources=sorted(glob.glob("csrc/emu/*.cpp")),  # defs_emu.cpp includes the schemas of csrc/*_defs.cpp
+        sources=sorted(glob.glob("csrc/emu/*.cpp")),  # defs_emu.cpp includes the schemas of csrc/<op>/schema.cpp
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=[("MODI_EXT_EMULATE_CUDA", "1")],
         extra_compile_args={"cxx": flags},
@@ -86,8 +99,7 @@ def extension_modules():
               "modi runs on the dense reference", file=sys.stderr)
         return [], {}
 
-    cpp_sources = sorted(glob.glob("csrc/*.cpp") + glob.glob("csrc/cpu/*.cpp"))
-    cuda_sources = sorted(glob.glob("csrc/cuda/*.cu") + glob.glob("csrc/cuda/*.cpp"))
+    cpp_sources, cuda_sources = _sources()
     want_cuda = _flag("MODI_EXT_CUDA")
     has_nvcc = cpp_extension.CUDA_HOME is not None and shutil.which(
         os.path.join(cpp_extension.CUDA_HOME, "bin", "nvcc")) is not None

@@ -5,7 +5,7 @@ dozen small torch ops, and as many again in its backward.  Each is a parallel re
 modulated layer a few percent on a quiet machine, and as much as its two convolutions when another process holds a core
 (every region waits for its slowest thread).  On the CPU, for plain float32/float64 tensors in eager mode
 (``eager.usable``), the forward and the first-order backward here are one task-pool job each
-(``csrc/cpu/demod_cpu.cpp``).  A backward that must itself be differentiable (``create_graph``: path length, R1) is
+(``csrc/demod/cpu.cpp``).  A backward that must itself be differentiable (``create_graph``: path length, R1) is
 recomputed from the torch form, so every order of gradient stays exact.  Everywhere else (CUDA, half precision, compile,
 ``MODI_EXT_EAGER=0``) it is the torch form; ``MODI_EXT_DEMOD=torch`` asks for the torch form everywhere (for
 comparisons).

@@ -19,7 +19,7 @@ before torch is imported (from ``modi_ext/__init__.py``; the ``modi`` command im
 
 The decision is passed to child processes (data loader workers, DDP ranks) through the environment, so they follow
 the parent rather than look at a machine the parent itself keeps busy.  The same decision picks the threads the CPU
-kernels run on (``MODI_EXT_CPU_POOL``, read by ``csrc/cpu/tasks.h``): with the short spin their own helper threads
+kernels run on (``MODI_EXT_CPU_POOL``, read by ``csrc/common/tasks.h``): with the short spin their own helper threads
 (``own``: the caller never waits for a helper that has claimed no task; idle helpers sleep), with the long one
 torch's OpenMP team (``omp``), whose spinning workers would otherwise hold the cores the helpers need.
 
@@ -74,7 +74,7 @@ def apply() -> dict:
     pool = os.environ.get("MODI_EXT_CPU_POOL", "").strip().lower()
     if pool not in POOLS:
         pool = "own" if _spin_is_short(os.environ) else "omp"
-        os.environ["MODI_EXT_CPU_POOL"] = pool  # read by csrc/cpu/tasks.h on every call
+        os.environ["MODI_EXT_CPU_POOL"] = pool  # read by csrc/common/tasks.h on every call
     _state["cpu_pool"] = pool
     return dict(_state)
 

@@ -14,7 +14,7 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
   (``split_reduce_kernel``);
 * both modulated, demodulated and biased, every gradient asked for: ``style_finish_kernel`` and
   ``scale_grad_kernel``; conv / down and up: the plain and the blur (adjoint) variants;
-* FK, one joint count per launch plan of ``fk_cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
+* FK, one joint count per launch plan of ``csrc/fk/cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
   else a global workspace; each at a plan boundary), 40 samples (a partial block and a partial warp), rotation
   and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction.
 
@@ -98,12 +98,12 @@ class FkCase:
     N: int = 40  # a partial warp, and a partial block of the 128- and 64-thread plans
 
 
-FK_SMEM_BUDGET = 48 * 1024  # fk_cuda.cu kSmemBudget
+FK_SMEM_BUDGET = 48 * 1024  # csrc/fk/cuda.cu kSmemBudget
 FK_PLANS = ("smem128", "smem64", "smem32", "global")
 
 
 def fk_plan(J: int, acc_bytes: int) -> str:
-    """The launch plan ``fk_cuda.cu``'s ``plan_launch`` picks for J joints (accumulator of ``acc_bytes``)."""
+    """The launch plan ``csrc/fk/cuda.cu``'s ``plan_launch`` picks for J joints (accumulator of ``acc_bytes``)."""
     fixed = J * 3 * acc_bytes + J * 2
     for t in (128, 64, 32):
         if fixed + t * J * 7 * acc_bytes <= FK_SMEM_BUDGET:

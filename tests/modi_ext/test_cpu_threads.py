@@ -1,6 +1,6 @@
 """CPU kernels under different thread counts: the same bits at 1, 2 and more threads than tasks, and tiny sizes.
 
-The kernels claim tasks dynamically (csrc/cpu/tasks.h), so which thread computes what changes from run to run; the
+The kernels claim tasks dynamically (csrc/common/tasks.h), so which thread computes what changes from run to run; the
 tiling depends on the shapes only and every output element is written by one task, so the results must not change.
 Each case is also checked against the dense reference, so agreement between thread counts cannot come from a
 kernel that ignores its input.

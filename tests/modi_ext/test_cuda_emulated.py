@@ -1,6 +1,6 @@
-"""The CUDA kernels of csrc/cuda, executed on the CPU by the CUDA emulator (csrc/emu), against the dense reference.
+"""The CUDA kernels (csrc/<op>/cuda.cu), run on the CPU by the CUDA emulator (csrc/emu), against the dense reference.
 
-``modi_ext._C_emu`` is csrc/cuda/*.cu compiled as host C++ (``-DMODI_EXT_EMULATE_CUDA``): every CUDA thread is a
+``modi_ext._C_emu`` is csrc/<op>/cuda.cu compiled as host C++ (``-DMODI_EXT_EMULATE_CUDA``): every CUDA thread is a
 fiber, ``__syncthreads()`` a real barrier, warp shuffles a warp barrier with an exchange; shared memory and every
 tensor the host code allocates are NaN (integers: their max value) until written; shared arrays are bounds-checked.
 Each case runs under two thread/block schedules (index order and a seeded permutation) and the two results must be
@@ -351,7 +351,7 @@ def test_rejects_cuda_like_misuse():
 
 
 # ------------------------------------------------------------------------------------------------ FK
-# Launch plans of fk_cuda.cu's plan_launch (48 KB of shared walk state): float J <= 13 -> 128 threads,
+# Launch plans of fk/cuda.cu's plan_launch (48 KB of shared walk state): float J <= 13 -> 128 threads,
 # <= 27 -> 64, <= 54 -> 32, else the global workspace; double halves the limits.
 FK_PLANS = {"smem128": (8, 4), "smem64": (20, 10), "smem32": (40, 20), "global": (60, 30)}
 
@@ -538,7 +538,7 @@ def test_cuda_compile_check_uses_the_flags_of_setup_py():
 # ------------------------------------------------------------------------------------------------ coverage
 def _global_kernels() -> set[str]:
     names = set()
-    for src in (REPO / "csrc" / "cuda").glob("*.cu"):
+    for src in (REPO / "csrc").glob("*/*.cu"):
         names.update(re.findall(r"__global__\s+void\s+(?:__launch_bounds__\([^)]*\)\s+)?(\w+)", src.read_text()))
     return names
 
@@ -548,7 +548,7 @@ EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c1
 
 
 def _expected_instantiations(dtypes=DTYPES) -> set[str]:
-    """The kernel instantiations csrc/cuda can launch, written out: 20 per dtype plus the topology kernel."""
+    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 20 per dtype plus the topology kernel."""
     want = {"topology_kernel"}
     for t in (EMU_TYPES[d] for d in dtypes):
         for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
@@ -562,7 +562,7 @@ def _expected_instantiations(dtypes=DTYPES) -> set[str]:
 
 
 def _cuda_instantiations(names) -> set[str]:
-    """The entries of ``names`` that are csrc/cuda kernels (not the emulator's own self-test kernels)."""
+    """The entries of ``names`` that are csrc/<op>/cuda.cu kernels (not the emulator's own self-test kernels)."""
     kernels = _global_kernels()
     return {k for k in names if re.match(r"\w+", k).group(0) in kernels}
 
@@ -614,7 +614,7 @@ def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
 
 
 def test_every_kernel_instantiation_ran(request):
-    """Runs last: every __global__ kernel of csrc/cuda, in every dtype and tile/blur variant, was executed above."""
+    """Runs last: every __global__ kernel of csrc/*/cuda.cu, in every dtype and tile/blur variant, was run above."""
     defined = {n for n in dir(request.module) if n.startswith("test_")}
     selected = {i.originalname for i in request.session.items if i.module is request.module}
     if not defined <= selected:

@@ -1,7 +1,7 @@
 """Global memory of the emulated CUDA kernels, checked by AddressSanitizer (part of ``pytest -m cuda_emulated``).
 
 The emulator models shared memory (bounds-checked arrays, poisoned red zones), but a global load or store is a plain
-host pointer access.  Here the emulated module (csrc/emu + the unchanged csrc/cuda sources) is compiled a second time
+host pointer access.  Here the emulated module (csrc/emu + the unchanged csrc/*/cuda.cu) is compiled a second time
 with ``-fsanitize=address`` and the shared payload (``modi_ext.runtime.payload``: every kernel instantiation, forward
 and backward, four dtypes) runs on it in a subprocess with libasan preloaded.  Every tensor torch allocates -- inputs,
 outputs, workspaces -- is then a malloc block between red zones, so a kernel that reads or writes even one element
@@ -139,7 +139,7 @@ def test_payload_under_address_sanitizer_is_clean_and_complete(asan_module):
     print(f"\npayload under AddressSanitizer: {seconds:.1f} s, {len(res['ran'])} cases")
     assert not res["errors"], res["errors"]
     assert "ERROR: AddressSanitizer" not in r.stderr, r.stderr[-6000:]
-    # this build has the csrc/cuda kernels only (no emu_selftest.cpp): launched must be all it registered
+    # this build has the csrc/<op>/cuda.cu kernels only (no emu_selftest.cpp): launched must be all it registered
     assert set(res["launched"]) == set(res["registered"]), sorted(set(res["registered"]) - set(res["launched"]))
     assert len(res["launched"]) == 81
 

@@ -421,7 +421,7 @@ def test_shared_payload_matches_the_reference(dtype):
     assert res["ran"] and not res["errors"], res["errors"]
 
 
-# The assert each bad map must trip: its own message (csrc/cuda/skeletal_cuda.cu topology_kernel), as CUDA prints it
+# The assert each bad map must trip: its own message (csrc/skeletal/cuda.cu topology_kernel), as CUDA prints it
 # ("... Assertion `<message>` failed."), not merely some stderr that mentions modi_ext.
 DEVICE_ASSERTS = {"index_out_of_range": "modi_ext: index holds an entity out of range",
                   "empty_row": "modi_ext: offsets: an output entity has no neighbors"}

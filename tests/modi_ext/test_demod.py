@@ -1,4 +1,4 @@
-"""The C++ demodulation coefficients (``modi_ext.demod.ops``, ``csrc/cpu/demod_cpu.cpp``) against the torch form
+"""The C++ demodulation coefficients (``modi_ext.demod.ops``, ``csrc/demod/cpu.cpp``) against the torch form
 (``dense.demod_scale``) on random trees: values and gradients in float64, gradcheck and gradgradcheck (the second
 order goes through the torch form), opcheck of both ops, results independent of the thread count, the paths that must
 fall back to the torch form, and clear errors on bad input."""

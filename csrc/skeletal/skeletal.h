@@ -1,5 +1,5 @@
 // Skeletal operators (skeletal_conv, skeletal_down, skeletal_up) and their shared backward.
-// Semantics and time conventions: modi_ext/reference.py (the dense oracle these kernels match).
+// Semantics and time conventions: modi_ext/skeletal/reference.py (the dense oracle these kernels match).
 #pragma once
 
 #include <array>

@@ -1,7 +1,7 @@
-// Schemas of the skeletal operators (implementations register per dispatch key in cpu/, cuda/).
+// Schemas of the skeletal operators (implementations register per dispatch key in cpu.cpp, cuda.cu).
 #include <torch/library.h>
 
-#include "modi_ext.h"
+#include "common/ops.h"
 
 namespace modi_ext {
 

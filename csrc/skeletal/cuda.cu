@@ -1,6 +1,6 @@
 // CUDA kernels of the skeletal operators (skeletal_conv, skeletal_down, skeletal_up, skeletal_backward).
 //
-// Semantics: modi_ext/reference.py (the dense oracle) and csrc/cpu/skeletal_cpu.cpp (the CPU kernels these mirror).
+// Semantics: modi_ext/skeletal/reference.py (the dense oracle) and skeletal/cpu.cpp (the CPU kernels these mirror).
 // Every pass is one small GEMM per entity with the gather fused into the operand load:
 //
 //   row GEMM (kernel `row_gemm`)    out[b, m, row, t]  = sum_k A[m, k] G[k, (b, t)]
@@ -13,6 +13,7 @@
 //       Used by: up forward, conv / down input-gradient.
 //   weight-gradient GEMM (`wgrad`)  gW[m, row pairs] = sum_(b,t) L[m, (b,t)] G[k, (b,t)], with the reduction over
 //       batch x time split across blocks into fp32 partials (no atomics), then summed by a second kernel.
+// The three share one main loop (gemm_main_loop); the row and transposed GEMMs also one block body (gemm_block).
 //
 // Tiles: one block per (column tile of batch x time, output-channel tile, entity); 64 x 64 (or 32 x 64 when the
 // GEMM has <= 32 rows) outputs per block, 4 x 4 per thread, 16-deep reduction stages double-buffered in shared
@@ -29,8 +30,11 @@
 
 #include <ATen/ATen.h>
 
-#include "cuda_common.cuh"
-#include "skeletal.h"
+#include <type_traits>
+
+#include "common/cuda_common.cuh"
+#include "skeletal/check.h"
+#include "skeletal/skeletal.h"
 
 namespace modi_ext {
 namespace {
@@ -39,6 +43,9 @@ using cuda::acc_t;
 using cuda::ceil_div;
 using cuda::ld;
 using cuda::st;
+using skeletal::check_backward_inputs;
+using skeletal::check_inputs;
+using skeletal::Geo;
 
 constexpr int kBK = 16;  // reduction depth of one shared-memory stage
 constexpr int kBN = 64;  // output columns (batch x time) per block
@@ -184,6 +191,78 @@ __device__ __forceinline__ void mma_stage(const SA& As, const SB& Bs, A (&acc)[4
   }
 }
 
+// The main loop of every GEMM kernel here: acc = the sum over nk reduction stages of kBK, each stage's operands
+// double-buffered in shared memory (As / Bs: [2][kBK][BM + 1] and [2][kBK][kBN + 1]).  load(s) fetches stage s into
+// registers while the products of the stage before run; store(buf) writes them to buffer buf.
+template <typename A, int BM, typename Load, typename Store, typename SA, typename SB>
+__device__ __forceinline__ void gemm_main_loop(int nk, const Load& load, const Store& store, const SA& As,
+                                               const SB& Bs, A (&acc)[4][4], int ty, int tx) {
+#pragma unroll
+  for (int i = 0; i < 4; ++i)
+#pragma unroll
+    for (int j = 0; j < 4; ++j) acc[i][j] = A(0);
+  if (nk > 0) {
+    load(0);
+    store(0);
+  }
+  __syncthreads();
+  for (int kt = 0; kt < nk; ++kt) {
+    const int buf = kt & 1;
+    if (kt + 1 < nk) load(kt + 1);
+    mma_stage<A, BM>(As[buf], Bs[buf], acc, ty, tx);
+    if (kt + 1 < nk) store(buf ^ 1);
+    __syncthreads();
+  }
+}
+
+// A thread's place in a block of the row / transposed GEMMs: the block's output tile (rows from m0, columns from n0
+// of the N = B x L columns), the A elements the thread stages (column a_k, rows a_m + i * A_STEP) and the B elements
+// (column b_n, rows b_k + i * B_STEP) with that column's batch element bb and frame tt (n_ok: a column < N), and the
+// outputs it accumulates (rows ty + i * TY, columns tx + j * TX).
+template <int BM>
+struct TilePlace {
+  int m0;
+  int64_t n0;
+  int a_k, a_m, b_n, b_k;
+  bool n_ok;
+  int bb, tt;
+  int tx, ty;
+  __device__ __forceinline__ TilePlace(int64_t N, int L) {
+    const int tid = threadIdx.x;
+    m0 = blockIdx.y * BM;
+    n0 = int64_t(blockIdx.x) * kBN;
+    a_k = tid % kBK;
+    a_m = tid / kBK;
+    b_n = tid % kBN;
+    b_k = tid / kBN;
+    const int64_t ncol = n0 + b_n;
+    n_ok = ncol < N;
+    bb = n_ok ? static_cast<int>(ncol / L) : 0;
+    tt = n_ok ? static_cast<int>(ncol - int64_t(bb) * L) : 0;
+    tx = tid % Tile<BM>::TX;
+    ty = tid / Tile<BM>::TX;
+  }
+};
+
+// Epilogue of the row / transposed GEMMs: a thread's outputs (in range) to entity `ent` of the (B, M, E, L) output.
+template <typename T, int BM>
+__device__ __forceinline__ void store_tile(const Epi<T>& epi, int M, int64_t N, int L, const TilePlace<BM>& tp,
+                                           int ent, const acc_t<T> (&acc)[4][4]) {
+#pragma unroll
+  for (int i = 0; i < 4; ++i) {
+    const int m = tp.m0 + tp.ty + i * Tile<BM>::TY;
+    if (m >= M) continue;
+#pragma unroll
+    for (int j = 0; j < 4; ++j) {
+      const int64_t n = tp.n0 + tp.tx + j * Tile<BM>::TX;
+      if (n >= N) continue;
+      const int b = static_cast<int>(n / L);
+      const int t = static_cast<int>(n - int64_t(b) * L);
+      epi_store(epi, M, L, b, m, ent, t, acc[i][j]);
+    }
+  }
+}
+
 // ------------------------------------------------------------------------------------------------ topology
 // Device copy of the CSR as int32, validated (device-side asserts) and sanitised (every value clamped into range,
 // so the GEMMs stay in bounds even if asserts were compiled out), plus optionally its transpose: for each column
@@ -270,155 +349,70 @@ DevTopo build_topology(const at::Tensor& index, const at::Tensor& offsets, int64
   return t;
 }
 
-// ------------------------------------------------------------------------------------------------ row GEMM
-// out[b, m, row, t] = sum_{r, c, u} w[m, p0 + r, c, u] * fac(b, c, e_r) * read(src[b, c, e_r], s*t + u - h)
-// with e_r = idx[p0 + r], p0 = off[row]; k = (r * C + c) * U + u indexes the row's weight block contiguously.
+// ----------------------------------------------------------------------------------------------- row / transposed GEMM
+// The gathered operand of the three GEMMs: for column n = (b, t) of the N = B x L columns and reduction index
+// k = (r * C + c) * U + u, channel c of src's row of the r-th neighbour e_r, read at tap u of a stride-s window
+// (h frames of zero / reflect padding), times fac(b, c, e_r).
 template <typename T>
-struct RowArgs {
-  const T* w = nullptr;
-  int64_t lda = 0;  // weight stride between GEMM rows m (nnz * C * U)
-  int M = 0, C = 0, U = 1, h = 0, s = 1;
+struct Gathered {
+  int C = 0, U = 1, h = 0, s = 1;
   bool reflect = false;
-  const int* off = nullptr;
-  const int* idx = nullptr;
-  Src<T> src;
+  Src<T> src;  // (B, C, E, L_src)
   Factor<T> fac;
-  int64_t N = 0;  // B * To
-  int To = 0;
-  Epi<T> epi;
+  int64_t N = 0;  // B * L
+  int L = 0;
 };
 
-template <typename T, int BM, bool kBlurAdj>
-__global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const RowArgs<T> a) {
-  using A = acc_t<T>;
-  using TL = Tile<BM>;
-  MODI_SHARED(A, As, [2][kBK][BM + 1]);
-  MODI_SHARED(A, Bs, [2][kBK][kBN + 1]);
-  const int tid = threadIdx.x;
-  const int row = blockIdx.z;
-  const int m0 = blockIdx.y * BM;
-  const int64_t n0 = int64_t(blockIdx.x) * kBN;
-  const int p0 = a.off[row];
-  const int CU = a.C * a.U;
-  const int K = (a.off[row + 1] - p0) * CU;
-  const T* wblk = a.w + int64_t(p0) * CU;
-
-  const int a_k = tid % kBK, a_m = tid / kBK;  // A: fixed k column, rows a_m + i * A_STEP
-  const int b_n = tid % kBN, b_k = tid / kBN;  // B: fixed (b, t) column, k rows b_k + i * B_STEP
-  const int64_t ncol = n0 + b_n;
-  const bool n_ok = ncol < a.N;
-  const int bb = n_ok ? static_cast<int>(ncol / a.To) : 0;
-  const int tt = n_ok ? static_cast<int>(ncol - int64_t(bb) * a.To) : 0;
-  const int pos0 = a.s * tt - a.h;
-
-  A ra[TL::A_PER], rb[TL::B_PER];
-  auto load = [&](int k0) {
-    const int k = k0 + a_k;
-#pragma unroll
-    for (int i = 0; i < TL::A_PER; ++i) {
-      const int m = m0 + a_m + i * TL::A_STEP;
-      ra[i] = (m < a.M && k < K) ? ld(wblk + m * a.lda + k) : A(0);
-    }
-#pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) {
-      const int kk = k0 + b_k + i * TL::B_STEP;
-      A v = A(0);
-      if (n_ok && kk < K) {
-        const int r = kk / CU, rem = kk - r * CU;
-        const int c = rem / a.U, u = rem - c * a.U;
-        const int e = a.idx[p0 + r];
-        v = read_fwd<T, kBlurAdj>(a.src.row(bb, c, e), a.src.L, pos0 + u, a.reflect) * a.fac.at(bb, c, e);
-      }
-      rb[i] = v;
-    }
-  };
-  auto store = [&](int buf) {
-#pragma unroll
-    for (int i = 0; i < TL::A_PER; ++i) As[buf][a_k][a_m + i * TL::A_STEP] = ra[i];
-    // MODI_EMU_OFF_BY_ONE is 0 outside the emulator's defect-injection build (cuda_common.cuh)
-#pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n + MODI_EMU_OFF_BY_ONE] = rb[i];
-  };
-
-  const int tx = tid % TL::TX, ty = tid / TL::TX;
-  A acc[4][4];
-#pragma unroll
-  for (int i = 0; i < 4; ++i)
-#pragma unroll
-    for (int j = 0; j < 4; ++j) acc[i][j] = A(0);
-  const int nk = (K + kBK - 1) / kBK;
-  if (nk > 0) {
-    load(0);
-    store(0);
-  }
-  __syncthreads();
-  for (int kt = 0; kt < nk; ++kt) {
-    const int buf = kt & 1;
-    if (kt + 1 < nk) load((kt + 1) * kBK);
-    mma_stage<A, BM>(As[buf], Bs[buf], acc, ty, tx);
-    if (kt + 1 < nk) store(buf ^ 1);
-    __syncthreads();
-  }
-#pragma unroll
-  for (int i = 0; i < 4; ++i) {
-    const int m = m0 + ty + i * TL::TY;
-    if (m >= a.M) continue;
-#pragma unroll
-    for (int j = 0; j < 4; ++j) {
-      const int64_t n = n0 + tx + j * TL::TX;
-      if (n >= a.N) continue;
-      const int b = static_cast<int>(n / a.To);
-      const int t = static_cast<int>(n - int64_t(b) * a.To);
-      epi_store(a.epi, a.M, a.To, b, m, row, t, acc[i][j]);
-    }
-  }
-}
-
-// ------------------------------------------------------------------------------------------------ transposed GEMM
-// out[b, m, col, tau] = sum over readers q of col (pair p_q of row entity e_q), channels c, taps u of
-//   w[c, p_q, m, u] * fac(b, c, e_q) * adjoint-read(src[b, c, e_q], tau; u)         (then the blur if kBlur)
-// k = (r * C + c) * U + u with r the reader's rank in the transposed CSR.
+// Row GEMM (kTr = false):
+//   out[b, m, row, t] = sum_{r, c, u} w[m, p0 + r, c, u] * fac(b, c, e_r) * read(src[b, c, e_r], s*t + u - h)
+//   with e_r = idx[p0 + r], p0 = off[row]; k = (r * C + c) * U + u indexes the row's weight block contiguously.
+// Transposed GEMM (kTr = true):
+//   out[b, m, col, tau] = sum over readers q of col (pair p_q of row entity e_q), channels c, taps u of
+//     w[c, p_q, m, u] * fac(b, c, e_q) * adjoint-read(src[b, c, e_q], tau; u)         (then the blur if kBlur)
+//   k = (r * C + c) * U + u with r the reader's rank in the transposed CSR.
 template <typename T>
-struct TrArgs {
+struct GemmArgs : Gathered<T> {
+  int M = 0;
   const T* w = nullptr;
-  int nnz = 0;
-  int M = 0, C = 0, U = 1, h = 0, s = 1;
-  bool reflect = false;
-  const int* toff = nullptr;
+  int64_t lda = 0;            // row GEMM: weight stride between GEMM rows m (nnz * C * U)
+  int nnz = 0;                // transposed GEMM: the weight's pairs
+  const int* off = nullptr;   // row GEMM: the CSR of the row entities
+  const int* idx = nullptr;
+  const int* toff = nullptr;  // transposed GEMM: the transposed CSR
   const int* tent = nullptr;
   const int* tpair = nullptr;
-  Src<T> src;  // (B, C, E_rows, Ls)
-  Factor<T> fac;
-  int64_t N = 0;  // B * Lt
-  int Lt = 0;
   Epi<T> epi;
 };
 
-template <typename T, int BM, bool kBlur>
-__global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const TrArgs<T> a) {
+// One block of the row (kTr = false; kBlur: read through the blur's adjoint) or the transposed GEMM (kTr = true;
+// kBlur: then the blur): the output tile of entity blockIdx.z, rows m0.., columns n0...
+template <typename T, int BM, bool kTr, bool kBlur>
+__device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
   using A = acc_t<T>;
   using TL = Tile<BM>;
   MODI_SHARED(A, As, [2][kBK][BM + 1]);
   MODI_SHARED(A, Bs, [2][kBK][kBN + 1]);
-  const int tid = threadIdx.x;
-  const int col = blockIdx.z;
-  const int m0 = blockIdx.y * BM;
-  const int64_t n0 = int64_t(blockIdx.x) * kBN;
-  const int q0 = a.toff[col];
+  const TilePlace<BM> tp(a.N, a.L);
+  const int ent = blockIdx.z;                    // row GEMM: the row entity; transposed: the column entity
+  const int* const eoff = kTr ? a.toff : a.off;  // its neighbours (readers) q0 ... q0 + K / CU - 1
+  const int q0 = eoff[ent];
   const int CU = a.C * a.U;
-  const int K = (a.toff[col + 1] - q0) * CU;
-
-  const int a_k = tid % kBK, a_m = tid / kBK;
-  const int b_n = tid % kBN, b_k = tid / kBN;
-  const int64_t ncol = n0 + b_n;
-  const bool n_ok = ncol < a.N;
-  const int bb = n_ok ? static_cast<int>(ncol / a.Lt) : 0;
-  const int tau = n_ok ? static_cast<int>(ncol - int64_t(bb) * a.Lt) : 0;
+  const int K = (eoff[ent + 1] - q0) * CU;
+  [[maybe_unused]] const T* wblk = a.w + int64_t(q0) * CU;  // row GEMM only: the row's weight block
+  [[maybe_unused]] const int pos0 = a.s * tp.tt - a.h;      // row GEMM only: the column's first frame
 
   A ra[TL::A_PER], rb[TL::B_PER];
-  auto load = [&](int k0) {
-    {
-      const int k = k0 + a_k;
+  auto load = [&](int stage) {
+    const int k0 = stage * kBK;
+    if constexpr (!kTr) {  // A: the row's weight block
+      const int k = k0 + tp.a_k;
+#pragma unroll
+      for (int i = 0; i < TL::A_PER; ++i) {
+        const int m = tp.m0 + tp.a_m + i * TL::A_STEP;
+        ra[i] = (m < a.M && k < K) ? ld(wblk + m * a.lda + k) : A(0);
+      }
+    } else {  // A: the weight read transposed
+      const int k = k0 + tp.a_k;
       const bool k_ok = k < K;
       int64_t base = 0;
       if (k_ok) {
@@ -428,84 +422,66 @@ __global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const TrArgs<T> a
       }
 #pragma unroll
       for (int i = 0; i < TL::A_PER; ++i) {
-        const int m = m0 + a_m + i * TL::A_STEP;
+        const int m = tp.m0 + tp.a_m + i * TL::A_STEP;
         ra[i] = (k_ok && m < a.M) ? ld(a.w + base + int64_t(m) * a.U) : A(0);
       }
     }
 #pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) {
-      const int kk = k0 + b_k + i * TL::B_STEP;
+    for (int i = 0; i < TL::B_PER; ++i) {  // B: the gathered operand (transposed: the adjoint of its read)
+      const int kk = k0 + tp.b_k + i * TL::B_STEP;
       A v = A(0);
-      if (n_ok && kk < K) {
+      if (tp.n_ok && kk < K) {
         const int r = kk / CU, rem = kk - r * CU;
         const int c = rem / a.U, u = rem - c * a.U;
-        const int e = a.tent[q0 + r];
-        v = read_tr<T, kBlur>(a.src.row(bb, c, e), a.src.L, a.Lt, tau, a.h - u, a.s, a.reflect) *
-            a.fac.at(bb, c, e);
+        if constexpr (!kTr) {
+          const int e = a.idx[q0 + r];
+          v = read_fwd<T, kBlur>(a.src.row(tp.bb, c, e), a.src.L, pos0 + u, a.reflect) * a.fac.at(tp.bb, c, e);
+        } else {
+          const int e = a.tent[q0 + r];
+          v = read_tr<T, kBlur>(a.src.row(tp.bb, c, e), a.src.L, a.L, tp.tt, a.h - u, a.s, a.reflect) *
+              a.fac.at(tp.bb, c, e);
+        }
       }
       rb[i] = v;
     }
   };
   auto store = [&](int buf) {
 #pragma unroll
-    for (int i = 0; i < TL::A_PER; ++i) As[buf][a_k][a_m + i * TL::A_STEP] = ra[i];
+    for (int i = 0; i < TL::A_PER; ++i) As[buf][tp.a_k][tp.a_m + i * TL::A_STEP] = ra[i];
+    // MODI_EMU_OFF_BY_ONE (row GEMM only) is 0 outside the emulator's defect-injection build (common/cuda_common.cuh)
+    constexpr int shift = kTr ? 0 : 1;
 #pragma unroll
-    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][b_k + i * TL::B_STEP][b_n] = rb[i];
+    for (int i = 0; i < TL::B_PER; ++i) Bs[buf][tp.b_k + i * TL::B_STEP][tp.b_n + shift * MODI_EMU_OFF_BY_ONE] = rb[i];
   };
 
-  const int tx = tid % TL::TX, ty = tid / TL::TX;
   A acc[4][4];
-#pragma unroll
-  for (int i = 0; i < 4; ++i)
-#pragma unroll
-    for (int j = 0; j < 4; ++j) acc[i][j] = A(0);
-  const int nk = (K + kBK - 1) / kBK;
-  if (nk > 0) {
-    load(0);
-    store(0);
-  }
-  __syncthreads();
-  for (int kt = 0; kt < nk; ++kt) {
-    const int buf = kt & 1;
-    if (kt + 1 < nk) load((kt + 1) * kBK);
-    mma_stage<A, BM>(As[buf], Bs[buf], acc, ty, tx);
-    if (kt + 1 < nk) store(buf ^ 1);
-    __syncthreads();
-  }
-#pragma unroll
-  for (int i = 0; i < 4; ++i) {
-    const int m = m0 + ty + i * TL::TY;
-    if (m >= a.M) continue;
-#pragma unroll
-    for (int j = 0; j < 4; ++j) {
-      const int64_t n = n0 + tx + j * TL::TX;
-      if (n >= a.N) continue;
-      const int b = static_cast<int>(n / a.Lt);
-      const int t = static_cast<int>(n - int64_t(b) * a.Lt);
-      epi_store(a.epi, a.M, a.Lt, b, m, col, t, acc[i][j]);  // entities with no reader get bias (or 0)
-    }
-  }
+  gemm_main_loop<A, BM>((K + kBK - 1) / kBK, load, store, As, Bs, acc, tp.ty, tp.tx);
+  store_tile<T, BM>(a.epi, a.M, a.N, a.L, tp, ent, acc);  // transposed: entities with no reader get bias (or 0)
+}
+
+template <typename T, int BM, bool kBlurAdj>
+__global__ void __launch_bounds__(Tile<BM>::NT) row_gemm_kernel(const GemmArgs<T> a) {
+  gemm_block<T, BM, false, kBlurAdj>(a);
+}
+
+template <typename T, int BM, bool kBlur>
+__global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const GemmArgs<T> a) {
+  gemm_block<T, BM, true, kBlur>(a);
 }
 
 // ------------------------------------------------------------------------------------------------ weight gradient
 // gW[m * lda + (p0 * C * U) + k] = sum_{n = (b, t)} L[m, n] * G[k, n]
-//   L[m, n] = lsrc[b, m, row, t] * lfac(b, m, row)      (lsrc is (B, M, El, To))
+//   L[m, n] = lsrc[b, m, row, t] * lfac(b, m, row)      (lsrc is (B, M, El, L))
 //   G[k, n] = the row GEMM's gathered operand for this row.
 // Grid: (split of the n range, m tile, row); each block walks all k tiles of its row (the host does not know the
 // degrees: they live on the device).  One split writes gW directly; several write fp32 partials (reduced later).
 template <typename T>
-struct WArgs {
+struct WArgs : Gathered<T> {
   const T* lsrc = nullptr;
   int M = 0, El = 0;
   Factor<T> lfac;
-  int C = 0, U = 1, h = 0, s = 1;
-  bool reflect = false;
   const int* off = nullptr;
   const int* idx = nullptr;
-  Src<T> src;
-  Factor<T> fac;
-  int64_t N = 0;
-  int To = 0;
   int64_t n_chunk = 0;  // reduction columns per split, a multiple of kBK
   int64_t lda = 0;
   T* gw = nullptr;
@@ -550,16 +526,16 @@ __global__ void __launch_bounds__(Tile<BM>::NT) wgrad_kernel(const WArgs<T> a) {
       re[i] = a.idx[p0 + r];
     }
     A rl[TL::A_PER], rr[R_PER];
-    auto load = [&](int64_t n_base) {
-      const int64_t n = n_base + l_n;
+    auto load = [&](int stage) {  // L: the output-side rows; R: the gathered inputs
+      const int64_t n = nb + int64_t(stage) * kBK + l_n;
       const bool n_ok = n < ne;
-      const int b = n_ok ? static_cast<int>(n / a.To) : 0;
-      const int t = n_ok ? static_cast<int>(n - int64_t(b) * a.To) : 0;
+      const int b = n_ok ? static_cast<int>(n / a.L) : 0;
+      const int t = n_ok ? static_cast<int>(n - int64_t(b) * a.L) : 0;
 #pragma unroll
       for (int i = 0; i < TL::A_PER; ++i) {
         const int m = m0 + l_m + i * TL::A_STEP;
         rl[i] = (n_ok && m < a.M)
-                    ? ld(a.lsrc + ((int64_t(b) * a.M + m) * a.El + row) * a.To + t) * a.lfac.at(b, m, row)
+                    ? ld(a.lsrc + ((int64_t(b) * a.M + m) * a.El + row) * a.L + t) * a.lfac.at(b, m, row)
                     : A(0);
       }
       const int pos0 = a.s * t - a.h;
@@ -579,22 +555,7 @@ __global__ void __launch_bounds__(Tile<BM>::NT) wgrad_kernel(const WArgs<T> a) {
     };
 
     A acc[4][4];
-#pragma unroll
-    for (int i = 0; i < 4; ++i)
-#pragma unroll
-      for (int j = 0; j < 4; ++j) acc[i][j] = A(0);
-    if (nsteps > 0) {
-      load(nb);
-      store(0);
-    }
-    __syncthreads();
-    for (int sidx = 0; sidx < nsteps; ++sidx) {
-      const int buf = sidx & 1;
-      if (sidx + 1 < nsteps) load(nb + int64_t(sidx + 1) * kBK);
-      mma_stage<A, BM>(Ls[buf], Rs[buf], acc, ty, tx);
-      if (sidx + 1 < nsteps) store(buf ^ 1);
-      __syncthreads();
-    }
+    gemm_main_loop<A, BM>(nsteps, load, store, Ls, Rs, acc, ty, tx);
 #pragma unroll
     for (int i = 0; i < 4; ++i) {
       const int m = m0 + ty + i * TL::TY;
@@ -618,7 +579,7 @@ template <typename T>
 __global__ void split_reduce_kernel(const acc_t<T>* __restrict__ ws, int splits, int64_t n, T* __restrict__ out) {
   for (int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
     acc_t<T> s = 0;
-    // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (cuda_common.cuh)
+    // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (common/cuda_common.cuh)
     for (int k = 0; k < splits + MODI_EMU_GLOBAL_OOB; ++k) s += ws[int64_t(k) * n + i];
     st(out + i, s);
   }
@@ -665,33 +626,30 @@ __global__ void scale_grad_kernel(const T* __restrict__ gy, const T* __restrict_
 }
 
 // ------------------------------------------------------------------------------------------------ launchers
-template <typename T, bool kBlurAdj>
-void launch_row(const RowArgs<T>& a, int64_t rows, cudaStream_t stream) {
-  const int64_t nt = ceil_div(a.N, kBN);
-  if (a.M <= 32) {
-    const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 32)),
-                    static_cast<unsigned>(rows));
-    MODI_LAUNCH((row_gemm_kernel<T, 32, kBlurAdj>), grid, Tile<32>::NT, 0, stream, a);
+// f(std::integral_constant<int, BM>{}) with the tile height BM of a GEMM of M rows: 32 when M <= 32, else 64.
+template <typename F>
+void with_tile_rows(int M, const F& f) {
+  if (M <= 32) {
+    f(std::integral_constant<int, 32>{});
   } else {
-    const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 64)),
-                    static_cast<unsigned>(rows));
-    MODI_LAUNCH((row_gemm_kernel<T, 64, kBlurAdj>), grid, Tile<64>::NT, 0, stream, a);
+    f(std::integral_constant<int, 64>{});
   }
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
-template <typename T, bool kBlur>
-void launch_tr(const TrArgs<T>& a, int64_t cols, cudaStream_t stream) {
-  const int64_t nt = ceil_div(a.N, kBN);
-  if (a.M <= 32) {
-    const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 32)),
-                    static_cast<unsigned>(cols));
-    MODI_LAUNCH((tr_gemm_kernel<T, 32, kBlur>), grid, Tile<32>::NT, 0, stream, a);
-  } else {
-    const dim3 grid(static_cast<unsigned>(nt), static_cast<unsigned>(ceil_div(a.M, 64)),
-                    static_cast<unsigned>(cols));
-    MODI_LAUNCH((tr_gemm_kernel<T, 64, kBlur>), grid, Tile<64>::NT, 0, stream, a);
-  }
+// The row (kTr = false) or the transposed GEMM over `ents` entities: grid (column tiles of the N columns, row tiles
+// of the M rows, entities).
+template <typename T, bool kTr, bool kBlur>
+void launch_gemm(const GemmArgs<T>& a, int64_t ents, cudaStream_t stream) {
+  with_tile_rows(a.M, [&](auto tile) {
+    constexpr int BM = decltype(tile)::value;
+    const dim3 grid(static_cast<unsigned>(ceil_div(a.N, kBN)), static_cast<unsigned>(ceil_div(a.M, BM)),
+                    static_cast<unsigned>(ents));
+    if constexpr (kTr) {
+      MODI_LAUNCH((tr_gemm_kernel<T, BM, kBlur>), grid, Tile<BM>::NT, 0, stream, a);
+    } else {
+      MODI_LAUNCH((row_gemm_kernel<T, BM, kBlur>), grid, Tile<BM>::NT, 0, stream, a);
+    }
+  });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 
@@ -715,11 +673,10 @@ void launch_wgrad(WArgs<T> a, int64_t rows, const at::Tensor& gw, int device, cu
     a.ws = ws.data_ptr<acc_t<T>>();
   }
   const dim3 grid(static_cast<unsigned>(splits), static_cast<unsigned>(mtiles), static_cast<unsigned>(rows));
-  if (bm == 32) {
-    MODI_LAUNCH((wgrad_kernel<T, 32, kBlurAdj>), grid, Tile<32>::NT, 0, stream, a);
-  } else {
-    MODI_LAUNCH((wgrad_kernel<T, 64, kBlurAdj>), grid, Tile<64>::NT, 0, stream, a);
-  }
+  with_tile_rows(a.M, [&](auto tile) {
+    constexpr int BM = decltype(tile)::value;
+    MODI_LAUNCH((wgrad_kernel<T, BM, kBlurAdj>), grid, Tile<BM>::NT, 0, stream, a);
+  });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   if (splits > 1) {
     const int threads = 256;
@@ -730,122 +687,48 @@ void launch_wgrad(WArgs<T> a, int64_t rows, const at::Tensor& gw, int device, cu
   }
 }
 
-// ------------------------------------------------------------------------------------------------ checks
-struct Geo {
-  int64_t kind, B, Cin, Cout, Ein, Eout, Tin, Tout, U, h, nnz;
-  bool reflect;
-};
-
-bool parse_padding(c10::string_view mode) {
-  if (mode == "zeros") return false;
-  if (mode == "reflect") return true;
-  TORCH_CHECK(false, "padding_mode must be 'zeros' or 'reflect', got '", std::string(mode), "'");
-  return false;
-}
-
-void check_like_x(const at::Tensor& t, const char* name, const at::Tensor& x) {
-  TORCH_CHECK(t.device() == x.device(), name, " is on ", t.device(), " but x is on ", x.device());
-  TORCH_CHECK(t.scalar_type() == x.scalar_type(), name, " has dtype ", t.scalar_type(), " but x has ",
-              x.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-}
-
-void check_index(const at::Tensor& t, const char* name, const at::Tensor& x) {
-  TORCH_CHECK(t.device() == x.device(), name, " is on ", t.device(), " but x is on ", x.device());
-  TORCH_CHECK(t.scalar_type() == at::kLong, name, " must be int64, got ", t.scalar_type());
-  TORCH_CHECK(t.dim() == 1, name, " must be 1-D, got ", t.dim(), " dims");
-  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
-}
-
-Geo check_inputs(int64_t kind, const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
-                 const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
-                 const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                 c10::string_view padding_mode) {
-  TORCH_CHECK(cuda::on_device(x), "x must be a CUDA tensor for the CUDA kernel, got ", x.device());
-  TORCH_CHECK(x.dim() == 4, "x must be 4-D (B, C, E, T), got ", x.dim(), " dims");
-  TORCH_CHECK(cuda::is_cuda_float(x.scalar_type()), "x must be float32, float64, float16 or bfloat16, got ",
-              x.scalar_type());
-  TORCH_CHECK(x.is_contiguous(), "x must be contiguous");
-  TORCH_CHECK(weight.dim() == 4, "weight must be 4-D compact (C0, nnz, C1, U), got ", weight.dim(), " dims");
-  check_like_x(weight, "weight", x);
-  check_index(index, "index", x);
-  check_index(offsets, "offsets", x);
-  Geo g{};
-  g.kind = kind;
-  g.reflect = parse_padding(padding_mode);
-  g.B = x.size(0);
-  g.Tin = x.size(3);
-  TORCH_CHECK(g.B > 0, "x has an empty batch (B == 0)");
-  TORCH_CHECK(g.Tin > 0, "x has zero frames (T == 0)");
-  g.U = weight.size(3);
-  TORCH_CHECK(g.U % 2 == 1, "weight kernel width U=", g.U, " must be odd");
-  g.h = g.U / 2;
-  g.nnz = weight.size(1);
-  TORCH_CHECK(index.numel() == g.nnz, "weight has ", g.nnz, " pairs (dim 1) but index has ", index.numel(),
-              " entries");
-  TORCH_CHECK(offsets.numel() >= 2, "offsets must be 1-D with at least 2 entries");
-  const int64_t rows = offsets.numel() - 1;
-  if (kind == kUp) {
-    g.Cin = weight.size(0);
-    g.Cout = weight.size(2);
-    TORCH_CHECK(x.size(2) == rows, "x has ", x.size(2), " coarse entities but offsets describes ", rows);
-    TORCH_CHECK(n_out > 0, "n_out must be positive, got ", n_out);
-    g.Ein = rows;
-    g.Eout = n_out;
-    g.Tout = 2 * g.Tin;
-    TORCH_CHECK(!g.reflect || g.h < g.Tout, "reflect padding of ", g.h, " frames needs more than ", g.h,
-                " frames, got ", g.Tout);
-  } else {
-    g.Cout = weight.size(0);
-    g.Cin = weight.size(2);
-    g.Ein = x.size(2);
-    g.Eout = rows;
-    if (kind == kConv) {
-      TORCH_CHECK(g.Ein == rows, "x has ", g.Ein, " entities but the neighbor lists (offsets) describe ", rows);
-      g.Tout = g.Tin;
-    } else {
-      TORCH_CHECK(g.Tin >= 2, "x needs at least 2 frames to downsample, got ", g.Tin);
-      g.Tout = g.Tin / 2;
-    }
-    TORCH_CHECK(!g.reflect || g.h < g.Tin, "reflect padding of ", g.h, " frames needs more than ", g.h,
-                " frames, got ", g.Tin);
-  }
-  TORCH_CHECK(x.size(1) == g.Cin, "x has ", x.size(1), " channels but weight expects ", g.Cin);
-  TORCH_CHECK(g.Cin > 0 && g.Cout > 0, "weight has zero channels: ", weight.sizes());
-  if (bias.has_value()) {
-    check_like_x(*bias, "bias", x);
-    TORCH_CHECK(bias->dim() == 1 && bias->size(0) == g.Cout, "bias must have shape (", g.Cout, "), got ",
-                bias->sizes());
-  }
-  if (style.has_value()) {
-    check_like_x(*style, "style", x);
-    TORCH_CHECK(style->dim() == 2 && style->size(0) == g.B && style->size(1) == g.Cin, "style must be (B, Cin) = (",
-                g.B, ", ", g.Cin, "), got ", style->sizes());
-  }
-  if (scale.has_value()) {
-    check_like_x(*scale, "scale", x);
-    TORCH_CHECK(scale->dim() == 3 && scale->size(0) == g.B && scale->size(1) == g.Cout && scale->size(2) == g.Eout,
-                "scale must be (B, Cout, E_out) = (", g.B, ", ", g.Cout, ", ", g.Eout, "), got ", scale->sizes());
-  }
-  // Launch geometry limits (grid y / z) and 32-bit frame / channel arithmetic inside the kernels.
-  TORCH_CHECK(g.Ein <= 65535 && g.Eout <= 65535, "at most 65535 entities per level are supported, got ", g.Ein,
-              " -> ", g.Eout);
-  TORCH_CHECK(g.nnz < (int64_t(1) << 24) && g.Cin * g.U * g.nnz < (int64_t(1) << 31) &&
-                  g.Cout * g.U * g.nnz < (int64_t(1) << 31),
-              "weight is too large for the CUDA kernel: ", weight.sizes());
-  TORCH_CHECK(g.B * std::max(g.Tin, g.Tout) < (int64_t(1) << 31) && g.Tout < (int64_t(1) << 30),
-              "batch x frames is too large for the CUDA kernel: ", x.sizes());
-  return g;
-}
-
 cudaStream_t current_stream(const at::Tensor& x) { return c10::cuda::getCurrentCUDAStream(x.device().index()); }
+
+// The gathered operand of one of a call's GEMMs: C channels of src times fac, read at stride s, over B x L columns.
+template <typename T>
+Gathered<T> gathered(const Geo& g, int64_t C, int s, const Src<T>& src, const Factor<T>& fac, int64_t L) {
+  Gathered<T> in;
+  in.C = static_cast<int>(C);
+  in.U = static_cast<int>(g.U);
+  in.h = static_cast<int>(g.h);
+  in.s = s;
+  in.reflect = g.reflect;
+  in.src = src;
+  in.fac = fac;
+  in.N = g.B * L;
+  in.L = static_cast<int>(L);
+  return in;
+}
+
+// A row or transposed GEMM of M rows over the gathered operand `in`: the weight, the topology and the epilogue.
+template <typename T>
+GemmArgs<T> gemm_args(const Geo& g, const Gathered<T>& in, int64_t M, const T* w, const DevTopo& topo,
+                      const Epi<T>& epi) {
+  GemmArgs<T> a{in};
+  a.M = static_cast<int>(M);
+  a.w = w;
+  a.lda = g.nnz * in.C * g.U;
+  a.nnz = static_cast<int>(g.nnz);
+  a.off = topo.off;
+  a.idx = topo.idx;
+  a.toff = topo.toff;
+  a.tent = topo.tent;
+  a.tpair = topo.tpair;
+  a.epi = epi;
+  return a;
+}
 
 // ------------------------------------------------------------------------------------------------ forward
 at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
                         const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                         int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
                         c10::string_view padding_mode) {
-  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+  const Geo g = check_inputs(kCudaBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
   const bool up = kind == kUp;
@@ -863,43 +746,14 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     Factor<T> sty;
     if (style.has_value()) sty = Factor<T>{style->data_ptr<T>(), g.Cin, 1, 0};
     const Src<T> src{x.data_ptr<T>(), static_cast<int>(g.Cin), static_cast<int>(g.Ein), static_cast<int>(g.Tin)};
+    // conv / down: the row GEMM over the x rows of each output entity's neighbours; up: the transposed GEMM over the
+    // x rows of the coarse entities that read each fine entity
+    const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, src, sty, g.Tout), g.Cout,
+                                       weight.data_ptr<T>(), topo, epi);
     if (!up) {
-      RowArgs<T> a;
-      a.w = weight.data_ptr<T>();
-      a.lda = g.nnz * g.Cin * g.U;
-      a.M = static_cast<int>(g.Cout);
-      a.C = static_cast<int>(g.Cin);
-      a.U = static_cast<int>(g.U);
-      a.h = static_cast<int>(g.h);
-      a.s = kind == kDown ? 2 : 1;
-      a.reflect = g.reflect;
-      a.off = topo.off;
-      a.idx = topo.idx;
-      a.src = src;
-      a.fac = sty;
-      a.N = g.B * g.Tout;
-      a.To = static_cast<int>(g.Tout);
-      a.epi = epi;
-      launch_row<T, false>(a, rows, stream);
+      launch_gemm<T, false, false>(a, rows, stream);
     } else {
-      TrArgs<T> a;
-      a.w = weight.data_ptr<T>();
-      a.nnz = static_cast<int>(g.nnz);
-      a.M = static_cast<int>(g.Cout);
-      a.C = static_cast<int>(g.Cin);
-      a.U = static_cast<int>(g.U);
-      a.h = static_cast<int>(g.h);
-      a.s = 2;
-      a.reflect = g.reflect;
-      a.toff = topo.toff;
-      a.tent = topo.tent;
-      a.tpair = topo.tpair;
-      a.src = src;
-      a.fac = sty;
-      a.N = g.B * g.Tout;
-      a.Lt = static_cast<int>(g.Tout);
-      a.epi = epi;
-      launch_tr<T, true>(a, cols, stream);
+      launch_gemm<T, true, true>(a, cols, stream);
     }
   });
   return y;
@@ -932,16 +786,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
     int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
-  TORCH_CHECK(kind == kConv || kind == kDown || kind == kUp, "kind must be 0 (conv), 1 (down) or 2 (up), got ",
-              kind);
-  const Geo g = check_inputs(kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
-  for (const auto& [t, name] : {std::pair<const at::Tensor*, const char*>{&grad, "grad"}, {&out, "out"}}) {
-    check_like_x(*t, name, x);
-    TORCH_CHECK(t->dim() == 4 && t->size(0) == g.B && t->size(1) == g.Cout && t->size(2) == g.Eout &&
-                    t->size(3) == g.Tout,
-                name, " must have the output shape (", g.B, ", ", g.Cout, ", ", g.Eout, ", ", g.Tout, "), got ",
-                t->sizes());
-  }
+  const Geo g = check_backward_inputs(kCudaBackend, grad, out, x, weight, bias, index, offsets, style, scale,
+                                      padding_mode, kind, n_out);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
   const int device = x.device().index();
@@ -996,45 +842,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
         epi.out = gx.data_ptr<T>();
         epi.style = sp;
       }
+      // up: gx'[b,i,c,t] = sum_{p in row c, o, u} w[i,p,o,u] * (d * blur^T gy)[b,o,idx[p], read(2t+u-h)] (row GEMM);
+      // conv / down: gx'[b,i,n,tau] = sum over readers (j, p) of n, o, u of w[o,p,i,u] * (d * gy)[b,o,j, adjoint
+      // read at tau] (transposed GEMM)
+      const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cout, kind == kConv ? 1 : 2, gsrc, dsc, g.Tin), g.Cin,
+                                         weight.data_ptr<T>(), topo, epi);
       if (up) {
-        // gx'[b,i,c,t] = sum_{p in row c, o, u} w[i,p,o,u] * (d * blur^T gy)[b,o,idx[p], read(2t+u-h)]
-        RowArgs<T> a;
-        a.w = weight.data_ptr<T>();
-        a.lda = g.nnz * g.Cout * g.U;
-        a.M = static_cast<int>(g.Cin);
-        a.C = static_cast<int>(g.Cout);
-        a.U = static_cast<int>(g.U);
-        a.h = static_cast<int>(g.h);
-        a.s = 2;
-        a.reflect = g.reflect;
-        a.off = topo.off;
-        a.idx = topo.idx;
-        a.src = gsrc;
-        a.fac = dsc;
-        a.N = g.B * g.Tin;
-        a.To = static_cast<int>(g.Tin);
-        a.epi = epi;
-        launch_row<T, true>(a, rows, stream);
+        launch_gemm<T, false, true>(a, rows, stream);
       } else {
-        // gx'[b,i,n,tau] = sum over readers (j, p) of n, o, u of w[o,p,i,u] * (d * gy)[b,o,j, adjoint read at tau]
-        TrArgs<T> a;
-        a.w = weight.data_ptr<T>();
-        a.nnz = static_cast<int>(g.nnz);
-        a.M = static_cast<int>(g.Cin);
-        a.C = static_cast<int>(g.Cout);
-        a.U = static_cast<int>(g.U);
-        a.h = static_cast<int>(g.h);
-        a.s = kind == kDown ? 2 : 1;
-        a.reflect = g.reflect;
-        a.toff = topo.toff;
-        a.tent = topo.tent;
-        a.tpair = topo.tpair;
-        a.src = gsrc;
-        a.fac = dsc;
-        a.N = g.B * g.Tin;
-        a.Lt = static_cast<int>(g.Tin);
-        a.epi = epi;
-        launch_tr<T, false>(a, cols, stream);
+        launch_gemm<T, true, false>(a, cols, stream);
       }
       if (want_gs) {
         MODI_LAUNCH((style_finish_kernel<T>), static_cast<unsigned>(g.B * g.Cin), 256, 0, stream,
@@ -1044,39 +860,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     }
 
     if (want_gw) {
-      WArgs<T> a;
-      a.U = static_cast<int>(g.U);
-      a.h = static_cast<int>(g.h);
-      a.reflect = g.reflect;
+      // up:          gW[i,p,o,u] = sum_{b,t} x[b,i,c,t] s[b,i] * (d * blur^T gy)[b,o,idx[p], read(2t+u-h)]
+      // conv / down: gW[o,p,i,u] = sum_{b,t} (d * gy)[b,o,j,t] * s[b,i] x[b,i,idx[p], read(s*t+u-h)]
+      WArgs<T> a{up ? gathered<T>(g, g.Cout, 2, gsrc, dsc, g.Tin)
+                    : gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, xsrc, sty, g.Tout)};
+      a.lsrc = up ? x.data_ptr<T>() : gy;
+      a.M = static_cast<int>(up ? g.Cin : g.Cout);
+      a.El = static_cast<int>(up ? g.Ein : g.Eout);
+      a.lfac = up ? sty : dsc;
       a.off = topo.off;
       a.idx = topo.idx;
+      a.lda = g.nnz * a.C * g.U;
       if (up) {
-        // gW[i,p,o,u] = sum_{b,t} x[b,i,c,t] s[b,i] * (d * blur^T gy)[b,o,idx[p], read(2t+u-h)]
-        a.lsrc = x.data_ptr<T>();
-        a.M = static_cast<int>(g.Cin);
-        a.El = static_cast<int>(g.Ein);
-        a.lfac = sty;
-        a.C = static_cast<int>(g.Cout);
-        a.s = 2;
-        a.src = gsrc;
-        a.fac = dsc;
-        a.N = g.B * g.Tin;
-        a.To = static_cast<int>(g.Tin);
-        a.lda = g.nnz * g.Cout * g.U;
         launch_wgrad<T, true>(a, rows, gw, device, stream);
       } else {
-        // gW[o,p,i,u] = sum_{b,t} (d * gy)[b,o,j,t] * s[b,i] x[b,i,idx[p], read(s*t+u-h)]
-        a.lsrc = gy;
-        a.M = static_cast<int>(g.Cout);
-        a.El = static_cast<int>(g.Eout);
-        a.lfac = dsc;
-        a.C = static_cast<int>(g.Cin);
-        a.s = kind == kDown ? 2 : 1;
-        a.src = xsrc;
-        a.fac = sty;
-        a.N = g.B * g.Tout;
-        a.To = static_cast<int>(g.Tout);
-        a.lda = g.nnz * g.Cin * g.U;
         launch_wgrad<T, false>(a, rows, gw, device, stream);
       }
     }

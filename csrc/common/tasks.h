@@ -9,7 +9,7 @@
 //   callers list tasks largest first (the longest-processing-time rule: the tail is one small task);
 // * a call is one job of up to four stages (operand layout, then the products that read it): a stage starts when
 //   the earlier stages' claimed tasks are finished -- one wake-up per call, no barrier;
-// * the threads: MODI_EXT_CPU_POOL=own (what modi_ext/omp_wait.py sets when OpenMP threads spin only briefly, as
+// * the threads: MODI_EXT_CPU_POOL=own (what modi_ext/runtime/omp_wait.py sets when OpenMP threads spin only briefly, as
 //   it chooses when another process keeps a CPU busy) runs jobs on this file's own helper threads: the caller never
 //   waits for a helper that has claimed nothing, helpers sleep when idle, and they are kept off the caller's CPU
 //   (Pool::place_helpers), so with one core busy two threads beat one.  MODI_EXT_CPU_POOL=omp runs them on torch's

@@ -1,4 +1,4 @@
-// Shared helpers of the modi_ext CUDA kernels (skeletal_cuda.cu, fk_cuda.cu).
+// Shared helpers of the modi_ext CUDA kernels (skeletal/cuda.cu, fk/cuda.cu).
 //
 // Only torch/ATen/c10-cuda and CUDA runtime headers: <ATen/cuda/CUDAContext.h> is deliberately avoided (it pulls
 // cuBLAS/cuSPARSE headers that a bare nvcc install lacks; see .ci/cuda_compile_check).  Nothing here synchronises
@@ -10,6 +10,8 @@
 #include <atomic>
 #include <cstdint>
 #include <utility>
+
+#include "common/check.h"
 
 #ifdef MODI_EXT_EMULATE_CUDA
 // Test-only build: the same sources as host C++ on the CPU emulator (csrc/emu, tests/test_cuda_emulated.py).
@@ -77,6 +79,13 @@ inline bool on_device(const at::Tensor& t) {
 #endif
 }
 
+}  // namespace cuda
+
+// What the ops' input checks (csrc/<op>/check.h) know of the CUDA kernels.
+inline constexpr Backend kCudaBackend{"CUDA", &cuda::on_device, true};
+
+namespace cuda {
+
 // Accumulator type: fp32 for float / half / bfloat16, fp64 for double (gradcheck).
 template <typename T>
 struct AccT {
@@ -117,10 +126,6 @@ inline int sm_count(int device) {
   }
   cache[device].store(v, std::memory_order_relaxed);
   return v;
-}
-
-inline bool is_cuda_float(at::ScalarType t) {
-  return t == at::kFloat || t == at::kDouble || t == at::kHalf || t == at::kBFloat16;
 }
 
 inline int64_t ceil_div(int64_t a, int64_t b) { return (a + b - 1) / b; }

@@ -1,4 +1,4 @@
-// CUDA kernels of modi_ext::fk (semantics: csrc/fk.h, mirrored from csrc/cpu/fk_cpu.cpp).
+// CUDA kernels of modi_ext::fk (semantics: fk/fk.h, mirrored from fk/cpu.cpp).
 //
 // One thread per sample (flattened batch x time) walks the joints root to leaf (forward) or leaf to root
 // (backward).  The parent list travels by value in the kernel parameters (no host-to-device copy, so the op can be
@@ -16,44 +16,25 @@
 
 #include <vector>
 
-#include "cuda_common.cuh"
-#include "fk.h"
+#include "common/cuda_common.cuh"
+#include "fk/check.h"
+#include "fk/fk.h"
+#include "fk/quat.h"
 
 namespace modi_ext {
 namespace {
 
-using cuda::acc_t;
-using cuda::ceil_div;
-using cuda::ld;
-using cuda::st;
+using namespace cuda;  // acc_t, ld, st, ceil_div, warp_sum, block_sum, ...
+using fk::qmul;
+using fk::qrot;
 
-constexpr int kMaxJoints = 1024;
+constexpr int kMaxJoints = fk::kCudaMaxJoints;
 constexpr size_t kSmemBudget = 48 * 1024;
 
 struct FkParents {
   int J;
   int16_t p[kMaxJoints];
 };
-
-// ---- quaternion helpers (w, x, y, z) ----
-template <typename A>
-__device__ __forceinline__ void qmul(const A* a, const A* b, A* out) {
-  out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
-  out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
-  out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
-  out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
-}
-
-// out = v + 2w (u x v) + 2 u x (u x v); passing -u applies the transpose of that linear map.
-template <typename A>
-__device__ __forceinline__ void qrot(A w, A ux, A uy, A uz, const A* v, A* out) {
-  const A tx = A(2) * (uy * v[2] - uz * v[1]);
-  const A ty = A(2) * (uz * v[0] - ux * v[2]);
-  const A tz = A(2) * (ux * v[1] - uy * v[0]);
-  out[0] = v[0] + w * tx + (uy * tz - uz * ty);
-  out[1] = v[1] + w * ty + (uz * tx - ux * tz);
-  out[2] = v[2] + w * tz + (ux * ty - uy * tx);
-}
 
 // Dynamic shared memory: [state (kSmem only): J * 7 * threads][offsets: J * 3] (accumulator type), [parents: J].
 template <typename A>
@@ -78,6 +59,24 @@ __device__ __forceinline__ FkSmem<acc_t<T>> stage_topology(const T* off, const F
   return s;
 }
 
+// A thread's walk state: joint j, component c (rotation c = 0..3, position c = 4..6) at S[j * sj + c * sc], in
+// shared memory laid out [joint][component][thread] (kSmem), else in the thread's slice of the global workspace.
+template <typename A>
+struct WalkState {
+  A* S;
+  int64_t sj, sc;
+};
+
+template <bool kSmem, typename A>
+__device__ __forceinline__ WalkState<A> walk_state(const FkSmem<A>& sm, A* ws, int64_t n, int J) {
+  if constexpr (kSmem) {
+    const int nt = blockDim.x;
+    return {sm.state + threadIdx.x, int64_t(7) * nt, nt};
+  } else {
+    return {ws + n * J * 7, 7, 1};
+  }
+}
+
 // ---- forward ----
 template <typename T, bool kSmem>
 __global__ void fk_forward_kernel(const T* __restrict__ lq, const T* __restrict__ off, const T* __restrict__ root,
@@ -88,17 +87,7 @@ __global__ void fk_forward_kernel(const T* __restrict__ lq, const T* __restrict_
   const int J = par.J, nt = blockDim.x;
   const int64_t n = int64_t(blockIdx.x) * nt + threadIdx.x;
   if (n >= N) return;  // no barrier below
-  A* S;
-  int64_t sj, sc;  // state (joint j, component c) at S[j * sj + c * sc]: rotation c = 0..3, position c = 4..6
-  if constexpr (kSmem) {
-    S = sm.state + threadIdx.x;
-    sc = nt;
-    sj = int64_t(7) * nt;
-  } else {
-    S = ws + n * J * 7;
-    sc = 1;
-    sj = 7;
-  }
+  const auto [S, sj, sc] = walk_state<kSmem>(sm, ws, n, J);
   const T* q = lq + n * J * 4;
   T* Qo = gq + n * J * 4;
   T* Po = pos + n * J * 3;
@@ -170,17 +159,7 @@ __global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restri
   const int64_t n = active ? gt : 0;
   const int64_t warp = gt >> 5;
   const int lane = threadIdx.x & 31;
-  A* S;
-  int64_t sj, sc;
-  if constexpr (kSmem) {
-    S = sm.state + threadIdx.x;
-    sc = nt;
-    sj = int64_t(7) * nt;
-  } else {
-    S = ws + n * J * 7;
-    sc = 1;
-    sj = 7;
-  }
+  const auto [S, sj, sc] = walk_state<kSmem>(sm, ws, n, J);
   if (active) {
     for (int j = 0; j < J; ++j) {
       A* Sj = S + j * sj;
@@ -204,16 +183,8 @@ __global__ void fk_backward_kernel(const T* __restrict__ gpos, const T* __restri
       Sp[5 * sc] += gy;
       Sp[6 * sc] += gz;
       // position term -> gradient of Q[p]
-      const A uxo_x = uy * o[2] - uz * o[1], uxo_y = uz * o[0] - ux * o[2], uxo_z = ux * o[1] - uy * o[0];
-      const A oxg_x = o[1] * gz - o[2] * gy, oxg_y = o[2] * gx - o[0] * gz, oxg_z = o[0] * gy - o[1] * gx;
-      const A u_o = ux * o[0] + uy * o[1] + uz * o[2];
-      const A g_u = gx * ux + gy * uy + gz * uz;
-      const A g_o = gx * o[0] + gy * o[1] + gz * o[2];
       A gQp[4];
-      gQp[0] = A(2) * (gx * uxo_x + gy * uxo_y + gz * uxo_z);
-      gQp[1] = A(2) * (w * oxg_x + u_o * gx + g_u * o[0]) - A(4) * g_o * ux;
-      gQp[2] = A(2) * (w * oxg_y + u_o * gy + g_u * o[1]) - A(4) * g_o * uy;
-      gQp[3] = A(2) * (w * oxg_z + u_o * gz + g_u * o[2]) - A(4) * g_o * uz;
+      fk::position_grad(w, ux, uy, uz, o, gx, gy, gz, gQp);
       if (goff_part) {
         const A g[3] = {gx, gy, gz};
         qrot(w, -ux, -uy, -uz, g, r);
@@ -266,59 +237,12 @@ __global__ void fk_offsets_reduce_kernel(const acc_t<T>* __restrict__ part, int6
 }
 
 // ---- host side ----
-FkParents make_parents(at::IntArrayRef parents, int64_t J) {
-  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
-              " entries but local_quats has ", J, " joints (dim -2)");
-  TORCH_CHECK(J >= 1 && parents[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
-  TORCH_CHECK(J <= kMaxJoints, "modi_ext::fk: the CUDA kernel supports at most ", kMaxJoints, " joints, got ", J);
+// The checked parent list (fk::check_inputs), as the kernels receive it.
+FkParents make_parents(const std::vector<int64_t>& parents) {
   FkParents par{};
-  par.J = static_cast<int>(J);
-  par.p[0] = -1;
-  for (int64_t j = 1; j < J; ++j) {
-    TORCH_CHECK(parents[j] >= 0 && parents[j] < j, "modi_ext::fk: parents[", j, "] = ", parents[j],
-                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
-    par.p[j] = static_cast<int16_t>(parents[j]);
-  }
+  par.J = static_cast<int>(parents.size());
+  for (size_t j = 0; j < parents.size(); ++j) par.p[j] = static_cast<int16_t>(parents[j]);
   return par;
-}
-
-void check_tensor(const at::Tensor& t, const char* name, const at::Tensor& ref) {
-  TORCH_CHECK(t.defined(), "modi_ext::fk: ", name, " is undefined");
-  TORCH_CHECK(t.device() == ref.device(), "modi_ext::fk: ", name, " is on ", t.device(), " but local_quats is on ",
-              ref.device());
-  TORCH_CHECK(t.scalar_type() == ref.scalar_type(), "modi_ext::fk: ", name, " has dtype ", t.scalar_type(),
-              ", expected ", ref.scalar_type(), " (same as local_quats)");
-  TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
-}
-
-struct Dims {
-  int64_t N, J;
-};
-
-Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, at::IntArrayRef root_sizes) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
-              "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
-              local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
-  TORCH_CHECK(cuda::on_device(local_quats), "modi_ext::fk: local_quats must be a CUDA tensor for the CUDA kernel, got ",
-              local_quats.device());
-  TORCH_CHECK(cuda::is_cuda_float(local_quats.scalar_type()),
-              "modi_ext::fk: local_quats must be float32, float64, float16 or bfloat16, got ",
-              local_quats.scalar_type());
-  TORCH_CHECK(local_quats.is_contiguous(), "modi_ext::fk: local_quats must be contiguous");
-  const int64_t J = local_quats.size(-2);
-  TORCH_CHECK(J >= 1, "modi_ext::fk: local_quats has no joints");
-  TORCH_CHECK(local_quats.numel() > 0, "modi_ext::fk: local_quats is empty (shape ", local_quats.sizes(), ")");
-  check_tensor(offsets, "offsets", local_quats);
-  TORCH_CHECK(offsets.dim() == 2 && offsets.size(0) == J && offsets.size(1) == 3,
-              "modi_ext::fk: offsets must have shape (J, 3) = (", J, ", 3), got ", offsets.sizes());
-  const auto lead = local_quats.sizes().slice(0, local_quats.dim() - 2);
-  TORCH_CHECK(root_sizes.size() == lead.size() + 1 && root_sizes.back() == 3 &&
-                  root_sizes.slice(0, root_sizes.size() - 1) == lead,
-              "modi_ext::fk: root_positions must have shape local_quats.shape[:-2] + (3,), got ", root_sizes,
-              " for local_quats ", local_quats.sizes());
-  const int64_t N = local_quats.numel() / (J * 4);
-  TORCH_CHECK(ceil_div(N, 32) < (int64_t(1) << 31), "modi_ext::fk: too many samples for the CUDA kernel: ", N);
-  return {N, J};
 }
 
 struct Plan {
@@ -337,23 +261,13 @@ Plan plan_launch(int64_t J, size_t acc_bytes) {
   return {128, false, fixed};
 }
 
-std::vector<int64_t> root_shape_of(const at::Tensor& local_quats) {
-  std::vector<int64_t> s(local_quats.sizes().begin(), local_quats.sizes().end() - 1);
-  s.back() = 3;
-  return s;
-}
-
 std::tuple<at::Tensor, at::Tensor> fk_cuda(const at::Tensor& local_quats, const at::Tensor& offsets,
                                            at::IntArrayRef parents, const at::Tensor& root_positions) {
-  TORCH_CHECK(root_positions.defined(), "modi_ext::fk: root_positions is undefined");
-  const Dims d = check_inputs(local_quats, offsets, root_positions.sizes());
-  check_tensor(root_positions, "root_positions", local_quats);
-  const FkParents par = make_parents(parents, d.J);
+  const fk::Call d = fk::check_forward_inputs(kCudaBackend, local_quats, offsets, parents, root_positions);
+  const FkParents par = make_parents(d.parents);
   const c10::cuda::CUDAGuard guard(local_quats.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  at::Tensor positions = at::empty(pos_shape, local_quats.options());
+  at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
   at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
   const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());
   const Plan plan = plan_launch(d.J, c10::elementSize(acc_type));
@@ -382,37 +296,16 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cuda(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2, "modi_ext::fk_backward: local_quats must have shape "
-              "(..., J, 4)");
-  const std::vector<int64_t> root_shape = root_shape_of(local_quats);
-  const Dims d = check_inputs(local_quats, offsets, root_shape);
-  const FkParents par = make_parents(parents, d.J);
-  TORCH_CHECK(global_quats.defined() && global_quats.sizes() == local_quats.sizes(),
-              "modi_ext::fk_backward: global_quats must have the shape of local_quats");
-  check_tensor(global_quats, "global_quats", local_quats);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  TORCH_CHECK(grad_positions.defined() && grad_positions.sizes() == at::IntArrayRef(pos_shape),
-              "modi_ext::fk_backward: grad_positions must have shape ", at::IntArrayRef(pos_shape), ", got ",
-              grad_positions.defined() ? grad_positions.sizes() : at::IntArrayRef{});
-  TORCH_CHECK(grad_positions.device() == local_quats.device() &&
-                  grad_positions.scalar_type() == local_quats.scalar_type(),
-              "modi_ext::fk_backward: grad_positions must be a ", local_quats.scalar_type(), " tensor on ",
-              local_quats.device());
+  const fk::Call d = fk::check_backward_inputs(kCudaBackend, grad_positions, grad_global_quats, local_quats,
+                                               global_quats, offsets, parents);
+  const FkParents par = make_parents(d.parents);
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;
-  if (grad_global_quats.has_value() && grad_global_quats->defined()) {
-    TORCH_CHECK(grad_global_quats->device() == local_quats.device() &&
-                    grad_global_quats->scalar_type() == local_quats.scalar_type() &&
-                    grad_global_quats->sizes() == local_quats.sizes(),
-                "modi_ext::fk_backward: grad_global_quats must be a ", local_quats.scalar_type(), " tensor on ",
-                local_quats.device(), " of shape ", local_quats.sizes());
-    ggq = grad_global_quats->contiguous();
-  }
+  if (grad_global_quats.has_value() && grad_global_quats->defined()) ggq = grad_global_quats->contiguous();
   const c10::cuda::CUDAGuard guard(local_quats.device());
   const cudaStream_t stream = c10::cuda::getCurrentCUDAStream(local_quats.device().index());
   at::Tensor grad_local = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
-  at::Tensor grad_root = at::empty(root_shape, local_quats.options());
+  at::Tensor grad_root = at::empty(fk::root_shape_of(local_quats), local_quats.options());
   at::Tensor grad_off = offsets_grad ? at::empty({d.J, 3}, local_quats.options())
                                      : at::zeros({d.J, 3}, local_quats.options());
   const at::ScalarType acc_type = cuda::acc_scalar_type(local_quats.scalar_type());

@@ -1,6 +1,6 @@
-// Schemas of the FK op family; registered from the one TORCH_LIBRARY block in registration.cpp.
-// Kernels register per dispatch key in cpu/fk_cpu.cpp; autograd and fake kernels live in modi_ext/fk.py.
-#include "modi_ext.h"
+// Schemas of the FK op family; registered from the one TORCH_LIBRARY block in csrc/registration.cpp.
+// Kernels register per dispatch key in fk/cpu.cpp and fk/cuda.cu; autograd and fake kernels live in modi_ext/fk/ops.py.
+#include "common/ops.h"
 
 namespace modi_ext {
 

@@ -1,6 +1,6 @@
 // CPU kernels of modi_ext::fk. One sample (b, t) is a sequential walk down the joint tree; samples
 // are independent, so the flattened batch x time range is cut into fixed blocks that threads claim dynamically
-// (cpu/tasks.h: a thread slowed by another process takes fewer blocks instead of holding up the call).
+// (common/tasks.h: a thread slowed by another process takes fewer blocks instead of holding up the call).
 // The backward walks the tree leaf-to-root, accumulating each joint's position/rotation gradient into
 // its parent, so every joint is visited once per sample in each direction (O(J), no J x J Jacobian).
 #include <ATen/Dispatch.h>
@@ -11,106 +11,29 @@
 #include <algorithm>
 #include <vector>
 
-#include "fk.h"
-#include "cpu/tasks.h"
+#include "common/tasks.h"
+#include "fk/check.h"
+#include "fk/fk.h"
+#include "fk/quat.h"
 
 namespace modi_ext {
 namespace {
 
-// ---- quaternion helpers (w, x, y, z), inline so the compiler keeps everything in registers ----
-
-// out = a (x) b (Hamilton product).
-template <typename T>
-inline void qmul(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = a[1], ay = a[2], az = a[3];
-  const T bw = b[0], bx = b[1], by = b[2], bz = b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
-}
+using fk::qmul;
+using fk::qrot;
 
 // out = a (x) conj(b).
 template <typename T>
 inline void qmul_conj_b(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = a[1], ay = a[2], az = a[3];
-  const T bw = b[0], bx = -b[1], by = -b[2], bz = -b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
+  const T bc[4] = {b[0], -b[1], -b[2], -b[3]};
+  qmul(a, bc, out);
 }
 
 // out = conj(a) (x) b.
 template <typename T>
 inline void qmul_conj_a(const T* a, const T* b, T* out) {
-  const T aw = a[0], ax = -a[1], ay = -a[2], az = -a[3];
-  const T bw = b[0], bx = b[1], by = b[2], bz = b[3];
-  out[0] = aw * bw - ax * bx - ay * by - az * bz;
-  out[1] = aw * bx + ax * bw + ay * bz - az * by;
-  out[2] = aw * by - ax * bz + ay * bw + az * bx;
-  out[3] = aw * bz + ax * by - ay * bx + az * bw;
-}
-
-// out = v + 2w (u x v) + 2 u x (u x v); passing -u applies the transpose of that linear map.
-template <typename T>
-inline void qrot(T w, T ux, T uy, T uz, const T* v, T* out) {
-  const T tx = T(2) * (uy * v[2] - uz * v[1]);
-  const T ty = T(2) * (uz * v[0] - ux * v[2]);
-  const T tz = T(2) * (ux * v[1] - uy * v[0]);
-  out[0] = v[0] + w * tx + (uy * tz - uz * ty);
-  out[1] = v[1] + w * ty + (uz * tx - ux * tz);
-  out[2] = v[2] + w * tz + (ux * ty - uy * tx);
-}
-
-// ---- argument checks: every failure names the argument, so a bad call never reaches the kernel ----
-
-std::vector<int64_t> check_parents(at::IntArrayRef parents, int64_t J) {
-  TORCH_CHECK(static_cast<int64_t>(parents.size()) == J, "modi_ext::fk: parents has ", parents.size(),
-              " entries but local_quats has ", J, " joints (dim -2)");
-  std::vector<int64_t> par(parents.begin(), parents.end());
-  TORCH_CHECK(J >= 1 && par[0] == -1, "modi_ext::fk: parents[0] must be -1 (joint 0 is the root)");
-  for (int64_t j = 1; j < J; ++j) {
-    TORCH_CHECK(par[j] >= 0 && par[j] < j, "modi_ext::fk: parents[", j, "] = ", par[j],
-                " is out of range; parents must be topologically sorted (0 <= parents[j] < j)");
-  }
-  return par;
-}
-
-void check_tensor(const at::Tensor& t, const char* name, at::ScalarType dtype) {
-  TORCH_CHECK(t.defined(), "modi_ext::fk: ", name, " is undefined");
-  TORCH_CHECK(t.device().is_cpu(), "modi_ext::fk: ", name, " must be on the CPU, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == dtype, "modi_ext::fk: ", name, " has dtype ", t.scalar_type(),
-              ", expected ", dtype, " (same as local_quats)");
-  TORCH_CHECK(t.is_contiguous(), "modi_ext::fk: ", name, " must be contiguous");
-}
-
-struct Dims {
-  int64_t N;  // flattened leading dims (batch x time)
-  int64_t J;
-};
-
-Dims check_inputs(const at::Tensor& local_quats, const at::Tensor& offsets, const at::Tensor& root_positions) {
-  TORCH_CHECK(local_quats.defined() && local_quats.dim() >= 2 && local_quats.size(-1) == 4,
-              "modi_ext::fk: local_quats must have shape (..., J, 4), got ",
-              local_quats.defined() ? local_quats.sizes() : at::IntArrayRef{});
-  const auto dtype = local_quats.scalar_type();
-  TORCH_CHECK(dtype == at::kFloat || dtype == at::kDouble, "modi_ext::fk: local_quats must be float32 or float64, got ",
-              dtype);
-  check_tensor(local_quats, "local_quats", dtype);
-  const int64_t J = local_quats.size(-2);
-  TORCH_CHECK(J >= 1, "modi_ext::fk: local_quats has no joints");
-  TORCH_CHECK(local_quats.numel() > 0, "modi_ext::fk: local_quats is empty (shape ", local_quats.sizes(), ")");
-  check_tensor(offsets, "offsets", dtype);
-  TORCH_CHECK(offsets.dim() == 2 && offsets.size(0) == J && offsets.size(1) == 3,
-              "modi_ext::fk: offsets must have shape (J, 3) = (", J, ", 3), got ", offsets.sizes());
-  check_tensor(root_positions, "root_positions", dtype);
-  const auto lead = local_quats.sizes().slice(0, local_quats.dim() - 2);
-  TORCH_CHECK(root_positions.dim() == local_quats.dim() - 1 && root_positions.size(-1) == 3 &&
-                  root_positions.sizes().slice(0, root_positions.dim() - 1) == lead,
-              "modi_ext::fk: root_positions must have shape local_quats.shape[:-2] + (3,), got ",
-              root_positions.sizes(), " for local_quats ", local_quats.sizes());
-  return {local_quats.numel() / (J * 4), J};
+  const T ac[4] = {a[0], -a[1], -a[2], -a[3]};
+  qmul(ac, b, out);
 }
 
 // Samples per task: ~8k joint visits (tens of microseconds), so small calls stay on the calling thread.
@@ -191,16 +114,13 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
         gP[p * 3 + 1] += gy;
         gP[p * 3 + 2] += gz;
         // position term -> gradient of Q[p]
-        const T uxo_x = uy * o[2] - uz * o[1], uxo_y = uz * o[0] - ux * o[2], uxo_z = ux * o[1] - uy * o[0];
-        const T oxg_x = o[1] * gz - o[2] * gy, oxg_y = o[2] * gx - o[0] * gz, oxg_z = o[0] * gy - o[1] * gx;
-        const T u_o = ux * o[0] + uy * o[1] + uz * o[2];
-        const T g_u = gx * ux + gy * uy + gz * uz;
-        const T g_o = gx * o[0] + gy * o[1] + gz * o[2];
         T* gQp = gQ + p * 4;
-        gQp[0] += T(2) * (gx * uxo_x + gy * uxo_y + gz * uxo_z);
-        gQp[1] += T(2) * (w * oxg_x + u_o * gx + g_u * o[0]) - T(4) * g_o * ux;
-        gQp[2] += T(2) * (w * oxg_y + u_o * gy + g_u * o[1]) - T(4) * g_o * uy;
-        gQp[3] += T(2) * (w * oxg_z + u_o * gz + g_u * o[2]) - T(4) * g_o * uz;
+        T pg[4];
+        fk::position_grad(w, ux, uy, uz, o, gx, gy, gz, pg);
+        gQp[0] += pg[0];
+        gQp[1] += pg[1];
+        gQp[2] += pg[2];
+        gQp[3] += pg[3];
         if (goff_acc) {
           const T g[3] = {gx, gy, gz};
           T r[3];
@@ -243,11 +163,9 @@ void fk_backward_kernel(const T* gpos, const T* ggq, const T* lq, const T* gq, c
 
 std::tuple<at::Tensor, at::Tensor> fk_cpu(const at::Tensor& local_quats, const at::Tensor& offsets,
                                           at::IntArrayRef parents, const at::Tensor& root_positions) {
-  const Dims d = check_inputs(local_quats, offsets, root_positions);
-  const auto par = check_parents(parents, d.J);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  at::Tensor positions = at::empty(pos_shape, local_quats.options());
+  const fk::Call d = fk::check_forward_inputs(kCpuBackend, local_quats, offsets, parents, root_positions);
+  const std::vector<int64_t>& par = d.parents;
+  at::Tensor positions = at::empty(fk::positions_shape_of(local_quats), local_quats.options());
   at::Tensor global_quats = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
   AT_DISPATCH_FLOATING_TYPES(local_quats.scalar_type(), "modi_ext::fk", [&] {
     fk_forward_kernel<scalar_t>(local_quats.data_ptr<scalar_t>(), offsets.data_ptr<scalar_t>(), par.data(),
@@ -261,31 +179,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> fk_backward_cpu(
     const at::Tensor& grad_positions, const std::optional<at::Tensor>& grad_global_quats,
     const at::Tensor& local_quats, const at::Tensor& global_quats, const at::Tensor& offsets,
     at::IntArrayRef parents, bool offsets_grad) {
-  std::vector<int64_t> root_shape(local_quats.sizes().begin(), local_quats.sizes().end() - 1);
-  if (!root_shape.empty()) root_shape.back() = 3;
-  // The root tensor only contributes its shape to the checks; reuse them by building an empty stand-in.
-  const Dims d = check_inputs(local_quats, offsets, at::empty(root_shape, local_quats.options()));
-  const auto par = check_parents(parents, d.J);
+  const fk::Call d = fk::check_backward_inputs(kCpuBackend, grad_positions, grad_global_quats, local_quats,
+                                               global_quats, offsets, parents);
+  const std::vector<int64_t>& par = d.parents;
   const auto dtype = local_quats.scalar_type();
-  check_tensor(global_quats, "global_quats", dtype);
-  TORCH_CHECK(global_quats.sizes() == local_quats.sizes(), "modi_ext::fk_backward: global_quats must have the shape of local_quats");
-  TORCH_CHECK(grad_positions.defined() && grad_positions.scalar_type() == dtype && grad_positions.device().is_cpu(),
-              "modi_ext::fk_backward: grad_positions must be a CPU tensor of dtype ", dtype);
-  std::vector<int64_t> pos_shape(local_quats.sizes().begin(), local_quats.sizes().end());
-  pos_shape.back() = 3;
-  TORCH_CHECK(grad_positions.sizes() == at::IntArrayRef(pos_shape), "modi_ext::fk_backward: grad_positions must have shape ",
-              at::IntArrayRef(pos_shape), ", got ", grad_positions.sizes());
   const at::Tensor gpos = grad_positions.contiguous();
   at::Tensor ggq;
-  if (grad_global_quats.has_value() && grad_global_quats->defined()) {
-    TORCH_CHECK(grad_global_quats->scalar_type() == dtype && grad_global_quats->device().is_cpu() &&
-                    grad_global_quats->sizes() == local_quats.sizes(),
-                "modi_ext::fk_backward: grad_global_quats must be a CPU tensor of dtype ", dtype, " and shape ",
-                local_quats.sizes());
-    ggq = grad_global_quats->contiguous();
-  }
+  if (grad_global_quats.has_value() && grad_global_quats->defined()) ggq = grad_global_quats->contiguous();
   at::Tensor grad_local = at::empty_like(local_quats, at::MemoryFormat::Contiguous);
-  at::Tensor grad_root = at::empty(root_shape, local_quats.options());
+  at::Tensor grad_root = at::empty(fk::root_shape_of(local_quats), local_quats.options());
   at::Tensor grad_off = at::zeros({d.J, 3}, local_quats.options());
   AT_DISPATCH_FLOATING_TYPES(dtype, "modi_ext::fk_backward", [&] {
     fk_backward_kernel<scalar_t>(gpos.data_ptr<scalar_t>(), ggq.defined() ? ggq.data_ptr<scalar_t>() : nullptr,

@@ -1,8 +1,8 @@
-// Schemas of the demodulation-coefficient ops (CPU implementation in cpu/demod_cpu.cpp; other devices use the
-// torch form in modi_ext/dense.py); registered from the one TORCH_LIBRARY block in registration.cpp.
+// Schemas of the demodulation-coefficient ops (CPU implementation in demod/cpu.cpp; other devices use the
+// torch form in modi_ext/demod/dense.py); registered from the one TORCH_LIBRARY block in csrc/registration.cpp.
 #include <torch/library.h>
 
-#include "modi_ext.h"
+#include "common/ops.h"
 
 namespace modi_ext {
 
