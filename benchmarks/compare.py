@@ -51,7 +51,9 @@ from pathlib import Path
 from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# The checkout's packages, after PYTHONPATH's entries (``python -m modi_ext.validate --build`` points PYTHONPATH at a
+# fresh build: inserted first, the checkout's unbuilt modi_ext would shadow it) and before site-packages.
+sys.path.insert(1 + len([p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]), str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)

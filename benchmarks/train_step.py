@@ -30,6 +30,7 @@ GANimator: one trainer per side on one clip (default Joe/Salsa-Dancing-6, fast p
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -37,7 +38,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# The checkout's packages, after PYTHONPATH's entries (``python -m modi_ext.validate --build`` points PYTHONPATH at a
+# fresh build: inserted first, the checkout's unbuilt modi_ext would shadow it) and before site-packages.
+sys.path.insert(1 + len([p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]), str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)

@@ -210,3 +210,17 @@ def test_dry_run_lists_the_build_inside_the_budget(capsys):
     assert validate.main(["--dry-run", "--build"]) == 0
     out = capsys.readouterr().out
     assert out.splitlines()[0].startswith("build") and "--build-base" in out and "budget 600 s" in out
+
+
+@pytest.mark.parametrize("script", ["compare.py", "train_step.py"])
+def test_the_benchmarks_import_the_build_on_pythonpath(tmp_path, script):
+    """validate's compare/train_step steps put a fresh build first on PYTHONPATH; the benchmark scripts add the
+    checkout to sys.path too, and must add it after PYTHONPATH (the first GPU run found them importing the
+    checkout's unbuilt modi_ext: "the modi_ext C++ extension is not built")."""
+    lib = tmp_path / "lib"
+    (lib / "modi_ext").mkdir(parents=True)
+    (lib / "modi_ext" / "__init__.py").write_text("import sys\nprint('BUILT')\nsys.exit(7)\n")
+    env = dict(os.environ, PYTHONPATH=str(lib))
+    rc, out, _ = validate.run_group([sys.executable, str(validate.ROOT / "benchmarks" / script), "--help"], 120, env,
+                                    tmp_path)
+    assert rc == 7 and "BUILT" in out, (rc, out[-2000:])
