@@ -93,6 +93,10 @@ def extension_modules():
         print("modi_ext: torch is not installed at build time; the extension is skipped "
               "(install torch first and use --no-build-isolation)", file=sys.stderr)
         return [], {}
+    # One host compiler for every object of _C: nvcc compiles the .cu files' host code with it too (-ccbin; torch
+    # would otherwise pass $CC). On the first GPU run (2026-12-04, an image with CC=/opt/gcc/bin/gcc and c++ = GCC
+    # 13) the two compilers' copies of libstdc++'s inline stream code met in one library, and the first TORCH_CHECK
+    # that formatted an integer crashed in ostream::_M_insert<long> (tests/modi_ext/test_cuda_ops.py, bad style).
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         print(f"modi_ext: no C++ compiler ({cxx}) found; the extension is skipped, "
@@ -126,7 +130,7 @@ def extension_modules():
         sources=cpp_sources + (cuda_sources if use_cuda else []),
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=define_macros,
-        extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt)},
+        extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt) + ["-ccbin", shutil.which(cxx)]},
         extra_link_args=["-fopenmp"],
     )
     if use_cuda:
