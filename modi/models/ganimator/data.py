@@ -29,9 +29,9 @@ from torch import Tensor
 
 from modi.core.joint_reduction import reduce_joints  # noqa: F401  (re-exported: GANimator's joint reduction)
 from modi.core.kinematics import forward_kinematics
-from modi.core.rotations import euler_to_quat, quat_to_6d, sixd_to_quat
+from modi.core.rotations import quat_to_6d, sixd_to_quat
 from modi.core.skeleton import Skeleton, strip_namespace  # noqa: F401  (strip_namespace: re-exported)
-from modi.data.motion import Motion, fold_dummy_root
+from modi.data.motion import Motion
 from modi.errors import UserError
 from modi.io import bvh as bvh_io
 from modi.models.ganimator.config import GanimatorConfig
@@ -236,34 +236,18 @@ class RawClip:
 
 
 def read_clip(path: str | Path) -> RawClip:
-    """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET; other
-    joints' position channels are not used, as in the authors' loader, except Bandai's pattern, see
-    :func:`modi.data.motion.fold_dummy_root`)."""
+    """Parse a BVH into local quaternions and the root track through modi's one reader,
+    :meth:`modi.data.motion.Motion.from_bvh` (one frame rate: ``Frame Time: 0.008333`` is 120 fps), keeping the
+    declared OFFSETs of non-root joints (``translations="offsets"``: position channels of other joints are not
+    used, as in the authors' loader), except Bandai's pattern, see :func:`modi.data.motion.fold_dummy_root`."""
     p = Path(path)
     if not p.is_file():
         raise UserError(f"BVH file not found: {p}")
     b = bvh_io.load(str(p))
     if b.n_frames < 1:
         raise UserError(f"{p}: the BVH has no frames")
-    eul = torch.from_numpy(b.euler_degrees())  # (F, J, 3)
-    orders = b.rotation_orders
-    quats = torch.empty(eul.shape[0], b.n_joints, 4, dtype=torch.float64)
-    for order in set(orders):
-        idx = [j for j, o in enumerate(orders) if o == order]
-        quats[:, idx] = euler_to_quat(eul[:, idx], order)
-    trans = b.local_translations()
-    skeleton = b.skeleton()
-    scale = float(np.ptp(skeleton.rest_positions(), axis=0).max()) or 1.0
-    folded = fold_dummy_root(b.parents, trans, b.euler_degrees(), quats[0, 0], scale)
-    if folded is None:
-        root = trans[:, 0].copy()
-    else:  # Bandai's static joint_Root above an animated Hips: the pelvis motion goes into the root track
-        root, a = folded
-        offsets = skeleton.offsets.copy()
-        offsets[a] = 0.0
-        skeleton = Skeleton(names=list(skeleton.names), parents=list(skeleton.parents), offsets=offsets,
-                            end_sites=dict(skeleton.end_sites), rotation_orders=list(skeleton.rotation_orders))
-    return RawClip(skeleton, quats, torch.from_numpy(np.ascontiguousarray(root)), b.fps)
+    m = Motion.from_bvh(b, translations="offsets")
+    return RawClip(m.skeleton, m.rotations, m.root_positions, m.fps)
 
 
 def subset_clip(clip: RawClip, keep: list[int]) -> RawClip:
