@@ -106,7 +106,9 @@ class Motion:
     ``"millimetres"``): given, or guessed from the body size (:func:`modi.core.body.guess_unit`) when None, so it is
     always known. ``static_root`` (3,) is set by :meth:`from_bvh` for files whose joint 0 is a static anchor above
     the animated child (Bandai's ``joint_Root`` over ``Hips``): the child's motion is the root track, and joint 0
-    stays where the file has it in :meth:`positions` and :meth:`to_bvh`.
+    stays where the file has it in :meth:`positions` and :meth:`to_bvh`. ``contacts`` maps foot joint names to
+    ``(T,)`` bool ground-contact labels where a model predicted them (MoDi, GANimator): :meth:`to_gltf` writes them
+    into the file and :func:`modi.show` draws them.
 
     ``==`` compares every field exactly (``torch.equal``); ``repr`` is one line.
     """
@@ -117,6 +119,7 @@ class Motion:
     fps: float
     unit: str | None = None
     static_root: Tensor | None = None
+    contacts: dict[str, Tensor] | None = None
 
     def __post_init__(self) -> None:
         self.rotations = torch.as_tensor(self.rotations)
@@ -139,15 +142,31 @@ class Motion:
         if self.static_root is not None:
             self.static_root = torch.as_tensor(self.static_root, dtype=self.rotations.dtype,
                                                device=self.rotations.device).reshape(3)
+        if self.contacts is not None:
+            labels = {}
+            for name, c in self.contacts.items():
+                if name not in self.skeleton.names:
+                    raise ValueError(f"Motion: contact labels for {name!r}, which is not a joint of the skeleton")
+                c = torch.as_tensor(np.asarray(c) if not isinstance(c, Tensor) else c).to(torch.bool).cpu()
+                if c.shape != (t,):
+                    raise ValueError(f"Motion: contact labels of {name!r} must be ({t},), got {tuple(c.shape)}")
+                labels[name] = c
+            self.contacts = labels
 
     def _like(self, rotations: Tensor, root_positions: Tensor, fps: float | None = None,
-              skeleton: Skeleton | None = None, static_root: Tensor | None | bool = True) -> "Motion":
-        """A Motion with this one's unit (and static root, unless told otherwise)."""
+              skeleton: Skeleton | None = None, static_root: Tensor | None | bool = True,
+              frames: Sequence[int] | slice | None = None) -> "Motion":
+        """A Motion with this one's unit (and static root, unless told otherwise); contact labels follow ``frames``
+        (the source frame of each new frame), kept for the joints ``skeleton`` still has."""
         keep = self.static_root if static_root is True else static_root
         if keep is not None:
             keep = keep.to(dtype=rotations.dtype, device=rotations.device)
-        return Motion(self.skeleton if skeleton is None else skeleton, rotations, root_positions,
-                      self.fps if fps is None else fps, self.unit, keep)
+        sk = self.skeleton if skeleton is None else skeleton
+        contacts = None
+        if self.contacts is not None:
+            pick = slice(None) if frames is None else frames
+            contacts = {k: v[pick] for k, v in self.contacts.items() if k in sk.names}
+        return Motion(sk, rotations, root_positions, self.fps if fps is None else fps, self.unit, keep, contacts)
 
     # ------------------------------------------------------------------ basics
     @property
@@ -174,7 +193,10 @@ class Motion:
         if not isinstance(other, Motion):
             return NotImplemented
         sr_a, sr_b = self.static_root, other.static_root
+        ca, cb = self.contacts or {}, other.contacts or {}
+        same_contacts = ca.keys() == cb.keys() and all(torch.equal(ca[k], cb[k]) for k in ca)
         return (self.skeleton == other.skeleton and self.fps == other.fps and self.unit == other.unit
+                and same_contacts
                 and _same_tensor(self.rotations, other.rotations)
                 and _same_tensor(self.root_positions, other.root_positions)
                 and ((sr_a is None and sr_b is None) or (sr_a is not None and sr_b is not None
@@ -189,7 +211,7 @@ class Motion:
     def crop(self, start: int, stop: int | None = None) -> "Motion":
         """Frames ``[start, stop)``."""
         sl = slice(start, stop)
-        return self._like(self.rotations[sl], self.root_positions[sl])
+        return self._like(self.rotations[sl], self.root_positions[sl], frames=sl)
 
     def forward_kinematics(self) -> tuple[Tensor, Tensor]:
         """(global positions (T, J, 3), global rotations (T, J, 4)) by the reference FK, in the motion's unit
@@ -332,14 +354,16 @@ class Motion:
         """Write the motion as a BVH file (:meth:`to_bvh` with a path)."""
         self.to_bvh(path, precision)
 
-    def to_gltf(self, path: str | os.PathLike, *, scale: float | None = None,
-                contacts: dict[str, np.ndarray] | None = None, mesh: bool = False) -> Path:
-        """Write the motion as glTF 2.0 (``.glb`` binary or ``.gltf`` JSON, by the suffix), Y up in metres; returns
-        the path. ``scale`` (metres per unit) defaults to the motion's :attr:`unit`. ``contacts`` ({joint name: (T,)
-        labels}) go into the animation's extras; ``mesh`` adds a skinned stick mesh for viewers that draw no
-        skeleton."""
-        gltf.save(self.to_bvh(), path, scale=self.metres_per_unit() if scale is None else scale, contacts=contacts,
-                  mesh=mesh)
+    def contact_arrays(self) -> dict[str, np.ndarray] | None:
+        """The contact labels as numpy arrays ({joint name: (T,) bool}), or None: what the file writers take."""
+        return None if self.contacts is None else {k: v.numpy() for k, v in self.contacts.items()}
+
+    def to_gltf(self, path: str | os.PathLike, *, scale: float | None = None, mesh: bool = False) -> Path:
+        """Write the motion as glTF 2.0 (``.glb`` binary or ``.gltf`` JSON, by the suffix), Y up in metres, with its
+        contact labels (if any) in the animation's extras; returns the path. ``scale`` (metres per unit) defaults to
+        the motion's :attr:`unit`; ``mesh`` adds a skinned stick mesh for viewers that draw no skeleton."""
+        gltf.save(self.to_bvh(), path, scale=self.metres_per_unit() if scale is None else scale,
+                  contacts=self.contact_arrays(), mesh=mesh)
         return Path(path)
 
     # ------------------------------------------------------------------ resampling
@@ -363,7 +387,8 @@ class Motion:
         i0, i1 = i0.to(self.rotations.device), i1.to(self.rotations.device)
         rot = quat_slerp(self.rotations[i0], self.rotations[i1], frac[:, None, None])
         root = self.root_positions[i0] * (1 - frac[:, None]) + self.root_positions[i1] * frac[:, None]
-        return self._like(rot, root, fps)
+        nearest = torch.where(frac.cpu() < 0.5, i0.cpu(), i1.cpu())
+        return self._like(rot, root, fps, frames=nearest)
 
     # ------------------------------------------------------------------ joint subsets
     def subset(self, keep_indices) -> "Motion":

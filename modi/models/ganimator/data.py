@@ -185,6 +185,43 @@ def pyramid_lengths(n_frames: int, coarse_ratio: float = 0.2, scale_factor: floa
     return lengths
 
 
+MAX_FRAMES = 100_000  # the longest sequence a length search below looks at (the CLI's bound too)
+
+
+def coarsest_needed(cfg) -> int:
+    """Frames the coarsest pyramid level needs: its convolutions reflect-pad ``kernel_size // 2`` frames on each
+    side, and reflect padding of p frames needs more than p frames."""
+    return cfg.kernel_size // 2 + 1 if cfg.padding_mode == "reflect" else 1
+
+
+def min_frames(cfg, coarsest_length) -> int:
+    """The shortest sequence (training clip or output) whose coarsest pyramid level, ``coarsest_length(n)`` frames
+    for ``n`` frames, is long enough for the convolutions of ``cfg``."""
+    need = coarsest_needed(cfg)
+    for n in range(2, MAX_FRAMES):
+        if coarsest_length(n) >= need:
+            return n
+    return MAX_FRAMES
+
+
+def min_training_frames(cfg) -> int:
+    """The shortest training clip (after resampling) a run of ``cfg`` can learn from."""
+    return min_frames(cfg, lambda n: pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0])
+
+
+def check_training_length(clips: Seq["Sequence"], cfg) -> None:
+    """``UserError`` naming the first clip too short for the pyramid of ``cfg``, and why."""
+    need = coarsest_needed(cfg)
+    n_min = min_training_frames(cfg)
+    for c in clips:
+        if c.n_frames < n_min:
+            raise UserError(
+                f"{c.name}: {c.n_frames} frames at {c.fps:g} fps (after resampling) is too short for GANimator: "
+                f"it needs at least {n_min} frames, because the coarsest pyramid level (--coarse-ratio "
+                f"{cfg.coarse_ratio:g} of the clip) must have {need} frames or more for the {cfg.kernel_size}-frame "
+                f"convolutions' reflect padding of {need - 1} frames")
+
+
 def level_lengths(n_frames: int, rates: Seq[float]) -> list[int]:
     """Lengths of every level for an ``n_frames`` output, given each level's rate relative to the finest."""
     return [max(1, math.ceil(n_frames * r - 1e-6)) for r in rates]
