@@ -75,8 +75,8 @@ def evaluate(samples: ModiGenerator | str | os.PathLike | Sequence[Motion], *,
     if isinstance(samples, (str, os.PathLike)):
         what["ckpt"] = str(samples)
         samples = ModiGenerator.from_checkpoint(samples)
-    if isinstance(samples, ModiGenerator):
-        what.setdefault("ckpt", samples.path)
+    if hasattr(samples, "sample"):  # a ModiGenerator (or anything that samples like one)
+        what.setdefault("ckpt", getattr(samples, "path", None))
         motions = samples.sample(n, seed=seed, psi=psi, ik=ik)
     else:
         motions = list(samples)
@@ -96,6 +96,39 @@ def evaluate(samples: ModiGenerator | str | os.PathLike | Sequence[Motion], *,
         "distribution (generated vs real)": dist,
         "plausibility (generated)": _plausibility_set(gen, ext, real),
         "plausibility (real)": _plausibility_set(real, ext, real),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def evaluate_real(data: str | os.PathLike, *, features: FeatureExtractor | str | os.PathLike, stride: int = 32,
+                  k: int = 3, kid_blocks: int = 10, diversity_pairs: int = 200, seed: int = 0) -> dict[str, Any]:
+    """``modi eval real``: the floor a generator is judged against -- the distribution metrics of the extractor's
+    held-out clips against its training clips (both under ``data``), and the held-out clips' plausibility."""
+    ext = _extractor(features)
+    root = Path(data)
+    if not root.is_dir():
+        raise UserError(f"data folder not found: {root}")
+    train_files = ext.info.get("train_files")
+    held_files = ext.info.get("heldout_files")
+    if not train_files or not held_files:
+        raise UserError(f"{features} holds no train/held-out split (was it trained with held-out clips?)")
+    missing = [f for f in train_files + held_files if not (root / f).is_file()]
+    if missing:
+        raise UserError(f"{len(missing)} clip(s) of the extractor's split are not under {root}, e.g. {missing[0]}")
+    t0 = time.perf_counter()
+    train = _real_clips(ext, [root / f for f in train_files])
+    held = _real_clips(ext, [root / f for f in held_files])
+    f_train = ext.features(ext.windows(train, stride))
+    f_held = ext.features(ext.windows(held, stride))
+    return {
+        "data": str(root),
+        "features": str(features) if not isinstance(features, FeatureExtractor) else "(in memory)",
+        "settings": {"stride": stride, "k": k, "kid_blocks": kid_blocks, "diversity_pairs": diversity_pairs,
+                     "seed": seed},
+        "extractor_heldout_top1": ext.info.get("val_top1"),
+        "distribution (held-out vs train)": distribution_metrics(f_train, f_held, k=k, kid_blocks=kid_blocks,
+                                                                 diversity_pairs=diversity_pairs, seed=seed),
+        "plausibility (held-out clips)": _plausibility_set(held, ext, train),
         "seconds": time.perf_counter() - t0,
     }
 
@@ -173,4 +206,4 @@ def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, 
     }
 
 
-__all__ = ["evaluate", "evaluate_single"]
+__all__ = ["evaluate", "evaluate_real", "evaluate_single"]
