@@ -39,6 +39,7 @@ _PUBLIC = {
     "Progress": "modi.api.training",
     "TrainingInterrupted": "modi.api.training",
     "evaluate": "modi.api.evaluation",
+    "evaluate_real": "modi.api.evaluation",
     "evaluate_single": "modi.api.evaluation",
     "Topology": "modi.api.topology",
     "show": "modi.api.viewing",
@@ -51,7 +52,7 @@ __all__ = ["__version__", "inspect", *_PUBLIC]
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolves these
     from modi.api.encoder import Encoder
-    from modi.api.evaluation import evaluate, evaluate_single
+    from modi.api.evaluation import evaluate, evaluate_real, evaluate_single
     from modi.api.files import FileInfo, load
     from modi.api.ganimator import GanimatorRun
     from modi.api.generator import Boundary, Inversion, ModiGenerator

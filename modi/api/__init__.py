@@ -7,7 +7,7 @@ thin layers over these calls (``modi/cli/commands``: parse, one call here, print
 from __future__ import annotations
 
 from modi.api.encoder import Encoder
-from modi.api.evaluation import evaluate, evaluate_single
+from modi.api.evaluation import evaluate, evaluate_real, evaluate_single
 from modi.api.files import FileInfo, load
 from modi.api.ganimator import GanimatorRun
 from modi.api.generator import Boundary, Inversion, ModiGenerator
@@ -16,4 +16,4 @@ from modi.api.training import Progress, TrainingInterrupted, train_ganimator, tr
 from modi.api.viewing import show
 
 __all__ = ["load", "FileInfo", "ModiGenerator", "Inversion", "Boundary", "Encoder", "GanimatorRun", "train_modi",
-           "train_ganimator", "Progress", "TrainingInterrupted", "evaluate", "evaluate_single", "Topology", "show"]
+           "train_ganimator", "Progress", "TrainingInterrupted", "evaluate", "evaluate_real", "evaluate_single", "Topology", "show"]
