@@ -126,6 +126,9 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str =
         ckpt = run_dir / "checkpoint.pt"
         state = None
         if resume:
+            if batch is not None or seed is not None or ablations or preset != "small":
+                raise UserError("a resumed run keeps its checkpoint's config: give only iters (and config "
+                                f"keys {', '.join(sorted(_RESUMABLE))}) with resume")
             path = ckpt if resume is True else Path(resume)
             existing_file(path, "checkpoint to resume", "--resume")
             state = load_checkpoint(path)
