@@ -155,7 +155,7 @@ setup(
     long_description_content_type="text/markdown",
     python_requires=">=3.10",
     packages=find_packages(include=["modi", "modi.*", "modi_ext", "modi_ext.*"]),
-    package_data={"modi.viz": ["*.js"], "modi.blender": ["*.toml"]},
+    package_data={"modi": ["py.typed"], "modi.viz": ["*.js"], "modi.blender": ["*.toml"]},
     install_requires=[
         "torch>=2.4",
         "numpy>=1.24",

@@ -126,6 +126,10 @@ class SkeletalDownsample(_SkeletalBase):
         """Masked dense ``(Cout, Cin, E_coarse, E_fine, U)`` weight, equalised-lr factor applied."""
         return to_dense(self.effective_weight(), self.index, self.offsets, self.n_in)
 
+    def extra_repr(self) -> str:
+        return (f"{self.in_ch}, {self.out_ch}, entities={self.n_in}->{self.n_out}, pairs={self.index.numel()}, "
+                f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
+
 
 class SkeletalUpsample(_SkeletalBase):
     """Coarse -> fine: transposed conv scaler (time x2) followed by the [1,3,3,1] blur.
@@ -148,6 +152,10 @@ class SkeletalUpsample(_SkeletalBase):
         """Masked dense ``(Cout, Cin, E_fine, E_coarse, U)``: entry [o,i,f,c,u] carries x[i,c,t] to fine frame 2t+u-U//2."""
         d = to_dense(self.effective_weight(), self.index, self.offsets, self.n_fine)  # (Ci, Co, Ec, Ef, U)
         return d.permute(1, 0, 3, 2, 4)
+
+    def extra_repr(self) -> str:
+        return (f"{self.in_ch}, {self.out_ch}, entities={self.n_out}->{self.n_fine}, pairs={self.index.numel()}, "
+                f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
 
 
 class EqualLinear(nn.Module):

@@ -12,6 +12,7 @@ cycle is still the edge it is. Layers, lowest first (a module may import its own
     modi.viz, modi.evaluation      looking at and measuring motion
     modi.models                    MoDi (with latent, encoder) and GANimator
     modi.interop, modi.export      the authors' released checkpoints; models as files others run (ONNX)
+    modi.api                       the public Python API (what ``import modi`` gives)
     modi.cli, modi.blender, modi   the command line, the add-on, the package's front door
 
 Function-level imports outside the CLI and the add-on are few and each says why it is lazy (a comment on its line
@@ -35,6 +36,7 @@ LAYERS = [
     ("modi.viz", "modi.evaluation"),
     ("modi.models",),
     ("modi.interop", "modi.export"),
+    ("modi.api",),
     ("modi.cli", "modi.blender", "modi.__main__", "modi"),
 ]
 LAZY_ALLOWED_IN = ("modi.cli", "modi.blender", "modi.__main__")  # lazy imports keep `modi --help` fast there
