@@ -37,9 +37,9 @@ from modi.core.rotations import quat_apply, quat_mul
 from modi.core.skeleton import Skeleton, strip_namespace
 from modi.errors import CheckpointError, UserError
 from modi.interop.provenance import file_record, folder_record, record
+from modi.io import bvh as bvh_io
 from modi.io.safe_load import load_data
 from modi.models.ganimator.config import GanimatorConfig
-from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.data import (
     RawClip,
     _permute_clip,
@@ -53,6 +53,7 @@ from modi.models.ganimator.data import (
     sequence_pyramid,
     subset_clip,
 )
+from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import EntityBias, ganimator_neighbors
 from modi.models.ganimator.training import Trainer, blocks_of, checkpoint_path
 
@@ -728,7 +729,8 @@ def provenance(r: dict[str, Any], clip: Any, lengths: Sequence[int], n_blocks: i
     stride = released_stride(raw.fps)
     files = [run / ARGS_FILE, *generator_files(run), run / "z_star.pt", run / "amps.pt"]
     line = (run / ARGS_FILE).read_text(encoding="utf-8", errors="replace").splitlines()[:1]
-    data = {**file_record(r["bvh"]), "frame_time": 1.0 / raw.fps, "fps": raw.fps, "stride": stride,
+    frame_time = bvh_io.load(str(r["bvh"])).frame_time  # as the file states it; modi's rate is the one reader's
+    data = {**file_record(r["bvh"]), "frame_time": frame_time, "fps": 1.0 / frame_time, "stride": stride,
             "clip_fps": clip.fps, "frames": int(raw.rotations.shape[0]), "clip_frames": clip.n_frames,
             "window": clip.n_frames, "pyramid": list(lengths), "joints": list(clip.skeleton.names),
             "contacts": [clip.skeleton.names[f] for f in clip.feet], "floor_root": floor_root(raw),

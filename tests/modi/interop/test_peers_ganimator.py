@@ -531,7 +531,8 @@ def test_imported_run_records_what_the_files_say(bandai, capsys):
     assert data["sha256"] == hashlib.sha256(bandai["bvh"].read_bytes()).hexdigest()
     assert data["frame_time"] == pytest.approx(0.0333333, abs=1e-12) and data["stride"] == 1
     model = load_model(bandai["ours"])
-    assert model.cfg.fps == model.seqs[0].fps == pytest.approx(1 / 0.0333333, rel=1e-12)  # not a default 30
+    # modi's one reader takes a rounded 1/30 (Frame Time: 0.0333333) as 30 fps; the record keeps the file's figure
+    assert model.cfg.fps == model.seqs[0].fps == 30.0 and data["fps"] == pytest.approx(1 / 0.0333333, rel=1e-12)
     capsys.readouterr()
     assert main(["info", str(bandai["ours"])]) == 0
     out = capsys.readouterr().out
