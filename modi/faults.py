@@ -542,3 +542,15 @@ __all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "
            "atomic_save_npy", "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]
+
+
+def existing_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:
+    """``UserError`` unless ``path`` is an existing file: says whether it is missing or a folder (the one check of
+    input files: the API's and the CLI's arguments alike)."""
+    p = Path(path)
+    pre = f"{option} " if option else ""
+    if p.is_dir():
+        raise UserError(f"{pre}{path}: is a folder, expected {'an' if what[:1] in 'aeiou' else 'a'} {what}")
+    if not p.is_file():
+        raise UserError(f"{pre}{path}: no such {what}")
+    return p

@@ -1,24 +1,10 @@
 """Small helpers the public API shares: checked input paths, devices, torch threads."""
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import torch
 
 from modi.errors import UserError
-
-
-def existing_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:
-    """``UserError`` unless ``path`` is an existing file: says whether it is missing or a folder (the CLI prints the
-    same line for its arguments)."""
-    p = Path(path)
-    pre = f"{option} " if option else ""
-    if p.is_dir():
-        raise UserError(f"{pre}{path}: is a folder, expected {'an' if what[:1] in 'aeiou' else 'a'} {what}")
-    if not p.is_file():
-        raise UserError(f"{pre}{path}: no such {what}")
-    return p
+from modi.faults import existing_file  # noqa: F401  (re-exported for the API modules)
 
 
 def check_device(device: str | torch.device) -> torch.device:
