@@ -435,6 +435,21 @@ class _HeldSignals:
                 signal.raise_signal(sig)
 
 
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT / SIGTERM wait until the block is over, then take effect as usual (Ctrl-C raises KeyboardInterrupt).
+
+    For importing torch: torch's C++ start-up imports numpy and swallows any error from it, KeyboardInterrupt
+    included, leaving a half-imported numpy behind (the next ``np.add`` is an AttributeError), and a Python error
+    inside one of its pybind11 calls aborts the process. A Ctrl-C during the import therefore waits the second
+    or two the import takes."""
+    held = _HeldSignals()
+    try:
+        yield
+    finally:
+        held.release()
+
+
 # ============================================================================================ run-folder lock
 LOCK_NAME = ".lock"
 _held: dict[str, list] = {}  # lock file -> [fd, depth]: this process's locks (re-entrant within a process)

@@ -106,7 +106,12 @@ def _run(argv: list[str] | None) -> int:
     if (sys.argv[1:] if argv is None else list(argv))[:1] == ["--version"]:  # answered before torch is imported
         print(version_line())
         return 0
-    import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
+    from modi.faults import signals_held
+
+    with signals_held():  # a Ctrl-C inside torch's C++ start-up would half-import numpy or abort: it waits
+        import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
+        import numpy  # noqa: F401
+        import torch  # noqa: F401
 
     parser = build_parser()
     args = parser.parse_args(argv)

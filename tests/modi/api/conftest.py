@@ -15,6 +15,18 @@ TINY_GANIMATOR = dict(iterations=2, d_steps=1, base_channels=16, max_levels=2, c
 
 
 @pytest.fixture(scope="session")
+def tiny_modi() -> dict:
+    """The tiny MoDi config, for tests that train one more run (a fixture: two conftest modules cannot both be
+    imported by the name ``conftest``)."""
+    return dict(TINY_MODI)
+
+
+@pytest.fixture(scope="session")
+def tiny_ganimator() -> dict:
+    return dict(TINY_GANIMATOR)
+
+
+@pytest.fixture(scope="session")
 def proc_dir(tmp_path_factory) -> Path:
     from modi.models.modi.training import write_procedural_data
 

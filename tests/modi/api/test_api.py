@@ -13,7 +13,6 @@ import torch
 import modi
 from modi.errors import UserError
 
-from conftest import TINY_GANIMATOR, TINY_MODI
 
 REPO = Path(__file__).resolve().parents[3]
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -124,13 +123,13 @@ def test_modi_generator_samples_interpolates_edits_and_inverts(modi_run, clip, t
         gen.latent("nope.npy")
 
 
-def test_train_modi_refuses_an_existing_run_and_resumes_with_one_argument(proc_dir, modi_run, tmp_path):
+def test_train_modi_refuses_an_existing_run_and_resumes_with_one_argument(proc_dir, modi_run, tmp_path, tiny_modi):
     import shutil
 
     run = tmp_path / "run"
     shutil.copytree(modi_run, run)
     with pytest.raises(UserError, match="exists: pass resume=True"):
-        modi.train_modi(proc_dir, run, config=TINY_MODI, iters=3, cache=False)
+        modi.train_modi(proc_dir, run, config=tiny_modi, iters=3, cache=False)
     seen = []
     gen = modi.train_modi(proc_dir, run, resume=True, iters=3, progress=seen.append, cache=False)
     assert gen.step == 3 and [p.step for p in seen] == [3] and seen[0].total == 3 and "d" in seen[0].losses
@@ -138,7 +137,7 @@ def test_train_modi_refuses_an_existing_run_and_resumes_with_one_argument(proc_d
         modi.train_modi(proc_dir, run, resume=True, config={"train.lr": 0.1})
 
 
-def test_the_run_lock_holds_from_python(proc_dir, tmp_path):
+def test_the_run_lock_holds_from_python(proc_dir, tmp_path, tiny_modi):
     from modi import faults
 
     run = tmp_path / "locked"
@@ -149,7 +148,7 @@ def test_the_run_lock_holds_from_python(proc_dir, tmp_path):
     try:
         assert p.stdout.readline().strip() == "held"
         with pytest.raises(faults.RunFolderBusy):
-            modi.train_modi(proc_dir, run, config=TINY_MODI, iters=1)
+            modi.train_modi(proc_dir, run, config=tiny_modi, iters=1)
         with pytest.raises(UserError):
             modi.train_ganimator(proc_dir / "nope.bvh", run, preset="tiny")
     finally:
@@ -180,18 +179,18 @@ def test_ganimator_run_generates_motions_in_the_file_units(gan_run, clip):
     assert set(metrics[run.clips[0]]) >= {"coverage", "global_diversity", "local_diversity"}
 
 
-def test_train_ganimator_guarantees_and_progress(clip, gan_run, tmp_path):
+def test_train_ganimator_guarantees_and_progress(clip, gan_run, tmp_path, tiny_ganimator):
     import shutil
 
     run = tmp_path / "g"
     shutil.copytree(gan_run, run)
     with pytest.raises(UserError, match="exists: pass resume=True"):
-        modi.train_ganimator(clip, run, preset="tiny", **TINY_GANIMATOR)
+        modi.train_ganimator(clip, run, preset="tiny", **tiny_ganimator)
     seen = []
-    again = modi.train_ganimator(clip, run, preset="tiny", resume=True, progress=seen.append, **TINY_GANIMATOR)
+    again = modi.train_ganimator(clip, run, preset="tiny", resume=True, progress=seen.append, **tiny_ganimator)
     assert seen == [] and isinstance(again, modi.GanimatorRun)  # already fully trained: nothing to do
     fresh = tmp_path / "fresh"
-    modi.train_ganimator(clip, fresh, preset="tiny", progress=seen.append, **TINY_GANIMATOR)
+    modi.train_ganimator(clip, fresh, preset="tiny", progress=seen.append, **tiny_ganimator)
     assert seen and seen[-1].model == "ganimator" and seen[-1].step == seen[-1].total
     with pytest.raises(UserError, match="unknown GANimator option"):
         modi.train_ganimator(clip, tmp_path / "x", preset="tiny", no_such_option=1)
