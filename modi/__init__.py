@@ -28,7 +28,8 @@ _PUBLIC = {
     "Motion": "modi.data.motion",
     "Skeleton": "modi.core.skeleton",
     "load": "modi.api.files",
-    "FileInfo": "modi.api.files",
+    "FileInfo": "modi.api.info",
+    "inspect": "modi.api.info",
     "ModiGenerator": "modi.api.generator",
     "Inversion": "modi.api.generator",
     "Boundary": "modi.api.generator",
@@ -48,12 +49,13 @@ _PUBLIC = {
     "CheckpointError": "modi.errors",
 }
 
-__all__ = ["__version__", "inspect", *_PUBLIC]
+__all__ = ["__version__", *_PUBLIC]
 
 if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolves these
     from modi.api.encoder import Encoder
     from modi.api.evaluation import evaluate, evaluate_real, evaluate_single
-    from modi.api.files import FileInfo, load
+    from modi.api.files import load
+    from modi.api.info import FileInfo, inspect
     from modi.api.ganimator import GanimatorRun
     from modi.api.generator import Boundary, Inversion, ModiGenerator
     from modi.api.topology import Topology
@@ -75,15 +77,3 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
-
-
-def inspect(path: str) -> "FileInfo":
-    """What ``modi info PATH`` prints, as a :class:`FileInfo`: kind, format and version, training step, skeleton,
-    config, training data and the modi that wrote a MoDi / GANimator checkpoint (or run folder), an encoder or a
-    feature-extractor file. The file is read as data only (nothing in it runs: safe on a file someone sent);
-    cost: reading it, no network is built. ``UserError`` for anything else."""
-    from modi.api.files import FileInfo  # lazy: import cost (torch), resolved on first call
-    from modi.cli.commands.info import _text, describe  # lazy: the describer lives with `modi info` (moves later)
-
-    d = describe(path)
-    return FileInfo.from_dict(d, _text(d))

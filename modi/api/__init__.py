@@ -8,12 +8,14 @@ from __future__ import annotations
 
 from modi.api.encoder import Encoder
 from modi.api.evaluation import evaluate, evaluate_real, evaluate_single
-from modi.api.files import FileInfo, load
+from modi.api.files import load
 from modi.api.ganimator import GanimatorRun
 from modi.api.generator import Boundary, Inversion, ModiGenerator
+from modi.api.info import FileInfo, inspect
 from modi.api.topology import Topology
 from modi.api.training import Progress, TrainingInterrupted, train_ganimator, train_modi
 from modi.api.viewing import show
 
-__all__ = ["load", "FileInfo", "ModiGenerator", "Inversion", "Boundary", "Encoder", "GanimatorRun", "train_modi",
-           "train_ganimator", "Progress", "TrainingInterrupted", "evaluate", "evaluate_real", "evaluate_single", "Topology", "show"]
+__all__ = ["load", "inspect", "FileInfo", "ModiGenerator", "Inversion", "Boundary", "Encoder", "GanimatorRun",
+           "train_modi", "train_ganimator", "Progress", "TrainingInterrupted", "evaluate", "evaluate_real",
+           "evaluate_single", "Topology", "show"]

@@ -1,11 +1,9 @@
-"""``modi.load``: the right object for any file modi reads, and :class:`FileInfo`, what ``modi info`` prints."""
+"""``modi.load``: the right object for any file modi reads."""
 from __future__ import annotations
 
-import json
 import os
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import Union
 
 import numpy as np
 import torch
@@ -100,40 +98,4 @@ def load(path: str | os.PathLike, *, device: str | torch.device = "cpu", raw_wei
                     + (f"; format tag {fmt!r}" if fmt is not None else ""))
 
 
-@dataclass
-class FileInfo:
-    """What ``modi info FILE`` prints, as an object: ``kind``, ``format`` and ``version``, training ``step``, the
-    ``skeleton`` (joints, root, names, parents), the ``config``, the ``data`` it was trained on and the modi and
-    torch versions that wrote it. ``str()`` is the text ``modi info`` prints; :meth:`to_dict` its ``--json``."""
-
-    file: str
-    kind: str
-    format: Any
-    version: Any
-    step: Any
-    skeleton: dict[str, Any] | None
-    config: Any
-    data: Any
-    modi_version: str | None = None
-    torch_version: str | None = None
-    text: str = field(default="", repr=False, compare=False)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any], text: str = "") -> "FileInfo":
-        return cls(d["file"], d["kind"], d.get("format"), d.get("version"), d.get("step"), d.get("skeleton"),
-                   d.get("config"), d.get("data"), d.get("modi_version"), d.get("torch_version"), text)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The ``modi info --json`` object."""
-        return {"file": self.file, "kind": self.kind, "format": self.format, "version": self.version,
-                "step": self.step, "skeleton": self.skeleton, "config": self.config, "data": self.data,
-                "modi_version": self.modi_version, "torch_version": self.torch_version}
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, default=str)
-
-    def __str__(self) -> str:
-        return self.text or self.to_json()
-
-
-__all__ = ["load", "FileInfo", "motion_from_gltf", "Loaded"]
+__all__ = ["load", "motion_from_gltf", "Loaded"]

@@ -18,7 +18,7 @@ import torch
 
 from modi_ext.demod import dense
 from modi_ext.demod.reference import DEMOD_EPS
-from modi_ext.runtime import eager
+from modi_ext.runtime import dispatch, eager
 from modi_ext.runtime.eager import needed
 from modi_ext.runtime.loader import HAS_EXT
 
@@ -76,8 +76,10 @@ def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor
     if (weight.device.type == "cpu" and weight.dtype in _CPU_DTYPES and (style is None or style.dtype == weight.dtype)
             and kernel_available() and os.environ.get("MODI_EXT_DEMOD", "auto") != "torch"
             and eager.usable(weight, style, index, offsets)):
+        dispatch.record_path("demod_scale", weight, "ext")
         d = _DemodEager.apply(weight, style, index, offsets, up, n_out)
         return d if d.shape[0] == batch else d.expand(batch, -1, -1).contiguous()
+    dispatch.record_path("demod_scale", weight, "dense")
     return dense.demod_scale(weight, index, offsets, style, up, n_out, batch)
 
 

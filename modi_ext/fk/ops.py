@@ -184,8 +184,10 @@ def _use_kernel(device: torch.device, impl: str | None = None, dtype: torch.dtyp
 def _fk_checked(local_quats, offsets, parents: tuple[int, ...], root_positions, return_rotations: bool,
                 impl: str | None = None):
     if _use_kernel(local_quats.device, impl, local_quats.dtype):
+        dispatch.record_path("fk", local_quats, "ext")
         positions, rotations = dispatch.KERNELS["fk"](local_quats, offsets, list(parents), root_positions)
         return (positions, rotations) if return_rotations else positions
+    dispatch.record_path("fk", local_quats, "ref")
     return fk_reference(local_quats, offsets, parents, root_positions, return_rotations)
 
 

@@ -27,7 +27,8 @@ import torch
 from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
 from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
 
-__all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
+__all__ = ["route", "record_path", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS",
+           "device_key"]
 
 # ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
 # (then ``reset()``) to inject a wrong kernel.
@@ -58,6 +59,18 @@ SELFCHECK: Callable[[str, torch.dtype], dict] | None = None
 _lock = threading.RLock()
 _checked: dict[tuple[str, str], dict] = {}
 _auto: dict[tuple[str, str, str], dict] = {}
+_paths: dict[tuple[str, str, str, str], int] = {}  # (device, dtype, op, path) -> calls: which path each op took
+
+
+def record_path(op: str, x: torch.Tensor, path: str) -> None:
+    """Count one eager call of ``op`` on ``x``'s device and dtype that ran ``path`` ('ext', 'dense' or 'ref').
+
+    Skipped while ``torch.compile`` traces (a side effect there would break the graph); compiled code reports the
+    path its trace took once, at the trace."""
+    if torch.compiler.is_compiling():
+        return
+    key = (device_key(x.device), str(x.dtype).replace("torch.", ""), op, path)
+    _paths[key] = _paths.get(key, 0) + 1
 
 
 def reset() -> None:
@@ -66,6 +79,7 @@ def reset() -> None:
         _built.clear()
         _checked.clear()
         _auto.clear()
+        _paths.clear()
 
 
 def selfcheck_mode() -> str:
@@ -171,7 +185,8 @@ def _measured(op: str, device: str, sig: str, bench: Callable[[str], Callable[[]
 
 
 def dispatch_report() -> list[dict]:
-    """Every decision so far: the requested path, kernel availability per device type, self-checks, auto timings."""
+    """Every decision so far: the requested path, kernel availability per device type, self-checks, auto timings,
+    and per op, device and dtype the path that ran (``kind: "path"``, with its number of calls)."""
     with _lock:
         rows: list[dict] = [{"kind": "config", "impl": os.environ.get("MODI_EXT_IMPL", "auto"),
                              "selfcheck": os.environ.get("MODI_EXT_SELFCHECK", "1"), "extension_built": HAS_EXT}]
@@ -179,4 +194,6 @@ def dispatch_report() -> list[dict]:
         rows += [{"kind": "selfcheck", "device": d, "dtype": t.replace("torch.", ""), "ok": r["ok"],
                   "errors": dict(r["errors"]), "max_error": dict(r["max_error"])} for (d, t), r in _checked.items()]
         rows += [{"kind": "auto", "device": d, "op": op, "signature": sig, **r} for (d, op, sig), r in _auto.items()]
+        rows += [{"kind": "path", "device": d, "dtype": t, "op": op, "path": path, "calls": n}
+                 for (d, t, op, path), n in sorted(_paths.items())]
         return rows

@@ -92,6 +92,7 @@ def _op_checked(kind, x, weight, bias, index, offsets, n_out, style, demodulate,
         return call
 
     impl = dispatch.route(NAMES[kind], x, "skeletal", signature, bench)
+    dispatch.record_path(NAMES[kind], x, impl)
     return _run(kind, impl, *args)
 
 

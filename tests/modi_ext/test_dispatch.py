@@ -644,3 +644,24 @@ def test_validate_payloads_run_on_cpu(tmp_path):
     assert res["errors"] == {}
     assert {r.split(".")[0] for r in res["ran"]} == {"conv", "down", "up", "fk"}
     assert {r.rsplit(".", 1)[1] for r in res["ran"]} == {"float32", "float64"}  # the CPU kernels' dtypes
+
+
+@pytest.mark.parametrize("impl", ["ref", "dense", "ext"])
+def test_the_report_records_the_path_each_op_took(monkeypatch, impl):
+    """Per op, device and dtype, ``dispatch_report()`` counts the calls of each path (issue 40)."""
+    if impl == "ext" and not HAS_EXT:
+        pytest.skip("modi_ext C++ extension not built")
+    monkeypatch.setenv("MODI_EXT_IMPL", impl)
+    conv = ModulatedSkeletalConv(4, 4, 6, [[0, 1], [0, 1, 2], [1, 2]], kernel_size=3)
+    x, w = torch.randn(2, 4, 3, 8), torch.randn(2, 6)
+    for _ in range(3):
+        conv(x, w)
+    q = torch.nn.functional.normalize(torch.randn(2, 3, 4), dim=-1)
+    fk(q, torch.randn(3, 3), [-1, 0, 1], torch.zeros(2, 3))
+    rows = [r for r in modi_ext.dispatch_report() if r["kind"] == "path"]
+    conv_rows = [r for r in rows if r["op"] != "fk" and r["op"] != "demod_scale"]
+    assert conv_rows and {r["path"] for r in conv_rows} == {impl}, rows
+    assert all(r["device"] == "cpu" and r["dtype"] == "float32" for r in rows), rows
+    assert sum(r["calls"] for r in conv_rows) == 3, rows
+    fk_rows = [r for r in rows if r["op"] == "fk"]
+    assert [(r["path"], r["calls"]) for r in fk_rows] == [("ext" if impl == "ext" else "ref", 1)], rows

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from modi.cli.commands.info import _imported_text
+from modi.api.info import imported_text as _imported_text
 from modi.core.skeleton import Skeleton
 from modi.interop import ganimator_released as G
 from modi.interop import provenance as P
