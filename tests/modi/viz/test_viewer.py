@@ -270,12 +270,15 @@ def test_notebook_iframe_renders_in_chromium(clips, tmp_path):
                   + "</body></html>", encoding="utf-8")
     png = tmp_path / "nb.png"
     # the iframe loads after the page's own load event: give the page (virtual) time to draw before the shot, or a
-    # loaded machine photographs an empty frame
-    r = chromium(nb.as_uri(), f"--screenshot={png}", "--window-size=800,600", "--virtual-time-budget=5000")
-    assert png.is_file() and not console_errors(r.stderr), r.stderr[-2000:]
-    img = np.asarray(Image.open(png).convert("RGB")).astype(np.int16)
-    figure = (img.max(-1) - img.min(-1)) > 60
-    figure[:80, :250] = False  # the heading and the legend
+    # loaded machine photographs an empty frame; a busy machine gets a second, longer try
+    for budget in (5000, 20000):
+        r = chromium(nb.as_uri(), f"--screenshot={png}", "--window-size=800,600", f"--virtual-time-budget={budget}")
+        assert png.is_file() and not console_errors(r.stderr), r.stderr[-2000:]
+        img = np.asarray(Image.open(png).convert("RGB")).astype(np.int16)
+        figure = (img.max(-1) - img.min(-1)) > 60
+        figure[:80, :250] = False  # the heading and the legend
+        if figure.sum() > 300:
+            break
     assert figure.sum() > 300, "the viewer draws the figure inside the notebook's iframe"
 
 
