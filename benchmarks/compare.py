@@ -34,6 +34,11 @@ grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the inpu
 ``--thread-ab N`` also times the extension alone at ``--threads`` and at N threads, alternated in blocks of a few
 calls in this process (``--ab-reps`` timed calls each), for thread-scaling figures that machine drift cannot skew:
 ``ext_ms_threads`` (median ms per thread count) and ``ext_thread_ratio`` (time at ``--threads`` / time at N).
+
+Roofline (``benchmarks/roofline.py``): every case's FLOPs are counted once, untimed, on the extension's path with the
+sparse per-pair formulas (``flops``), and this process times sgemm (``torch.mm`` 1024^3, same threads) at the start
+and the end; each row gets ``{ref,ext,dense}_gflops`` and ``{ref,ext,dense}_frac_sgemm`` against the faster of the
+two sgemm figures (``sgemm_gflops``; the printed fractions use the first one).
 """
 from __future__ import annotations
 
@@ -67,6 +72,7 @@ import torch  # noqa: E402
 
 from modi_ext import HAS_EXT  # noqa: E402
 from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv, SkeletalDownsample, SkeletalUpsample  # noqa: E402
+from roofline import Sgemm, count_flops  # noqa: E402  (benchmarks/roofline.py)
 
 # Bandai-Namco motion capture skeleton (22 joints), parents in file order.
 BANDAI_PARENTS = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]
@@ -391,9 +397,12 @@ def main(argv: list[str] | None = None) -> int:
     desc = machine()
     clock = time.perf_counter if args.clock == "wall" else time.process_time
     omp_wait = modi_ext.omp_wait_policy()
+    sgemm = Sgemm()
     print(f"# {desc}; skeletal hierarchy from {source}; batch {BATCH}, fp32; {args.clock} clock; OpenMP wait {omp_wait}")
-    print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'dense ms':>10s} {'ref/dense':>9s} "
-          f"{'dense/ext':>9s}")
+    print(f"# sgemm (torch.mm 1024^3, {sgemm.threads} threads): {sgemm.gflops:.1f} GF/s; GF/s = counted FLOPs / median "
+          f"time, frac = GF/s / sgemm")
+    print(f"{'case':40s} {'ref ms':>10s} {'ext ms':>10s} {'speedup':>8s} {'GF/s':>7s} {'frac':>5s} {'ref fr':>6s} "
+          f"{'dense ms':>10s} {'ref/dense':>9s} {'dense/ext':>9s} {'dns fr':>6s}")
     results: dict[str, dict] = {}
     busy = contextlib.ExitStack()
     busy_list = busy.enter_context(_EARLY_BUSY or busy_cores(args.busy))
@@ -408,11 +417,15 @@ def main(argv: list[str] | None = None) -> int:
                          "speedup": round(ref_ms / ext_ms, 3), "runs": n, "threads": torch.get_num_threads(),
                          "clock": args.clock, "busy": args.busy, "busy_cores": busy_list,
                          "omp_wait": omp_wait, "machine": desc, **info.get(name, {})}
+        flops, _ = count_flops(fns[1])  # untimed, after the timing: the graph of a ``bwd`` case exists by now
+        results[name]["flops"] = flops
+        gf, frac = sgemm.rate(flops, ext_ms)
+        roof = f" {gf:7.1f} {frac:5.2f} {sgemm.rate(flops, ref_ms)[1]:6.2f}"
         extra = ""
         if len(ms) > 2:  # the dense path (modi_ext.skeletal.dense) as a third side
             results[name].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),
                                  speedup_ext_vs_dense=round(ms[2] / ext_ms, 3))
-            extra = f" {ms[2]:10.3f} {ref_ms / ms[2]:8.2f}x {ms[2] / ext_ms:8.2f}x"
+            extra = f" {ms[2]:10.3f} {ref_ms / ms[2]:8.2f}x {ms[2] / ext_ms:8.2f}x {sgemm.rate(flops, ms[2])[1]:6.2f}"
         if args.thread_ab:
             main_threads = torch.get_num_threads()
             (at_main, at_other), m = time_threads(fns[1], (main_threads, args.thread_ab), args.ab_reps, clock)
@@ -420,12 +433,26 @@ def main(argv: list[str] | None = None) -> int:
                                                  str(args.thread_ab): round(at_other, 4)},
                                  ext_thread_ratio=round(at_main / at_other, 4), thread_ab_runs=m)
             extra += f"   ext {main_threads}t {at_main:.3f} / {args.thread_ab}t {at_other:.3f} ms"
-        print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x{extra}", flush=True)
+        print(f"{name:40s} {ref_ms:10.3f} {ext_ms:10.3f} {ref_ms / ext_ms:7.2f}x{roof}{extra}", flush=True)
     busy.close()
+    sgemm.remeasure()
+    _roofline(results, sgemm)
     _backward_over_forward(results)
     _targets(results)
     write_json(args.json, results)
     return 0
+
+
+def _roofline(results: dict, sgemm: Sgemm) -> None:
+    """GF/s and fraction of sgemm of every timed path of every row, against this run's sgemm reference."""
+    print(f"# sgemm samples (start, end): {', '.join(f'{g:.1f}' for g in sgemm.samples)} GF/s; the JSON's fractions "
+          f"use {sgemm.gflops:.1f}")
+    for r in results.values():
+        for side in ("ref", "ext", "dense"):
+            if f"{side}_ms" in r and "flops" in r:
+                gf, frac = sgemm.rate(r["flops"], r[f"{side}_ms"])
+                r[f"{side}_gflops"], r[f"{side}_frac_sgemm"] = round(gf, 3), round(frac, 4)
+        r.update(sgemm.describe())
 
 
 def _backward_over_forward(results: dict) -> None:

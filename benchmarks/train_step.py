@@ -26,6 +26,11 @@ cycle (what a run pays per iteration), and the path-length / plain ratio. Genera
 
 GANimator: one trainer per side on one clip (default Joe/Salsa-Dancing-6, fast preset: 5 D steps with the WGAN-GP,
 1 G step, 1 reconstruction step per iteration) inside one block (default the finest); median seconds per iteration.
+
+Roofline (``benchmarks/roofline.py``): the FLOPs of each step kind (MoDi) or of one iteration (GANimator) are counted
+once during the warm-up on the extension's path (``flops``: the sparse per-pair formulas for the modi_ext ops, torch's
+for the rest, every order of backward as it runs), and sgemm (``torch.mm`` 1024^3, same threads) is timed in this
+process at the start and the end; every time gets GF/s and its fraction of the faster sgemm figure.
 """
 from __future__ import annotations
 
@@ -53,6 +58,7 @@ import modi_ext  # noqa: E402
 import torch  # noqa: E402
 
 from compare import forced_env, machine, write_json  # noqa: E402  (benchmarks/compare.py)
+from roofline import Sgemm, count_flops  # noqa: E402  (benchmarks/roofline.py)
 from modi_ext import HAS_EXT  # noqa: E402
 
 SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
@@ -97,10 +103,19 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
             torch.manual_seed(0)
             trainers[side] = Trainer(cfg, data, work / side, device=device, progress=False, tensorboard=False,
                                      write_samples=False, log=lambda m: None)
+    flops: dict[str, int] = {}  # step kind -> FLOPs, counted on the first trainer's warm-up on the ext path
+    cycle_kinds = []
     for side, tr in trainers.items():  # warm-up: one full cycle each (allocator, oneDNN plans, kernel caches)
         with side_env(side):
             for _ in range(cycle):
-                tr.train_step()
+                kind = _kind(tr.step, tc)
+                if side == sides[0]:
+                    cycle_kinds.append(kind)
+                if side == sides[0] and kind not in flops and device.type == "cpu":
+                    with side_env("ext"):
+                        flops[kind], _ = count_flops(tr.train_step)
+                else:
+                    tr.train_step()
     per_kind: dict[str, dict[str, list[float]]] = {s: {} for s in sides}
     cycle_means: dict[str, list[float]] = {s: [] for s in sides}
     for _ in range(args.reps):
@@ -120,8 +135,19 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
     res: dict = {"preset": args.preset, "batch": args.batch, "data": str(data_dir),
                  "windows": list(data.windows.shape), "cycle_iterations": cycle, "cycles": args.reps,
                  "hierarchy": [lv.n_entities for lv in trainers[sides[0]].levels], "sides": {}}
+    sgemm = args.sgemm
+    if sgemm is not None:
+        sgemm.remeasure()
+    cycle_flops = sum(flops.get(k, 0) for k in cycle_kinds) / cycle if flops else 0
+    if flops:
+        res["flops"] = {**flops, "cycle_mean": int(cycle_flops)}
     print(f"# MoDi preset {args.preset}, batch {args.batch}, data {data_dir}; median s per step of each kind")
-    print(f"{'side':12s} {'plain':>8s} {'path':>8s} {'r1+path':>8s} {'cycle mean':>11s} {'path/plain':>11s}")
+    if flops:
+        print("# GFLOP per step: " + ", ".join(f"{k} {v / 1e9:.2f}" for k, v in flops.items())
+              + f", cycle mean {cycle_flops / 1e9:.2f}; sgemm {', '.join(f'{g:.1f}' for g in sgemm.samples)} GF/s "
+              f"(start, end): fractions of {sgemm.gflops:.1f}")
+    print(f"{'side':12s} {'plain':>8s} {'path':>8s} {'r1+path':>8s} {'cycle mean':>11s} {'path/plain':>11s} "
+          f"{'GF/s':>6s} {'frac':>5s}  (GF/s, frac per kind: plain / path / r1+path)")
     for side in sides:
         med = {k: statistics.median(v) for k, v in per_kind[side].items()}
         mean = statistics.median(cycle_means[side])
@@ -129,8 +155,18 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
         res["sides"][side] = {"s_per_step": {k: round(v, 4) for k, v in med.items()}, "cycle_mean_s": round(mean, 4),
                               "path_over_plain": round(ratio, 3),
                               "r1_extra_s": round(med.get("r1+path", float("nan")) - med.get("path", float("nan")), 4)}
+        roof = ""
+        if flops:
+            rates = {k: sgemm.rate(flops[k], v * 1e3) for k, v in med.items() if k in flops}
+            gf, frac = sgemm.rate(cycle_flops, mean * 1e3)
+            res["sides"][side].update(
+                gflops={k: round(r[0], 3) for k, r in rates.items()},
+                frac_sgemm={k: round(r[1], 4) for k, r in rates.items()},
+                cycle_mean_gflops=round(gf, 3), cycle_mean_frac_sgemm=round(frac, 4))
+            roof = f" {gf:6.1f} {frac:5.2f}  " + " / ".join(f"{rates[k][0]:.1f}, {rates[k][1]:.2f}"
+                                                           for k in ("plain", "path", "r1+path") if k in rates)
         print(f"{side:12s} {med['plain']:8.3f} {med.get('path', float('nan')):8.3f} "
-              f"{med.get('r1+path', float('nan')):8.3f} {mean:11.3f} {ratio:11.2f}")
+              f"{med.get('r1+path', float('nan')):8.3f} {mean:11.3f} {ratio:11.2f}{roof}")
     for a, b in (("ext_refgrad", "ext"), ("ref", "ext"), ("dense", "ext"), ("ref", "dense")):
         if a in sides and b in sides:
             sp = res["sides"][a]["cycle_mean_s"] / res["sides"][b]["cycle_mean_s"]
@@ -156,6 +192,13 @@ def bench_modi(args, sides: list[str], device: torch.device) -> dict:
         res["generate"] = {"batch": args.gen_batch,
                            **{f"{s}_motions_per_s": round(args.gen_batch / statistics.median(times[s]), 1)
                               for s in gen_sides}}
+        if device.type == "cpu":
+            with torch.no_grad(), side_env("ext"):
+                gen_flops, _ = count_flops(lambda: trainers[gen_sides[0]].G_ema(z))
+            res["generate"]["flops"] = gen_flops
+            for s in gen_sides:
+                gf, frac = args.sgemm.rate(gen_flops, statistics.median(times[s]) * 1e3)
+                res["generate"][f"{s}_gflops"], res["generate"][f"{s}_frac_sgemm"] = round(gf, 3), round(frac, 4)
         print("generate     " + "   ".join(f"{s} {res['generate'][f'{s}_motions_per_s']:.1f} motions/s"
                                            for s in gen_sides) + f"  (batch {args.gen_batch})")
     return res
@@ -187,9 +230,14 @@ def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
             trainers[side] = (tr, levels, {})
     n_sub = cfg.d_steps + cfg.g_steps + 1
     times: dict[str, list[float]] = {s: [] for s in sides}
-    for side, (tr, levels, cache) in trainers.items():  # warm-up
+    it_flops = 0
+    for side, (tr, levels, cache) in trainers.items():  # warm-up (the first side's counts the FLOPs, ext path)
         with side_env(side):
-            tr._iteration(levels, 1, n_sub, cache)
+            if side == sides[0] and device.type == "cpu":
+                with side_env("ext"):
+                    it_flops, _ = count_flops(lambda: tr._iteration(levels, 1, n_sub, cache))
+            else:
+                tr._iteration(levels, 1, n_sub, cache)
     for _ in range(args.reps):
         for side, (tr, levels, cache) in trainers.items():
             with side_env(side):
@@ -204,12 +252,25 @@ def bench_ganimator(args, sides: list[str], device: torch.device) -> dict:
     res = {"clip": str(clip), "preset": args.ganimator_preset, "d_steps": cfg.d_steps, "g_steps": cfg.g_steps,
            "block_levels": levels0, "level_frames": lengths, "entities": seq.n_entities,
            "iters_per_chunk": args.iters, "chunks": args.reps, "sides": {}}
+    sgemm = args.sgemm
+    roof_note = ""
+    if sgemm is not None:
+        sgemm.remeasure()
+        roof_note = (f"; {it_flops / 1e9:.3f} GFLOP per iteration; sgemm {', '.join(f'{g:.1f}' for g in sgemm.samples)}"
+                     f" GF/s (start, end): fractions of {sgemm.gflops:.1f}")
     print(f"# GANimator {clip.name}, preset {args.ganimator_preset} (d_steps {cfg.d_steps}, WGAN-GP on every D step),"
-          f" block levels {levels0}; median s per iteration")
+          f" block levels {levels0}; median s per iteration{roof_note}")
+    if it_flops:
+        res["flops_per_iter"] = it_flops
     for side in sides:
         med = statistics.median(times[side])
         res["sides"][side] = {"s_per_iter": round(med, 4)}
-        print(f"{side:12s} {med:8.3f} s/it")
+        roof = ""
+        if it_flops:
+            gf, frac = sgemm.rate(it_flops, med * 1e3)
+            res["sides"][side].update(gflops=round(gf, 3), frac_sgemm=round(frac, 4))
+            roof = f"  {gf:6.1f} GF/s  {frac:5.2f} of sgemm"
+        print(f"{side:12s} {med:8.3f} s/it{roof}")
     for a in ("ref", "dense", "ext_refgrad"):
         if a in sides and "ext" in sides:
             sp = res["sides"][a]["s_per_iter"] / res["sides"]["ext"]["s_per_iter"]
@@ -261,12 +322,15 @@ def main(argv: list[str] | None = None) -> int:
     else:
         desc = machine()
     print(f"# {desc}")
+    args.sgemm = Sgemm() if device.type == "cpu" else None
     with (_EARLY_BUSY or busy_cores(args.busy)) as taken:
         if args.busy:
             print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {taken})")
         body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)
     res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "model": args.model,
            "omp_wait": modi_ext.omp_wait_policy(), "busy": args.busy, **body}
+    if args.sgemm is not None:
+        res["roofline"] = args.sgemm.describe()
     write_json(Path(args.json) if args.json else None, res)
     return 0
 
