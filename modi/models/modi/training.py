@@ -52,6 +52,7 @@ from modi.models.modi.losses import (
 )
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
 from modi.models.modi.sampling import write_outputs
+from modi.models.optim import fused_adam
 
 
 class NonFiniteLossError(RuntimeError):
@@ -146,15 +147,6 @@ def build_models(cfg: MoDiConfig, levels: list[LevelSpec], n_channels: int) -> t
 def _requires_grad(model: nn.Module, flag: bool) -> None:
     for p in model.parameters():
         p.requires_grad_(flag)
-
-
-def _adam(params, lr: float, betas: tuple[float, float]) -> torch.optim.Adam:
-    """Adam with torch's fused kernel where it has one (CPU, CUDA): the per-tensor loop over G's and D's ~120
-    tensors is ~5% of a CPU step (``benchmarks/profile_step.py``), the fused step a fraction of it. Same algorithm
-    (results within float rounding, ~1e-7 relative); a checkpoint keeps the setting it was saved with."""
-    params = list(params)
-    fused = bool(params) and all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
-    return torch.optim.Adam(params, lr=lr, betas=betas, fused=fused or None)
 
 
 @torch.no_grad()
@@ -252,8 +244,8 @@ class Trainer:
 
         g_lr, g_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.g_reg_every)
         d_lr, d_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.d_reg_every)
-        self.g_optim = _adam(self.G.parameters(), g_lr, g_betas)
-        self.d_optim = _adam(self.D.parameters(), d_lr, d_betas)
+        self.g_optim = fused_adam(self.G.parameters(), g_lr, g_betas)
+        self.d_optim = fused_adam(self.D.parameters(), d_lr, d_betas)
 
         self.step = 0
         self.mean_path_length = torch.zeros((), device=self.device)
