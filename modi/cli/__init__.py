@@ -13,6 +13,8 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
   resumable checkpoint; SIGTERM there does the same and exits 143, see ``modi.faults``); SIGTERM elsewhere unwinds
   the same way as Ctrl-C (no temp file left behind) and exits 143;
 * a full disk, a read-only folder, or a run folder another run holds is one line and exit 2 (``modi.faults``);
+* a lost peer of a distributed run (a killed or hung rank, a lost machine) is one line and exit 75
+  (``modi.errors.PeerLostError``, EX_TEMPFAIL: continue with ``--resume auto``, or torchrun restarts it);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
 from __future__ import annotations
@@ -130,9 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     except BadArguments as exc:
         print(exc, file=sys.stderr, flush=True)
         return 2
-    except UserError as exc:
+    except UserError as exc:  # 2, or 75 for a lost peer of a distributed run (PeerLostError)
         _say(str(exc))
-        return 2
+        return int(getattr(exc, "exit_code", 2))
     except KeyboardInterrupt:
         print("\nmodi: interrupted", file=sys.stderr, flush=True)
         return 130
