@@ -117,7 +117,32 @@ def _run(argv: list[str] | None) -> int:
         raise
 
 
+_kept: list = []  # what leave_without_teardown keeps alive until os._exit
+
+
+def leave_without_teardown(*keep) -> None:
+    """Have :func:`main` end the process with ``os._exit`` once its line is printed, keeping ``keep`` alive until
+    then: a command that used a torch.distributed process group must not tear it down. Freeing DDP's reducer frees
+    the gloo group, whose destructor joins gloo's worker threads while holding the GIL -- and a worker thread still
+    releasing the tensors of its last collective waits for the GIL: a deadlock, seen under torchrun as a worker
+    that never exits; after a lost peer, interpreter shutdown can abort instead ("terminate called without an
+    active exception"). Every file the command wrote is closed (and checkpoints fsynced) by then."""
+    _kept.append(keep)
+
+
 def main(argv: list[str] | None = None) -> int:
+    code = _main(argv)
+    if _kept:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    return code
+
+
+def _main(argv: list[str] | None = None) -> int:
     from modi.faults import Terminated, sigterm_pending, terminate_on_sigterm
 
     try:

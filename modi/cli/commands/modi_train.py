@@ -180,6 +180,10 @@ def run(args: argparse.Namespace) -> int:
     device = _device(args.device)
     world = int(os.environ.get("WORLD_SIZE", "1") or 1)
     state: dict = {"trainer": None, "resumed": None}  # what a lost peer's line reports
+    if world > 1:  # the process group is never torn down: see leave_without_teardown
+        from modi.cli import leave_without_teardown
+
+        leave_without_teardown(state)
     try:
         rank, world = mdist.init_distributed_from_env(device, getattr(args, "dist_timeout", None))
         with _run_folder_lock(Path(args.out), rank, world, device):
@@ -189,9 +193,6 @@ def run(args: argparse.Namespace) -> int:
             mdist.leave_quietly_on_signals()
             raise _peer_lost(exc, Path(args.out), state) from None
         raise
-    finally:
-        if world > 1:
-            mdist.close_process_group()
 
 
 def _peer_lost(exc: Exception, run_dir: Path, state: dict) -> UserError:

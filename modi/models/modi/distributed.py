@@ -85,16 +85,6 @@ def init_distributed_from_env(device: torch.device | None = None, timeout_s: flo
     return rank, world
 
 
-def close_process_group() -> None:
-    """Destroy the default process group (if any). After a peer was lost, leaving without this can abort the
-    process while Python shuts down (gloo's threads: "terminate called without an active exception")."""
-    if dist.is_available() and dist.is_initialized():
-        try:
-            dist.destroy_process_group()
-        except Exception:  # noqa: BLE001 - leaving anyway; a broken group may refuse to close cleanly
-            pass
-
-
 # =============================================================================================== torchrun
 def torchrun_restart() -> int:
     """How many times torchrun has restarted this job's workers (``TORCHELASTIC_RESTART_COUNT``; 0 outside it)."""
@@ -295,6 +285,6 @@ def shard_indices(n: int, batch: int, world: int, rank: int, seed: int, step: in
     return out
 
 
-__all__ = ["DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "dist_timeout_s", "init_distributed_from_env", "close_process_group",
+__all__ = ["DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "dist_timeout_s", "init_distributed_from_env",
            "torchrun_restart", "under_torchrun", "without_resume", "continue_command", "is_peer_failure",
            "gone_ranks", "peer_lost_error", "leave_quietly_on_signals", "epoch_order", "shard_indices"]

@@ -42,7 +42,7 @@ from modi.errors import CheckpointError, UserError
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict, load_checkpoint
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
-from modi.models.modi.distributed import init_distributed_from_env, shard_indices
+from modi.models.modi.distributed import init_distributed_from_env, shard_indices, under_torchrun
 from modi.models.modi.losses import (
     d_logistic_loss,
     d_r1_penalty,
@@ -436,7 +436,8 @@ class Trainer:
         target = tc.iters if iters is None else int(iters)
         self.stop = faults.StopRequest()
         lock = faults.hold_run_folder(self.run_dir) if self.rank == 0 else nullcontext()
-        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0):
+        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0,
+                                          insist=not under_torchrun()):
             if self.rank == 0:
                 faults.remove_stale_temps(self.run_dir / "checkpoint.pt")
                 _cut_log(self.run_dir / "log.jsonl", self.step)
