@@ -6,7 +6,7 @@ PIP = $(PYTHON) -m pip
 
 install:
 	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy
-	$(PIP) install -q --no-build-isolation -e ".[test]"
+	$(PIP) install -q --no-build-isolation -e ".[test,peers,onnx]"
 	# Recent setuptools turn `pip install -e` into an isolated PEP 660 build that cannot see torch,
 	# so the extension is compiled in place explicitly (ninja; incremental on later runs).
 	$(PYTHON) setup.py -q build_ext --inplace

@@ -52,8 +52,21 @@ def _nvcc_flags(opt: list[str]) -> list[str]:
     return opt + ["--use_fast_math"]
 
 
+# csrc/ holds one folder per op (schema.cpp, check.h, cpu.cpp, cuda.cu, ...), shared headers in common/, the module
+# shell (module.cpp, registration.cpp) at the top; emu/ (the test-only CUDA emulator) and tools/ are built apart.
+CSRC_APART = ("emu", "tools")
+
+
+def _sources() -> tuple[list[str], list[str]]:
+    """(C++ sources, CUDA sources) of modi_ext._C, relative to the repository root."""
+    def pick(pattern: str) -> list[str]:
+        found = glob.glob(os.path.join("csrc", "**", pattern), recursive=True)
+        return sorted(p for p in found if p.split(os.sep)[1] not in CSRC_APART)
+    return pick("*.cpp"), pick("*.cu")
+
+
 def _emu_module(cpp_extension, cxx_flags: list[str]):
-    """Test-only: the csrc/cuda kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
+    """Test-only: the csrc/<op>/cuda.cu kernels compiled as host C++ on the CUDA emulator (csrc/emu), CPU key only."""
     if _flag("MODI_EXT_EMU") in ("0", "false", "no", "off"):
         return None
     # -O1: the emulator's cost is the fibers, not the kernels' code; this keeps the build short (2-core CI).
@@ -62,7 +75,7 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
     flags += [f for f in cxx_flags if f.startswith("-march")]
     return cpp_extension.CppExtension(
         name="modi_ext._C_emu",
-        sources=sorted(glob.glob("csrc/emu/*.cpp")),  # defs_emu.cpp includes the schemas of csrc/*_defs.cpp
+        sources=sorted(glob.glob("csrc/emu/*.cpp")),  # defs_emu.cpp includes the schemas of csrc/<op>/schema.cpp
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=[("MODI_EXT_EMULATE_CUDA", "1")],
         extra_compile_args={"cxx": flags},
@@ -80,14 +93,17 @@ def extension_modules():
         print("modi_ext: torch is not installed at build time; the extension is skipped "
               "(install torch first and use --no-build-isolation)", file=sys.stderr)
         return [], {}
+    # One host compiler for every object of _C: nvcc compiles the .cu files' host code with it too (-ccbin; torch
+    # would otherwise pass $CC). On the first GPU run (2026-12-04, an image with CC=/opt/gcc/bin/gcc and c++ = GCC
+    # 13) the two compilers' copies of libstdc++'s inline stream code met in one library, and the first TORCH_CHECK
+    # that formatted an integer crashed in ostream::_M_insert<long> (tests/modi_ext/test_cuda_ops.py, bad style).
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         print(f"modi_ext: no C++ compiler ({cxx}) found; the extension is skipped, "
               "modi runs on the dense reference", file=sys.stderr)
         return [], {}
 
-    cpp_sources = sorted(glob.glob("csrc/*.cpp") + glob.glob("csrc/cpu/*.cpp"))
-    cuda_sources = sorted(glob.glob("csrc/cuda/*.cu") + glob.glob("csrc/cuda/*.cpp"))
+    cpp_sources, cuda_sources = _sources()
     want_cuda = _flag("MODI_EXT_CUDA")
     has_nvcc = cpp_extension.CUDA_HOME is not None and shutil.which(
         os.path.join(cpp_extension.CUDA_HOME, "bin", "nvcc")) is not None
@@ -114,7 +130,7 @@ def extension_modules():
         sources=cpp_sources + (cuda_sources if use_cuda else []),
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=define_macros,
-        extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt)},
+        extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt) + ["-ccbin", shutil.which(cxx)]},
         extra_link_args=["-fopenmp"],
     )
     if use_cuda:
@@ -139,7 +155,7 @@ setup(
     long_description_content_type="text/markdown",
     python_requires=">=3.10",
     packages=find_packages(include=["modi", "modi.*", "modi_ext", "modi_ext.*"]),
-    package_data={"modi.viz": ["*.js"], "modi.blender": ["*.toml"]},
+    package_data={"modi": ["py.typed"], "modi.viz": ["*.js"], "modi.blender": ["*.toml"]},
     install_requires=[
         "torch>=2.4",
         "numpy>=1.24",
@@ -151,7 +167,14 @@ setup(
         "scikit-learn>=1.3",
     ],
     extras_require={"test": ["pytest>=7", "hypothesis>=6.80", "pytest-benchmark>=4", "expecttest"],
-                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"]},
+                    # what the authors' released sources (../shared/peers) import when the tests and
+                    # benchmarks/peers run them, beyond install_requires (tqdm, matplotlib, scipy, scikit-learn,
+                    # tensorboard); without it those tests skip, naming the package
+                    "peers": ["pyyaml>=5.4", "networkx>=2.6"],
+                    "docs": ["mkdocs==1.6.1", "mkdocstrings==1.0.8", "mkdocstrings-python==2.0.11"],
+                    # modi export onnx (onnx, onnxscript: torch.onnx.export(dynamo=True)) and running the models
+                    # (onnxruntime: modi.export.onnx_runner, the tests)
+                    "onnx": ["onnx>=1.17", "onnxscript>=0.5", "onnxruntime>=1.20"]},
     entry_points={"console_scripts": ["modi=modi.cli:main"]},
     ext_modules=ext_modules,
     cmdclass=cmdclass,

@@ -1,5 +1,5 @@
 """CUDA benchmarks: the reference (MoDi's grouped per-sample form), the dense form (one shared cuDNN conv on the
-masked weight, style/demodulation as scales: ``modi_ext.dense``) and the modi_ext CUDA kernels.
+masked weight, style/demodulation as scales: ``modi_ext.skeletal.dense``) and the modi_ext CUDA kernels.
 
 ``cuda_cases(dtype)`` returns ``{case: (ref_fn, ext_fn[, dense_fn])}`` of zero-argument callables for ``benchmarks/compare.py
 --device cuda``; every callable ends with ``torch.cuda.synchronize()`` so a wall-clock timer measures the GPU work.
@@ -15,7 +15,7 @@ hierarchy from ``benchmarks/compare.py``), batch 16 and 256, float32 (``fp32``) 
   modulated_up.<level>.b<B>.<dt>.{fwd,fwd_bwd}     the up-scaler with style and demodulation
   fk.b4096.<dt>.{fwd,fwd_bwd}                      forward kinematics, B=4096 x T=64 samples, 22 joints
 
-The cases call the ops directly (``modi_ext.reference.*`` vs ``torch.ops.modi_ext.*``, the demodulation scale
+The cases call the ops directly (``modi_ext.skeletal.reference.*`` vs ``torch.ops.modi_ext.*``, the demodulation scale
 included on the extension side) rather than through the layers, so bfloat16 runs too and both sides do the same
 work; ``fwd_bwd`` differentiates w.r.t. the input, weight, bias and style with a fixed upstream gradient (FK: w.r.t.
 rotations and root translation).  The reference runs with torch's default backend flags (cuDNN may use TF32 for
@@ -40,9 +40,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from modi_ext import dense, ops, reference  # noqa: E402
+from modi_ext.skeletal import dense, ops, reference  # noqa: E402
 from modi_ext.fk import fk_reference  # noqa: E402
-from modi_ext.topology_tensors import csr_from_lists  # noqa: E402
+from modi_ext.topology import csr_from_lists  # noqa: E402
 
 BATCHES = (16, 256)
 FK_B, FK_T = 4096, 64

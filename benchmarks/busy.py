@@ -1,7 +1,7 @@
 """Another user's job, on demand: spinning helper processes that keep cores busy while a benchmark times.
 
 No torch here: ``start_early`` runs before the benchmark imports modi_ext and torch, so the load is already there
-when ``modi_ext.omp_wait`` looks at the machine, as it is for a user whose job starts on a shared node.
+when ``modi_ext.runtime.omp_wait`` looks at the machine, as it is for a user whose job starts on a shared node.
 """
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ built-in fallback otherwise), batch 16, fp32:
   fk.*                                    from benchmarks/bench_fk.py ``fk_cases()`` when present
 
 Like the ``modi`` command, it imports modi_ext before torch, which picks the OpenMP spin for the machine it sees
-(``modi_ext/omp_wait.py``; ``--busy N`` starts its load first); every row records the setting as ``omp_wait``.
+(``modi_ext/runtime/omp_wait.py``; ``--busy N`` starts its load first); every row records the setting as ``omp_wait``.
 Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike; the
 medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
 style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
@@ -51,13 +51,15 @@ from pathlib import Path
 from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# The checkout's packages, after PYTHONPATH's entries (``python -m modi_ext.validate --build`` points PYTHONPATH at a
+# fresh build: inserted first, the checkout's unbuilt modi_ext would shadow it) and before site-packages.
+sys.path.insert(1 + len([p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]), str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)
 
 # --busy N: the other job runs before this process loads anything, as on a shared machine; then modi_ext before
-# torch, as the ``modi`` command does: it picks the OpenMP spin before libgomp loads (modi_ext/omp_wait.py)
+# torch, as the ``modi`` command does: it picks the OpenMP spin before libgomp loads (modi_ext/runtime/omp_wait.py)
 _EARLY_BUSY = start_early(sys.argv) if __name__ == "__main__" else None
 import modi_ext  # noqa: E402
 
@@ -271,7 +273,7 @@ def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, di
                 kinds += ("double",) + (("bwd",) if op in ("skeletal_conv", "modulated_conv") else ())
             for kind in kinds:
                 key = f"{op}.{name}.{kind}"
-                impls = ("ref", "ext", "dense")  # dense: one shared conv, style/demod as scales (modi_ext.dense)
+                impls = ("ref", "ext", "dense")  # dense: modi_ext.skeletal.dense (one shared conv, style/demod scales)
                 if kind == "double":
                     cases[key] = _double_case(module, inputs, impls)
                 elif kind == "bwd":
@@ -407,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
                          "clock": args.clock, "busy": args.busy, "busy_cores": busy_list,
                          "omp_wait": omp_wait, "machine": desc, **info.get(name, {})}
         extra = ""
-        if len(ms) > 2:  # the dense path (modi_ext.dense) as a third side
+        if len(ms) > 2:  # the dense path (modi_ext.skeletal.dense) as a third side
             results[name].update(dense_ms=round(ms[2], 4), speedup_dense_vs_ref=round(ref_ms / ms[2], 3),
                                  speedup_ext_vs_dense=round(ms[2] / ext_ms, 3))
             extra = f" {ms[2]:10.3f} {ref_ms / ms[2]:8.2f}x {ms[2] / ext_ms:8.2f}x"

@@ -13,7 +13,7 @@ Sides (``--sides``, comma separated):
                    what the package runs without the extension);
 * ``ext_refgrad``  the C++ kernels for forward and first-order backward, but the graph of a gradient (R1, path
                    length, WGAN-GP) built through the dense reference (``MODI_EXT_DOUBLE=ref``: how the extension
-                   worked before ``modi_ext.gradfix``);
+                   worked before ``modi_ext.skeletal.autograd``);
 * ``ext``          the kernels for every order;
 * ``ext_torchdemod`` as ``ext``, with the demodulation coefficients from torch ops (``MODI_EXT_DEMOD=torch``: how
                    the extension worked before ``modi_ext.demod``).
@@ -30,6 +30,7 @@ GANimator: one trainer per side on one clip (default Joe/Salsa-Dancing-6, fast p
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -37,12 +38,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# The checkout's packages, after PYTHONPATH's entries (``python -m modi_ext.validate --build`` points PYTHONPATH at a
+# fresh build: inserted first, the checkout's unbuilt modi_ext would shadow it) and before site-packages.
+sys.path.insert(1 + len([p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]), str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from busy import busy_cores, start_early  # noqa: E402  (benchmarks/busy.py: no torch)
 
-# --busy N starts the other job first; then modi_ext before torch, as the modi command does (modi_ext/omp_wait.py)
+# --busy N starts the other job first; then modi_ext before torch, as the modi command does
+# (modi_ext/runtime/omp_wait.py)
 _EARLY_BUSY = start_early(sys.argv) if __name__ == "__main__" else None
 import modi_ext  # noqa: E402
 

@@ -1,5 +1,89 @@
-"""modi: MoDi and GANimator motion synthesis on skeleton-aware operators (see README)."""
+"""modi: MoDi and GANimator motion synthesis on skeleton-aware operators (see README and docs/api.md).
+
+The public Python API::
+
+    import modi
+
+    clip = modi.load("walk.bvh")                     # a modi.Motion (fps and length unit known)
+    clip.positions(unit="m")                         # (T, J, 3) in metres
+    gen = modi.load("runs/modi/checkpoint.pt")       # a ModiGenerator
+    motions = gen.sample(8, seed=0)                  # list[modi.Motion], as `modi generate --n 8 --seed 0`
+    run = modi.train_ganimator("walk.bvh", "runs/g", preset="tiny")
+    run.generate(2, frames=120, seed=1)[0].to_gltf("walk.glb")
+    modi.show(motions, out="view.html")
+
+Importing ``modi`` is cheap (no torch): the names below are resolved on first use. Stable names are those in
+``__all__``; everything else (``modi.models``, ``modi.core``, ...) is internal and may change.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from modi._version import __version__
 
-__all__ = ["__version__"]
+# public name -> the module that defines it (imported on first use: `import modi` must not import torch, so that
+# the CLI can take Ctrl-C at start-up and `modi --help` stays fast)
+_PUBLIC = {
+    "Motion": "modi.data.motion",
+    "Skeleton": "modi.core.skeleton",
+    "load": "modi.api.files",
+    "FileInfo": "modi.api.files",
+    "ModiGenerator": "modi.api.generator",
+    "Inversion": "modi.api.generator",
+    "Boundary": "modi.api.generator",
+    "Encoder": "modi.api.encoder",
+    "GanimatorRun": "modi.api.ganimator",
+    "train_modi": "modi.api.training",
+    "train_ganimator": "modi.api.training",
+    "Progress": "modi.api.training",
+    "TrainingInterrupted": "modi.api.training",
+    "evaluate": "modi.api.evaluation",
+    "evaluate_real": "modi.api.evaluation",
+    "evaluate_single": "modi.api.evaluation",
+    "Topology": "modi.api.topology",
+    "show": "modi.api.viewing",
+    "UserError": "modi.errors",
+    "BvhError": "modi.errors",
+    "CheckpointError": "modi.errors",
+}
+
+__all__ = ["__version__", "inspect", *_PUBLIC]
+
+if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolves these
+    from modi.api.encoder import Encoder
+    from modi.api.evaluation import evaluate, evaluate_real, evaluate_single
+    from modi.api.files import FileInfo, load
+    from modi.api.ganimator import GanimatorRun
+    from modi.api.generator import Boundary, Inversion, ModiGenerator
+    from modi.api.topology import Topology
+    from modi.api.training import Progress, TrainingInterrupted, train_ganimator, train_modi
+    from modi.api.viewing import show
+    from modi.core.skeleton import Skeleton
+    from modi.data.motion import Motion
+    from modi.errors import BvhError, CheckpointError, UserError
+
+
+def __getattr__(name: str) -> Any:
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'modi' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # resolved once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+def inspect(path: str) -> "FileInfo":
+    """What ``modi info PATH`` prints, as a :class:`FileInfo`: kind, format and version, training step, skeleton,
+    config, training data and the modi that wrote a MoDi / GANimator checkpoint (or run folder), an encoder or a
+    feature-extractor file. The file is read as data only (nothing in it runs: safe on a file someone sent);
+    cost: reading it, no network is built. ``UserError`` for anything else."""
+    from modi.api.files import FileInfo  # lazy: import cost (torch), resolved on first call
+    from modi.cli.commands.info import _text, describe  # lazy: the describer lives with `modi info` (moves later)
+
+    d = describe(path)
+    return FileInfo.from_dict(d, _text(d))

@@ -439,6 +439,21 @@ class _HeldSignals:
                 signal.raise_signal(sig)
 
 
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT / SIGTERM wait until the block is over, then take effect as usual (Ctrl-C raises KeyboardInterrupt).
+
+    For importing torch: torch's C++ start-up imports numpy and swallows any error from it, KeyboardInterrupt
+    included, leaving a half-imported numpy behind (the next ``np.add`` is an AttributeError), and a Python error
+    inside one of its pybind11 calls aborts the process. A Ctrl-C during the import therefore waits the second
+    or two the import takes."""
+    held = _HeldSignals()
+    try:
+        yield
+    finally:
+        held.release()
+
+
 # ============================================================================================ run-folder lock
 LOCK_NAME = ".lock"
 _held: dict[str, list] = {}  # lock file -> [fd, depth]: this process's locks (re-entrant within a process)
@@ -546,3 +561,15 @@ __all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "
            "atomic_save_npy", "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]
+
+
+def existing_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:
+    """``UserError`` unless ``path`` is an existing file: says whether it is missing or a folder (the one check of
+    input files: the API's and the CLI's arguments alike)."""
+    p = Path(path)
+    pre = f"{option} " if option else ""
+    if p.is_dir():
+        raise UserError(f"{pre}{path}: is a folder, expected {'an' if what[:1] in 'aeiou' else 'a'} {what}")
+    if not p.is_file():
+        raise UserError(f"{pre}{path}: no such {what}")
+    return p

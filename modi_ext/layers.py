@@ -1,4 +1,4 @@
-"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.ops``.
+"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.skeletal.ops``.
 
 Topology comes in as plain lists and is turned into CSR buffers (not saved in ``state_dict``: the topology is a
 constructor argument).  Weights are stored compactly, one ``(Cout, Cin, U)`` block per (output entity, input entity)
@@ -14,10 +14,10 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from modi_ext import ops
 from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
-from modi_ext.reference import to_dense
-from modi_ext.topology_tensors import SparseTopology, csr_from_lists
+from modi_ext.skeletal import ops
+from modi_ext.skeletal.reference import to_dense
+from modi_ext.topology import SparseTopology, csr_from_lists
 
 __all__ = ["SkeletalConv", "SkeletalDownsample", "SkeletalUpsample", "ModulatedSkeletalConv", "EqualLinear",
            "ForwardKinematics"]
@@ -29,24 +29,34 @@ def _check_channels(**kw: int) -> None:
             raise ValueError(f"{k} must be a positive int, got {v!r}")
 
 
-def _check_kernel(kernel_size: int) -> None:
+def _check_conv_args(in_ch: int, out_ch: int, kernel_size: int) -> None:
+    _check_channels(in_ch=in_ch, out_ch=out_ch)
     if isinstance(kernel_size, bool) or not isinstance(kernel_size, int) or kernel_size <= 0 or kernel_size % 2 == 0:
         raise ValueError(f"kernel_size must be a positive odd int, got {kernel_size!r}")
 
 
 class _SkeletalBase(nn.Module):
-    """Shared plumbing: CSR buffers, compact weight, per-pair equalised-lr scale."""
+    """Shared plumbing: CSR buffers, compact weight, per-pair equalised-lr scale, bias."""
 
-    def _setup(self, topo: SparseTopology, w_shape: tuple[int, int, int, int], fan_entity: torch.Tensor,
-               fan_counts: torch.Tensor, fan_channels: int, kernel_size: int) -> None:
+    def _setup(self, topo: SparseTopology, in_ch: int, out_ch: int, kernel_size: int, padding_mode: str, bias: bool,
+               up: bool = False) -> None:
+        """``up``: the weight has the layout of the downsampler this layer is the adjoint of, ``(Cin, nnz, Cout, U)``,
+        and the fan-in of fine entity f counts the coarse entities that contain it."""
+        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
         self.n_out = topo.n_out
         self.n_in = topo.n_in
         self.register_buffer("index", topo.index, persistent=False)
         self.register_buffer("offsets", topo.offsets, persistent=False)
+        if up:
+            w_shape, fan = (in_ch, topo.nnz, out_ch, kernel_size), topo.in_degree()[topo.index]
+            self.n_fine = topo.n_in
+        else:
+            w_shape, fan = (out_ch, topo.nnz, in_ch, kernel_size), topo.fan_in_counts()[topo.pair_entity]
         self.weight = nn.Parameter(torch.randn(w_shape))
-        fan_in = fan_counts[fan_entity].to(torch.float64) * fan_channels * kernel_size
+        fan_in = fan.to(torch.float64) * in_ch * kernel_size
         scale = fan_in.rsqrt().to(torch.get_default_dtype())
         self.register_buffer("weight_scale", scale, persistent=False)  # (nnz,)
+        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
 
     scale_folded = False  # set by fold_weight_scale(): the stored weight already carries the factor
 
@@ -79,15 +89,11 @@ class SkeletalConv(_SkeletalBase):
     def __init__(self, in_ch: int, out_ch: int, neighbors: Sequence[Sequence[int]], kernel_size: int = 3,
                  padding_mode: str = "zeros", bias: bool = True) -> None:
         super().__init__()
-        _check_channels(in_ch=in_ch, out_ch=out_ch)
-        _check_kernel(kernel_size)
+        _check_conv_args(in_ch, out_ch, kernel_size)
         if padding_mode not in ("zeros", "reflect"):
             raise ValueError(f"padding_mode must be 'zeros' or 'reflect', got {padding_mode!r}")
         topo = csr_from_lists(neighbors, n_in=len(neighbors) if len(neighbors) else None, name="neighbors")
-        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
-        self._setup(topo, (out_ch, topo.nnz, in_ch, kernel_size), topo.pair_entity, topo.fan_in_counts(), in_ch,
-                    kernel_size)
-        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+        self._setup(topo, in_ch, out_ch, kernel_size, padding_mode, bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return ops.skeletal_conv(x, self.effective_weight(), self.bias, self.index, self.offsets,
@@ -108,13 +114,9 @@ class SkeletalDownsample(_SkeletalBase):
     def __init__(self, in_ch: int, out_ch: int, pooling: Sequence[Sequence[int]], kernel_size: int = 3,
                  bias: bool = True, padding_mode: str = "zeros") -> None:
         super().__init__()
-        _check_channels(in_ch=in_ch, out_ch=out_ch)
-        _check_kernel(kernel_size)
-        topo = csr_from_lists(pooling, name="pooling", require_cover=True)
-        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
-        self._setup(topo, (out_ch, topo.nnz, in_ch, kernel_size), topo.pair_entity, topo.fan_in_counts(), in_ch,
-                    kernel_size)
-        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+        _check_conv_args(in_ch, out_ch, kernel_size)
+        self._setup(csr_from_lists(pooling, name="pooling", require_cover=True), in_ch, out_ch, kernel_size,
+                    padding_mode, bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return ops.skeletal_down(x, self.effective_weight(), self.bias, self.index, self.offsets,
@@ -123,6 +125,10 @@ class SkeletalDownsample(_SkeletalBase):
     def dense_weight(self) -> torch.Tensor:
         """Masked dense ``(Cout, Cin, E_coarse, E_fine, U)`` weight, equalised-lr factor applied."""
         return to_dense(self.effective_weight(), self.index, self.offsets, self.n_in)
+
+    def extra_repr(self) -> str:
+        return (f"{self.in_ch}, {self.out_ch}, entities={self.n_in}->{self.n_out}, pairs={self.index.numel()}, "
+                f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
 
 
 class SkeletalUpsample(_SkeletalBase):
@@ -134,14 +140,9 @@ class SkeletalUpsample(_SkeletalBase):
     def __init__(self, in_ch: int, out_ch: int, pooling: Sequence[Sequence[int]], kernel_size: int = 3,
                  bias: bool = True, padding_mode: str = "zeros") -> None:
         super().__init__()
-        _check_channels(in_ch=in_ch, out_ch=out_ch)
-        _check_kernel(kernel_size)
-        topo = csr_from_lists(pooling, name="pooling", require_cover=True)
-        self.in_ch, self.out_ch, self.kernel_size, self.padding_mode = in_ch, out_ch, kernel_size, padding_mode
-        # fan-in of fine entity f: the coarse entities that contain it
-        self._setup(topo, (in_ch, topo.nnz, out_ch, kernel_size), topo.index, topo.in_degree(), in_ch, kernel_size)
-        self.n_fine = topo.n_in
-        self.bias = nn.Parameter(torch.zeros(out_ch)) if bias else None
+        _check_conv_args(in_ch, out_ch, kernel_size)
+        self._setup(csr_from_lists(pooling, name="pooling", require_cover=True), in_ch, out_ch, kernel_size,
+                    padding_mode, bias, up=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return ops.skeletal_up(x, self.effective_weight(), self.bias, self.index, self.offsets, self.n_fine,
@@ -151,6 +152,10 @@ class SkeletalUpsample(_SkeletalBase):
         """Masked dense ``(Cout, Cin, E_fine, E_coarse, U)``: entry [o,i,f,c,u] carries x[i,c,t] to fine frame 2t+u-U//2."""
         d = to_dense(self.effective_weight(), self.index, self.offsets, self.n_fine)  # (Ci, Co, Ec, Ef, U)
         return d.permute(1, 0, 3, 2, 4)
+
+    def extra_repr(self) -> str:
+        return (f"{self.in_ch}, {self.out_ch}, entities={self.n_out}->{self.n_fine}, pairs={self.index.numel()}, "
+                f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
 
 
 class EqualLinear(nn.Module):

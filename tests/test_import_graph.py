@@ -11,7 +11,8 @@ cycle is still the edge it is. Layers, lowest first (a module may import its own
     modi.data                      Motion, representation, datasets
     modi.viz, modi.evaluation      looking at and measuring motion
     modi.models                    MoDi (with latent, encoder) and GANimator
-    modi.interop                   the authors' released checkpoints
+    modi.interop, modi.export      the authors' released checkpoints; models as files others run (ONNX)
+    modi.api                       the public Python API (what ``import modi`` gives)
     modi.cli, modi.blender, modi   the command line, the add-on, the package's front door
 
 Function-level imports outside the CLI and the add-on are few and each says why it is lazy (a comment on its line
@@ -34,11 +35,13 @@ LAYERS = [
     ("modi.data",),
     ("modi.viz", "modi.evaluation"),
     ("modi.models",),
-    ("modi.interop",),
+    ("modi.interop", "modi.export"),
+    ("modi.api",),
     ("modi.cli", "modi.blender", "modi.__main__", "modi"),
 ]
 LAZY_ALLOWED_IN = ("modi.cli", "modi.blender", "modi.__main__")  # lazy imports keep `modi --help` fast there
 MAX_LAZY = 40
+EXTENSIONS = {"modi_ext._C", "modi_ext._C_emu"}  # compiled modules: leaves of the graph
 
 
 def _modules(root: Path = REPO) -> dict[str, Path]:
@@ -69,6 +72,8 @@ def _targets(node: ast.AST, current: str, is_pkg: bool, modules: dict[str, Path]
         return set()
     out = set()
     for a in node.names:
+        if f"{mod}.{a.name}" in EXTENSIONS:
+            continue
         out.add(f"{mod}.{a.name}" if f"{mod}.{a.name}" in modules else mod)
     return {m for m in out if m in modules}
 

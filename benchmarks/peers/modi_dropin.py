@@ -5,8 +5,8 @@ generator's modulated skeletal convolutions: in place, upsampling, and the to-mo
 ``models.gan.EqualConv`` (the discriminator's skeletal convolutions and its convolutional scalers, 3-tap and 1x1)
 are subclasses that build exactly as theirs do (same random draws, same masks and fan-in factors), then keep only
 the entries their mask connects: ``weight`` becomes the compact per-pair ``(C, nnz, C', U)`` parameter that
-``modi_ext.ops`` reads, under the same name, so their optimiser (built from ``parameters()`` after construction),
-``accumulate`` (EMA by parameter name) and checkpoints keep working:
+``modi_ext.skeletal.ops`` reads, under the same name, so their optimiser (built from ``parameters()`` after
+construction), ``accumulate`` (EMA by parameter name) and checkpoints keep working:
 
 * ``state_dict()`` writes ``weight`` back in their dense masked shape (zeros off the mask: those entries are
   multiplied by zero in their forward), so a checkpoint of the patched script is one of theirs;
@@ -27,9 +27,9 @@ import torch
 import torch.nn.functional as F
 
 from modi.interop.modi_released import MaskViolation, check_masks
-from modi_ext import ops
-from modi_ext.reference import from_dense, to_dense
-from modi_ext.topology_tensors import csr_from_lists
+from modi_ext.skeletal import ops
+from modi_ext.skeletal.reference import from_dense, to_dense
+from modi_ext.topology import csr_from_lists
 
 SUPPORTED_TRAITS = ("SkeletonAwareFastConvTraits",)
 
@@ -54,7 +54,7 @@ class _Compact:
     """Mixin: the dense-masked <-> compact conversion shared by both patched classes.
 
     ``_to_ext(t)`` / ``_from_ext(t)`` map their dense weight layout to the ``(C0, C1, E_out, E_in, U)`` layout
-    ``modi_ext.reference.to_dense`` uses for the op (a leading 1 for modulated weights; C0/C1 swapped for the
+    ``modi_ext.skeletal.reference.to_dense`` uses for the op (a leading 1 for modulated weights; C0/C1 swapped for the
     upsampler, whose op weight is the adjoint downsampler's)."""
 
     _dense_shape: torch.Size
@@ -120,7 +120,7 @@ def _classes(gan: types.ModuleType) -> tuple[type, type]:
         return cached
 
     class DropInModulatedConv(_Compact, gan.ModulatedConv):
-        """Their ModulatedConv with its convolution on ``modi_ext.ops`` (keep-dims, upsampling, 1x1)."""
+        """Their ModulatedConv with its convolution on ``modi_ext.skeletal.ops`` (keep-dims, upsampling, 1x1)."""
 
         def __init__(self, *a: Any, **k: Any) -> None:
             super().__init__(*a, **k)
@@ -149,7 +149,8 @@ def _classes(gan: types.ModuleType) -> tuple[type, type]:
             return out
 
     class DropInEqualConv(_Compact, gan.EqualConv):
-        """Their EqualConv (after their Blur, where they have one) on ``modi_ext.ops``: in place or stride 2."""
+        """Their EqualConv (after their Blur, where they have one) on ``modi_ext.skeletal.ops``: in place or
+        stride 2."""
 
         def __init__(self, *a: Any, **k: Any) -> None:
             super().__init__(*a, **k)

@@ -18,6 +18,7 @@ noise, the reconstruction, the demo's random sample, the WGAN-GP and other loss 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import random
 import sys
@@ -28,11 +29,33 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 import torch
 
+from benchmarks.peers import unavailable_reason
+
 REPO = Path(__file__).resolve().parents[2]
 PEER = REPO.parent / "shared" / "peers" / "ganimator"
 DATA = REPO.parent / "shared" / "data" / "bvh" / "ganimator"
 # the Mixamo walk: a namespaced rig whose released joint order (legs first) differs from the file's (spine first)
 WALK = DATA / "Joe" / "Walk-In-Circle.bvh"
+BANDAI = REPO.parent / "shared" / "data" / "bvh" / "bandai-namco-1" / "data"
+
+
+@dataclasses.dataclass(frozen=True)
+class SkeletonTable:
+    """One entry of their ``bvh/skeleton_database.py``: what their README asks a user to add for a BVH of their
+    own ("specify the joint names that should be involved during the generation and the contact name")."""
+
+    name: str
+    corps: tuple[str, ...]      # the joints kept, in the order their loader lists them (its first is the root)
+    contacts: tuple[str, ...]   # the joints with contact labels
+    threshold: float = 0.018    # their per-frame foot displacement threshold
+
+
+# Bandai-Namco's 22-joint rig as a user of theirs would enter it: every joint in the file's order, from the static
+# floor root joint_Root down, and the toes as contacts (the Mixamo entry's threshold)
+BANDAI_TABLE = SkeletonTable(
+    "Bandai", ("joint_Root", "Hips", "Spine", "Chest", "Neck", "Head", "Shoulder_L", "UpperArm_L", "LowerArm_L",
+               "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R", "UpperLeg_L", "LowerLeg_L", "Foot_L",
+               "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R"), ("Toes_L", "Toes_R"))
 
 PEER_MODULES = ("option", "models", "dataset", "bvh", "utils", "loss_recorder", "demo", "train", "fix_contact",
                 "interactive_utils", "evaluate")
@@ -44,21 +67,16 @@ class PeerUnavailable(RuntimeError):
     """The released sources or the BVH data are not beside the repository."""
 
 
-THIRD_PARTY = ("tqdm", "matplotlib", "torch.utils.tensorboard")  # what their train.py / models import
+# what their train.py / models import (import name -> pip name; setup.py's 'peers' extra)
+THIRD_PARTY = {"tqdm": "tqdm", "matplotlib": "matplotlib", "torch.utils.tensorboard": "tensorboard"}
 
 
 def require_peer() -> Path:
     if not (PEER / "models" / "gan1d.py").is_file():
         raise PeerUnavailable(f"the authors' GANimator sources are not at {PEER} (../shared/peers/ganimator)")
-    import importlib.util
-
-    for name in THIRD_PARTY:
-        try:
-            found = importlib.util.find_spec(name) is not None
-        except ImportError:
-            found = False
-        if not found:
-            raise PeerUnavailable(f"the authors' GANimator imports {name}, which is not installed")
+    why = unavailable_reason("GANimator", THIRD_PARTY)
+    if why is not None:
+        raise PeerUnavailable(why)
     return PEER
 
 
@@ -73,8 +91,30 @@ def _is_peer(name: str) -> bool:
 
 
 @contextlib.contextmanager
-def peer_runtime() -> Iterator[types.SimpleNamespace]:
-    """Their modules importable and CPU-only for the duration of the block; yields them."""
+def _table(table: SkeletonTable | None) -> Iterator[None]:
+    """``table`` appended to their ``SkeletonDatabase`` for the block (their README's step for a custom BVH; the
+    peer folder's file is not edited)."""
+    if table is None:
+        yield
+        return
+    from bvh.skeleton_database import SkeletonDatabase as db
+
+    saved = {k: getattr(db, k) for k in ("names", "corps_names", "contact_names", "contact_thresholds")}
+    db.names = saved["names"] + [table.name]
+    db.corps_names = saved["corps_names"] + [list(table.corps)]
+    db.contact_names = saved["contact_names"] + [list(table.contacts)]
+    db.contact_thresholds = saved["contact_thresholds"] + [table.threshold]
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            setattr(db, k, v)
+
+
+@contextlib.contextmanager
+def peer_runtime(table: SkeletonTable | None = None) -> Iterator[types.SimpleNamespace]:
+    """Their modules importable and CPU-only for the duration of the block (``table``: a custom skeleton-table
+    entry, as their README asks for a BVH of one's own); yields them."""
     root = require_peer()
     saved = {n: sys.modules.pop(n) for n in [n for n in sys.modules if _is_peer(n)]}
     sys.modules.update(_KEPT)
@@ -93,8 +133,9 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
         import train
         from dataset import motion
 
-        yield types.SimpleNamespace(demo=demo, models=models, architecture=architecture, utils=mutils,
-                                    option=option, train=train, motion=motion, root=root)
+        with _table(table):
+            yield types.SimpleNamespace(demo=demo, models=models, architecture=architecture, utils=mutils,
+                                        option=option, train=train, motion=motion, root=root)
     finally:
         torch.Tensor.cuda = old_cuda  # type: ignore[method-assign]
         with contextlib.suppress(ValueError):
@@ -125,14 +166,16 @@ def _seed(seed: int) -> None:
     np.random.seed(seed)
 
 
-def train_released(bvh: Path, save_path: Path, iters: int, seed: int = 0, extra: Sequence[str] = ()) -> "ReleasedRun":
-    """Their ``train.py`` on ``bvh`` for ``iters`` iterations per block; the run folder is ``save_path``."""
+def train_released(bvh: Path, save_path: Path, iters: int, seed: int = 0, extra: Sequence[str] = (),
+                   table: SkeletonTable | None = None) -> "ReleasedRun":
+    """Their ``train.py`` on ``bvh`` for ``iters`` iterations per block; the run folder is ``save_path``
+    (``table``: the skeleton-table entry of a custom BVH, present while it trains and when the run is loaded)."""
     bvh = Path(bvh).resolve()
     save_path = Path(save_path).resolve()
     argv = ["train.py", f"--bvh_prefix={bvh.parent}", f"--bvh_name={bvh.stem}", f"--save_path={save_path}",
             f"--num_iters={iters}", "--silent=1", "--device=cpu", *extra]
     made: list[tuple[Any, Any, Any]] = []
-    with peer_runtime() as peer:
+    with peer_runtime(table) as peer:
         real_create = peer.train.create_model
 
         def create_model(*a: Any, **k: Any) -> Any:
@@ -152,20 +195,23 @@ def train_released(bvh: Path, save_path: Path, iters: int, seed: int = 0, extra:
             peer.train.create_model = real_create
             sys.argv = old_argv
             os.chdir(cwd)
-    return ReleasedRun(save_path, discs=[m[1] for m in made])
+    return ReleasedRun(save_path, discs=[m[1] for m in made], table=table)
 
 
 class ReleasedRun:
     """A released run folder loaded with their ``demo.load_all_from_path``; their outputs on demand.
 
     ``dtype``: everything (networks, data, z*, amplitudes) in this precision; float64 for equality tests.
+    ``table``: the skeleton-table entry the run was trained with (a custom BVH), for their loader.
     """
 
-    def __init__(self, path: Path, discs: Sequence[Any] = (), dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, path: Path, discs: Sequence[Any] = (), dtype: torch.dtype = torch.float32,
+                 table: SkeletonTable | None = None) -> None:
         self.path = Path(path)
         self.dtype = dtype
+        self.table = table
         self.trained_discs = list(discs)
-        with peer_runtime() as peer:
+        with peer_runtime(table) as peer:
             with contextlib.redirect_stdout(open(os.devnull, "w")):
                 args, datas, gens, z_stars, amps, lengths = peer.demo.load_all_from_path(str(self.path), "cpu")
         self.args, self.motion_data, self.gens = args, datas[0], [g.to(dtype) for g in gens]
@@ -181,7 +227,7 @@ class ReleasedRun:
     def draw(self, mode: str, lengths: Sequence[int], amps: Any, given_noise: Sequence[Any] | None = None
              ) -> list[torch.Tensor]:
         """Their ``draw_example`` (mode ``random`` / ``rec``) on the loaded generators: each level's output."""
-        with peer_runtime() as peer, torch.no_grad():
+        with peer_runtime(self.table) as peer, torch.no_grad():
             return peer.architecture.draw_example(self.gens, mode, self.z_star, list(lengths), amps, 1, self.args,
                                                   all_img=True, conds=None, full_noise=self.args.full_noise,
                                                   given_noise=given_noise)
@@ -197,7 +243,7 @@ class ReleasedRun:
     def demo_sample(self, target_len: int, seed: int = 0) -> tuple[list[torch.Tensor], torch.Tensor]:
         """Their ``demo.py`` random sample of ``target_len`` frames: noise at the coarsest level only.
         Returns each level's output and the coarsest noise used ``(1, 1, L0)``."""
-        with peer_runtime() as peer:
+        with peer_runtime(self.table) as peer:
             lengths = peer.architecture.get_pyramid_lengths(self.args, target_len)
             while len(lengths) > len(self.gens):
                 lengths = lengths[1:]
@@ -210,7 +256,7 @@ class ReleasedRun:
 
     def write_bvh(self, path: Path, motion: torch.Tensor) -> Path:
         """Their BVH writer (``MotionData.write``; also writes ``path.contact.npy``)."""
-        with peer_runtime():
+        with peer_runtime(self.table):
             self.motion_data.write(str(path), motion.detach().to(self.dtype))
         return Path(path)
 
@@ -222,7 +268,7 @@ class ReleasedRun:
     def gan_model(self, level: int, disc_state: dict | None = None, seed: int = 0) -> Any:
         """Their ``GAN_model`` of ``level`` (their ``create_model``) with the loaded generator; the
         discriminator is freshly initialised from ``seed`` unless ``disc_state`` is given."""
-        with peer_runtime() as peer:
+        with peer_runtime(self.table) as peer:
             _seed(seed)
             with contextlib.redirect_stdout(open(os.devnull, "w")):
                 gen, disc, gm = peer.models.create_model(self.args, self.motion_data)
@@ -239,7 +285,7 @@ class ReleasedRun:
         ``base + fake_delta`` (``fake_delta``: the generator's residual, with its graph): ``loss_D``, ``loss_gp``
         (with the WGAN-GP's alpha drawn after ``torch.manual_seed(seed)``), ``loss_G``, ``loss_consistency``,
         ``loss_rec`` and the gradients they leave on the discriminator (D step) and the generator (G step)."""
-        with peer_runtime():
+        with peer_runtime(self.table):
             gm.gen.output = fake_delta
             gm.forward_proxy(real, base)
             gm.disc_requires_grad_(True)
@@ -289,7 +335,7 @@ class ReleasedRun:
         args.num_iters, args.silent = 1, 1
         recorder = types.SimpleNamespace(add_scalar=lambda *a, **k: None)
         default = torch.get_default_dtype()
-        with peer_runtime() as peer:
+        with peer_runtime(self.table) as peer:
             torch.set_default_dtype(self.dtype)  # their zeros and noise draws, in the run's precision
             _seed(seed)
             try:
@@ -300,5 +346,5 @@ class ReleasedRun:
         return gms
 
 
-__all__ = ["PEER", "DATA", "WALK", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "trim_bvh",
+__all__ = ["PEER", "DATA", "WALK", "BANDAI", "SkeletonTable", "BANDAI_TABLE", "PeerUnavailable", "require_peer", "require_data", "peer_runtime", "trim_bvh",
            "train_released", "ReleasedRun"]

@@ -35,6 +35,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from benchmarks.peers import unavailable_reason
+
 REPO = Path(__file__).resolve().parents[2]
 PEER = REPO.parent / "shared" / "peers" / "MoDi"
 BANDAI = REPO.parent / "shared" / "data" / "bvh" / "bandai-namco-1" / "data"
@@ -54,9 +56,18 @@ class PeerUnavailable(RuntimeError):
     """The released sources or the data they need are not beside the repository."""
 
 
+# what their modules import at run time (import name -> pip name; setup.py's 'peers' extra); cv2 and pandas are
+# stood in for by peer_runtime (imported, never called on these paths)
+THIRD_PARTY = {"yaml": "pyyaml", "networkx": "networkx", "matplotlib": "matplotlib", "scipy": "scipy",
+               "sklearn": "scikit-learn", "tqdm": "tqdm", "torch.utils.tensorboard": "tensorboard"}
+
+
 def require_peer() -> Path:
     if not (PEER / "models" / "gan.py").is_file():
         raise PeerUnavailable(f"the authors' MoDi sources are not at {PEER} (../shared/peers/MoDi)")
+    why = unavailable_reason("MoDi", THIRD_PARTY)
+    if why is not None:
+        raise PeerUnavailable(why)
     return PEER
 
 

@@ -1,4 +1,4 @@
-// A CUDA execution-model emulator for testing: compiles the unchanged kernels of csrc/cuda/*.cu as host C++
+// A CUDA execution-model emulator for testing: compiles the unchanged kernels of csrc/<op>/cuda.cu as host C++
 // (-DMODI_EXT_EMULATE_CUDA) and runs them on the CPU, so CI exercises the CUDA code without a GPU.
 //
 // Model: blocks run one after another (in an order permuted by the schedule seed); every thread of a block is its
@@ -291,41 +291,37 @@ inline void __syncwarp(unsigned mask = 0xffffffffu, int line = __builtin_LINE())
 
 // ------------------------------------------------------------------------------------------------ atomics
 // Fibers switch only at barriers, so a read-modify-write cannot be interleaved: plain host operations are atomic.
+namespace modi_emu {
+template <typename T, typename F>
+T atomic_update(T* p, const F& f) {  // *p = f(*p); returns the old value
+  const T old = *p;
+  *p = f(old);
+  return old;
+}
+}  // namespace modi_emu
 template <typename T>
 T atomicAdd(T* p, T v) {
-  const T old = *p;
-  *p = static_cast<T>(old + v);
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T old) { return static_cast<T>(old + v); });
 }
 template <typename T>
 T atomicSub(T* p, T v) {
-  const T old = *p;
-  *p = static_cast<T>(old - v);
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T old) { return static_cast<T>(old - v); });
 }
 template <typename T>
 T atomicMax(T* p, T v) {
-  const T old = *p;
-  if (v > old) *p = v;
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T old) { return v > old ? v : old; });
 }
 template <typename T>
 T atomicMin(T* p, T v) {
-  const T old = *p;
-  if (v < old) *p = v;
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T old) { return v < old ? v : old; });
 }
 template <typename T>
 T atomicExch(T* p, T v) {
-  const T old = *p;
-  *p = v;
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T) { return v; });
 }
 template <typename T>
 T atomicCAS(T* p, T compare, T v) {
-  const T old = *p;
-  if (old == compare) *p = v;
-  return old;
+  return ::modi_emu::atomic_update(p, [&](T old) { return old == compare ? v : old; });
 }
 inline void __threadfence() {}
 inline void __threadfence_block() {}

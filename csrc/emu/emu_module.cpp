@@ -1,4 +1,4 @@
-// Python module of the test-only emulated CUDA kernels (modi_ext._C_emu): the ops of csrc/cuda/*.cu under their
+// Python module of the test-only emulated CUDA kernels (modi_ext._C_emu): the ops of csrc/<op>/cuda.cu under their
 // own namespace (torch.ops.modi_ext_emu.*, CPU dispatch key only) plus the emulator's controls.
 #include <Python.h>
 #include <torch/library.h>
@@ -7,7 +7,7 @@
 #include <utility>
 
 #include "emu/emu_control.h"
-#include "modi_ext.h"
+#include "common/ops.h"
 
 #define MODI_EMU_TORCH_LIBRARY(ns, m) TORCH_LIBRARY(ns, m)
 MODI_EMU_TORCH_LIBRARY(MODI_EMU_LIB, m) {

@@ -4,7 +4,7 @@
 
 #include <ATen/ATen.h>
 
-#include "cuda/cuda_common.cuh"
+#include "common/cuda_common.cuh"
 
 namespace modi_ext {
 namespace {

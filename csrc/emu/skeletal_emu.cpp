@@ -1,2 +1,2 @@
 // The unchanged CUDA sources of the skeletal ops, compiled as host C++ for the emulator (test-only module).
-#include "cuda/skeletal_cuda.cu"
+#include "skeletal/cuda.cu"

@@ -8,7 +8,7 @@
 #include <ATen/core/dispatch/Dispatcher.h>
 #include <torch/torch.h>
 
-#include "../skeletal.h"
+#include "../skeletal/skeletal.h"
 
 namespace {
 

@@ -25,6 +25,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from modi._version import __version__
 from modi.errors import UserError
 
 TRACEBACK_ENV = "MODI_TRACEBACK"
@@ -50,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="MoDi and GANimator motion synthesis: data tools, training, generation, evaluation.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=version_line(),
+                        help="print modi's version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=ModiArgumentParser)
     import modi.cli.commands as commands
 
@@ -96,8 +99,21 @@ def _remove_if_empty(root: Path) -> None:
         pass
 
 
+def version_line() -> str:
+    """What ``modi --version`` prints: the one version string (``modi/_version.py``)."""
+    return f"modi {__version__}"
+
+
 def _run(argv: list[str] | None) -> int:
-    import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
+    if (sys.argv[1:] if argv is None else list(argv))[:1] == ["--version"]:  # answered before torch is imported
+        print(version_line())
+        return 0
+    from modi.faults import signals_held
+
+    with signals_held():  # a Ctrl-C inside torch's C++ start-up would half-import numpy or abort: it waits
+        import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
+        import numpy  # noqa: F401
+        import torch  # noqa: F401
 
     parser = build_parser()
     args = parser.parse_args(argv)

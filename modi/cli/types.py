@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from modi.errors import UserError
+from modi.faults import existing_file as input_file  # one check of input files (API and CLI)
 
 # Upper bounds of the sizes a user can ask for. They are far above anything the models are used with and far below
 # what would exhaust memory or run for hours by mistake.
@@ -189,17 +190,6 @@ def output_file(text: str) -> str:
 
 _named(output_dir, "folder")
 _named(output_file, "file")
-
-
-def input_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:
-    """``UserError`` unless ``path`` is an existing file: says whether it is missing or a folder."""
-    p = Path(path)
-    pre = f"{option} " if option else ""
-    if p.is_dir():
-        raise UserError(f"{pre}{path}: is a folder, expected {'an' if what[:1] in 'aeiou' else 'a'} {what}")
-    if not p.is_file():
-        raise UserError(f"{pre}{path}: no such {what}")
-    return p
 
 
 def refuse_overwrite(output: str | os.PathLike, inputs: Iterable[str | os.PathLike], what: str = "output") -> None:

@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Body", "side_of", "is_finger", "metres_scale", "SIDE_NAMES"]
+__all__ = ["Body", "side_of", "is_finger", "metres_scale", "SIDE_NAMES", "UnitGuess", "guess_unit", "unit_name", "UNIT_SCALES"]
 
 SIDE_NAMES = ("centre", "left", "right")
 _FINGER = re.compile(r"thumb|index|middle|ring|pinky|pinkie|little|finger", re.I)
@@ -85,6 +85,21 @@ class UnitGuess:
 
 
 _UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
+UNIT_SCALES = dict(_UNITS)  # metres per unit, by the long name
+_UNIT_ALIASES = {"m": "metres", "meters": "metres", "meter": "metres", "metre": "metres", "cm": "centimetres",
+                 "centimeters": "centimetres", "mm": "millimetres", "millimeters": "millimetres", "in": "inches",
+                 "inch": "inches"}
+
+
+def unit_name(unit: str) -> str:
+    """The long name of a length unit (``"m"`` -> ``"metres"``; also cm, mm, in and the US spellings);
+    ``ValueError`` for anything else."""
+    key = str(unit).strip().lower()
+    key = _UNIT_ALIASES.get(key, key)
+    if key not in UNIT_SCALES:
+        raise ValueError(f"unknown length unit {unit!r}; use one of m, cm, mm, in (or metres, centimetres, "
+                         "millimetres, inches)")
+    return key
 
 
 def guess_unit(height: float) -> UnitGuess:

@@ -20,6 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from modi_ext.fk.reference import quat_apply, quat_mul
+
 __all__ = [
     "EULER_ORDERS",
     "SIXD_LAYOUTS",
@@ -92,23 +94,6 @@ def quat_canonical(q: Tensor) -> Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
-def quat_mul(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``); broadcasts."""
-    _check_last(a, 4, "quat_mul(a)", "quaternions")
-    _check_last(b, 4, "quat_mul(b)", "quaternions")
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ),
-        dim=-1,
-    )
-
-
 def quat_conjugate(q: Tensor) -> Tensor:
     _check_last(q, 4, "quat_conjugate", "quaternions")
     return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
@@ -118,16 +103,6 @@ def quat_inverse(q: Tensor) -> Tensor:
     """True inverse (conjugate / |q|^2), so it is also right for non-unit quaternions."""
     _check_last(q, 4, "quat_inverse", "quaternions")
     return quat_conjugate(q) / (q * q).sum(-1, keepdim=True).clamp_min(1e-24)
-
-
-def quat_apply(q: Tensor, v: Tensor) -> Tensor:
-    """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)``; broadcasts."""
-    _check_last(q, 4, "quat_apply(q)", "quaternions")
-    _check_last(v, 3, "quat_apply(v)", "vectors")
-    w = q[..., :1]
-    u = q[..., 1:]
-    t = 2.0 * _cross(u, v)
-    return v + w * t + _cross(u, t)
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:

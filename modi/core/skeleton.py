@@ -48,7 +48,7 @@ def _side(name: str) -> str | None:
     return m.group(1) if m else None
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class Skeleton:
     """A joint tree. Joints are topologically sorted: ``parents[j] < j`` and ``parents[0] == -1``.
 
@@ -82,6 +82,21 @@ class Skeleton:
             raise ValueError("skeleton: duplicate joint names")
         if self.rotation_orders is None:
             self.rotation_orders = ["ZYX"] * n
+
+    def __eq__(self, other: object) -> bool:
+        """Exactly the same tree: names, parents, offsets, End Sites and Euler orders."""
+        if not isinstance(other, Skeleton):
+            return NotImplemented
+        return (self.names == other.names and self.parents == other.parents
+                and self.rotation_orders == other.rotation_orders and np.array_equal(self.offsets, other.offsets)
+                and self.end_sites.keys() == other.end_sites.keys()
+                and all(np.array_equal(np.asarray(v), np.asarray(other.end_sites[k])) for k, v in self.end_sites.items()))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, compared by value
+
+    def __repr__(self) -> str:
+        shown = ", ".join(self.names[:6]) + (", ..." if self.n_joints > 6 else "")
+        return f"Skeleton({self.n_joints} joints: {shown})"
 
     @property
     def n_joints(self) -> int:

@@ -17,10 +17,11 @@ import torch
 
 from modi.errors import CheckpointError
 from modi.interop.modi_released import check_masks, convert_checkpoint, released_style_index, reverse_hierarchy_state
+from modi.interop.provenance import file_record, record, released_iterations
 from modi.interop.released_files import load_released_file
 from modi.models.modi.checkpoint import atomic_torch_save
 from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
-from modi.models.modi.encoder.training import ENCODER_FORMAT, ENCODER_VERSION, generator_bundle
+from modi.models.modi.encoder.training import encoder_checkpoint_dict, generator_bundle
 from modi.models.modi.latent.space import mean_w
 from modi.models.modi.sampling import load_generator
 
@@ -84,10 +85,12 @@ def import_checkpoint(ckpt: Path | str, generator: Path | str, data: Path | str,
     gen_state = convert_checkpoint(generator, data, fps)
     g, codec, gcfg = load_generator(gen_state)
     enc = convert_encoder(st, g)
-    state = {"format": ENCODER_FORMAT, "version": ENCODER_VERSION, "encoder_config": enc.cfg.to_dict(),
-             "encoder": {k: v.detach().cpu() for k, v in enc.state_dict().items()}, "step": 0,
-             "generator": generator_bundle(g, codec, gcfg),
-             "imported_from": {"kind": "encoder-released", "path": str(ckpt), "generator": str(generator)}}
+    gen_prov = gen_state["imported_from"]
+    iterations, known = released_iterations(ckpt, st.get("e_optim"))
+    prov = record("encoder-released", file_record(ckpt), iterations=iterations, iterations_from=known,
+                  args=st["args"], data=gen_prov["data"], seed=None, generator=gen_prov)
+    bundle = {**generator_bundle(g, codec, gcfg, step=gen_state["step"]), "imported_from": gen_prov}
+    state = encoder_checkpoint_dict(encoder=enc, generator=bundle, step=iterations or 0, imported_from=prov)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / "encoder.pt"

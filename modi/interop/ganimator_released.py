@@ -20,8 +20,8 @@ Files are read with ``torch.load(weights_only=True)`` (``modi.io.safe_load``): d
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
-import math
 import re
 import shlex
 from pathlib import Path
@@ -33,12 +33,15 @@ from torch import Tensor
 
 from modi.core.joint_reduction import reduce_joints
 from modi.core.kinematics import forward_kinematics
+from modi.core.rotations import quat_apply, quat_mul
 from modi.core.skeleton import Skeleton, strip_namespace
 from modi.errors import CheckpointError, UserError
+from modi.interop.provenance import file_record, folder_record, record
+from modi.io import bvh as bvh_io
 from modi.io.safe_load import load_data
 from modi.models.ganimator.config import GanimatorConfig
-from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.data import (
+    RawClip,
     _permute_clip,
     body_height,
     contact_labels,
@@ -50,6 +53,7 @@ from modi.models.ganimator.data import (
     sequence_pyramid,
     subset_clip,
 )
+from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import EntityBias, ganimator_neighbors
 from modi.models.ganimator.training import Trainer, blocks_of, checkpoint_path
 
@@ -96,8 +100,13 @@ def find_run(ckpt: str | Path) -> Path:
     return run
 
 
+# their other options (option.py) that are numbers, typed as their parser types them (the rest are text)
+_OTHER_TYPES: dict[str, Any] = {"debug": 0, "silent": 0, "no_gan": 0, "num_conditional_generator": 0, "lr_d": 0.0,
+                                "detach_label": 0, "use_sigmoid": 0, "save_freq": 0, "use_6d_fk": 0}
+
+
 def _typed(name: str, text: str) -> Any:
-    d = _DEFAULTS.get(name)
+    d = _DEFAULTS.get(name, _OTHER_TYPES.get(name))
     try:
         if isinstance(d, bool) or isinstance(d, int):
             return int(text)
@@ -108,8 +117,9 @@ def _typed(name: str, text: str) -> Any:
     return text
 
 
-def read_args(run: Path) -> dict[str, Any]:
-    """The options of their ``train.py`` from ``args.txt`` (its first line, as their loader reads it)."""
+def stated_args(run: Path) -> dict[str, Any]:
+    """The options ``args.txt`` states (its first line, as their loader reads it), typed as their parser types
+    them; their defaults are not added."""
     try:
         line = (run / ARGS_FILE).read_text(encoding="utf-8", errors="replace").splitlines()[:1]
     except OSError as exc:
@@ -118,7 +128,7 @@ def read_args(run: Path) -> dict[str, Any]:
         tokens = shlex.split(line[0]) if line else []
     except ValueError:
         tokens = line[0].split()
-    args = dict(_DEFAULTS)
+    args: dict[str, Any] = {}
     i = 0
     while i < len(tokens):
         tok = tokens[i]
@@ -134,6 +144,12 @@ def read_args(run: Path) -> dict[str, Any]:
             value = tokens[i + 1]
             i += 2
         args[name] = _typed(name, value)
+    return args
+
+
+def read_args(run: Path) -> dict[str, Any]:
+    """The options of their ``train.py``: ``args.txt`` over their defaults, checked for what modi imports."""
+    args = {**_DEFAULTS, **stated_args(run)}
     for name, want, what in _REQUIRED:
         if args[name] != want:
             raise UserError(f"{run}: trained with --{name}={args[name]}; modi imports released runs with {what} "
@@ -157,15 +173,23 @@ def _load(path: Path, what: str) -> Any:
     return load_data(path, what, hint="; a released GANimator file holds tensors only")
 
 
-def read_generators(run: Path) -> list[dict[str, Tensor]]:
-    """``gen000.pt``, ``gen001.pt``, ... (their loader also accepts ``gen0.pt``) as state dicts of tensors."""
+def generator_files(run: Path) -> list[Path]:
+    """``gen000.pt``, ``gen001.pt``, ... of the run (their loader also accepts ``gen0.pt``), coarsest first."""
     out = []
     for level in itertools.count():
         path = run / f"gen{level:03d}.pt"
         if not path.is_file():
             path = run / f"gen{level}.pt"
         if not path.is_file():
-            break
+            return out
+        out.append(path)
+    return out
+
+
+def read_generators(run: Path) -> list[dict[str, Tensor]]:
+    """``gen000.pt``, ``gen001.pt``, ... (their loader also accepts ``gen0.pt``) as state dicts of tensors."""
+    out = []
+    for path in generator_files(run):
         sd = _load(path, "released GANimator generator")
         if not isinstance(sd, dict) or not all(isinstance(v, Tensor) for v in sd.values()):
             raise UserError(f"{path}: not a generator state_dict (expected a dict of tensors)")
@@ -324,14 +348,40 @@ def _amplitudes(clip: Any, lengths: Sequence[int]) -> list[float]:
     return out
 
 
-def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float,
-               raw: Any = None) -> Any:
-    """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels);
-    ``raw``: the BVH already read (``read_clip``)."""
-    raw = read_clip(bvh) if raw is None else raw
-    sub = subset_clip(raw, sorted(order))
-    srt = sorted(order)
-    clip = _permute_clip(sub, [srt.index(j) for j in order])
+def floor_root(raw: Any) -> bool:
+    """Whether the file's joint 0 is a static floor root above one joint (Bandai's ``joint_Root`` above ``Hips``):
+    constant position channels and rotation, one child."""
+    s = raw.skeleton
+    if sum(1 for p in s.parents if p == 0) != 1 or raw.rotations.shape[0] < 2:
+        return False
+    root, rot = raw.root_positions.to(torch.float64), raw.rotations[:, 0].to(torch.float64)
+    size = float(np.ptp(s.rest_positions(), axis=0).max()) or 1.0
+    return bool((root - root[0]).abs().max() <= 1e-9 * size and (rot - rot[0]).abs().max() <= 1e-9)
+
+
+def their_reading(raw: Any, order: Sequence[int]) -> Any:
+    """The clip of ``raw`` (read with ``fold_root=False``) on the joints ``order`` (file indices) as their loader
+    (``BVH_file``) makes it: the root track is always the file's joint-0 position channels, every other joint sits
+    at its OFFSET. Where the order keeps joint 0 that is modi's subset; where it starts below it (a table that
+    leaves out a static floor root such as Bandai's ``joint_Root``), the first kept joint is placed on that track
+    with its own local rotation, as their forward kinematics does."""
+    if order[0] == 0:
+        srt = sorted(order)
+        return _permute_clip(subset_clip(raw, srt), [srt.index(j) for j in order])
+    s = raw.skeleton
+    pos = {j: i for i, j in enumerate(order)}
+    if any(s.parents[j] not in pos for j in order[1:]):
+        raise UserError("the joint order of the file cannot be matched to the model's skeleton")
+    sk = Skeleton([s.names[j] for j in order], [-1] + [pos[s.parents[j]] for j in order[1:]], s.offsets[list(order)],
+                  {pos[k]: v for k, v in s.end_sites.items() if k in pos},
+                  [s.rotation_orders[j] for j in order] if s.rotation_orders else None)
+    return RawClip(sk, raw.rotations[:, list(order)], raw.root_positions, raw.fps)
+
+
+def _build(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float, raw: Any
+           ) -> tuple[Any, np.ndarray, float]:
+    """(clip, each contact label's foot speed ``(T-1, C)``, the largest coordinate) of :func:`build_clip`."""
+    clip = their_reading(raw, order)
     stride = released_stride(raw.fps)
     rot = clip.rotations[::stride].to(torch.float32)
     root = (clip.root_positions[::stride].to(torch.float64) * scale).to(torch.float32)
@@ -339,40 +389,133 @@ def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: floa
     skel = Skeleton([strip_namespace(n) for n in sk.names], list(sk.parents), np.asarray(sk.offsets) * scale,
                     {k: np.asarray(v) * scale for k, v in sk.end_sites.items()},
                     list(sk.rotation_orders) if sk.rotation_orders else None)
+    offsets = torch.as_tensor(skel.offsets, dtype=torch.float32)
     with torch.no_grad():
-        pos, _ = forward_kinematics(rot, torch.as_tensor(skel.offsets, dtype=torch.float32), skel.parents, root)
+        pos, _ = forward_kinematics(rot, offsets, skel.parents, root)
+        if order[0] != 0:
+            # their table's first joint keeps the left-out floor root as its parent, and their forward kinematics
+            # then takes it for its own parent: its rotation applies twice and it sits at twice its rotated OFFSET
+            # (not on the root track). Their contact labels come from those positions.
+            twice = rot.clone()
+            twice[:, 0] = quat_mul(rot[:, 0], rot[:, 0])
+            lab_pos, _ = forward_kinematics(twice, offsets, skel.parents, 2 * quat_apply(rot[:, 0], offsets[0]))
+        else:
+            lab_pos = pos
     pos_np = pos.numpy().astype(np.float64)
-    labels = torch.from_numpy(contact_labels(pos_np, list(feet), threshold, "zero"))
+    lab_np = lab_pos.numpy().astype(np.float64)
+    labels = torch.from_numpy(contact_labels(lab_np, list(feet), threshold, "zero"))
     features = motion_to_features(rot, root, labels if feet else None, sixd="rows")
-    return Clip(name=bvh.stem, skeleton=skel, feet=list(feet), features=features, root_start=root[0].clone(),
-                fps=raw.fps / stride, scale=float(scale), contact_threshold=float(threshold),
-                size=body_height(pos_np), kept_joints=list(order), sixd="rows")
+    p = lab_np[:, list(feet)]
+    speed = np.linalg.norm(p[1:] - p[:-1], axis=-1)
+    out = Clip(name=bvh.stem, skeleton=skel, feet=list(feet), features=features, root_start=root[0].clone(),
+               fps=raw.fps / stride, scale=float(scale), contact_threshold=float(threshold),
+               size=body_height(pos_np), kept_joints=list(order), sixd="rows")
+    return out, speed, float(np.abs(lab_np).max())
+
+
+def build_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], scale: float, threshold: float,
+               raw: Any = None) -> Any:
+    """The training clip as the released loader makes it (joints in ``order``, stride, ``scale``, labels);
+    ``raw``: the BVH already read (``read_clip(bvh, fold_root=False)``)."""
+    return _build(bvh, order, feet, scale, threshold, read_clip(bvh, fold_root=False) if raw is None else raw)[0]
 
 
 # units and per-frame contact thresholds their loader can produce (centimetre rigs / 100, one data set x 0.14)
 SCALES = (1.0, 0.01, 0.14, 0.0014)
 THRESHOLDS = (0.018, 0.006)
+EXACT = 1e-5      # amplitudes this close: the same tensor (float32 sums in another order)
+ACCEPT = 1e-3     # the most an import tolerates
+ROUNDING = 8.0    # a label is rounding-ambiguous within this many float32 ulps of the largest coordinate
+MAX_FLIPS = 10    # the most rounding-ambiguous labels searched (2**MAX_FLIPS label sets at most)
+
+
+def _amp_error(mine: Sequence[float], amps: Sequence[float]) -> tuple[float, int]:
+    """(largest relative difference, its level)."""
+    errs = [abs(a - b) / max(abs(b), 1e-12) for a, b in zip(mine, amps)]
+    level = int(np.argmax(errs))
+    return errs[level], level
+
+
+def ambiguous_labels(speed: np.ndarray, threshold: float, magnitude: float) -> list[tuple[int, int]]:
+    """(frame, contact) of every label whose foot speed is within float32 rounding of ``threshold`` (their loader
+    computes positions in float32: a speed this close to the threshold may fall on either side of it there),
+    closest first. ``magnitude``: the largest coordinate (rounding scales with it)."""
+    band = ROUNDING * float(np.finfo(np.float32).eps) * magnitude
+    near = np.argwhere(np.abs(speed - threshold) <= band)
+    order = np.argsort(np.abs(speed[near[:, 0], near[:, 1]] - threshold), kind="stable")
+    return [(int(near[i, 0]) + 1, int(near[i, 1])) for i in order]  # label t+1 is the speed from t to t+1
+
+
+def _flipped(clip: Any, flips: Sequence[tuple[int, int]]) -> Any:
+    f = clip.features.clone()
+    base = clip.n_joints + 1
+    for t, k in flips:
+        f[0, base + k, t] = 1.0 - f[0, base + k, t]
+    return dataclasses.replace(clip, features=f)
+
+
+def settle_labels(clip: Any, speed: np.ndarray, magnitude: float, lengths: Sequence[int], amps: Sequence[float]
+                  ) -> tuple[Any, list[tuple[int, int]], float, int]:
+    """The labels their loader computed where rounding could put a foot speed on either side of the threshold:
+    the set of flips of those labels (fewest first) whose pyramid reproduces ``amps`` exactly. Returns (clip,
+    flips, amplitude error, number of ambiguous labels); the clip unchanged when no flip set does better."""
+    near = ambiguous_labels(speed, clip.contact_threshold, magnitude)
+    best = (clip, [], _amp_error(_amplitudes(clip, lengths), amps)[0])
+    for n in range(1, min(len(near), MAX_FLIPS) + 1):
+        for flips in itertools.combinations(near[:MAX_FLIPS], n):
+            cand = _flipped(clip, flips)
+            err = _amp_error(_amplitudes(cand, lengths), amps)[0]
+            if err < best[2]:
+                best = (cand, list(flips), err)
+            if err <= EXACT:
+                return cand, list(flips), err, len(near)
+    return best[0], best[1], best[2], len(near)
 
 
 def match_clip(bvh: Path, order: Sequence[int], feet: Sequence[int], lengths: Sequence[int],
-               amps: Sequence[float], raw: Any = None) -> Any:
-    """The clip whose pyramid reproduces the checkpoint's amplitudes (units and contact threshold)."""
-    raw = read_clip(bvh) if raw is None else raw
-    best, best_err = None, math.inf
+               amps: Sequence[float], raw: Any = None, notes: dict | None = None) -> Any:
+    """The clip whose pyramid reproduces the checkpoint's amplitudes (units, contact threshold, and the contact
+    labels that float32 rounding decides); ``notes`` receives what was settled (``scale``, ``threshold``,
+    ``flipped_labels``, ``amplitude_error``)."""
+    raw = read_clip(bvh, fold_root=False) if raw is None else raw
+    tried = []
     for scale in SCALES:
         for th in (THRESHOLDS if feet else THRESHOLDS[:1]):
-            clip = build_clip(bvh, order, feet, scale, th, raw)
+            clip, speed, mag = _build(bvh, order, feet, scale, th, raw)
             if clip.n_frames != lengths[-1]:
                 raise UserError(f"{bvh}: {clip.n_frames} frames at {clip.fps:g} fps, but the checkpoint's finest "
                                 f"level has {lengths[-1]}; pass the BVH the model was trained on")
             mine = _amplitudes(clip, lengths)
-            err = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(mine, amps))
-            if err < best_err:
-                best, best_err = clip, err
-    if best_err > 1e-3:
-        raise UserError(f"{bvh}: the clip does not reproduce the checkpoint's noise amplitudes (amps.pt; off by "
-                        f"{best_err:.1%}); pass the BVH the model was trained on")
-    return best
+            err, level = _amp_error(mine, amps)
+            tried.append((err, level, mine, clip, speed, mag))
+    tried.sort(key=lambda r: r[0])
+    flips: list[tuple[int, int]] = []
+    n_near = 0
+    clip, err = tried[0][3], tried[0][0]
+    if err > EXACT and feet:  # a contact label that rounding put on the other side of the threshold?
+        for e0, _, _, c0, speed, mag in tried[:2]:
+            c1, f1, e1, near = settle_labels(c0, speed, mag, lengths, amps)
+            n_near = max(n_near, near)
+            if e1 < err:
+                clip, flips, err = c1, f1, e1
+            if err <= EXACT:
+                break
+    if err > ACCEPT:
+        e0, level, mine, c0 = tried[0][:4]
+        if n_near > MAX_FLIPS:
+            cause = (f"{n_near} of its contact labels lie within float32 rounding of the threshold, more than the "
+                     f"{MAX_FLIPS} this import tries both ways, so their labels cannot be settled")
+        else:
+            cause = "the skeleton and length match, the motion is not the one this run was trained on"
+        raise UserError(
+            f"{bvh}: read as their loader reads it (root track from {raw.skeleton.names[0]}'s channels, joints at "
+            f"their OFFSETs, units x{c0.scale:g}, contact threshold {c0.contact_threshold:g}), this BVH gives level "
+            f"{level}'s noise amplitude {mine[level]:.6g} where amps.pt holds {amps[level]:.6g} (the noise "
+            f"amplitudes are off by {e0:.1%}): {cause}")
+    if notes is not None:
+        notes.update(scale=clip.scale, threshold=clip.contact_threshold, amplitude_error=err,
+                     flipped_labels=[{"frame": t, "joint": clip.skeleton.names[clip.feet[k]]} for t, k in flips])
+    return clip
 
 
 def find_bvh(data: Path | None, run: Path, args: dict) -> Path:
@@ -479,7 +622,7 @@ def config_for(args: dict, clip: Any, n_levels: int) -> Any:
     """modi's config for the released options (the released forms of every loss-level option)."""
     limit = int(args["num_stages_limit"])
     return GanimatorConfig(
-        fps=30.0, keep_joints=list(clip.skeleton.names), feet=[clip.skeleton.names[f] for f in clip.feet],
+        fps=clip.fps, keep_joints=list(clip.skeleton.names), feet=[clip.skeleton.names[f] for f in clip.feet],
         contacts=bool(clip.feet), contact_velocity=clip.contact_threshold / clip.size * (clip.fps / 30.0),
         contact_first_frame="zero", sixd="rows", coarse_ratio=_fraction(args["ratio"]),
         scale_factor=float(args["scaling_rate"]), max_levels=limit if limit != -1 else None,
@@ -520,10 +663,12 @@ def read_released(ckpt: Path | str, data: Path | str | None = None) -> dict[str,
         raise UserError(f"{run}: z_star has {z_star.shape[1]} channels, the first layer {first.shape[1]}")
     adj = entity_adjacency(first, E, f"{run / 'gen000.pt'}: layers.0.0.mask")
     bvh = find_bvh(Path(data) if data is not None else None, run, args)
-    raw = read_clip(bvh)
+    raw = read_clip(bvh, fold_root=False)  # their loader's reading: see their_reading
     sk = raw.skeleton
     cands = [reduce_joints(sk)] if args["joint_reduction"] else []
     cands.append(list(range(sk.n_joints)))
+    if floor_root(raw):  # a table may list the static floor root (Bandai's joint_Root) or start below it
+        cands += [[j for j in c if j != 0] for c in cands]
     order, feet = match_skeleton(sk.parents, adj, int(args["neighbour_dist"]), joint_subsets(sk.parents, cands))
     return {"run": run, "args": args, "sds": sds, "z_star": z_star.detach(), "amps": amps_row, "bvh": bvh,
             "order": order, "feet": feet, "E": E, "raw": raw}
@@ -550,7 +695,8 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     if len(lengths) != len(sds) or lengths[0] != r["z_star"].shape[-1]:
         raise UserError(f"{run}: {len(sds)} levels with a coarsest of {r['z_star'].shape[-1]} frames, but the BVH "
                         f"{r['bvh']} gives levels {lengths}; pass the BVH the model was trained on")
-    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"], raw)
+    notes: dict[str, Any] = {}
+    clip = match_clip(r["bvh"], r["order"], r["feet"], lengths, r["amps"], raw, notes)
     cfg = config_for(args, clip, len(sds))
     got, _ = sequence_pyramid([clip], cfg)
     if got[0] != lengths:
@@ -567,11 +713,36 @@ def import_checkpoint(ckpt: Path | str, data: Path | str | None, out: Path | str
     model.z_stars[0].data.copy_(to_modi_layout(r["z_star"].to(torch.float32), perm))
     model.amps = [list(r["amps"])]
     n_blocks = len(blocks_of(model.n_levels, cfg.group_size))
-    trainer.state.update(block=n_blocks, iteration=0, levels_done=model.n_levels, imported_from=str(run))
+    trainer.state.update(block=n_blocks, iteration=0, levels_done=model.n_levels,
+                         imported_from=provenance(r, clip, lengths, n_blocks, notes))
     trainer.save()
     return out
 
 
+def provenance(r: dict[str, Any], clip: Any, lengths: Sequence[int], n_blocks: int, notes: dict[str, Any]
+               ) -> dict[str, Any]:
+    """What the run folder and its BVH say (``imported_from`` of the modi run): their options as ``args.txt``
+    states them, their iterations (``--num_iters`` per block of levels; their ``train.py`` writes the generators
+    when a block is done), the clip as their loader read it (the rate its Frame Time states, their frame stride,
+    units, contact threshold and the labels the amplitudes settled) and every file's SHA-256."""
+    run, args, raw = r["run"], r["args"], r["raw"]
+    stride = released_stride(raw.fps)
+    files = [run / ARGS_FILE, *generator_files(run), run / "z_star.pt", run / "amps.pt"]
+    line = (run / ARGS_FILE).read_text(encoding="utf-8", errors="replace").splitlines()[:1]
+    frame_time = bvh_io.load(str(r["bvh"])).frame_time  # as the file states it; modi's rate is the one reader's
+    data = {**file_record(r["bvh"]), "frame_time": frame_time, "fps": 1.0 / frame_time, "stride": stride,
+            "clip_fps": clip.fps, "frames": int(raw.rotations.shape[0]), "clip_frames": clip.n_frames,
+            "window": clip.n_frames, "pyramid": list(lengths), "joints": list(clip.skeleton.names),
+            "contacts": [clip.skeleton.names[f] for f in clip.feet], "floor_root": floor_root(raw),
+            **notes}
+    return record("ganimator-released", folder_record(run, files), iterations=int(args["num_iters"]) * n_blocks,
+                  iterations_from=f"from args.txt (--num_iters {int(args['num_iters'])} per block, {n_blocks} blocks; "
+                                  "their train.py writes the generators when a block is done)",
+                  args=stated_args(run), command=line[0] if line else "", data=data,
+                  seed=args.get("seed"))
+
+
 __all__ = ["import_checkpoint", "read_released", "find_run", "read_args", "read_generators", "entity_perm",
            "to_modi_layout", "to_released_layout", "entity_adjacency", "joint_subsets", "match_skeleton",
-           "build_clip", "match_clip", "released_stride", "generator_state", "discriminator_state", "config_for"]
+           "build_clip", "match_clip", "released_stride", "their_reading", "floor_root", "ambiguous_labels",
+           "settle_labels", "stated_args", "generator_files", "provenance", "generator_state", "discriminator_state", "config_for"]

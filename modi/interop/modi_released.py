@@ -34,6 +34,7 @@ from modi.core.skeleton import Skeleton
 from modi.data.normalization import Normalizer
 from modi.data.representation import MotionRepresentation
 from modi.errors import CheckpointError, UserError
+from modi.interop.provenance import file_record, record, released_iterations, window_and_stride
 from modi.interop.released_files import load_released_file, load_released_npy
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict
 from modi.models.modi.codec import MotionCodec
@@ -416,13 +417,38 @@ def convert_checkpoint(ckpt: Path | str, data: Path | str, fps: float = 30.0) ->
     g.w_avg.copy_(w)
     g_ema.w_avg.copy_(w)
     d = convert_discriminator(st["d"], args, levels, K)
+    window, stride = window_and_stride(motions)
+    iterations, known = released_iterations(ckpt, st.get("g_optim"), int(getattr(args, "g_reg_every", 0) or 0))
     cfg = MoDiConfig(model=model_config(args, levels), preset="released-import")
     cfg.data.n_frames = levels[-1].n_frames
     cfg.data.fps = float(fps)
-    cfg.train.batch = int(getattr(args, "batch", cfg.train.batch))
+    if stride is not None:
+        cfg.data.stride = stride
+    _train_options(cfg.train, args)
     cfg.validate()
-    return checkpoint_dict(config=cfg, codec=codec, levels=levels, G=g, G_ema=g_ema, D=d, step=0,
-                           imported_from={"kind": "modi-released", "path": str(ckpt)})
+    data_path = _find_data(Path(data))
+    prov = record("modi-released", file_record(ckpt), iterations=iterations, iterations_from=known,
+                  args=args, data={**file_record(data_path), "clips": int(len(motions)), "window": window,
+                                   "stride": stride, "fps": float(fps)}, seed=None)
+    return checkpoint_dict(config=cfg, codec=codec, levels=levels, G=g, G_ema=g_ema, D=d, step=iterations or 0,
+                           imported_from=prov)
+
+
+# their train.py option -> modi's TrainConfig field, for the options with the same meaning
+_TRAIN_OPTIONS = {"iter": "iters", "batch": "batch", "r1": "r1_gamma", "d_reg_every": "d_reg_every",
+                  "g_reg_every": "g_reg_every", "path_regularize": "path_weight",
+                  "path_batch_shrink": "path_batch_shrink", "mixing": "mixing", "g_foot_reg_weight": "contact_weight",
+                  "g_encourage_contact_weight": "touch_weight"}
+
+
+def _train_options(train: Any, args: argparse.Namespace) -> None:
+    """Their training options as the file states them (so ``modi info`` shows theirs, not modi's defaults)."""
+    for theirs, mine in _TRAIN_OPTIONS.items():
+        if getattr(args, theirs, None) is not None:
+            setattr(train, mine, type(getattr(train, mine))(getattr(args, theirs)))
+    g_lr, d_lr = getattr(args, "g_lr", None), getattr(args, "d_lr", None)
+    if g_lr is not None and g_lr == d_lr:  # modi has one rate for both
+        train.lr = float(g_lr)
 
 
 __all__ = ["convert_checkpoint", "released_style_index", "wplus_from_released", "inject_index_from_released", "import_checkpoint", "edge_skeleton", "released_codec", "contact_feet", "mean_w", "MaskViolation", "read_checkpoint", "released_levels", "model_config", "check_masks",

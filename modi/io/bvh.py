@@ -37,7 +37,7 @@ def _channel_kind(name: str) -> tuple[str, int]:
     return ("position" if canon.endswith("position") else "rotation"), "XYZ".index(canon[0])
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class Bvh:
     """A parsed BVH file, close to the text: joints in file (topological) order, raw channel values.
 
@@ -74,6 +74,21 @@ class Bvh:
             for c in chans:
                 if c.lower() not in _CHANNEL_KEY:
                     raise ValueError(f"Bvh: joint {self.names[jj]!r} has unknown channel {c!r}")
+
+    def __eq__(self, other: object) -> bool:
+        """Exactly the same file content: names, tree, OFFSETs, channels, End Sites, frame time and values."""
+        if not isinstance(other, Bvh):
+            return NotImplemented
+        return (self.names == other.names and self.parents == other.parents and self.channels == other.channels
+                and self.frame_time == other.frame_time and np.array_equal(self.offsets, other.offsets)
+                and np.array_equal(self.motion, other.motion) and self.end_sites.keys() == other.end_sites.keys()
+                and all(np.array_equal(v, other.end_sites[k]) for k, v in self.end_sites.items()))
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, compared by value
+
+    def __repr__(self) -> str:
+        return (f"Bvh({self.n_joints} joints (root {self.names[0]!r}), {self.n_channels} channels, "
+                f"{self.n_frames} frames, frame time {self.frame_time:g} s)" if self.names else "Bvh(empty)")
 
     # ------------------------------------------------------------------ basic facts
     @property

@@ -20,7 +20,7 @@ import json
 import math
 import os
 import struct
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 from urllib.parse import unquote
@@ -42,7 +42,7 @@ from modi.core.rotations import (
 from modi.errors import UserError
 from modi.faults import atomic_write
 
-__all__ = ["UnitGuess", "guess_unit", "dumps", "save", "load_positions", "SUFFIXES"]
+__all__ = ["UnitGuess", "guess_unit", "dumps", "save", "load_positions", "read_tracks", "Tracks", "SUFFIXES"]
 
 SUFFIXES = (".glb", ".gltf")
 _FLOAT, _UBYTE, _USHORT, _UINT = 5126, 5121, 5123, 5125
@@ -465,15 +465,24 @@ def _node_static(node: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.array(node.get("scale", [1, 1, 1]), dtype=np.float64))
 
 
-def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.ndarray, float, np.ndarray | None]:
-    """``(names, parents, positions (T, J, 3) in the file's units -- metres for glTF --, fps, contacts)`` of a glTF.
+@dataclass
+class Tracks:
+    """A glTF file's skeleton animation, sampled at its key times: joint ``names`` and ``parents``, local
+    ``rotations`` (T, J, 4) w,x,y,z and ``translations`` (T, J, 3) of every joint node, the static transform
+    ``above`` (4x4) of the nodes above the root joint, the frame rate and the contact labels (T, J) or None."""
 
-    Joints are the first skin's joints (all nodes when there is no skin), in the skin's order when parents come first
-    there, else depth first; frames are
-    the first animation's key times (the union over its samplers). Each frame's TRS is sampled from the accessors
-    and turned into positions by :func:`modi.core.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
-    the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
-    """
+    names: list[str]
+    parents: list[int]
+    rotations: torch.Tensor
+    translations: torch.Tensor
+    above: np.ndarray
+    fps: float
+    contacts: np.ndarray | None
+
+
+def read_tracks(path: str | os.PathLike) -> Tracks:
+    """The :class:`Tracks` of a glTF file (what :func:`load_positions` turns into positions); see there for which
+    nodes are joints and which frames are read."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: no such glTF file")
@@ -551,8 +560,6 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
     quats = torch.from_numpy(trs["rotation"][..., [3, 0, 1, 2]])
     quats = quats / quats.norm(dim=-1, keepdim=True)
     offs = torch.from_numpy(trs["translation"])
-    pos, _ = forward_kinematics(quats, offs, parents, offs[:, 0])
-    pos = pos.numpy() @ above[:3, :3].T + above[:3, 3]
     extras = (scene.get("extras") or {}).get("modi") or {}
     if "fps" in extras:  # ours: exact (key times are float32)
         fps = float(extras["fps"])
@@ -566,4 +573,19 @@ def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.nd
         for name, lab in zip(labels["joints"], labels["labels"]):
             if name in names and len(lab) == T:
                 contacts[:, names.index(name)] = np.frombuffer(lab.encode("ascii"), dtype=np.uint8) == ord("1")
-    return names, parents, pos, fps, contacts
+    return Tracks(names, parents, quats, offs, above, fps, contacts)
+
+
+def load_positions(path: str | os.PathLike) -> tuple[list[str], list[int], np.ndarray, float, np.ndarray | None]:
+    """``(names, parents, positions (T, J, 3) in the file's units -- metres for glTF --, fps, contacts)`` of a glTF.
+
+    Joints are the first skin's joints (all nodes when there is no skin), in the skin's order when parents come first
+    there, else depth first; frames are
+    the first animation's key times (the union over its samplers). Each frame's TRS is sampled from the accessors
+    and turned into positions by :func:`modi.core.kinematics.forward_kinematics`. ``contacts`` is ``(T, J)`` bool from
+    the ``modi_contacts`` extra, or None. Joint scale other than 1 is refused (motion files do not animate it).
+    """
+    tr = read_tracks(path)
+    pos, _ = forward_kinematics(tr.rotations, tr.translations, tr.parents, tr.translations[:, 0])
+    pos = pos.numpy() @ tr.above[:3, :3].T + tr.above[:3, 3]
+    return tr.names, tr.parents, pos, tr.fps, tr.contacts

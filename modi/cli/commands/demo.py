@@ -37,7 +37,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from modi.models.modi.config import make_config
-    from modi.models.modi.sampling import generate_tensors, load_generator, render_gif, write_outputs
+    from modi.api.generator import ModiGenerator
+    from modi.models.modi.sampling import render_gif, write_outputs
     from modi.models.modi.training import Trainer, prepare_data, write_procedural_data
 
     if args.iters < 0:
@@ -71,9 +72,9 @@ def run(args: argparse.Namespace) -> int:
     dec = data.codec.decode(real)
     render_gif(data.codec, [p.numpy() for p in dec["positions"]], [(c > 0.5).numpy() for c in dec["contacts"]],
                out / "training_examples.gif", view="training_examples.html")
-    model = load_generator(result.checkpoint)
-    x, codec = generate_tensors(result.checkpoint, args.n, seed=args.seed, model=model)
-    written = write_outputs(codec, x, out / "samples", gif=True, gif_name="samples.gif")
+    gen = ModiGenerator.from_checkpoint(result.checkpoint)
+    written = write_outputs(gen.codec, gen.sample_tensors(args.n, seed=args.seed), out / "samples", gif=True,
+                            gif_name="samples.gif")
     print(f"modi demo: done in {time.perf_counter() - t0:.0f} s\n"
           f"  checkpoint       {result.checkpoint}\n"
           f"  sampled motions  {len(written)} BVH in {out / 'samples'} (preview {out / 'samples' / 'samples.gif'})\n"

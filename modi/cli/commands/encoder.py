@@ -218,21 +218,17 @@ def _run_train(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from modi.models.modi.encoder.metrics import evaluate_encoder, format_table5
-    from modi.models.modi.encoder.training import load_encoder, load_encoder_data
+    from modi.api.encoder import Encoder
+    from modi.models.modi.encoder.metrics import format_table5
 
     _threads(args)
     ct.input_file(args.enc, "encoder checkpoint file")
     if args.json:
         ct.refuse_overwrite(args.json, [args.enc], "--json")
-    b = load_encoder(args.enc, device=args.device)
-    source = args.data or b.meta.get("data_source")
-    if not source or source == "tensor":
-        raise UserError("give DATA: this encoder does not record a data folder")
-    data = load_encoder_data(b.codec, b.gcfg, source)
-    x = data.test if args.split == "test" else data.train
-    res = evaluate_encoder(b.encoder, b.g, b.codec, x, units=args.units)
-    pre = f" (prefix encoder: sees frames < {b.prefix_frames})" if b.prefix_frames else ""
+    enc = Encoder.from_checkpoint(args.enc, device=args.device)
+    res = enc.evaluate(args.data, split=args.split, units=args.units)
+    source = res.pop("source")
+    pre = f" (prefix encoder: sees frames < {enc.prefix_frames})" if enc.prefix_frames else ""
     print(f"modi encoder eval: {args.split} split of {source}, {res['n_windows']} windows, "
           f"{res['mm_per_unit']:g} mm per unit{pre}")
     print(format_table5(res))
@@ -241,70 +237,18 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _inputs(args: argparse.Namespace, bundle) -> tuple:
-    import torch
-
-    from modi.models.modi.latent.space import load_bvh_window
-
-    _, _, t = bundle.g.output_shape
-    xs, names, test = [], [], None
-    for spec in args.inputs:
-        if spec.startswith("test:"):
-            if test is None:
-                from modi.models.modi.encoder.training import load_encoder_data
-
-                source = args.data or bundle.meta.get("data_source")
-                if not source or source == "tensor":
-                    raise UserError("test:I inputs need --data (this encoder records no data folder)")
-                test = load_encoder_data(bundle.codec, bundle.gcfg, source).test
-            try:
-                i = int(spec[5:])
-            except ValueError:
-                raise UserError(f"bad input {spec!r}: expected test:I with an integer I") from None
-            if not 0 <= i < test.shape[0]:
-                raise UserError(f"{spec}: the test split has windows 0..{test.shape[0] - 1}")
-            xs.append(test[i])
-            names.append(f"test{i:04d}")
-        else:
-            ct.input_file(spec, option="INPUT")
-            xs.append(load_bvh_window(bundle.codec, spec, t, args.start))
-            names.append(Path(spec).stem)
-    return torch.stack(xs), names
-
-
 def run_apply(args: argparse.Namespace) -> int:
-    from modi.models.modi.encoder import applications as A
-    from modi.models.modi.encoder.training import load_encoder
+    from modi.api.encoder import Encoder
 
     _threads(args)
     ct.input_file(args.enc, "encoder checkpoint file")
-    b = load_encoder(args.enc, device=args.device)
-    x, names = _inputs(args, b)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.task == "invert":
-        if args.optim_steps < 0:
-            raise UserError("--optim-steps must be >= 0")
-        res = A.invert_motions(b, x, out, names, optim_steps=args.optim_steps)
-    elif args.task == "prefix":
-        res = A.complete_prefix(b, x, out, names)
-    elif args.task == "fuse":
-        t = x.shape[-1] // 2 if args.frame is None else args.frame
-        res = [A.fuse_motions(b, x[:1], x[1:2], t, out, name=f"{names[0]}+{names[1]}")]
-    elif args.task == "denoise":
-        res = A.denoise_motions(b, x, out, names, sigma=0.0 if args.given_noisy else args.sigma,
-                                smooth=args.smooth, seed=args.seed)
-    elif args.task == "edit":
-        joint = None
-        if args.joint is not None:
-            try:
-                joint = b.codec.skeleton.index(args.joint)
-            except (KeyError, ValueError):
-                raise UserError(f"--joint {args.joint!r} is not a joint of the model's skeleton") from None
-        res = A.edit_motions(b, x, out, names, angle=args.angle, start=args.from_frame, joint=joint)
-    else:  # pragma: no cover - argparse restricts the tasks
-        raise UserError(f"unknown task {args.task}")
-    (out / "results.json").write_text(json.dumps(res, indent=1))
+    enc = Encoder.from_checkpoint(args.enc, device=args.device)
+    res = enc.apply(args.task, args.inputs, args.out, start=args.start, data=args.data,
+                    optim_steps=getattr(args, "optim_steps", 200), frame=getattr(args, "frame", None),
+                    sigma=getattr(args, "sigma", 0.5), smooth=getattr(args, "smooth", 2.0),
+                    given_noisy=getattr(args, "given_noisy", False), seed=getattr(args, "seed", 0),
+                    angle=getattr(args, "angle", 90.0), from_frame=getattr(args, "from_frame", None),
+                    joint=getattr(args, "joint", None))
     keys = [k for k in res[0] if k not in ("bvh", "gif")]
     for r in res:
         nums = ", ".join(f"{k} {r[k]:.4g}" if isinstance(r[k], float) else f"{k} {r[k]}" for k in keys)

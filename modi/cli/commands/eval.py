@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -210,113 +209,27 @@ def _load_bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
     return bvh_positions(b), list(b.names), float(b.fps)
 
 
-def _real_clips(extractor: Any, files: list[Path]) -> list[np.ndarray]:
-    out = []
-    for f in files:
-        p, names, fps = _load_bvh_positions(f)
-        out.append(extractor.clip_positions(p, names, fps))
-    return out
-
-
-def _plausibility_set(clips: list[np.ndarray], ext: Any, ref: list[np.ndarray]) -> dict[str, Any]:
-    """Mean plausibility figures of clips in the extractor's joints and fps; planted foot heights from ``ref``."""
-    from modi.evaluation.plausibility import aggregate, guess_feet, plausibility_metrics, planted_heights
-
-    c = ext.config
-    feet = guess_feet(c.joint_names)
-    heights = planted_heights(ref, feet, c.up_axis)
-    per = [plausibility_metrics(x, c.fps, feet, up_axis=c.up_axis, foot_heights=heights, body_height=c.body_height)
-           for x in clips if len(x) >= 4]
-    if not per:
-        raise UserError("no clip has the 4 frames plausibility needs")
-    out = aggregate(per)
-    out["feet"] = [c.joint_names[f] for f in feet]
-    out["planted_heights"] = heights
-    return out
-
-
-def _metrics(real: np.ndarray, fake: np.ndarray, args: argparse.Namespace) -> dict[str, Any]:
-    from modi.evaluation.distribution import distribution_metrics
-
-    return distribution_metrics(real, fake, k=args.k, kid_blocks=args.kid_blocks,
-                                diversity_pairs=args.diversity_pairs, seed=args.seed)
-
-
 def cmd_real(args: argparse.Namespace) -> int:
-    from modi.evaluation.features import load_extractor
+    from modi.api.evaluation import evaluate_real
 
     for opt in ("json", "md"):
         if getattr(args, opt):
             ct.refuse_overwrite(getattr(args, opt), [args.features], f"--{opt}")
-    ext = load_extractor(args.features)
-    root = Path(args.data)
-    if not root.is_dir():
-        raise UserError(f"data folder not found: {root}")
-    train_files = ext.info.get("train_files")
-    held_files = ext.info.get("heldout_files")
-    if not train_files or not held_files:
-        raise UserError(f"{args.features} holds no train/held-out split (was it trained with held-out clips?)")
-    missing = [f for f in train_files + held_files if not (root / f).is_file()]
-    if missing:
-        raise UserError(f"{len(missing)} clip(s) of the extractor's split are not under {root}, e.g. {missing[0]}")
-    t0 = time.perf_counter()
-    train = _real_clips(ext, [root / f for f in train_files])
-    held = _real_clips(ext, [root / f for f in held_files])
-    f_train = ext.features(ext.windows(train, args.stride))
-    f_held = ext.features(ext.windows(held, args.stride))
-    results: dict[str, Any] = {
-        "data": str(root),
-        "features": str(args.features),
-        "settings": {"stride": args.stride, "k": args.k, "kid_blocks": args.kid_blocks,
-                     "diversity_pairs": args.diversity_pairs, "seed": args.seed},
-        "extractor_heldout_top1": ext.info.get("val_top1"),
-        "distribution (held-out vs train)": _metrics(f_train, f_held, args),
-        "plausibility (held-out clips)": _plausibility_set(held, ext, train),
-        "seconds": time.perf_counter() - t0,
-    }
+    results = evaluate_real(args.data, features=args.features, stride=args.stride, k=args.k,
+                            kid_blocks=args.kid_blocks, diversity_pairs=args.diversity_pairs, seed=args.seed)
     _dump(results, args, "Real-vs-real floor")
     return 0
 
 
-def _sampler():
-    try:
-        from modi.models.modi.sampling import sample_motions
-    except ImportError as exc:
-        raise UserError(f"the MoDi model is not available in this installation ({exc})") from None
-    return sample_motions
-
-
 def cmd_gen(args: argparse.Namespace) -> int:
-    from modi.evaluation.features import load_extractor
+    from modi.api.evaluation import evaluate
 
-    if args.n < 4:
-        raise UserError(f"--n must be at least 4, got {args.n}")
     for opt in ("json", "md"):
         if getattr(args, opt):
             ct.refuse_overwrite(getattr(args, opt), [args.ckpt, args.features], f"--{opt}")
-    ext = load_extractor(args.features)
-    sample_motions = _sampler()
-    root = Path(args.data)
-    files = sorted(p for p in root.rglob("*") if p.suffix.lower() == ".bvh") if root.is_dir() else []
-    if not files:
-        raise UserError(f"no .bvh files under {root}")
-    t0 = time.perf_counter()
-    real = _real_clips(ext, files)
-    motions = sample_motions(args.ckpt, args.n, seed=args.seed, psi=args.psi, ik=args.ik)
-    gen = [ext.clip_positions(m.positions(), m.skeleton.names, m.fps) for m in motions]
-    f_real = ext.features(ext.windows(real, args.stride))
-    f_gen = ext.features(ext.windows(gen, tail=False))  # a 64-frame MoDi sample is exactly one window
-    results: dict[str, Any] = {
-        "ckpt": str(args.ckpt),
-        "features": str(args.features),
-        "n_generated_motions": len(motions),
-        "psi": args.psi,
-        "ik": bool(args.ik),
-        "distribution (generated vs real)": _metrics(f_real, f_gen, args),
-        "plausibility (generated)": _plausibility_set(gen, ext, real),
-        "plausibility (real)": _plausibility_set(real, ext, real),
-        "seconds": time.perf_counter() - t0,
-    }
+    results = evaluate(args.ckpt, features=args.features, data=args.data, n=args.n, seed=args.seed, psi=args.psi,
+                       ik=args.ik, stride=args.stride, k=args.k, kid_blocks=args.kid_blocks,
+                       diversity_pairs=args.diversity_pairs)
     _dump(results, args, "MoDi evaluation")
     return 0
 
@@ -324,80 +237,25 @@ def cmd_gen(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _motion(path: str, true_fps: float | None = None, remedy: str = "") -> Any:
-    """A BVH as a Motion; ``true_fps`` replaces the header's rate (``--gen-fps``), else the header must be
-    plausible: some tools write ``Frame Time: 0`` or ``1``, which would silently change every window."""
-    from modi.io import bvh as bvh_io
-    from modi.data.motion import Motion
-
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"{p} is a folder, not a BVH file" if p.is_dir() else f"no such BVH file: {p}")
-    b = bvh_io.load(p, check_frame_time=False)  # checked here, to name the option that fixes it
-    if true_fps is not None:
-        b.frame_time = 1.0 / true_fps
-    elif not 0 < b.frame_time < 0.5:
-        raise UserError(f"{p}: implausible Frame Time {b.frame_time:g} s in the header (the rate must be above "
-                        f"2 fps){remedy}")
-    return Motion.from_bvh(b)
-
-
 def cmd_single(args: argparse.Namespace) -> int:
-    import warnings
-
+    from modi.api.evaluation import evaluate_single
     from modi.evaluation.report import to_markdown, write_reports
-    from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
 
     for opt in ("json", "md"):
         if getattr(args, opt):
             ct.refuse_overwrite(getattr(args, opt), [args.source, *args.generated], f"--{opt}")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
-        src = _motion(args.source)
-        gens = [_motion(g, args.gen_fps, "; give the generated files' true frame rate with --gen-fps")
-                for g in args.generated]
-    src, gens = src.resample(args.fps), [m.resample(args.fps) for m in gens]
-    try:
-        source, feats, joints = shared_pose_frames(src, gens, args.joints == "reduced", args.representation,
-                                                   labels=args.generated)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    print(f"scoring {len(joints)} joints ({args.joints}; of the source's {src.n_joints}) at {args.fps:g} fps: "
+    out = evaluate_single(args.generated, args.source, fps=args.fps, gen_fps=args.gen_fps, joints=args.joints,
+                          representation=args.representation, window=args.window, threshold=args.threshold,
+                          min_segment=args.min_segment, local_window=args.local_window)
+    joints, n_source, left_out = out["protocol"]["joint_names"], out.pop("source_joints"), out.pop("left_out")
+    print(f"scoring {len(joints)} joints ({args.joints}; of the source's {n_source}) at {args.fps:g} fps: "
           + " ".join(joints))
-    left_out = [n for n in shared_joints([src.skeleton], args.joints == "reduced") if n not in joints]
     if left_out:
         print(f"  not in every generated file, so not scored: {' '.join(left_out)}")
-    t0 = time.perf_counter()
-    try:
-        res = single_sequence_metrics(feats, source, coverage_window=args.window, threshold=args.threshold,
-                                      min_segment=args.min_segment, local_window=args.local_window)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-    lengths = sorted({int(f.shape[0]) for f in feats})
-    out = {
-        "coverage": res["coverage"],
-        "global_diversity": res["global_diversity"],
-        "local_diversity": res["local_diversity"],
-        "source": str(args.source),
-        "protocol": {
-            "joints": args.joints,
-            "n_joints": len(joints),
-            "joint_names": joints,
-            "fps": args.fps,
-            "gen_fps": args.gen_fps,
-            "n_samples": len(feats),
-            "sample_frames": lengths[0] if len(lengths) == 1 else lengths,
-            "source_frames": int(source.shape[0]),
-            "representation": args.representation,
-        },
-        "settings": res["settings"],
-        "seconds": time.perf_counter() - t0,
-        "per_file": [dict(file=str(p), frames=int(f.shape[0]), **v)
-                     for p, f, v in zip(args.generated, feats, res["per_sequence"])],
-    }
     write_reports(out, args.json, args.md, "Single-sequence metrics")
     print(f"coverage {out['coverage']:.4f}  global diversity {out['global_diversity']:.4f}  "
-          f"local diversity {out['local_diversity']:.4f}  ({len(feats)} file(s), {out['seconds']:.1f} s)")
+          f"local diversity {out['local_diversity']:.4f}  ({out['protocol']['n_samples']} file(s), "
+          f"{out['seconds']:.1f} s)")
     if args.json is None and args.md is None:
         print(to_markdown({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
     return 0

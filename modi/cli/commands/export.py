@@ -1,5 +1,7 @@
 """``modi export-positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks);
-``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers."""
+``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers;
+``modi export onnx``: a GANimator run or a MoDi generator as an ONNX graph and its JSON sidecar
+(``modi.export.onnx``)."""
 from __future__ import annotations
 
 import argparse
@@ -24,8 +26,8 @@ def register(subparsers) -> None:
                    help="also write the joint names, one per line, to this text file")
     p.set_defaults(func=run)
 
-    e = subparsers.add_parser("export", help="convert a BVH to another format (gltf)",
-                              description="Convert motion files for other tools.",
+    e = subparsers.add_parser("export", help="convert a BVH (gltf) or a model (onnx) for other tools",
+                              description="Convert motion files and trained models for other tools.",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     esub = e.add_subparsers(dest="export_format", metavar="FORMAT")
     e.set_defaults(func=lambda args: (e.print_help(), 2)[1])
@@ -50,6 +52,28 @@ def register(subparsers) -> None:
     g.add_argument("--no-contacts", action="store_true", help="do not store foot-contact labels")
     g.add_argument("--side-buffer", action="store_true", help=".gltf only: write the binary buffer as OUT.bin")
     g.set_defaults(func=run_gltf)
+
+    o = esub.add_parser(
+        "onnx", help="write a GANimator run or a MoDi generator as an ONNX model (+ JSON sidecar)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Write the generator of SOURCE (a GANimator run folder or .ckpt, or a MoDi checkpoint) as "
+                    "OUT.onnx, with OUT.json beside it: the rig (joint names, parents, offsets, Euler orders, fps, "
+                    "unit), the inputs' shapes and value ranges, the outputs' meaning. Inputs: GANimator: noise "
+                    "(batch, coarse_frames) and frames (or, for a trajectory-conditioned run, the trajectory); "
+                    "MoDi: z (or w with --input w), psi, and noise when the model injects it. Outputs: rotations "
+                    "(batch, frames, joints, 4) local quaternions w,x,y,z in the rig's joint order, root_position "
+                    "(batch, frames, 3), contacts (batch, frames, feet). Exported with torch.onnx.export(dynamo=True) "
+                    "on modi_ext's plain-torch path; needs pip install 'modi[onnx]'. Run it without torch: "
+                    "python -m modi.export.onnx_runner OUT.onnx OUT.bvh (see docs/onnx.md).")
+    o.add_argument("source", metavar="SOURCE", help="GANimator run folder / .ckpt, or MoDi checkpoint.pt")
+    o.add_argument("output", metavar="OUT.onnx", type=ct.output_file, help="output .onnx file (OUT.json beside it)")
+    o.add_argument("--frames", type=ct.int_range(1, None), default=None,
+                   help="GANimator: fix the output length (static shapes; default: any length, an input)")
+    o.add_argument("--input", dest="input_kind", choices=("z", "w"), default="z",
+                   help="MoDi: take the latent z (mapped by the graph) or a style w")
+    o.add_argument("--raw-weights", action="store_true", help="MoDi: the raw generator instead of its EMA")
+    o.add_argument("--opset", type=ct.int_range(18, None), default=18, help="ONNX opset of the graph")
+    o.set_defaults(func=run_onnx)
 
 
 def _contact_rule() -> str:
@@ -93,6 +117,30 @@ def run_gltf(args: argparse.Namespace) -> int:
     unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer, contacts=contacts, mesh=args.mesh,
                      up=args.up)
     print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {unit.describe()}")
+    return 0
+
+
+def run_onnx(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from modi.export.onnx import export_onnx
+    from modi.export.onnx_runner import sidecar_path
+
+    src, out = Path(args.source), Path(args.output)
+    if not src.exists():
+        raise UserError(f"{args.source}: no such run folder or checkpoint file")
+    if not out.absolute().parent.is_dir():
+        raise UserError(f"{args.output}: folder {out.absolute().parent} does not exist")
+    ct.refuse_overwrite(out, [src])
+    ct.refuse_overwrite(sidecar_path(out), [src], "sidecar")
+    side = export_onnx(src, out, frames=args.frames, input_kind=args.input_kind, ema=not args.raw_weights,
+                       opset=args.opset)
+    ins = ", ".join(f"{i['name']} {tuple(i['shape'])}" for i in side["inputs"])
+    outs = ", ".join(f"{o['name']} {tuple(o['shape'])}" for o in side["outputs"])
+    fr = side["dims"]["frames"]
+    length = f"{fr['fixed']} frames" if "fixed" in fr else f"frames >= {fr['min']}"
+    print(f"{args.output}: {side['kind']} model, {len(side['skeleton']['names'])} joints at {side['fps']:g} fps, "
+          f"{length}; inputs {ins}; outputs {outs}; sidecar {sidecar_path(out)}")
     return 0
 
 

@@ -5,14 +5,27 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Callable
 
 from modi.cli import types as ct
 from modi.errors import UserError
 from modi.io.formats import add_format_options
+from modi.models.ganimator.config import PRESETS, preset
 from modi.viz import add_view_option
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
+_PRESET_WHAT = {"paper": "the published schedule", "fast": "a CPU schedule", "tiny": "a smoke test"}
+
+
+def _preset_help() -> str:
+    """The presets and their schedules, read from ``modi.models.ganimator.config`` (not restated here)."""
+    parts = []
+    for name in PRESETS:
+        cfg = preset(name)
+        first, rest = cfg.block_budgets(2)
+        coarse = f", {first} on the coarsest" if first != rest else ""
+        parts.append(f"{name}: {_PRESET_WHAT.get(name, 'preset')} ({rest} iterations per block{coarse}; "
+                     f"{cfg.d_steps} discriminator steps per generator step)")
+    return "; ".join(parts)
 
 
 def register(subparsers) -> None:
@@ -30,9 +43,7 @@ def register(subparsers) -> None:
                                    "another run is refused.")
     t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
     t.add_argument("--out", required=True, type=ct.output_dir, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
-    t.add_argument("--preset", default="paper", choices=["paper", "fast", "tiny"],
-                   help="paper: published schedule (15k iterations per block); fast: CPU schedule (300 per block, "
-                        "900 on the coarsest); tiny: smoke test. All take 5 discriminator steps per generator step")
+    t.add_argument("--preset", default="paper", choices=PRESETS, help=_preset_help())
     t.add_argument("--iterations", type=ct.iters_int, default=None,
                    help="iterations per block of levels (preset's if omitted); the coarsest block trains ITERATIONS "
                         "× --coarse-multiplier (the fast preset multiplies it by 3)")
@@ -116,73 +127,6 @@ def _csv(s: str | None) -> list[str] | None:
     return [x.strip() for x in s.split(",") if x.strip()] if s else None
 
 
-def _coarsest_needed(cfg) -> int:
-    """Frames the coarsest pyramid level needs: its convolutions reflect-pad ``kernel_size // 2`` frames on each
-    side, and reflect padding of p frames needs more than p frames."""
-    return cfg.kernel_size // 2 + 1 if cfg.padding_mode == "reflect" else 1
-
-
-def _min_frames(cfg, coarsest_length: Callable[[int], int]) -> int:
-    """The shortest sequence (training clip or output) whose coarsest pyramid level, ``coarsest_length(n)`` frames
-    for ``n`` frames, is long enough for the convolutions of ``cfg``."""
-    need = _coarsest_needed(cfg)
-    for n in range(2, ct.MAX_FRAMES):
-        if coarsest_length(n) >= need:
-            return n
-    return ct.MAX_FRAMES
-
-
-def _min_training_frames(cfg) -> int:
-    from modi.models.ganimator.data import pyramid_lengths
-
-    return _min_frames(cfg, lambda n: pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0])
-
-
-def _check_training_length(clips, cfg) -> None:
-    need = _coarsest_needed(cfg)
-    n_min = _min_training_frames(cfg)
-    for c in clips:
-        if c.n_frames < n_min:
-            raise UserError(
-                f"{c.name}: {c.n_frames} frames at {c.fps:g} fps (after resampling) is too short for GANimator: "
-                f"it needs at least {n_min} frames, because the coarsest pyramid level (--coarse-ratio "
-                f"{cfg.coarse_ratio:g} of the clip) must have {need} frames or more for the {cfg.kernel_size}-frame "
-                f"convolutions' reflect padding of {need - 1} frames")
-
-
-def _min_output_frames(model) -> int:
-    """Shortest output length whose coarsest level is long enough for the model's convolutions."""
-    return _min_frames(model.cfg, lambda n: model.level_lengths(n)[0])
-
-
-def _check_generation_length(args) -> None:
-    """Refuse --frames / --content / --keyframes too short for the run's pyramid, before anything is written."""
-    from modi.models.ganimator.data import load_sequence
-    from modi.models.ganimator.training import load_model
-
-    if not Path(args.run).exists():
-        raise UserError(f"{args.run}: no such GANimator run folder or checkpoint file")
-    model = load_model(args.run)
-    need, n_min = _coarsest_needed(model.cfg), _min_output_frames(model)
-    why = (f"the coarsest pyramid level ({model.rates[0][0]:.3g} of the length) must have {need} frames or more for "
-           f"the convolutions' reflect padding of {need - 1} frames")
-    if args.frames is not None and args.frames < n_min:
-        raise UserError(f"--frames {args.frames} is too short for this run: at least {n_min} frames, because {why}")
-    for opt, path in (("--content", args.content), ("--keyframes", args.keyframes), ("--trajectory", args.trajectory)):
-        if path is None:
-            continue
-        if not Path(path).is_file():
-            raise UserError(f"{opt} {path}: no such BVH file")
-        clip = load_sequence(path, model.cfg, like=model.seqs[0])
-        if opt == "--keyframes":
-            if clip.n_frames < 2:
-                raise UserError(f"--keyframes {path}: {clip.n_frames} frame at {clip.fps:g} fps (after resampling); "
-                                "key-frame editing needs at least 2 key-frames (the root motion is their difference)")
-        elif clip.n_frames < n_min:
-            raise UserError(f"{opt} {path}: {clip.n_frames} frames at {clip.fps:g} fps (after resampling) is too short "
-                            f"for this run: at least {n_min} frames, because {why}")
-
-
 def _int_csv(s: str | None, flag: str) -> list[int] | None:
     items = _csv(s)
     if items is None:
@@ -197,62 +141,19 @@ def _int_csv(s: str | None, flag: str) -> list[int] | None:
 
 
 def _train(args) -> int:
-    from modi import faults
+    from modi.api.training import TrainingInterrupted, train_ganimator
 
-    with faults.hold_run_folder(Path(args.out)):  # a second run into the folder is refused before any work
-        return _train_locked(args)
-
-
-def _train_locked(args) -> int:
-    import torch
-
-    from modi.models.ganimator.config import preset
-    from modi.models.ganimator.data import load_sequences
-    from modi.models.ganimator.training import TrainingInterrupted, load_model, train
-
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    ct.unique_names("--feet", _csv(args.feet))
-    cfg = preset(args.preset, iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
-                 coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
-                 fps=args.fps, device=args.device, seed=args.seed,
-                 block_iterations=_int_csv(args.block_iters, "--block-iters"),
-                 coarse_multiplier=args.coarse_multiplier, contact_rescale=args.contact_rescale,
-                 contact_first_frame=args.contact_first_frame, bias_init=args.bias_init, sixd=args.sixd)
-    if args.no_joint_reduction:
-        cfg = cfg.replace(joint_reduction=False)
-    if args.no_contacts:
-        cfg = cfg.replace(contacts=False)
-    cond_source = None
-    if args.conditional_from:
-        if not Path(args.conditional_from).exists():
-            raise UserError(f"--conditional-from {args.conditional_from}: no such GANimator run folder or checkpoint file")
-        cond_source = load_model(args.conditional_from, device=cfg.device)
-        cfg = cfg.replace(conditional=True)
-        if cond_source.cfg.sixd != cfg.sixd:
-            raise UserError(f"--conditional-from: that run uses {cond_source.cfg.sixd} 6D; pass --sixd "
-                            f"{cond_source.cfg.sixd} to train a model that can read its trajectories")
-    for b in args.bvh:
-        ct.input_file(b)
-    clips = load_sequences(args.bvh, cfg)
-    if cond_source is not None and [c.name for c in cond_source.seqs] != [c.name for c in clips]:
-        raise UserError("--conditional-from must be a run trained on the same BVH file(s)")
-    _check_training_length(clips, cfg)
-    c = clips[0]
-    if 0 in c.feet:
-        raise UserError(f"--feet: the root joint {c.skeleton.names[0]} cannot be a foot (contacts pin feet relative "
-                        "to the root)")
-    print(f"{len(clips)} clip(s), {c.n_joints} joints, feet {[c.skeleton.names[f] for f in c.feet]}, "
-          f"{', '.join(str(x.n_frames) for x in clips)} frames at {c.fps:.1f} fps")
-    from modi.models.ganimator.data import sequence_pyramid
-    from modi.models.ganimator.training import blocks_of
-
-    n_blocks = len(blocks_of(len(sequence_pyramid(clips, cfg)[0][0]), cfg.group_size))
-    print(f"{n_blocks} blocks of {cfg.group_size} levels, iterations {cfg.block_budgets(n_blocks)} "
-          f"({cfg.d_steps} D : {cfg.g_steps} G : 1 reconstruction steps each)")
     try:
-        train(clips, cfg, args.out, progress=not args.quiet,
-              max_seconds=args.max_minutes * 60 if args.max_minutes else None, cond_source=cond_source)
+        train_ganimator(args.bvh, args.out, preset=args.preset, resume=True, conditional_from=args.conditional_from,
+                        max_minutes=args.max_minutes, threads=args.threads, bar=not args.quiet, log=print,
+                        iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
+                        coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
+                        fps=args.fps, device=args.device, seed=args.seed,
+                        block_iterations=_int_csv(args.block_iters, "--block-iters"),
+                        coarse_multiplier=args.coarse_multiplier, contact_rescale=args.contact_rescale,
+                        contact_first_frame=args.contact_first_frame, bias_init=args.bias_init, sixd=args.sixd,
+                        joint_reduction=False if args.no_joint_reduction else None,
+                        contacts=False if args.no_contacts else None)
     except TrainingInterrupted as exc:
         print(f"modi ganimator train: interrupted; checkpoint saved to {exc.checkpoint} "
               "(run the same command again to continue)", file=sys.stderr)
@@ -261,32 +162,62 @@ def _train_locked(args) -> int:
     return 0
 
 
-def _generate(args) -> int:
-    from modi.models.ganimator.generate import generate_command
+def _mode(args, run) -> str:
+    if args.content:
+        return "style transfer"
+    if args.keyframes:
+        return "key-frame editing"
+    if args.trajectory or run.conditional:
+        return "trajectory" + (" (streamed)" if args.stream else "")
+    return "random"
 
-    _check_generation_length(args)
-    result = generate_command(args)
-    if args.evaluate and result.get("metrics"):
-        print(json.dumps(result["metrics"], indent=2))
+
+def _generate(args) -> int:
+    import numpy as np
+
+    from modi.api.ganimator import GanimatorRun
+    from modi.io.formats import save_motion
+    from modi.viz.render import render_positions
+
+    run = GanimatorRun.from_checkpoint(args.run)
+    spacing = None if args.crowd_spacing is None else args.crowd_spacing / run.scale  # the option is in GANimator's units
+    motions = run.generate(args.n, frames=args.frames, seed=args.seed, keyframes=args.keyframes,
+                           trajectory=args.trajectory, style=args.content, stream=args.stream,
+                           fine_noise=args.fine_noise, ik=args.ik, spacing=spacing)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    crowd = len(motions) > 1
+    written = [str(save_motion(m.to_bvh(), out / (f"sample_{i:03d}.bvh" if crowd else "sample.bvh"),
+                               contacts=m.contact_arrays()))
+               for i, m in enumerate(motions)]
+    gif = None
+    if not args.no_gif:
+        sk = run.skeleton
+        masks = []
+        for m in motions:
+            mask = np.zeros((m.n_frames, sk.n_joints), dtype=bool)
+            for name, c in (m.contacts or {}).items():
+                mask[:, sk.names.index(name)] = c.numpy()
+            masks.append(mask)
+        gif = out / ("crowd.gif" if crowd else "sample.gif")
+        render_positions([(m.positions() * run.scale).numpy() for m in motions], list(sk.parents), gif, fps=run.fps,
+                         names=list(sk.names), contacts=masks, layout="scene" if crowd else "grid", view="view.html")
+    print(f"{_mode(args, run)}: wrote {len(written)} BVH to {out}" + (f" and {gif}" if gif else ""))
+    if args.evaluate:
+        print(json.dumps(run.metrics(motions), indent=2))
     return 0
 
 
 def _evaluate(args) -> int:
-    from modi.models.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper, format_figures
-    from modi.models.ganimator.generate import evaluate_run
+    from modi.api.ganimator import GanimatorRun
+    from modi.models.ganimator.evaluate_paper import format_figures
 
-    if args.n is not None and args.n < 1:
-        raise UserError("--n must be at least 1")
-    if args.frames is not None and args.frames < 30:
-        raise UserError("--frames must be at least 30 (the coverage window)")
     if args.json and args.json != "-":
         from modi.models.ganimator.training import checkpoint_path
 
         ct.refuse_overwrite(args.json, [checkpoint_path(args.run)], "--json")
-    if args.protocol == "paper":
-        figures = evaluate_paper(args.run, n=args.n or N_SAMPLES, n_frames=args.frames, seed=args.seed)
-    else:
-        figures = evaluate_run(args.run, n=args.n or 10, n_frames=args.frames, seed=args.seed)
+    figures = GanimatorRun.from_checkpoint(args.run).evaluate(n=args.n, frames=args.frames, seed=args.seed,
+                                                              protocol=args.protocol)
     text = json.dumps(figures, indent=2)
     print(text if args.json == "-" else format_figures(figures))
     if args.json and args.json != "-":

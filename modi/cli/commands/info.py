@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
 from modi.errors import UserError
+from modi.interop.provenance import KINDS as SOURCE_KINDS
 
 _FOLDER_FILES = ("ganimator.ckpt", "checkpoint.pt")  # what a GANimator / MoDi run folder holds
 
@@ -49,18 +51,34 @@ def _written_by(st: dict) -> dict[str, Any]:
     return {"modi_version": st.get("modi_version"), "torch_version": st.get("torch_version")}
 
 
+def _imported(prov: Any) -> dict[str, Any] | None:
+    """An import's record (``modi.interop.provenance``), or the bare path earlier imports kept."""
+    if prov is None:
+        return None
+    if not isinstance(prov, dict):
+        return {"kind": None, "source": {"path": str(prov)}}
+    return prov
+
+
+def _kind(kind: str, prov: dict | None) -> str:
+    return kind + (" (imported from the authors' released code)" if prov is not None else "")
+
+
 def _modi(st: dict) -> dict[str, Any]:
-    return {"kind": "MoDi generator checkpoint", "format": st.get("format"), "version": st.get("version"),
-            "step": st.get("step"), "skeleton": _skeleton(st.get("skeleton")), "config": st.get("config"),
-            "data": st.get("data_source"), **_written_by(st)}
+    prov = _imported(st.get("imported_from"))
+    return {"kind": _kind("MoDi generator checkpoint", prov), "format": st.get("format"),
+            "version": st.get("version"), "step": st.get("step"), "skeleton": _skeleton(st.get("skeleton")),
+            "config": st.get("config"), "data": st.get("data_source"), **_written_by(st), "imported": prov}
 
 
 def _encoder(st: dict) -> dict[str, Any]:
     gen = st.get("generator") or {}
-    return {"kind": "MoDi encoder checkpoint", "format": st.get("format"), "version": st.get("version"),
+    prov = _imported(st.get("imported_from"))
+    return {"kind": _kind("MoDi encoder checkpoint", prov), "format": st.get("format"), "version": st.get("version"),
             "step": st.get("step"), "skeleton": _skeleton(gen.get("skeleton")),
             "config": {"encoder": st.get("encoder_config"), "train": st.get("train_config"),
-                       "generator": gen.get("config")}, "data": st.get("data_source"), **_written_by(st)}
+                       "generator": gen.get("config")}, "data": st.get("data_source"), **_written_by(st),
+            "imported": prov}
 
 
 def _features(st: dict) -> dict[str, Any]:
@@ -86,11 +104,13 @@ def _ganimator(st: dict) -> dict[str, Any]:
     clips = [f"{c['name']} ({c['features'].shape[-1]} frames at {c['fps']:g} fps; pyramid {'-'.join(map(str, l))})"
              for c, l in zip(m.get("clips", []), lengths)]
     first = (m.get("clips") or [{}])[0]
-    return {"kind": "GANimator checkpoint" + (" (trajectory-conditioned)" if cfg.get("conditional") else ""),
+    prov = _imported(state.get("imported_from"))
+    kind = "GANimator checkpoint" + (" (trajectory-conditioned)" if cfg.get("conditional") else "")
+    return {"kind": _kind(kind, prov),
             "format": st.get("format"), "version": int(str(st.get("format")).rsplit("/", 1)[1]),
             "step": f"{where}; {state.get('levels_done', 0)} of {n_levels} levels trained",
             "skeleton": _skeleton(first.get("skeleton")), "config": cfg, "data": ", ".join(clips),
-            **_written_by(st)}
+            **_written_by(st), "imported": prov}
 
 
 _KINDS = {"modi-checkpoint": _modi, "modi-encoder": _encoder, "modi-features-v1": _features,
@@ -125,8 +145,6 @@ def _flat(d: Any, prefix: str = "") -> list[str]:
 
 
 def _text(d: dict[str, Any]) -> str:
-    import textwrap
-
     sk = d["skeleton"]
     names = ", ".join(sk["names"][:8]) + (", ..." if sk and len(sk["names"]) > 8 else "") if sk else ""
     wrote = (f"modi {d['modi_version']}" if d.get("modi_version")
@@ -138,9 +156,73 @@ def _text(d: dict[str, Any]) -> str:
             ("skeleton", f"{sk['joints']} joints, root {sk['root']}: {names}" if sk else "not recorded"),
             ("data", d.get("data") or "not recorded"), ("written by", wrote)]
     lines = [f"{k + ':':12s} {v}" for k, v in rows]
+    lines += _imported_text(d.get("imported"))
     cfg = " ".join(_flat(d["config"])) if d.get("config") is not None else "not recorded"
     lines += textwrap.wrap(cfg, width=110, initial_indent=f"{'config:':12s} ", subsequent_indent=" " * 13)
     return "\n".join(lines)
+
+
+def _source_text(src: dict, kind: str | None) -> str:
+    name = src.get("name") or src.get("path") or "?"
+    what = SOURCE_KINDS.get(kind or "", "released checkpoint")
+    if src.get("files"):
+        names = [f["name"] for f in src["files"]]
+        gens = [n for n in names if n.startswith("gen")]
+        shown = [n for n in names if not n.startswith("gen")] + ([f"{len(gens)} generators ({gens[0]}..{gens[-1]})"]
+                                                                  if gens else [])
+        return f"{what} {name}/ ({', '.join(shown)}; sha256 {src.get('sha256')} over the files' sha256)"
+    return f"{what} {name}" + (f" (sha256 {src['sha256']})" if src.get("sha256") else "")
+
+
+def _data_text(data: dict, kind: str | None) -> str:
+    if not data:
+        return "not recorded"
+    head = f"{data.get('name')} (sha256 {data.get('sha256')})"
+    if kind == "ganimator-released":
+        text = (f"{head}: {data.get('frames')} frames, Frame Time {data.get('frame_time'):.9g} "
+                f"({data.get('fps'):.9g} fps); their frame stride {data.get('stride')}: a clip of "
+                f"{data.get('clip_frames')} frames at {data.get('clip_fps'):.9g} fps, pyramid "
+                f"{'-'.join(map(str, data.get('pyramid') or []))}; units x{data.get('scale'):g}, contact threshold "
+                f"{data.get('threshold'):g} on {', '.join(data.get('contacts') or []) or 'no joints'}")
+        if data.get("floor_root"):
+            text += f"; root track from the static floor root {(data.get('joints') or ['?'])[0]}" \
+                if (data.get("joints") or [""])[0] == "joint_Root" else "; the file's static floor root left out"
+        flips = [f"frame {f.get('frame')} {f.get('joint')}" for f in data.get("flipped_labels") or []]
+        if flips:
+            text += (f"; {len(flips)} contact label(s) within float32 rounding of the threshold settled by amps.pt "
+                     f"({', '.join(flips)})")
+        return text
+    window, stride = data.get("window"), data.get("stride")
+    return (f"{head}: {data.get('clips')} clips, windows of {window} frames every "
+            f"{stride if stride is not None else '? (no two windows overlap)'}, at {data.get('fps'):g} fps")
+
+
+def _imported_text(prov: dict | None) -> list[str]:
+    """The ``imported`` rows: what the source file says, marked as theirs."""
+    if prov is None:
+        return []
+    kind = prov.get("kind")
+    src = prov.get("source") or {}
+    rows = [("imported", _source_text(src, kind) + (f", by modi {prov['imported_by']}" if prov.get("imported_by")
+                                                    else ""))]
+    if kind is None:
+        return [f"{'imported:':12s} {src.get('path')} (recorded before modi kept what the file says)"]
+    its = prov.get("iterations")
+    rows.append(("their step", f"{its} iterations, {prov.get('iterations_from')}" if its is not None
+                 else f"not recorded ({prov.get('iterations_from')})"))
+    rows.append(("their data", _data_text(prov.get("data") or {}, kind)))
+    rows.append(("their seed", prov["seed"] if prov.get("seed") is not None
+                 else "none (their training scripts set no seed)"))
+    if prov.get("generator"):
+        rows.append(("generator", _source_text((prov["generator"] or {}).get("source") or {}, "modi-released")))
+    lines = []
+    for k, v in rows:
+        lines += textwrap.wrap(str(v), width=110, initial_indent=f"{k + ':':12s} ", subsequent_indent=" " * 13)
+    args = prov.get("args") or {}
+    text = " ".join(f"--{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in args.items()) or "none"
+    lines += textwrap.wrap(text, width=110, initial_indent=f"{'their args:':12s} ", subsequent_indent=" " * 13,
+                           break_on_hyphens=False)
+    return lines
 
 
 def _info(args) -> int:

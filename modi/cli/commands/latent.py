@@ -129,24 +129,21 @@ def register(subparsers) -> None:
 
 # --------------------------------------------------------------------------------------------- helpers
 def _setup(args: argparse.Namespace):
-    import torch
+    """The generator of CKPT as ``(network, codec, config)`` (through :class:`modi.ModiGenerator`)."""
+    from modi.api._util import check_device, set_threads
+    from modi.api.generator import ModiGenerator
 
-    from modi.models.modi.latent.space import load_model
-
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    if str(args.device).startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda requested but torch has no CUDA device")
+    set_threads(args.threads)
+    check_device(args.device)
     ct.input_file(args.ckpt, "MoDi checkpoint file")
-    return load_model(args.ckpt, device=args.device, ema=not args.raw_weights)
+    gen = ModiGenerator.from_checkpoint(args.ckpt, device=args.device, ema=not args.raw_weights)
+    args.generator = gen
+    return gen.network, gen.codec, gen.config
 
 
-def _latent(g, spec: str, option: str):
-    """``parse_latent`` plus checks: a seed in range, a latent file of finite numbers."""
-    import torch
-
-    from modi.models.modi.latent.space import parse_latent
-
+def _latent(gen, spec: str, option: str):
+    """A latent word (seed, ``seed:N``, ``mean``, ``.npy``) of a :class:`modi.ModiGenerator` as ``(tensor,
+    label)``; errors name ``option``."""
     s = str(spec).strip()
     s = s[5:] if s.startswith("seed:") else s
     try:
@@ -155,11 +152,11 @@ def _latent(g, spec: str, option: str):
         seed = None
     if seed is not None and not 0 <= seed <= ct.MAX_SEED:
         raise UserError(f"{option}: a seed must be between 0 and {ct.MAX_SEED}, got {seed}")
-    if seed is None and s != "mean" and not Path(s).is_file():
-        raise UserError(f"{option}: {spec}: no such latent file (give a seed, 'mean' or a .npy latent)")
-    w, label = parse_latent(g, spec)
-    if not bool(torch.isfinite(w).all()):
-        raise UserError(f"{option}: the latent {spec} holds NaN or infinite values")
+    try:
+        w = gen.latent(seed if seed is not None else spec)
+    except UserError as exc:
+        raise UserError(f"{option}: {exc}") from None
+    label = f"seed {seed}" if seed is not None else ("mean" if s == "mean" else Path(s).stem)
     return w, label
 
 
@@ -196,7 +193,7 @@ def run_truncate(args: argparse.Namespace) -> int:
     from modi.models.modi.latent.space import mean_w, truncation_sequence
 
     g, codec, _ = _setup(args)
-    w, label = _latent(g, args.latent, "--latent")
+    w, label = _latent(args.generator, args.latent, "--latent")
     seq = truncation_sequence(w, _steps(args.steps), mean_w(g))
     paths = _write_sequence(codec, g, seq, Path(args.out), "truncation.gif", "to mean")
     print(f"modi latent truncate: {len(paths)} motions from {label} to the mean in {args.out} (truncation.gif)")
@@ -207,8 +204,8 @@ def run_interpolate(args: argparse.Namespace) -> int:
     from modi.models.modi.latent.space import interpolation_sequence
 
     g, codec, _ = _setup(args)
-    a, la = _latent(g, args.a, "--from")
-    b, lb = _latent(g, args.b, "--to")
+    a, la = _latent(args.generator, args.a, "--from")
+    b, lb = _latent(args.generator, args.b, "--to")
     seq = interpolation_sequence(a, b, _steps(args.steps))
     space = "W+" if seq.ndim == 3 else "W"
     paths = _write_sequence(codec, g, seq, Path(args.out), "interpolation.gif", "")
@@ -278,7 +275,7 @@ def run_crowd(args: argparse.Namespace) -> int:
     if not SIGMA_RANGE[0] <= args.sigma <= SIGMA_RANGE[1]:
         print(f"modi latent crowd: note: σ={args.sigma:g} is outside the paper's range "
               f"{SIGMA_RANGE[0]}-{SIGMA_RANGE[1]}")
-    w, label = _latent(g, args.latent, "--latent")
+    w, label = _latent(args.generator, args.latent, "--latent")
     crowd = simulate_crowd(g, codec, w, args.out, k=args.k, sigma=args.sigma, seed=args.seed,
                            include_source=not args.no_source, spacing=args.spacing)
     print(f"modi latent crowd: {len(crowd.files['bvh'])} characters around {label} (σ={args.sigma:g}) in "

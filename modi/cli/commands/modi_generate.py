@@ -5,8 +5,7 @@ import argparse
 import time
 
 from modi.cli import types as ct
-from modi.errors import UserError
-from modi.io.formats import add_format_options, check_finite
+from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 
@@ -34,26 +33,24 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    from modi.api._util import check_device, existing_file
+    from modi.api.generator import ModiGenerator
+    from modi.models.modi.sampling import write_outputs
 
-    from modi.models.modi.sampling import generate_tensors, load_generator, write_outputs
-
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda requested but torch has no CUDA device")
-    ct.input_file(args.ckpt, "MoDi checkpoint file")
+    check_device(args.device)
+    existing_file(args.ckpt, "MoDi checkpoint file")
     t0 = time.perf_counter()
-    model = load_generator(args.ckpt, ema=not args.raw_weights, device=args.device)
+    gen = ModiGenerator.from_checkpoint(args.ckpt, ema=not args.raw_weights, device=args.device)
     t1 = time.perf_counter()
-    x, codec = generate_tensors(args.ckpt, args.n, seed=args.seed, psi=args.psi, batch=args.batch, model=model)
+    x = gen.sample_tensors(args.n, seed=args.seed, psi=args.psi, batch=args.batch)
     t_gen = time.perf_counter() - t1
-    check_finite(x)
     written = []
     for start in range(0, args.n, args.batch):  # decode/write in chunks to bound memory
-        written += write_outputs(codec, x[start:start + args.batch], args.out, ik=args.ik, start_index=start,
+        written += write_outputs(gen.codec, x[start:start + args.batch], args.out, ik=args.ik, start_index=start,
                                  gif=False)
     if args.gif_max:
-        write_outputs(codec, x[:args.gif_max], args.out, bvh=False, contacts=False, gif=True, max_gif=args.gif_max,
-                      ik=args.ik)
+        write_outputs(gen.codec, x[:args.gif_max], args.out, bvh=False, contacts=False, gif=True,
+                      max_gif=args.gif_max, ik=args.ik)
     what = f"{len(written)} motion files ({','.join(args.format)})" if written else f"{args.n} position arrays"
     print(f"modi generate: {what} in {args.out} (sampling {t_gen:.2f} s, {args.n / max(t_gen, 1e-9):.1f} motions/s; "
           f"total {time.perf_counter() - t0:.1f} s)")

@@ -29,9 +29,9 @@ from torch import Tensor
 
 from modi.core.joint_reduction import reduce_joints  # noqa: F401  (re-exported: GANimator's joint reduction)
 from modi.core.kinematics import forward_kinematics
-from modi.core.rotations import euler_to_quat, quat_to_6d, sixd_to_quat
+from modi.core.rotations import quat_to_6d, sixd_to_quat
 from modi.core.skeleton import Skeleton, strip_namespace  # noqa: F401  (strip_namespace: re-exported)
-from modi.data.motion import Motion, fold_dummy_root
+from modi.data.motion import Motion
 from modi.errors import UserError
 from modi.io import bvh as bvh_io
 from modi.models.ganimator.config import GanimatorConfig
@@ -185,6 +185,43 @@ def pyramid_lengths(n_frames: int, coarse_ratio: float = 0.2, scale_factor: floa
     return lengths
 
 
+MAX_FRAMES = 100_000  # the longest sequence a length search below looks at (the CLI's bound too)
+
+
+def coarsest_needed(cfg) -> int:
+    """Frames the coarsest pyramid level needs: its convolutions reflect-pad ``kernel_size // 2`` frames on each
+    side, and reflect padding of p frames needs more than p frames."""
+    return cfg.kernel_size // 2 + 1 if cfg.padding_mode == "reflect" else 1
+
+
+def min_frames(cfg, coarsest_length) -> int:
+    """The shortest sequence (training clip or output) whose coarsest pyramid level, ``coarsest_length(n)`` frames
+    for ``n`` frames, is long enough for the convolutions of ``cfg``."""
+    need = coarsest_needed(cfg)
+    for n in range(2, MAX_FRAMES):
+        if coarsest_length(n) >= need:
+            return n
+    return MAX_FRAMES
+
+
+def min_training_frames(cfg) -> int:
+    """The shortest training clip (after resampling) a run of ``cfg`` can learn from."""
+    return min_frames(cfg, lambda n: pyramid_lengths(n, cfg.coarse_ratio, cfg.scale_factor)[0])
+
+
+def check_training_length(clips: Seq["Sequence"], cfg) -> None:
+    """``UserError`` naming the first clip too short for the pyramid of ``cfg``, and why."""
+    need = coarsest_needed(cfg)
+    n_min = min_training_frames(cfg)
+    for c in clips:
+        if c.n_frames < n_min:
+            raise UserError(
+                f"{c.name}: {c.n_frames} frames at {c.fps:g} fps (after resampling) is too short for GANimator: "
+                f"it needs at least {n_min} frames, because the coarsest pyramid level (--coarse-ratio "
+                f"{cfg.coarse_ratio:g} of the clip) must have {need} frames or more for the {cfg.kernel_size}-frame "
+                f"convolutions' reflect padding of {need - 1} frames")
+
+
 def level_lengths(n_frames: int, rates: Seq[float]) -> list[int]:
     """Lengths of every level for an ``n_frames`` output, given each level's rate relative to the finest."""
     return [max(1, math.ceil(n_frames * r - 1e-6)) for r in rates]
@@ -235,35 +272,24 @@ class RawClip:
     fps: float
 
 
-def read_clip(path: str | Path) -> RawClip:
-    """Parse a BVH into local quaternions and the root track (root position channels, else its OFFSET; other
-    joints' position channels are not used, as in the authors' loader, except Bandai's pattern, see
-    :func:`modi.data.motion.fold_dummy_root`)."""
+def read_clip(path: str | Path, fold_root: bool = True) -> RawClip:
+    """Parse a BVH into local quaternions and the root track through modi's one reader,
+    :meth:`modi.data.motion.Motion.from_bvh` (one frame rate: ``Frame Time: 0.008333`` is 120 fps), keeping the
+    declared OFFSETs of non-root joints (``translations="offsets"``: position channels of other joints are not
+    used, as in the authors' loader), except Bandai's pattern, see :func:`modi.data.motion.fold_dummy_root`.
+    ``fold_root=False`` reads that pattern as the authors' loader did: the static floor root's channels are the root
+    track and its child stays at its OFFSET."""
     p = Path(path)
     if not p.is_file():
         raise UserError(f"BVH file not found: {p}")
     b = bvh_io.load(str(p))
     if b.n_frames < 1:
         raise UserError(f"{p}: the BVH has no frames")
-    eul = torch.from_numpy(b.euler_degrees())  # (F, J, 3)
-    orders = b.rotation_orders
-    quats = torch.empty(eul.shape[0], b.n_joints, 4, dtype=torch.float64)
-    for order in set(orders):
-        idx = [j for j, o in enumerate(orders) if o == order]
-        quats[:, idx] = euler_to_quat(eul[:, idx], order)
-    trans = b.local_translations()
-    skeleton = b.skeleton()
-    scale = float(np.ptp(skeleton.rest_positions(), axis=0).max()) or 1.0
-    folded = fold_dummy_root(b.parents, trans, b.euler_degrees(), quats[0, 0], scale)
-    if folded is None:
-        root = trans[:, 0].copy()
-    else:  # Bandai's static joint_Root above an animated Hips: the pelvis motion goes into the root track
-        root, a = folded
-        offsets = skeleton.offsets.copy()
-        offsets[a] = 0.0
-        skeleton = Skeleton(names=list(skeleton.names), parents=list(skeleton.parents), offsets=offsets,
-                            end_sites=dict(skeleton.end_sites), rotation_orders=list(skeleton.rotation_orders))
-    return RawClip(skeleton, quats, torch.from_numpy(np.ascontiguousarray(root)), b.fps)
+    m = Motion.from_bvh(b, translations="offsets")
+    if fold_root:
+        return RawClip(m.skeleton, m.rotations, m.root_positions, m.fps)
+    root = torch.from_numpy(np.ascontiguousarray(b.local_translations()[:, 0]))  # joint 0's own channels
+    return RawClip(b.skeleton(), m.rotations, root.to(m.rotations.dtype), m.fps)
 
 
 def subset_clip(clip: RawClip, keep: list[int]) -> RawClip:

@@ -24,11 +24,10 @@ from modi.errors import UserError
 from modi.evaluation.single import rotation_features, single_sequence_metrics
 from modi.io.bvh import Bvh
 from modi.io.formats import check_finite, save_motion
-from modi.models.ganimator.data import K, features_to_motion, load_sequence, resample
+from modi.models.ganimator.data import K, coarsest_needed, features_to_motion, load_sequence, min_frames, resample
 from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, make_noise, synthesize
 from modi.models.ganimator.training import load_model, run_summary
-from modi.viz.render import render_positions
 
 # ------------------------------------------------------------------------------------------- decoding / output
 
@@ -347,94 +346,93 @@ class TrajectoryStream:
 # ------------------------------------------------------------------------------------------- the command
 
 
-def _render(seqs_and_positions, parents, path: Path, fps: float, names, contacts=None, layout="grid") -> None:
-    render_positions(seqs_and_positions, parents, path, fps=fps, names=names, contacts=contacts, layout=layout,
-                     view="view.html")
+def min_output_frames(model: GanimatorModel) -> int:
+    """Shortest output length whose coarsest level is long enough for the model's convolutions."""
+    return min_frames(model.cfg, lambda n: model.level_lengths(n)[0])
 
 
-def generate_command(args) -> dict:
-    """Implements ``modi ganimator generate`` (see ``modi.cli.commands.ganimator``)."""
-    model = load_model(args.run)
-    seq = model.seqs[0]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.n < 1:
-        raise UserError("--n must be at least 1")
-    if args.frames is not None and args.frames < 2:
-        raise UserError("--frames must be at least 2")
-    if sum(x is not None for x in (args.content, args.keyframes, args.trajectory)) > 1:
+def check_generation_inputs(model: GanimatorModel, frames: int | None = None, content: str | Path | None = None,
+                            keyframes: str | Path | None = None, trajectory: str | Path | None = None) -> None:
+    """Refuse an output length or an input clip too short for the run's pyramid (``UserError`` naming the option),
+    before anything is generated or written."""
+    need, n_min = coarsest_needed(model.cfg), min_output_frames(model)
+    why = (f"the coarsest pyramid level ({model.rates[0][0]:.3g} of the length) must have {need} frames or more for "
+           f"the convolutions' reflect padding of {need - 1} frames")
+    if frames is not None and frames < n_min:
+        raise UserError(f"--frames {frames} is too short for this run: at least {n_min} frames, because {why}")
+    if sum(x is not None for x in (content, keyframes, trajectory)) > 1:
         raise UserError("use only one of --content, --keyframes, --trajectory")
-    gen = torch.Generator().manual_seed(args.seed)
+    for opt, path in (("--content", content), ("--keyframes", keyframes), ("--trajectory", trajectory)):
+        if path is None:
+            continue
+        if not Path(path).is_file():
+            raise UserError(f"{opt} {path}: no such BVH file")
+        clip = load_sequence(path, model.cfg, like=model.seqs[0])
+        if opt == "--keyframes":
+            if clip.n_frames < 2:
+                raise UserError(f"--keyframes {path}: {clip.n_frames} frame at {clip.fps:g} fps (after resampling); "
+                                "key-frame editing needs at least 2 key-frames (the root motion is their difference)")
+        elif clip.n_frames < n_min:
+            raise UserError(f"{opt} {path}: {clip.n_frames} frames at {clip.fps:g} fps (after resampling) is too short "
+                            f"for this run: at least {n_min} frames, because {why}")
+
+
+def sample_features(model: GanimatorModel, n: int = 1, frames: int | None = None, seed: int = 0, *,
+                    content: str | Path | None = None, keyframes: str | Path | None = None,
+                    trajectory: str | Path | None = None, stream: int = 0, fine_noise: bool = False
+                    ) -> tuple[list[Tensor], Tensor | None, str]:
+    """What ``modi ganimator generate`` samples: ``(features (6, E, T) per motion, root start or None, mode)``.
+
+    Random motions draw from one generator seeded with ``seed``; style transfer (``content``), key-frame editing
+    (``keyframes``) and trajectory control (``trajectory``, or a trajectory sampled from the run's source for a
+    conditional run) use ``seed + i`` for motion ``i``. ``stream`` feeds a trajectory in segments of that many
+    frames (:class:`TrajectoryStream`, equal to the offline result)."""
+    seq = model.seqs[0]
+    if n < 1:
+        raise UserError("--n must be at least 1")
+    if frames is not None and frames < 2:
+        raise UserError("--frames must be at least 2")
+    if sum(x is not None for x in (content, keyframes, trajectory)) > 1:
+        raise UserError("use only one of --content, --keyframes, --trajectory")
     samples: list[Tensor] = []
     start = None  # root position of frame 0: the input's for content / key-frames / trajectories
-    extra: dict = {}
-    if args.content:
-        start = load_sequence(args.content, model.cfg, like=seq).root_start
-        for i in range(args.n):
-            samples.append(style_transfer(model, args.content, seed=args.seed + i)[0])
-        extra["mode"] = "style transfer"
-    elif args.keyframes:
-        start = load_sequence(args.keyframes, model.cfg, like=seq).root_start
-        for i in range(args.n):
-            samples.append(keyframe_edit(model, args.keyframes, args.frames, seed=args.seed + i)[0])
-        extra["mode"] = "key-frame editing"
-    elif args.trajectory or model.cond_entities:
+    if content:
+        start = load_sequence(content, model.cfg, like=seq).root_start
+        for i in range(n):
+            samples.append(style_transfer(model, content, seed=seed + i)[0])
+        mode = "style transfer"
+    elif keyframes:
+        start = load_sequence(keyframes, model.cfg, like=seq).root_start
+        for i in range(n):
+            samples.append(keyframe_edit(model, keyframes, frames, seed=seed + i)[0])
+        mode = "key-frame editing"
+    elif trajectory or model.cond_entities:
         if not model.cond_entities:
             raise UserError("--trajectory needs a trajectory-conditioned run (train with --conditional-from RUN)")
-        for i in range(args.n):
-            if args.trajectory:
-                traj, start = load_trajectory(model, args.trajectory)
+        for i in range(n):
+            if trajectory:
+                traj, start = load_trajectory(model, trajectory)
             else:
-                traj = sample_trajectory(model, args.frames or seq.n_frames, seed=args.seed + i)
-            if args.stream:
-                st = TrajectoryStream(model, seed=args.seed + i, fine_noise=args.fine_noise)
-                parts = [st.extend(traj[..., s:s + args.stream]) for s in range(0, traj.shape[-1], args.stream)]
+                traj = sample_trajectory(model, frames or seq.n_frames, seed=seed + i)
+            if stream:
+                st = TrajectoryStream(model, seed=seed + i, fine_noise=fine_noise)
+                parts = [st.extend(traj[..., s:s + stream]) for s in range(0, traj.shape[-1], stream)]
                 parts.append(st.finish())
                 samples.append(torch.cat(parts, dim=-1)[0])
             else:
-                samples.append(conditional_generate(model, traj, seed=args.seed + i)[0])
-        extra["mode"] = "trajectory" + (" (streamed)" if args.stream else "")
+                samples.append(conditional_generate(model, traj, seed=seed + i)[0])
+        mode = "trajectory" + (" (streamed)" if stream else "")
     else:
-        T = args.frames or seq.n_frames
-        for i in range(args.n):
-            samples.append(model.sample(T, 1, fine_noise=args.fine_noise, generator=gen)[0])
-        extra["mode"] = "random"
-
+        gen = torch.Generator().manual_seed(seed)
+        T = frames or seq.n_frames
+        for _ in range(n):
+            samples.append(model.sample(T, 1, fine_noise=fine_noise, generator=gen)[0])
+        mode = "random"
     check_finite(samples)
-    spacing = args.crowd_spacing if args.crowd_spacing is not None else 1.5 * seq.size
-    cols = max(1, math.ceil(math.sqrt(len(samples))))
-    positions, contact_masks, written = [], [], []
-    for i, s in enumerate(samples):
-        quats, root, contacts = decode(model, s, root_start=start)
-        if args.ik:
-            quats, root = fix_contacts(seq, quats, root, contacts)
-        if len(samples) > 1:  # a crowd: place motions on a grid
-            root = root.clone()
-            root[:, 0] += (i % cols) * spacing
-            root[:, 2] += (i // cols) * spacing
-        name = f"sample_{i:03d}.bvh" if len(samples) > 1 else "sample.bvh"
-        written.append(str(write_bvh(seq, quats, root, out / name, contacts=contacts)))
-        positions.append(positions_of(seq, quats, root).numpy())
-        mask = np.zeros((quats.shape[0], seq.n_joints), dtype=bool)
-        if seq.feet:
-            mask[:, seq.feet] = (contacts > 0.5).numpy()
-        contact_masks.append(mask)
-    if not args.no_gif:
-        layout = "scene" if len(samples) > 1 else "grid"
-        gif = out / ("crowd.gif" if len(samples) > 1 else "sample.gif")
-        _render(positions, seq.skeleton.parents, gif, seq.fps, seq.skeleton.names, contact_masks, layout)
-        extra["gif"] = str(gif)
-    result = {"written": written, **extra}
-    if args.evaluate:
-        result["metrics"] = metrics_against_sources(model, samples)
-        lengths = sorted({int(s.shape[-1]) for s in samples})
-        for f in result["metrics"].values():  # the number of samples and their length beside every figure
-            f.update(samples=len(samples), frames=lengths[0] if len(lengths) == 1 else lengths)
-    print(f"{extra['mode']}: wrote {len(written)} BVH to {out}" + (f" and {extra['gif']}" if "gif" in extra else ""))
-    return result
+    return samples, start, mode
 
 
 __all__ = ["decode", "positions_of", "fix_contacts", "to_bvh", "write_bvh", "metrics_against_sources",
            "evaluate_run", "coarse_from_clip", "style_transfer", "keyframe_edit", "trajectory_conditions",
-           "load_trajectory", "sample_trajectory", "conditional_generate", "TrajectoryStream", "generate_command",
-           "rotation_frames", "make_noise"]
+           "load_trajectory", "sample_trajectory", "conditional_generate", "TrajectoryStream", "sample_features",
+           "check_generation_inputs", "min_output_frames", "rotation_frames", "make_noise"]

@@ -82,10 +82,10 @@ def test_bandai_static_root_is_folded_into_hips(shared_data):
     ref = bvh_positions(b)
     h = _height(ref)
     got = bvh_positions(m.to_bvh())
-    # every real joint is exact; the dummy joint_Root now rides on the Hips (zero offset)
-    assert np.abs(got[:, 1:] - ref[:, 1:]).max() < 1e-9 * h
-    np.testing.assert_allclose(got[:, 0], ref[:, 1], atol=1e-9 * h)
+    # the Hips' motion is the root track (zero offset) and every joint, the static joint_Root included, is exact
     np.testing.assert_array_equal(m.skeleton.offsets[1], [0.0, 0.0, 0.0])
+    assert np.abs(got - ref).max() < 1e-9 * h
+    np.testing.assert_allclose(m.positions().numpy(), ref, atol=1e-9 * h)
     # dropping the dummy root gives an exact Hips-rooted 21-joint motion
     sub = m.subset(range(1, 22))
     assert sub.skeleton.names[0] == "Hips" and sub.skeleton.parents[0] == -1
@@ -237,3 +237,78 @@ def test_motion_validation():
     assert c.n_frames == 3
     torch.testing.assert_close(c.positions(), m.positions()[2:5])
     assert m.to(torch.float32).rotations.dtype == torch.float32
+
+
+# ------------------------------------------------------------------------------------------- issue 40 defects
+
+
+def test_bandai_write_back_keeps_the_static_root_where_the_file_has_it(shared_data, tmp_path):
+    """Read a Bandai clip, save it, read the file again: every joint's pose is the file's, and joint_Root stays at
+    [0, 0, 0] (it used to move to the Hips' track, [-1.71, 90.27, -407.12] in frame 0 of this clip)."""
+    path = shared_data / "bvh" / "bandai-namco-1/data/dataset-1_walk_normal_001.bvh"
+    b = _bvh(path)
+    ref = bvh_positions(b)
+    h = _height(ref)
+    m = Motion.from_bvh(path)
+    m.to_bvh(tmp_path / "back.bvh")
+    back = B.load(tmp_path / "back.bvh")
+    got = bvh_positions(back)
+    np.testing.assert_allclose(got[:, 0], np.zeros_like(got[:, 0]), atol=1e-9)
+    assert np.abs(got - ref).max() < 1e-5 * h
+    again = Motion.from_bvh(back)  # and the written file reads back the same way
+    assert again.static_root is not None
+    assert float((again.positions() - m.positions()).abs().max()) < 1e-5 * h
+
+
+def test_bvh_objects_compare_by_value(shared_data):
+    a = B.load(shared_data / "bvh" / JOE)
+    b = B.load(shared_data / "bvh" / JOE)
+    assert a == b and not (a != b)  # used to raise "The truth value of an array ... is ambiguous"
+    c = b.copy()
+    c.motion[3, 4] += 1.0
+    assert a != c
+    assert a.skeleton() == b.skeleton()
+    assert len(repr(a)) < 200
+
+
+def test_motion_repr_is_one_short_line_and_equality_is_by_value(shared_data):
+    m = Motion.from_bvh(shared_data / "bvh" / JOE)
+    text = repr(m)
+    assert "\n" not in text and len(text) < 200, text  # was 14,032 characters of tensors
+    assert "753 frames at 60 fps" in text and "centimetres" in text
+    assert m == Motion.from_bvh(shared_data / "bvh" / JOE)
+    assert m != m.crop(0, 10)
+
+
+def test_one_reader_one_rate_for_a_xia_clip(shared_data):
+    """Xia's ``Frame Time: 0.008333`` is 120 fps: Motion.from_bvh and GANimator's reader agree (GANimator used to keep
+    120.0048 / 4 = 30.0012 fps and wrote ``Frame Time: 0.03333200``)."""
+    from modi.models.ganimator.config import preset
+    from modi.models.ganimator.data import load_sequence, read_clip
+
+    path = shared_data / "bvh" / "ganimator/Xia/normal.bvh"
+    assert Motion.from_bvh(path).fps == 120.0
+    assert read_clip(path).fps == 120.0
+    assert load_sequence(path, preset("fast")).fps == 30.0
+
+
+def test_positions_in_metres_and_units_always_known(shared_data):
+    joe = Motion.from_bvh(shared_data / "bvh" / JOE)  # a Mixamo rig in centimetres
+    assert joe.unit == "centimetres" and joe.metres_per_unit() == 0.01
+    torch.testing.assert_close(joe.positions(unit="m"), joe.positions() * 0.01)
+    torch.testing.assert_close(joe.positions(unit="cm"), joe.positions())
+    assert joe.resample(30).unit == "centimetres" and joe.crop(0, 3).unit == "centimetres"
+    given = Motion(joe.skeleton, joe.rotations, joe.root_positions, joe.fps, unit="m")
+    assert given.unit == "metres"
+    with pytest.raises(ValueError, match="unknown length unit"):
+        joe.positions(unit="furlongs")
+
+
+def test_to_gltf_writes_metres(shared_data, tmp_path):
+    from modi.io.gltf import load_positions
+
+    m = Motion.from_bvh(shared_data / "bvh" / JOE).crop(0, 20)
+    out = m.to_gltf(tmp_path / "joe.glb")
+    names, parents, pos, fps, _ = load_positions(out)
+    assert names == m.skeleton.names and fps == pytest.approx(60.0)
+    np.testing.assert_allclose(pos, m.positions(unit="m").numpy(), atol=1e-4)

@@ -192,22 +192,27 @@ def test_cli_train_features_then_real_floor(tmp_path: Path, capsys, one_torch_th
 
     # `eval gen` with a stand-in sampler (a MoDi checkpoint needs a trained model): procedural motions
     # of the same skeleton, sampled deterministically per seed as the real sampler promises
-    import modi.cli.commands.eval as ev
+    from modi.api.generator import ModiGenerator
     from modi.data.procedural import generate_clip
 
     calls = []
 
-    def fake_sampler(ckpt, n, seed=0, psi=1.0, ik=False):
-        calls.append((ckpt, n, seed, psi, ik))
-        return [generate_clip(("walk", "wave")[i % 2], 40, 30.0, np.random.default_rng([seed, i])) for i in range(n)]
+    class FakeGenerator:
+        def __init__(self, ckpt):
+            self.path = ckpt
 
-    ev_sampler = ev._sampler
-    ev._sampler = lambda: fake_sampler
+        def sample(self, n, seed=0, psi=1.0, ik=False):
+            calls.append((self.path, n, seed, psi, ik))
+            return [generate_clip(("walk", "wave")[i % 2], 40, 30.0, np.random.default_rng([seed, i]))
+                    for i in range(n)]
+
+    real_from_checkpoint = ModiGenerator.__dict__["from_checkpoint"]
+    ModiGenerator.from_checkpoint = classmethod(lambda cls, ckpt, **kw: FakeGenerator(str(ckpt)))
     try:
         rc = main(["eval", "gen", "--ckpt", "x.ckpt", "--features", str(out), "--data", str(data), "--n", "12",
                    "--stride", "8", "--json", str(tmp_path / "g.json"), "--md", str(tmp_path / "g.md")])
     finally:
-        ev._sampler = ev_sampler
+        ModiGenerator.from_checkpoint = real_from_checkpoint
     assert rc == 0 and calls == [("x.ckpt", 12, 0, 1.0, False)]
     rep = json.loads((tmp_path / "g.json").read_text())
     d = rep["distribution (generated vs real)"]

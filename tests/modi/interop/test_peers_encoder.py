@@ -206,3 +206,27 @@ def test_import_encoder_cli_and_refusals(files, tmp_path, capsys):
         assert main(argv + ["--data", str(files.data), "--out", str(tmp_path / "bad")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "not a released MoDi" in err[0], err
+
+
+def test_imported_encoder_records_what_the_files_say(files, tmp_path, capsys):
+    """Provenance of an imported encoder: its own iteration and args (their train_encoder.py's), the generator's
+    record (its file's SHA-256, its 2 iterations), the data's window and stride; ``modi info`` marks it imported."""
+    import hashlib
+
+    from modi.cli import main
+
+    path = E.import_checkpoint(files.encoder, files.trained, files.data, tmp_path / "enc")
+    st = torch.load(path, weights_only=True)  # the record is plain data
+    prov = st["imported_from"]
+    assert st["step"] == 2 and prov["kind"] == "encoder-released" and prov["iterations"] == 2
+    assert prov["source"]["sha256"] == hashlib.sha256(files.encoder.read_bytes()).hexdigest()
+    assert prov["args"]["ckpt_existing"] == str(files.trained) and prov["args"]["iter"] == 2
+    assert prov["generator"]["source"]["sha256"] == hashlib.sha256(files.trained.read_bytes()).hexdigest()
+    assert prov["generator"]["iterations"] == 2 and st["generator"]["step"] == 2
+    assert (prov["data"]["window"], prov["data"]["stride"]) == (64, 32)
+    assert st["modi_version"] and st["torch_version"]
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "MoDi encoder checkpoint (imported from the authors' released code)" in out
+    assert "2 iterations, from the file name 000001.pt" in out and "generator:" in out

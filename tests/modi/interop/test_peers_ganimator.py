@@ -401,3 +401,142 @@ def test_code_in_a_released_file_is_refused(released, tmp_path, capsys):
                  str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "refused" in err and not flag.exists()
+
+
+# --------------------------------------------------------------------------------------------- a rig of one's own
+# A Bandai-Namco clip: a static floor root (joint_Root) above an animated Hips, trained the way their README asks for
+# a BVH of one's own (a skeleton-table entry, R.BANDAI_TABLE: every joint from joint_Root down, the toes as
+# contacts). Their loader keeps joint_Root's static channels as the root track and Hips at its OFFSET (modi's own
+# reader folds Hips's translation into the root). In this clip one foot speed (Toes_L, frame 94 to 95) lies within
+# float32 rounding of their 0.018 threshold: their label and a float64 reading of the file differ there.
+BANDAI_CLIP = "dataset-1_guide_happy_001.bvh"
+BANDAI_FLIP = {"frame": 95, "joint": "Toes_L"}
+
+
+@pytest.fixture(scope="module")
+def bandai(tmp_path_factory):
+    """Their train.py on the Bandai clip with the table entry, 2 iterations per block, and modi's import of it."""
+    try:
+        R.require_peer()
+        src = R.require_data(R.BANDAI / BANDAI_CLIP)
+    except R.PeerUnavailable as exc:
+        pytest.skip(str(exc))
+    d = tmp_path_factory.mktemp("bandai")
+    bvh = R.trim_bvh(src, d / "data" / "happy.bvh", 105)  # the whole clip
+    torch.set_num_threads(1)
+    R.train_released(bvh, d / "theirs", 2, seed=5, table=R.BANDAI_TABLE)
+    return {"bvh": bvh, "theirs": d / "theirs", "ours": G.import_checkpoint(d / "theirs", bvh, d / "ours")}
+
+
+def test_bandai_floor_root_run_imports_and_samples_equal(bandai):
+    """The run imports; modi's clip is their training tensor (the label rounding decided included), and every
+    level's output, the reconstruction and their demo's sample equal theirs in float64."""
+    from modi.models.ganimator.networks import synthesize
+    from modi.models.ganimator.training import load_model
+
+    theirs = R.ReleasedRun(bandai["theirs"], dtype=torch.float64, table=R.BANDAI_TABLE)
+    ours = load_model(bandai["ours"]).double()
+    perm = G.entity_perm(ours.n_joints, len(ours.feet))
+    seq = ours.seqs[0]
+    assert seq.skeleton.names == theirs.motion_data.bvh_file.skeleton.names and seq.skeleton.names[0] == "joint_Root"
+    assert [seq.skeleton.names[f] for f in ours.feet] == ["Toes_L", "Toes_R"]
+    assert rel(seq.features.unsqueeze(0), G.to_modi_layout(theirs.motion_data.raw_motion, perm)) <= TOL
+    assert np.allclose(ours.amps[0], theirs.amps.numpy(), rtol=1e-6)
+    noises = _noises(theirs.lengths, theirs.amps, seed=21)
+    with torch.no_grad():
+        mine = synthesize(ours.gens, ours.rates[0], ours.lengths[0], [z.view(1, 1, 1, -1) for z in noises],
+                          ours.n_entities)
+    for l, (a, b) in enumerate(zip(mine, theirs.level_outputs(noises))):
+        assert rel(a, G.to_modi_layout(b, perm)) <= TOL, l
+    assert rel(ours.reconstruct(0), G.to_modi_layout(theirs.reconstruction()[-1], perm)) <= TOL
+    T = theirs.lengths[-1]
+    levels, z = theirs.demo_sample(T, seed=22)
+    with torch.no_grad():
+        sample = ours.sample(T, noises=[z.view(1, 1, 1, -1)] + [None] * (ours.n_levels - 1))
+    assert rel(sample, G.to_modi_layout(levels[-1], perm)) <= TOL
+
+
+def test_bandai_reading_and_label_rounding_named(bandai):
+    """Both readings, named: modi's own reader folds Hips's animated translation into the root track, theirs keeps
+    joint_Root's static channels (the import reads theirs); and the one label whose foot speed is within float32
+    rounding of the threshold is settled by amps.pt and recorded."""
+    from modi.models.ganimator.data import read_clip
+    from modi.models.ganimator.training import read_checkpoint
+
+    folded, kept = read_clip(bandai["bvh"]), read_clip(bandai["bvh"], fold_root=False)
+    assert float(np.ptp(folded.root_positions.numpy(), axis=0).max()) > 1.0
+    assert float(np.ptp(kept.root_positions.numpy(), axis=0).max()) == 0.0
+    prov = read_checkpoint(bandai["ours"])["state"]["imported_from"]
+    assert prov["data"]["flipped_labels"] == [BANDAI_FLIP] and prov["data"]["floor_root"]
+    assert prov["data"]["amplitude_error"] <= G.EXACT
+
+
+def test_bandai_table_without_the_floor_root_imports(bandai, tmp_path):
+    """The other table a user may write, starting at Hips: their loader then places Hips on joint_Root's static
+    track (no OFFSET), and their forward kinematics takes Hips for its own parent (its rotation twice, at twice its
+    OFFSET) when it labels contacts. Read that way, the clip and the reconstruction equal theirs."""
+    import dataclasses
+
+    from modi.models.ganimator.training import load_model
+
+    table = dataclasses.replace(R.BANDAI_TABLE, name="Bandai-from-Hips", corps=R.BANDAI_TABLE.corps[1:])
+    R.train_released(bandai["bvh"], tmp_path / "theirs", 0, seed=6, table=table)
+    theirs = R.ReleasedRun(tmp_path / "theirs", dtype=torch.float64, table=table)
+    ours = load_model(G.import_checkpoint(tmp_path / "theirs", bandai["bvh"], tmp_path / "ours")).double()
+    perm = G.entity_perm(ours.n_joints, len(ours.feet))
+    assert ours.seqs[0].skeleton.names[0] == "Hips" and ours.seqs[0].scale == 0.01  # their 1/100 rule for Hips
+    assert rel(ours.seqs[0].features.unsqueeze(0), G.to_modi_layout(theirs.motion_data.raw_motion, perm)) <= TOL
+    assert rel(ours.reconstruct(0), G.to_modi_layout(theirs.reconstruction()[-1], perm)) <= TOL
+
+
+def test_bandai_refusal_names_the_cause(bandai, tmp_path, capsys):
+    """Another motion of the same rig and length: refused with what was compared, not "pass the BVH it was
+    trained on"."""
+    from modi.cli import main
+
+    other = R.BANDAI / "dataset-1_walk_normal_001.bvh"
+    if not other.is_file():
+        pytest.skip(f"{other} not found (../shared/data)")
+    same_rig = R.trim_bvh(other, tmp_path / "walk.bvh", 105)
+    capsys.readouterr()
+    assert main(["import", "ganimator-released", str(bandai["theirs"]), "--data", str(same_rig), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "read as their loader reads it (root track from joint_Root's channels" in err
+    assert "noise amplitudes are off by" in err and "the motion is not the one this run was trained on" in err
+    assert "pass the BVH" not in err
+
+
+def test_imported_run_records_what_the_files_say(bandai, capsys):
+    """Provenance of an imported GANimator run: their iterations (--num_iters per block x blocks), the options
+    args.txt states (not modi's defaults), no seed (their train.py sets none), the clip's rate as its Frame Time
+    states it, their frame stride, and each file's SHA-256; ``modi info`` shows it, marked as imported."""
+    import hashlib
+
+    from modi.cli import main
+    from modi.models.ganimator.training import load_model, read_checkpoint
+
+    ck = read_checkpoint(bandai["ours"])
+    prov = ck["state"]["imported_from"]
+    n_blocks = len(G.blocks_of(len(ck["model"]["lengths"][0]), 2))
+    assert prov["kind"] == "ganimator-released" and prov["iterations"] == 2 * n_blocks
+    assert prov["args"] == {"bvh_prefix": str(bandai["bvh"].parent), "bvh_name": "happy",
+                            "save_path": str(bandai["theirs"]), "num_iters": 2, "silent": 1, "device": "cpu"}
+    assert prov["seed"] is None
+    files = {f["name"]: f["sha256"] for f in prov["source"]["files"]}
+    assert set(files) >= {"args.txt", "amps.pt", "z_star.pt", "gen000.pt"}
+    assert all(files[n] == hashlib.sha256((bandai["theirs"] / n).read_bytes()).hexdigest() for n in files)
+    data = prov["data"]
+    assert data["sha256"] == hashlib.sha256(bandai["bvh"].read_bytes()).hexdigest()
+    assert data["frame_time"] == pytest.approx(0.0333333, abs=1e-12) and data["stride"] == 1
+    model = load_model(bandai["ours"])
+    # modi's one reader takes a rounded 1/30 (Frame Time: 0.0333333) as 30 fps; the record keeps the file's figure
+    assert model.cfg.fps == model.seqs[0].fps == 30.0 and data["fps"] == pytest.approx(1 / 0.0333333, rel=1e-12)
+    capsys.readouterr()
+    assert main(["info", str(bandai["ours"])]) == 0
+    out = capsys.readouterr().out
+    assert "GANimator checkpoint (imported from the authors' released code)" in out
+    assert f"{2 * n_blocks} iterations, from args.txt" in out and "Frame Time 0.0333333" in out
+    assert "--num_iters=2" in out and "their seed:  none" in out
+    assert "settled by amps.pt (frame 95 Toes_L)" in out.replace("\n             ", " ")

@@ -21,7 +21,7 @@ def test_no_stand_in_module_is_left_behind():
     try:
         R.require_peer()
     except Exception as exc:  # noqa: BLE001 - the peer sources are optional
-        pytest.skip(f"released MoDi sources absent: {exc}")
+        pytest.skip(f"the released MoDi cannot run here: {exc}")
     assert not R._ACTIVE, "an outer peer_runtime block is open: this test would see nothing"
     before = {n: sys.modules.get(n) for n in STAND_INS}
     with R.peer_runtime():

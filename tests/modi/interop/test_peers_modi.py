@@ -481,3 +481,37 @@ def test_import_errors_are_one_line(files, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and text in err[0], err
 
+
+
+def test_imported_checkpoint_records_what_the_file_says(files, tmp_path, capsys):
+    """Provenance: the imported checkpoint keeps their iteration (the file 000001.pt is written after their
+    iteration 1: 2 iterations), their args as the file holds them (--iter 2, not modi's 80000), their data's window
+    and stride (64 every 32, read from the overlapping windows of their .npy), and the files' names and SHA-256;
+    ``modi info`` prints it, marked as imported. Their random-initialisation file (no iteration in its name, no
+    optimiser steps) says so instead of a made-up step."""
+    import hashlib
+
+    from modi.cli import main
+    from modi.models.modi.checkpoint import load_checkpoint
+
+    st = load_checkpoint(M.import_checkpoint(files.trained, files.data, tmp_path / "run"))
+    prov = st["imported_from"]
+    assert st["step"] == 2 and prov["kind"] == "modi-released" and prov["iterations"] == 2
+    assert prov["source"]["name"] == "000001.pt"
+    assert prov["source"]["sha256"] == hashlib.sha256(files.trained.read_bytes()).hexdigest()
+    assert prov["args"]["iter"] == 2 and prov["args"]["batch"] == R.load_released(files.trained)["args"].batch
+    data = prov["data"]
+    assert (data["name"], data["window"], data["stride"]) == (files.data.name, 64, 32)
+    assert data["sha256"] == hashlib.sha256(files.data.read_bytes()).hexdigest()
+    assert st["config"]["train"]["iters"] == 2 and st["config"]["data"]["stride"] == 32
+    assert prov["seed"] is None  # their train.py seeds nothing
+    init = load_checkpoint(M.import_checkpoint(files.init, files.data, tmp_path / "init"))
+    assert init["step"] == 0 and init["imported_from"]["iterations"] is None
+
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "MoDi generator checkpoint (imported from the authors' released code)" in out
+    assert "2 iterations, from the file name 000001.pt" in out
+    assert prov["source"]["sha256"] in out.replace("\n             ", "")
+    assert "windows of 64 frames every 32" in out and "--iter=2" in out

@@ -19,22 +19,21 @@ from modi.viz.viewer import load_motion
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def _clips(shared: bool, tmp_path):
+def _clips(shared: bool, tmp_path, request):
     run = tmp_path / "run.bvh"   # a run: frames with and frames without contact, so the GIF check can fail
     generate_clip("run", 64, 30.0, rng=3).save(run)
     out = [run]
     if shared:
-        from conftest import SHARED_DATA
-
-        bandai = SHARED_DATA / "bvh" / "bandai-namco-1" / "data" / "dataset-1_run_normal_001.bvh"
+        data = request.getfixturevalue("shared_data")   # skips with a reason when ../shared is absent
+        bandai = data / "bvh" / "bandai-namco-1" / "data" / "dataset-1_run_normal_001.bvh"
         if bandai.is_file():
             out.append(bandai)
     return out
 
 
 @pytest.mark.parametrize("shared", [False, True])
-def test_page_gltf_and_gif_agree_on_every_frame(tmp_path, shared):
-    clips = _clips(shared, tmp_path)
+def test_page_gltf_and_gif_agree_on_every_frame(tmp_path, shared, request):
+    clips = _clips(shared, tmp_path, request)
     if shared and len(clips) < 2:
         pytest.skip("../shared/data Bandai clip absent")
     src = clips[-1]

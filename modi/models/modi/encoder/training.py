@@ -235,6 +235,19 @@ def encoder_losses(codec: Any, pred: Tensor, target: Tensor, cfg: EncoderTrainCo
 
 
 # =============================================================================================== checkpoints
+def encoder_checkpoint_dict(*, encoder: Any, generator: dict[str, Any], step: int, **extra: Any) -> dict[str, Any]:
+    """The one writer of the encoder format: the encoder, the generator bundle it inverts, the step, the versions
+    that wrote it, plus ``extra`` keys (the trainer's optimiser and RNG states, an import's provenance)."""
+    return {
+        "format": ENCODER_FORMAT, "version": ENCODER_VERSION,
+        "encoder_config": encoder.cfg.to_dict(),
+        "encoder": {k: v.detach().cpu() for k, v in encoder.state_dict().items()},
+        "step": int(step), "generator": generator,
+        "torch_version": str(torch.__version__), "modi_version": modi_version,
+        **extra,
+    }
+
+
 def generator_bundle(g: Any, codec: Any, gcfg: Any = None, step: int = 0) -> dict[str, Any]:
     """A MoDi-checkpoint-shaped dict holding just what generation needs (loadable by ``load_generator``)."""
     if gcfg is None:
@@ -454,19 +467,14 @@ class EncoderTrainer:
 
     # ------------------------------------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
-        return {
-            "format": ENCODER_FORMAT, "version": ENCODER_VERSION,
-            "encoder_config": self.encoder.cfg.to_dict(),
-            "encoder": {k: v.detach().cpu() for k, v in self.encoder.state_dict().items()},
-            "optim": self.optim.state_dict(), "step": self.step,
-            "train_config": asdict(self.cfg), "generator": self.generator_state,
-            "rng": {"data": self.rng.get_state(), "generated": self.gen_rng.get_state(),
-                    "torch": torch.get_rng_state(),
-                    **({"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_available() else {})},
-            "data_source": self.data.source, "data_info": self.data.info,
-            "metrics": self.metrics, "last_losses": dict(self.last_losses), "torch_version": str(torch.__version__),
-            "modi_version": modi_version,
-        }
+        return encoder_checkpoint_dict(
+            encoder=self.encoder, generator=self.generator_state, step=self.step,
+            optim=self.optim.state_dict(), train_config=asdict(self.cfg),
+            rng={"data": self.rng.get_state(), "generated": self.gen_rng.get_state(),
+                 "torch": torch.get_rng_state(),
+                 **({"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_available() else {})},
+            data_source=self.data.source, data_info=self.data.info,
+            metrics=self.metrics, last_losses=dict(self.last_losses))
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
         """Atomic (``modi.faults``): a full disk is one line, and the previous checkpoint stays as it was."""
@@ -559,6 +567,6 @@ def resumed_train_options(path: str | os.PathLike, given: dict[str, Any]) -> dic
 
 __all__ = ["EncoderTrainConfig", "LOSS_WEIGHTS", "OPTIMIZERS", "RESUMED_OPTIONS", "saved_train_options",
            "resumed_train_options", "root_rotation_entity", "EncoderData", "load_encoder_data", "split_windows", "encoder_losses",
-           "generator_bundle", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
+           "generator_bundle", "encoder_checkpoint_dict", "EncoderBundle", "load_encoder", "EncoderTrainer", "EncoderTrainResult",
            "EncoderTrainingInterrupted", "hold_output",
            "ENCODER_FORMAT", "ENCODER_VERSION"]

@@ -263,27 +263,32 @@ def model_window_from_motion(codec: Any, motion: Any, n_frames: int, start: int 
     return codec.normalizer.normalize(x.float())
 
 
-def load_bvh_window(codec: Any, path: str | os.PathLike, n_frames: int, start: int = 0) -> Tensor:
-    """Read a BVH clip onto the model's skeleton (joints matched by name), resample, cut one window (K, E, T)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such BVH file")
-    motion = motion_from_bvh(bvh_io.load(path), str(path))
+def window_from_motion(codec: Any, motion: Any, n_frames: int, start: int = 0, where: str = "motion") -> Tensor:
+    """A Motion (any joint order or superset of the model's joints, matched by name; any rate) onto the model's
+    skeleton and rate, cut to one normalised window (K, E, T) at ``[start, start + n_frames)``."""
     sk = codec.skeleton
     names = list(motion.skeleton.names)
     missing = [n for n in sk.names if n not in names]
     if missing:
-        raise UserError(f"{path}: skeleton lacks the model's joints {missing[:5]}{'...' if len(missing) > 5 else ''}")
+        raise UserError(f"{where}: skeleton lacks the model's joints {missing[:5]}{'...' if len(missing) > 5 else ''}")
     keep = [names.index(n) for n in sk.names]
     if keep != list(range(len(names))):
         motion = motion.subset(keep)
     if list(motion.skeleton.parents) != list(sk.parents):
-        raise UserError(f"{path}: joint hierarchy differs from the model's skeleton")
+        raise UserError(f"{where}: joint hierarchy differs from the model's skeleton")
 
     motion = Motion(sk, motion.rotations, motion.root_positions, motion.fps)  # the model's bone lengths
     if abs(motion.fps - codec.fps) > 1e-3 * codec.fps:
         motion = motion.resample(codec.fps)
     return model_window_from_motion(codec, motion, n_frames, start)
+
+
+def load_bvh_window(codec: Any, path: str | os.PathLike, n_frames: int, start: int = 0) -> Tensor:
+    """Read a BVH clip onto the model's skeleton (joints matched by name), resample, cut one window (K, E, T)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such BVH file")
+    return window_from_motion(codec, motion_from_bvh(bvh_io.load(path), str(path)), n_frames, start, str(path))
 
 
 # --------------------------------------------------------------------------------------------- output
@@ -322,7 +327,7 @@ __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean
            "check_latent", "mm_per_unit", "position_scale", "synthesize", "mean_motion", "truncate",
            "lerp_sequence", "truncation_sequence",
            "interpolation_sequence", "save_latent", "load_latent", "parse_latent", "model_window_from_motion",
-           "load_bvh_window", "decode_positions", "write_motions"]
+           "load_bvh_window", "window_from_motion", "decode_positions", "write_motions"]
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:

@@ -303,6 +303,7 @@ def test_iterations_help_names_the_coarse_multiplier_and_min_frames_is_the_short
     import argparse
 
     from modi.cli.commands import ganimator as cmd
+    from modi.models.ganimator.data import min_training_frames
 
     parser = argparse.ArgumentParser()
     cmd.register(parser.add_subparsers())
@@ -312,7 +313,7 @@ def test_iterations_help_names_the_coarse_multiplier_and_min_frames_is_the_short
     assert gconfig.preset("fast").block_budgets(2) == [900, 300]
     for ratio in (0.2, 0.5):
         cfg = gconfig.preset("paper", coarse_ratio=ratio)
-        n = cmd._min_training_frames(cfg)
+        n = min_training_frames(cfg)
         need = cfg.kernel_size // 2 + 1
         coarsest = lambda m: pyramid_lengths(m, cfg.coarse_ratio, cfg.scale_factor)[0]  # noqa: E731
         assert coarsest(n) >= need and all(coarsest(m) < need for m in range(2, n))

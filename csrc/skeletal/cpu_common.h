@@ -1,0 +1,237 @@
+// Building blocks of the skeletal operators' CPU kernels, shared by their two paths: the BLAS path (cpu.cpp, float32
+// and float64) and the fp32 indirect-GEMM path (fastk.cpp).  Operand buffers and per-slot scratch from a process-wide
+// cache of freed blocks, the task order and tiling of a pass (from the shapes only, never the thread count), the
+// optional style / demodulation factor, the time maps (padding, fold, blur) and the CSR topology.
+#pragma once
+
+#include <algorithm>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <numeric>
+#include <vector>
+
+#include "common/tasks.h"
+#include "skeletal/check.h"
+
+namespace modi_ext {
+namespace skeletal {
+
+
+using cpu_tasks::phase;
+using cpu_tasks::Phase;
+using cpu_tasks::run_phases;
+using cpu_tasks::run_stages;
+using cpu_tasks::stage;
+
+// Threads only pay off above some work: waking a pool costs microseconds (milliseconds on a loaded machine).
+constexpr double kSerialMacs = 1.0e6;
+constexpr int64_t kSerialElems = 1 << 16;
+// Tasks per pass that the tiling aims for (when the batch allows), whatever the thread count: enough for the
+// dynamic claiming to balance up to ~8 threads with a small tail.
+constexpr int64_t kMinTasks = 16;
+inline bool worth_threads(double macs) { return macs >= kSerialMacs; }
+inline int64_t chunk_items(int64_t elems_per_item) {
+  return std::max<int64_t>(1, (kSerialElems / 2) / std::max<int64_t>(1, elems_per_item));
+}
+
+// Per-call operand buffers and scratch (up to megabytes) come from a small process-wide cache of freed blocks: a
+// fresh allocation of that size is an mmap whose pages fault in on first touch, every call (and page faults from
+// several threads serialise in the kernel).
+class BlockCache {
+ public:
+  static constexpr size_t kMaxBytes = size_t(64) << 20, kMaxBlocks = 16;
+  static std::unique_ptr<char[]> take(size_t bytes, size_t& cap) {
+    auto& c = local();
+    std::lock_guard<std::mutex> lk(c.m);
+    size_t best = c.blocks.size();
+    for (size_t i = 0; i < c.blocks.size(); ++i)
+      if (c.blocks[i].cap >= bytes && (best == c.blocks.size() || c.blocks[i].cap < c.blocks[best].cap)) best = i;
+    if (best < c.blocks.size() && c.blocks[best].cap <= 2 * bytes + (size_t(1) << 16)) {
+      std::unique_ptr<char[]> p = std::move(c.blocks[best].p);
+      cap = c.blocks[best].cap;
+      c.total -= cap;
+      c.blocks.erase(c.blocks.begin() + static_cast<std::ptrdiff_t>(best));
+      return p;
+    }
+    cap = bytes;
+    return std::unique_ptr<char[]>(new char[bytes]);
+  }
+  static void give(std::unique_ptr<char[]> p, size_t cap) {
+    auto& c = local();
+    if (cap > kMaxBytes) return;
+    std::lock_guard<std::mutex> lk(c.m);
+    while (!c.blocks.empty() && (c.total + cap > kMaxBytes || c.blocks.size() >= kMaxBlocks)) {
+      c.total -= c.blocks.front().cap;  // drop the oldest
+      c.blocks.erase(c.blocks.begin());
+    }
+    c.total += cap;
+    c.blocks.push_back({std::move(p), cap});
+  }
+
+ private:
+  struct Block {
+    std::unique_ptr<char[]> p;
+    size_t cap;
+  };
+  struct Cache {
+    std::mutex m;
+    std::vector<Block> blocks;
+    size_t total = 0;
+  };
+  static Cache& local() {
+    static Cache* c = new Cache();  // never destroyed: helper threads may still return blocks at exit
+    return *c;
+  }
+};
+
+// Uninitialised storage (every element is written before it is read), so no memset pass over large operands.
+template <typename T>
+struct Buf {
+  std::unique_ptr<char[]> p;
+  size_t cap = 0;
+  Buf() = default;
+  Buf(const Buf&) = delete;
+  Buf& operator=(const Buf&) = delete;
+  ~Buf() { release(); }
+  void alloc(size_t n) {
+    release();
+    if (n) p = BlockCache::take(n * sizeof(T), cap);
+  }
+  void release() {
+    if (p) BlockCache::give(std::move(p), cap);
+    p.reset();
+    cap = 0;
+  }
+  T* data() const { return reinterpret_cast<T*>(p.get()); }
+};
+
+// Scratch per slot (cpu_tasks::slots()), taken on first use by the thread that owns the slot.
+template <typename T>
+struct SlotScratch {
+  std::vector<Buf<T>> v;
+  SlotScratch() : v(static_cast<size_t>(cpu_tasks::slots())) {}
+  T* get(int slot, size_t n) {
+    Buf<T>& b = v[static_cast<size_t>(slot)];
+    if (b.cap < n * sizeof(T)) b.alloc(n);
+    return b.data();
+  }
+};
+
+// Task ids bt * E + e of a batch-tiled pass, largest first (cost ~ batch elements x (degree + 1)), so dynamic
+// claiming ends with small tasks.  off: CSR offsets of the entities' neighbour lists (their degrees).
+inline std::vector<int64_t> lpt_tiles(int64_t B, int64_t nb, int64_t E, const std::vector<int64_t>& off) {
+  const int64_t nbt = (B + nb - 1) / nb;
+  std::vector<int64_t> ids(static_cast<size_t>(nbt * E));
+  std::iota(ids.begin(), ids.end(), int64_t(0));
+  auto cost = [&](int64_t id) {
+    const int64_t bt = id / E, e = id % E;
+    return std::min(nb, B - bt * nb) * (off[e + 1] - off[e] + 1);
+  };
+  std::stable_sort(ids.begin(), ids.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
+  return ids;
+}
+
+// Weight-gradient blocks: task ids e * nrb + rb (entity e, output-row block rb of `rows` rows), largest first.
+// Entities alone give enough tasks on most layers; with few entities the rows are split too (each block
+// contracts the whole batch, so no partial sums are ever combined).
+struct RowBlocks {
+  int64_t nrb = 1, rb = 0;
+  std::vector<int64_t> order;
+};
+inline RowBlocks weight_blocks(int64_t E, int64_t rows, const std::vector<int64_t>& off, int64_t align) {
+  RowBlocks r;
+  r.nrb = std::min<int64_t>((kMinTasks + E - 1) / E, std::max<int64_t>(1, rows / align));
+  r.rb = (rows + r.nrb - 1) / r.nrb;
+  r.rb = (r.rb + align - 1) / align * align;
+  r.nrb = (rows + r.rb - 1) / r.rb;
+  r.order.resize(static_cast<size_t>(E * r.nrb));
+  std::iota(r.order.begin(), r.order.end(), int64_t(0));
+  const int64_t nrb = r.nrb, rbs = r.rb;
+  auto cost = [&](int64_t id) {
+    const int64_t e = id / nrb, b = id % nrb;
+    return (off[e + 1] - off[e]) * std::min(rbs, rows - b * rbs);
+  };
+  std::stable_sort(r.order.begin(), r.order.end(), [&](int64_t a, int64_t b) { return cost(a) > cost(b); });
+  return r;
+}
+
+// Batch elements per tile: about `target` panel columns, at least kMinTasks tasks (entities x tiles) when the batch
+// allows, tiles as even as the count permits.  Depends on the shapes only (never on the thread count), so the
+// same products are computed whatever the threads.
+inline int64_t batch_tile(int64_t B, int64_t cols_per_b, int64_t n_entities, int64_t target = 512) {
+  constexpr int64_t kMinCols = 32;  // narrower products waste more in per-call overhead than balance gains
+  int64_t nb = std::max<int64_t>(1, target / std::max<int64_t>(1, cols_per_b));
+  nb = std::min(nb, B);
+  while (nb > 1 && ((B + nb - 1) / nb) * n_entities < kMinTasks && ((nb + 1) / 2) * cols_per_b >= kMinCols)
+    nb = (nb + 1) / 2;
+  const int64_t nbt = (B + nb - 1) / nb;
+  return (B + nbt - 1) / nbt;
+}
+
+// Optional per-(b, channel, entity) factor with arbitrary strides (style: entity stride 0; demod: full).
+template <typename T>
+struct Scale {
+  const T* p = nullptr;
+  int64_t sb = 0, sc = 0, se = 0;
+  inline T at(int64_t b, int64_t c, int64_t e) const { return p ? p[b * sb + c * sc + e * se] : T(1); }
+};
+
+// ------------------------------------------------------------------------------------------------ time maps
+inline int64_t mirror(int64_t q, int64_t L) { return q < 0 ? -q : (q >= L ? 2 * (L - 1) - q : q); }
+
+// Fold a padded-domain row g (length L + 2h) onto [0, L): the adjoint of zero / reflect padding.
+template <typename T>
+inline void fold_row(const T* g, T* out, int64_t L, int64_t h, bool reflect) {
+  for (int64_t t = 0; t < L; ++t) out[t] = g[t + h];
+  if (reflect) {
+    for (int64_t q = 0; q < h; ++q) out[mirror(q - h, L)] += g[q];
+    for (int64_t q = L + h; q < L + 2 * h; ++q) out[mirror(q - h, L)] += g[q];
+  }
+}
+
+// StyleGAN2 blur after upsampling: y[t] = (v[t-2] + 3 v[t-1] + 3 v[t] + v[t+1]) / 4, zero outside [0, L).
+template <typename T>
+inline void blur_row(const T* v, T* y, int64_t L) {
+  for (int64_t t = 0; t < L; ++t) {
+    T acc = T(3) * v[t];
+    if (t >= 2) acc += v[t - 2];
+    if (t >= 1) acc += T(3) * v[t - 1];
+    if (t + 1 < L) acc += v[t + 1];
+    y[t] = T(0.25) * acc;
+  }
+}
+
+// Its adjoint: gv[s] = (g[s-1] + 3 g[s] + 3 g[s+1] + g[s+2]) / 4.
+template <typename T>
+inline void blur_adjoint_row(const T* g, T* gv, int64_t L) {
+  for (int64_t s = 0; s < L; ++s) {
+    T acc = T(3) * g[s];
+    if (s >= 1) acc += g[s - 1];
+    if (s + 1 < L) acc += T(3) * g[s + 1];
+    if (s + 2 < L) acc += g[s + 2];
+    gv[s] = T(0.25) * acc;
+  }
+}
+
+// Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.
+template <typename T>
+inline void finish_input_row(const T* gxp, const T* xrow, T s, T* gx_row, T* gs_acc, int64_t L) {
+  if (gs_acc) {
+    T dot = T(0);
+    for (int64_t t = 0; t < L; ++t) dot += gxp[t] * xrow[t];
+    *gs_acc += dot;
+  }
+  if (gx_row)
+    for (int64_t t = 0; t < L; ++t) gx_row[t] = gxp[t] * s;
+}
+
+// ------------------------------------------------------------------------------------------------ topology
+struct Csr {
+  std::vector<int64_t> off, idx;          // row entity -> input entities (pairs p in [off[j], off[j+1]))
+  std::vector<int64_t> toff, tent, tpair;  // input entity -> (row entity, pair), ordered by row entity
+  int64_t rows = 0, cols = 0, max_deg = 0, max_tdeg = 0;
+};
+
+}  // namespace skeletal
+}  // namespace modi_ext

@@ -1,0 +1,209 @@
+"""The metrics of ``modi eval`` from Python, without the glue: distribution metrics (FID, KID, precision, recall,
+diversity) and plausibility of MoDi samples against real clips, and GANimator's single-sequence coverage and
+diversity against the source."""
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Sequence, Union
+
+import numpy as np
+
+from modi.api.generator import ModiGenerator
+from modi.core.kinematics import bvh_positions
+from modi.data.motion import Motion
+from modi.errors import UserError
+from modi.evaluation.distribution import distribution_metrics
+from modi.evaluation.features import FeatureExtractor, load_extractor
+from modi.evaluation.plausibility import aggregate, guess_feet, planted_heights, plausibility_metrics
+from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
+from modi.io import bvh as bvh_io
+
+MotionSource = Union[Motion, str, os.PathLike]
+
+
+def _extractor(features: FeatureExtractor | str | os.PathLike) -> FeatureExtractor:
+    return features if isinstance(features, FeatureExtractor) else load_extractor(features)
+
+
+def _real_clips(ext: FeatureExtractor, files: Sequence[Path]) -> list[np.ndarray]:
+    out = []
+    for f in files:
+        b = bvh_io.load(f)
+        out.append(ext.clip_positions(bvh_positions(b), list(b.names), float(b.fps)))
+    return out
+
+
+def _plausibility_set(clips: list[np.ndarray], ext: FeatureExtractor, ref: list[np.ndarray]) -> dict[str, Any]:
+    """Mean plausibility figures of clips in the extractor's joints and fps; planted foot heights from ``ref``."""
+    c = ext.config
+    feet = guess_feet(c.joint_names)
+    heights = planted_heights(ref, feet, c.up_axis)
+    per = [plausibility_metrics(x, c.fps, feet, up_axis=c.up_axis, foot_heights=heights, body_height=c.body_height)
+           for x in clips if len(x) >= 4]
+    if not per:
+        raise UserError("no clip has the 4 frames plausibility needs")
+    out = aggregate(per)
+    out["feet"] = [c.joint_names[f] for f in feet]
+    out["planted_heights"] = heights
+    return out
+
+
+def evaluate(samples: ModiGenerator | str | os.PathLike | Sequence[Motion], *,
+             features: FeatureExtractor | str | os.PathLike, data: str | os.PathLike, n: int = 2000, seed: int = 0,
+             psi: float = 1.0, ik: bool = False, stride: int = 32, k: int = 3, kid_blocks: int = 10,
+             diversity_pairs: int = 200) -> dict[str, Any]:
+    """``modi eval gen``: FID, KID, precision, recall and diversity of generated motions against the windows of every
+    BVH clip under ``data`` (in the feature extractor's space, ``modi eval train-features``), plus plausibility (foot
+    skating, floating, jitter) of both sets.
+
+    ``samples``: a generator (or its checkpoint path), from which ``n`` motions of ``seed`` are sampled (``psi``,
+    ``ik`` as :meth:`ModiGenerator.sample`), or motions already made. Returns the report ``modi eval gen`` prints.
+    Cost: sampling, the extractor on every window (seconds for a few thousand on a CPU) and the metrics."""
+    if n < 4:
+        raise UserError(f"--n must be at least 4, got {n}")
+    ext = _extractor(features)
+    root = Path(data)
+    files = sorted(p for p in root.rglob("*") if p.suffix.lower() == ".bvh") if root.is_dir() else []
+    if not files:
+        raise UserError(f"no .bvh files under {root}")
+    t0 = time.perf_counter()
+    real = _real_clips(ext, files)
+    what: dict[str, Any] = {}
+    if isinstance(samples, (str, os.PathLike)):
+        what["ckpt"] = str(samples)
+        samples = ModiGenerator.from_checkpoint(samples)
+    if hasattr(samples, "sample"):  # a ModiGenerator (or anything that samples like one)
+        what.setdefault("ckpt", getattr(samples, "path", None))
+        motions = samples.sample(n, seed=seed, psi=psi, ik=ik)
+    else:
+        motions = list(samples)
+        if not motions:
+            raise UserError("no motions to evaluate")
+    gen = [ext.clip_positions(m.positions(), m.skeleton.names, m.fps) for m in motions]
+    f_real = ext.features(ext.windows(real, stride))
+    f_gen = ext.features(ext.windows(gen, tail=False))  # a 64-frame MoDi sample is exactly one window
+    dist = distribution_metrics(f_real, f_gen, k=k, kid_blocks=kid_blocks, diversity_pairs=diversity_pairs,
+                                seed=seed)
+    return {
+        **what,
+        "features": str(features) if not isinstance(features, FeatureExtractor) else "(in memory)",
+        "n_generated_motions": len(motions),
+        "psi": psi,
+        "ik": bool(ik),
+        "distribution (generated vs real)": dist,
+        "plausibility (generated)": _plausibility_set(gen, ext, real),
+        "plausibility (real)": _plausibility_set(real, ext, real),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def evaluate_real(data: str | os.PathLike, *, features: FeatureExtractor | str | os.PathLike, stride: int = 32,
+                  k: int = 3, kid_blocks: int = 10, diversity_pairs: int = 200, seed: int = 0) -> dict[str, Any]:
+    """``modi eval real``: the floor a generator is judged against -- the distribution metrics of the extractor's
+    held-out clips against its training clips (both under ``data``), and the held-out clips' plausibility."""
+    ext = _extractor(features)
+    root = Path(data)
+    if not root.is_dir():
+        raise UserError(f"data folder not found: {root}")
+    train_files = ext.info.get("train_files")
+    held_files = ext.info.get("heldout_files")
+    if not train_files or not held_files:
+        raise UserError(f"{features} holds no train/held-out split (was it trained with held-out clips?)")
+    missing = [f for f in train_files + held_files if not (root / f).is_file()]
+    if missing:
+        raise UserError(f"{len(missing)} clip(s) of the extractor's split are not under {root}, e.g. {missing[0]}")
+    t0 = time.perf_counter()
+    train = _real_clips(ext, [root / f for f in train_files])
+    held = _real_clips(ext, [root / f for f in held_files])
+    f_train = ext.features(ext.windows(train, stride))
+    f_held = ext.features(ext.windows(held, stride))
+    return {
+        "data": str(root),
+        "features": str(features) if not isinstance(features, FeatureExtractor) else "(in memory)",
+        "settings": {"stride": stride, "k": k, "kid_blocks": kid_blocks, "diversity_pairs": diversity_pairs,
+                     "seed": seed},
+        "extractor_heldout_top1": ext.info.get("val_top1"),
+        "distribution (held-out vs train)": distribution_metrics(f_train, f_held, k=k, kid_blocks=kid_blocks,
+                                                                 diversity_pairs=diversity_pairs, seed=seed),
+        "plausibility (held-out clips)": _plausibility_set(held, ext, train),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _as_motion(item: MotionSource, fps: float | None = None, remedy: str = "") -> Motion:
+    """A Motion, or a BVH read as one; ``fps`` replaces the header's rate, else the header must be plausible."""
+    if isinstance(item, Motion):
+        return item if fps is None else Motion(item.skeleton, item.rotations, item.root_positions, fps, item.unit)
+    p = Path(item)
+    if not p.is_file():
+        raise UserError(f"{p} is a folder, not a BVH file" if p.is_dir() else f"no such BVH file: {p}")
+    b = bvh_io.load(p, check_frame_time=False)  # checked here, to name the option that fixes it
+    if fps is not None:
+        b.frame_time = 1.0 / fps
+    elif not 0 < b.frame_time < 0.5:
+        raise UserError(f"{p}: implausible Frame Time {b.frame_time:g} s in the header (the rate must be above "
+                        f"2 fps){remedy}")
+    return Motion.from_bvh(b)
+
+
+def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, fps: float = 30.0,
+                    gen_fps: float | None = None, joints: str = "reduced", representation: str = "6d",
+                    window: int = 30, threshold: float = 2.0, min_segment: int = 30,
+                    local_window: int = 15) -> dict[str, Any]:
+    """``modi eval single``: GANimator's coverage (``window``-frame windows within ``threshold``), global diversity
+    (patched nearest neighbour, segments >= ``min_segment``) and local diversity (``local_window``-frame windows) of
+    generated motions (Motions or BVH paths) against the ``source`` clip, as the GANimator authors measure them: at
+    ``fps``, on the (``joints="reduced"``) joints every file shares, matched by name. ``gen_fps`` is the generated
+    files' true rate when their header is wrong. Returns the means, the protocol and per-motion values."""
+    if joints not in ("reduced", "all"):
+        raise UserError(f"joints must be 'reduced' or 'all', got {joints!r}")
+    labels = [str(g) if not isinstance(g, Motion) else f"motion {i}" for i, g in enumerate(generated)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
+        src = _as_motion(source)
+        gens = [_as_motion(g, gen_fps, "; give the generated files' true frame rate with --gen-fps")
+                for g in generated]
+    if not gens:
+        raise UserError("no generated motions to score")
+    src, gens = src.resample(fps), [m.resample(fps) for m in gens]
+    try:
+        src_frames, feats, names = shared_pose_frames(src, gens, joints == "reduced", representation, labels=labels)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    t0 = time.perf_counter()
+    try:
+        res = single_sequence_metrics(feats, src_frames, coverage_window=window, threshold=threshold,
+                                      min_segment=min_segment, local_window=local_window)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    lengths = sorted({int(f.shape[0]) for f in feats})
+    left_out = [n for n in shared_joints([src.skeleton], joints == "reduced") if n not in names]
+    return {
+        "coverage": res["coverage"],
+        "global_diversity": res["global_diversity"],
+        "local_diversity": res["local_diversity"],
+        "source": str(source) if not isinstance(source, Motion) else "(motion)",
+        "protocol": {
+            "joints": joints,
+            "n_joints": len(names),
+            "joint_names": names,
+            "fps": fps,
+            "gen_fps": gen_fps,
+            "n_samples": len(feats),
+            "sample_frames": lengths[0] if len(lengths) == 1 else lengths,
+            "source_frames": int(src_frames.shape[0]),
+            "representation": representation,
+        },
+        "settings": res["settings"],
+        "seconds": time.perf_counter() - t0,
+        "per_file": [dict(file=label, frames=int(f.shape[0]), **v)
+                     for label, f, v in zip(labels, feats, res["per_sequence"])],
+        "source_joints": src.n_joints,
+        "left_out": left_out,
+    }
+
+
+__all__ = ["evaluate", "evaluate_real", "evaluate_single"]

@@ -1,0 +1,184 @@
+"""A trained GANimator run as one object: random motions of any length, key-frame editing, trajectory control and
+style transfer, all returned as :class:`modi.Motion` in the training file's units (GANimator's working units, x0.1
+or x0.01 of a centimetre or inch rig, stay inside).
+
+``GanimatorRun.generate(n, frames=, seed=)`` gives the motions ``modi ganimator generate RUN --n n --frames F
+--seed s`` writes (the CLI also places several motions on a crowd grid: ``spacing``)."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from modi.core.skeleton import Skeleton
+from modi.data.motion import Motion
+from modi.errors import UserError
+from modi.models.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper
+from modi.models.ganimator.generate import (check_generation_inputs, decode, evaluate_run, fix_contacts,
+                                            rotation_frames, sample_features)
+from modi.models.ganimator.networks import GanimatorModel
+from modi.models.ganimator.training import checkpoint_path, load_model
+from modi.evaluation.single import single_sequence_metrics
+
+
+class GanimatorRun:
+    """The generator of a GANimator run (``modi ganimator train``, or an imported run of the authors' code).
+
+    Build it with :func:`modi.load` (the run folder or its ``ganimator.ckpt``) or :meth:`from_checkpoint`."""
+
+    def __init__(self, model: GanimatorModel, *, path: str | None = None) -> None:
+        self.model = model.eval()
+        self.path = path
+        seq = model.seqs[0]
+        inv = 1.0 / seq.scale
+        sk = seq.skeleton
+        self._skeleton = Skeleton(list(sk.names), list(sk.parents), sk.offsets * inv,
+                                  {k: np.asarray(v) * inv for k, v in sk.end_sites.items()},
+                                  list(sk.rotation_orders or ["ZYX"] * sk.n_joints))
+        self._unit = Motion(self._skeleton, torch.zeros(1, sk.n_joints, 4), torch.zeros(1, 3), seq.fps).unit
+
+    @classmethod
+    def from_checkpoint(cls, run: str | os.PathLike, *, device: str | torch.device = "cpu") -> "GanimatorRun":
+        """Read a run folder or its checkpoint file (as data only); ``CheckpointError`` for anything else."""
+        if not Path(run).exists():
+            raise UserError(f"{run}: no such GANimator run folder or checkpoint file")
+        return cls(load_model(run, device=str(device)), path=str(run))
+
+    # ------------------------------------------------------------------------------------------- facts
+    @property
+    def skeleton(self) -> Skeleton:
+        """The (reduced) training skeleton in the file's units: what every motion is on."""
+        return self._skeleton
+
+    @property
+    def unit(self) -> str:
+        """The length unit of the training file (and of every motion)."""
+        return self._unit
+
+    @property
+    def fps(self) -> float:
+        return float(self.model.seqs[0].fps)
+
+    @property
+    def n_frames(self) -> int:
+        """Frames of the (first) training clip: the default length of a motion."""
+        return int(self.model.seqs[0].n_frames)
+
+    @property
+    def clips(self) -> list[str]:
+        """Names of the training clips."""
+        return [s.name for s in self.model.seqs]
+
+    @property
+    def feet(self) -> list[str]:
+        return [self._skeleton.names[f] for f in self.model.seqs[0].feet]
+
+    @property
+    def body_size(self) -> float:
+        """A size of the body in the file's units (the crowd spacing's scale)."""
+        seq = self.model.seqs[0]
+        return float(seq.size / seq.scale)
+
+    @property
+    def scale(self) -> float:
+        """GANimator's working units per file unit (a power of ten)."""
+        return float(self.model.seqs[0].scale)
+
+    @property
+    def conditional(self) -> bool:
+        """Whether the run is trajectory-conditioned."""
+        return bool(self.model.cond_entities)
+
+    def __repr__(self) -> str:
+        where = f", {self.path}" if self.path else ""
+        return (f"GanimatorRun({self._skeleton.n_joints} joints, {len(self.clips)} clip(s) of {self.n_frames} frames "
+                f"at {self.fps:g} fps, {self.model.n_levels} levels{', conditional' if self.conditional else ''}"
+                f"{where})")
+
+    # ------------------------------------------------------------------------------------------- generation
+    def generate(self, n: int = 1, *, frames: int | None = None, seed: int = 0,
+                 keyframes: str | os.PathLike | None = None, trajectory: str | os.PathLike | None = None,
+                 style: str | os.PathLike | None = None, stream: int = 0, fine_noise: bool = False, ik: bool = False,
+                 spacing: float | None = 0.0) -> list[Motion]:
+        """``n`` motions with contact labels, in the training file's units.
+
+        * random (default): ``frames`` frames each (default: the training clip's);
+        * ``keyframes``: a BVH of coarse-level poses on the run's rig (key-frame editing);
+        * ``trajectory``: a root-trajectory BVH for a trajectory-conditioned run (which samples one when not
+          given); ``stream`` feeds it in segments of that many frames (same result);
+        * ``style``: a content BVH whose coarse motion gets the training clip's detail (style transfer).
+
+        ``seed`` fixes the result (as ``modi ganimator generate --seed``); ``fine_noise`` adds noise at every level;
+        ``ik`` pins each foot while its contact label is on; ``spacing`` places several motions on a grid that far
+        apart (None: 1.5 body sizes, as the CLI's crowd; 0: each at its own start). Cost: one pass through the level
+        generators per motion (milliseconds for a small run on a CPU)."""
+        m = self.model
+        check_generation_inputs(m, frames, content=style, keyframes=keyframes, trajectory=trajectory)
+        samples, start, _ = sample_features(m, int(n), frames, int(seed), content=style, keyframes=keyframes,
+                                            trajectory=trajectory, stream=int(stream), fine_noise=fine_noise)
+        return self.decode(samples, start=start, ik=ik, spacing=spacing)
+
+    def decode(self, samples: Sequence[Tensor], *, start: Tensor | None = None, ik: bool = False,
+               spacing: float | None = 0.0) -> list[Motion]:
+        """Generator outputs ``(6, E, T)`` -> motions (see :meth:`generate` for ``ik`` and ``spacing``)."""
+        seq = self.model.seqs[0]
+        inv = 1.0 / seq.scale
+        step = 1.5 * seq.size if spacing is None else float(spacing) * seq.scale  # working units
+        cols = max(1, math.ceil(math.sqrt(len(samples))))
+        names = self._skeleton.names
+        out = []
+        for i, s in enumerate(samples):
+            quats, root, contacts = decode(self.model, s, root_start=start)
+            if ik:
+                quats, root = fix_contacts(seq, quats, root, contacts)
+            if len(samples) > 1 and step:  # a crowd: on a grid
+                root = root.clone()
+                root[:, 0] += (i % cols) * step
+                root[:, 2] += (i // cols) * step
+            labels = {names[f]: (contacts[:, k] > 0.5) for k, f in enumerate(seq.feet)}
+            out.append(Motion(self._skeleton, quats.to(torch.float64), root.to(torch.float64) * inv, seq.fps,
+                              self._unit, contacts=labels))
+        return out
+
+    # ------------------------------------------------------------------------------------------- metrics
+    def metrics(self, motions: Sequence[Motion]) -> dict[str, dict[str, Any]]:
+        """Coverage (30-frame windows, threshold 2.0), global and local diversity of motions on the run's skeleton
+        against each training clip (what ``modi ganimator generate --evaluate`` prints)."""
+        gens = [rotation_frames(m.rotations) for m in motions]
+        out: dict[str, dict[str, Any]] = {}
+        lengths = sorted({m.n_frames for m in motions})
+        for seq in self.model.seqs:
+            r = single_sequence_metrics(gens, rotation_frames(seq.rotations()))
+            out[seq.name] = {k: float(r[k]) for k in ("coverage", "global_diversity", "local_diversity")}
+            out[seq.name].update(samples=len(motions), frames=lengths[0] if len(lengths) == 1 else lengths)
+        return out
+
+    def evaluate(self, *, n: int | None = None, frames: int | None = None, seed: int = 0,
+                 protocol: str = "ours") -> dict[str, Any]:
+        """``modi ganimator evaluate``: sample and score against every training clip. ``protocol="ours"`` (10
+        samples of the clip's length by default, rotations decoded as any BVH output) or ``"paper"`` (the authors'
+        released evaluate.py: 200 samples of 2x the total source length, raw generator channels)."""
+        if self.path is None:
+            raise UserError("evaluate needs a run on disk (load it with modi.load(RUN))")
+        if n is not None and n < 1:
+            raise UserError("--n must be at least 1")
+        if frames is not None and frames < 30:
+            raise UserError("--frames must be at least 30 (the coverage window)")
+        if protocol == "paper":
+            return evaluate_paper(self.path, n=n or N_SAMPLES, n_frames=frames, seed=seed)
+        if protocol != "ours":
+            raise UserError(f"protocol must be 'ours' or 'paper', got {protocol!r}")
+        return evaluate_run(self.path, n=n or 10, n_frames=frames, seed=seed)
+
+    @property
+    def checkpoint(self) -> Path | None:
+        """The checkpoint file of the run (None for a run built in memory)."""
+        return None if self.path is None else checkpoint_path(self.path)
+
+
+__all__ = ["GanimatorRun"]

@@ -1,0 +1,182 @@
+"""Which implementation a call takes: the sparse kernels (``ext``), the dense form (``dense``) or the oracle (``ref``).
+
+``MODI_EXT_IMPL`` = ``auto`` (default) | ``ext`` | ``dense`` | ``ref``.  Under ``auto`` a call reaches a kernel only if
+
+1. this build has kernels for the tensor's device type (probed once per device type and cached -- a per-call probe
+   would be traced by ``torch.compile`` and break the graph), else ``dense``;
+2. the kernels passed their self-check for this (device, dtype): on first use a tiny random problem runs through each
+   kernel and the float64 reference (``modi_ext.runtime.selfcheck``); a mismatch gives one warning naming the op and the
+   error and routes that (device, dtype) to ``dense`` (``MODI_EXT_SELFCHECK=0`` skips the check, ``strict`` raises);
+3. on devices in ``MEASURE_DEVICES`` (CUDA): the kernel measured faster than ``dense`` for this (device, op, shape
+   signature) -- both timed once, a few repetitions, like ``cudnn.benchmark``.  On the CPU the kernels always win.
+
+``ext`` forces the kernels (no self-check: it is how the kernels themselves are tested); a device without kernels is
+then an error naming the build.  ``dispatch_report()`` lists every decision taken so far.
+"""
+from __future__ import annotations
+
+import os
+import statistics
+import threading
+import time
+import warnings
+from typing import Callable
+
+import torch
+
+from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
+from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
+
+__all__ = ["route", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS", "device_key"]
+
+# ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
+# (then ``reset()``) to inject a wrong kernel.
+MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
+AUTO_REPS = 3
+
+
+def _default_timer(name: str, fn: Callable[[], object], device: str) -> float:
+    """Seconds for one run of ``fn`` (synchronised on CUDA).  ``name`` ('ext'/'dense') lets a fake timer differ."""
+    cuda = device.startswith("cuda")
+    if cuda:
+        torch.cuda.synchronize(device)
+    t = time.perf_counter()
+    fn()
+    if cuda:
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - t
+
+
+TIMER: Callable[[str, Callable[[], object], str], float] = _default_timer  # test hook: a fake clock
+
+# The first-use self-check, ``(device, dtype) -> {"ok", "errors", "max_error", ...}``:
+# ``modi_ext.runtime.selfcheck.run``, installed by ``modi_ext/__init__.py``.  The self-check runs the ops' references,
+# whose packages import the ops, which import this module: it sits above dispatch, so dispatch is handed it instead
+# of importing it.  A test hook too.
+SELFCHECK: Callable[[str, torch.dtype], dict] | None = None
+
+_lock = threading.RLock()
+_checked: dict[tuple[str, str], dict] = {}
+_auto: dict[tuple[str, str, str], dict] = {}
+
+
+def reset() -> None:
+    """Forget every cached decision (after changing ``KERNELS``, ``TIMER`` or the environment in tests)."""
+    with _lock:
+        _built.clear()
+        _checked.clear()
+        _auto.clear()
+
+
+def selfcheck_mode() -> str:
+    mode = os.environ.get("MODI_EXT_SELFCHECK", "1").strip().lower()
+    if mode not in ("0", "1", "strict"):
+        raise ValueError(f"MODI_EXT_SELFCHECK must be '0', '1' or 'strict', not {mode!r}")
+    return mode
+
+
+@torch.compiler.assume_constant_result
+def kernels_trusted(device: str, dtype_name: str) -> bool:
+    """Whether the kernels passed their self-check on ``device`` (e.g. 'cuda:0'; 'cuda' is the same key,
+    ``device_key``) for ``dtype_name`` ('torch.float32').
+
+    Runs the check on first use (evaluated eagerly even inside ``torch.compile``: the answer is a constant)."""
+    mode = selfcheck_mode()
+    if mode == "0":
+        return True
+    device = device_key(device)
+    key = (device, dtype_name)
+    with _lock:
+        if key not in _checked:
+            if SELFCHECK is None:
+                raise RuntimeError("modi_ext.runtime.dispatch: no self-check installed (import modi_ext)")
+            res = SELFCHECK(device, getattr(torch, dtype_name.replace("torch.", "")))
+            _checked[key] = res
+            if not res["ok"] and mode != "strict":
+                warnings.warn(_failure_message(device, dtype_name, res), RuntimeWarning, stacklevel=5)
+        res = _checked[key]
+    if not res["ok"] and mode == "strict":
+        raise RuntimeError(_failure_message(device, dtype_name, res) + " (MODI_EXT_SELFCHECK=strict)")
+    return res["ok"]
+
+
+def _failure_message(device: str, dtype_name: str, res: dict) -> str:
+    bad = "; ".join(f"{op}: {err}" for op, err in res["errors"].items())
+    return (f"modi_ext: kernel self-check failed on {device} {dtype_name.replace('torch.', '')} ({bad}); "
+            f"{device} {dtype_name.replace('torch.', '')} now uses the dense path")
+
+
+def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callable[[], str] | None = None,
+          bench: Callable[[str], Callable[[], object]] | None = None) -> str:
+    """'ext', 'dense' or 'ref' for one call of ``op`` on ``x``'s device and dtype (see the module docstring).
+
+    ``signature()`` names the call's shapes and options; ``bench(impl)`` returns a zero-argument function running the
+    call on ``impl`` -- both only used where ``auto`` measures (CUDA).
+    """
+    want = requested_impl()
+    if want in ("ref", "dense"):
+        return want
+    dev_type = x.device.type
+    if not kernels_built(dev_type, family):
+        if want == "ext":
+            raise RuntimeError(f"MODI_EXT_IMPL=ext but this modi_ext build has no {dev_type.upper()} kernels for "
+                               f"{op} (built without them: MODI_EXT_CUDA=0, no nvcc, or a CPU-only wheel)")
+        if not HAS_EXT and not torch.compiler.is_compiling():
+            warn_not_built()
+        return "dense"
+    if want == "ext" or dev_type == "meta":
+        return "ext"
+    if not kernels_trusted(device_key(x.device), str(x.dtype)):
+        return "dense"
+    if dev_type in MEASURE_DEVICES and signature is not None and bench is not None:
+        sig = signature()
+        if torch.compiler.is_compiling():
+            return _cached_choice(op, device_key(x.device), sig)
+        return _measured(op, device_key(x.device), sig, bench)
+    return "ext"
+
+
+@torch.compiler.assume_constant_result
+def _cached_choice(op: str, device: str, sig: str) -> str:
+    rec = _auto.get((device, op, sig))
+    return rec["choice"] if rec else "ext"
+
+
+def _measured(op: str, device: str, sig: str, bench: Callable[[str], Callable[[], object]]) -> str:
+    key = (device, op, sig)
+    with _lock:
+        rec = _auto.get(key)
+        if rec is not None:
+            return rec["choice"]
+        times: dict[str, list[float]] = {"ext": [], "dense": []}
+        error = None
+        try:
+            fns = {impl: bench(impl) for impl in times}
+            for impl, fn in fns.items():  # warm-up (allocator, cuDNN plans)
+                fn()
+            for _ in range(AUTO_REPS):
+                for impl, fn in fns.items():
+                    times[impl].append(TIMER(impl, fn, device))
+        except Exception as exc:  # noqa: BLE001 - a kernel that cannot run this shape loses
+            error = f"{type(exc).__name__}: {exc}"
+        if error is not None or len(times["ext"]) < AUTO_REPS:
+            rec = {"choice": "dense", "error": error}
+        else:
+            ext_ms = statistics.median(times["ext"]) * 1e3
+            dense_ms = statistics.median(times["dense"]) * 1e3
+            rec = {"choice": "ext" if ext_ms <= dense_ms else "dense", "ext_ms": round(ext_ms, 4),
+                   "dense_ms": round(dense_ms, 4)}
+        _auto[key] = rec
+        return rec["choice"]
+
+
+def dispatch_report() -> list[dict]:
+    """Every decision so far: the requested path, kernel availability per device type, self-checks, auto timings."""
+    with _lock:
+        rows: list[dict] = [{"kind": "config", "impl": os.environ.get("MODI_EXT_IMPL", "auto"),
+                             "selfcheck": os.environ.get("MODI_EXT_SELFCHECK", "1"), "extension_built": HAS_EXT}]
+        rows += [{"kind": "build", "device_type": d, "family": f, "kernels": v} for (d, f), v in _built.items()]
+        rows += [{"kind": "selfcheck", "device": d, "dtype": t.replace("torch.", ""), "ok": r["ok"],
+                  "errors": dict(r["errors"]), "max_error": dict(r["max_error"])} for (d, t), r in _checked.items()]
+        rows += [{"kind": "auto", "device": d, "op": op, "signature": sig, **r} for (d, op, sig), r in _auto.items()]
+        return rows

@@ -1,0 +1,86 @@
+"""First-use self-check of the kernels on one (device, dtype): the shared payload against the float64 reference.
+
+A kernel that is wrong on some GPU (a miscompile, an architecture the build did not target, a driver issue) must
+never silently train a model: ``modi_ext.runtime.dispatch`` runs ``run(device, dtype)`` once per (device, dtype)
+before the kernels get a real call and routes that pair to the dense path if anything here disagrees with the
+reference.
+
+The problems are ``modi_ext.runtime.payload``'s, so the check launches every kernel instantiation of its dtype -- what
+MoDi trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
+and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
+plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
+ops hand to the kernels (``modi_ext.demod.ops``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
+on the CPU emulator (``tests/modi_ext/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
+
+It calls the raw kernels of a table (``modi_ext.runtime.kernels``), not the autograd ops; what it imports above the
+runtime is the demod op and the references (so ``dispatch`` is handed ``run`` by ``modi_ext/__init__.py``).
+"""
+from __future__ import annotations
+
+import torch
+
+from modi_ext.demod import ops as demod
+from modi_ext.runtime import kernels, payload
+
+TOL = payload.TOL
+
+
+def _demod_error(case: payload.SkeletalCase, device: str, dtype: torch.dtype) -> float:
+    """The demodulation coefficients the public ops hand to the kernels (``modi_ext.demod.ops``: a C++ op on the CPU)
+    against the float64 formula."""
+    p = payload.skeletal_inputs(case, dtype)
+    dev = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731
+    d = demod.demod_scale(dev(p["w"]), p["index"].to(device), p["offsets"].to(device), dev(p["s"]), case.kind == "up",
+                          p["n_out"], case.B)
+    return payload.rel_error(d, p["d"])
+
+
+def _families(lib: str, device_type: str) -> tuple[str, ...]:
+    built = kernels.kernels_built if lib == kernels.LIB else (lambda d, f: kernels.registered(lib, f, d))
+    return tuple(f for f in ("skeletal", "fk") if built(device_type, f))
+
+
+def _op_of(case) -> str:
+    return "fk" if isinstance(case, payload.FkCase) else f"skeletal_{case.kind}"
+
+
+def run(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> dict:
+    """``{"ok", "errors": {op: message}, "max_error": {op: relative error}, "cases": n}`` for every kernel of
+    ``lib`` (default: this build's ``torch.ops.modi_ext``, through the ``kernels.KERNELS`` hook) on (device, dtype).
+    ``ok`` is False when nothing could be checked (no kernels registered for the device)."""
+    tol = TOL.get(dtype, 1e-4)
+    table = kernels.KERNELS if lib == kernels.LIB else kernels.kernel_table(lib)
+    families = _families(lib, torch.device(device).type)
+    errors: dict[str, str] = {}
+    worst: dict[str, float] = {}
+    todo = payload.cases(dtype, families)
+    if not todo:
+        return {"ok": False, "errors": {"build": f"no {lib} kernels are registered for {torch.device(device).type}: "
+                                                 "nothing was checked"}, "max_error": {}, "cases": 0}
+    # first use may come inside no_grad / inference_mode / autocast: the oracle needs autograd and full precision
+    with torch.inference_mode(False), torch.enable_grad(), torch.autocast(torch.device(device).type, enabled=False):
+        for case in todo:
+            op = _op_of(case)
+            if op in errors:
+                continue
+            try:
+                fwd, bwd = payload.run_case(table, case, device, dtype)
+            except Exception as exc:  # noqa: BLE001 - a kernel that raises has failed its check
+                msg = str(exc).splitlines()[0] if str(exc) else ""
+                errors[op] = f"raised {type(exc).__name__}: {msg} ({case.name})"
+                continue
+            worst[op] = max(worst.get(op, 0.0), fwd, bwd)
+            if lib == kernels.LIB and isinstance(case, payload.SkeletalCase) and "demod_scale" not in errors:
+                try:
+                    err = _demod_error(case, device, dtype)
+                except Exception as exc:  # noqa: BLE001
+                    errors["demod_scale"] = f"raised {type(exc).__name__}: {str(exc).splitlines()[0]} ({case.name})"
+                else:
+                    worst["demod_scale"] = max(worst.get("demod_scale", 0.0), err)
+                    if err > tol:
+                        errors["demod_scale"] = f"error {err:.3g} > {tol:.1g} ({case.name})"
+            if fwd > tol:
+                errors[op] = f"forward error {fwd:.3g} > {tol:.1g} ({case.name})"
+            elif bwd > payload.GRAD_FACTOR * tol:
+                errors[op] = f"backward error {bwd:.3g} > {payload.GRAD_FACTOR * tol:.1g} ({case.name})"
+    return {"ok": not errors, "errors": errors, "max_error": worst, "cases": len(todo)}
