@@ -21,6 +21,7 @@ import shlex
 import signal
 import socket
 import sys
+import time
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
@@ -188,14 +189,22 @@ def _alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[-1].split()[0] not in ("Z", "X")
 
 
-def gone_ranks() -> tuple[list[int], bool]:
+def gone_ranks(settle_s: float = 2.0) -> tuple[list[int], bool]:
     """``(ranks, certain)``: the ranks whose process on this host has ended; else, in a run of two, the other rank
-    (``certain`` False: it may be alive on another machine, or hung)."""
+    (``certain`` False: it may be alive on another machine, or hung). A killed process closes its sockets before
+    it is marked ended, so a survivor may hear of it first: the ranks on this host are looked at again for up to
+    ``settle_s`` seconds."""
     peers, me = _state["peers"], _state["rank"]
     host = socket.gethostname()
-    gone = [r for r, p in enumerate(peers) if r != me and p and p[0] == host and not _alive(int(p[1]))]
-    if gone:
-        return gone, True
+    local = [r for r, p in enumerate(peers) if r != me and p and p[0] == host]
+    deadline = time.monotonic() + settle_s
+    while True:
+        gone = [r for r in local if not _alive(int(peers[r][1]))]
+        if gone:
+            return gone, True
+        if not local or time.monotonic() >= deadline:
+            break
+        time.sleep(0.05)
     if len(peers) == 2:
         return [1 - me], False
     return [], False
