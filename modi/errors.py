@@ -6,7 +6,10 @@ else is a bug and keeps its traceback.
 
 
 class UserError(Exception):
-    """Bad input or arguments from the user: printed as one line by the CLI."""
+    """Bad input or arguments from the user, or the environment (a full disk): printed as one line by the CLI,
+    which exits with ``exit_code``."""
+
+    exit_code = 2
 
 
 class BvhError(UserError, ValueError):
@@ -25,3 +28,11 @@ class BvhError(UserError, ValueError):
 
 class CheckpointError(UserError):
     """A checkpoint that cannot be read or does not hold what is needed."""
+
+
+class PeerLostError(UserError):
+    """A process of a distributed run went away (killed, preempted, its machine lost) or stopped answering: not a
+    bug, and not the user's mistake. Exit 75 (``EX_TEMPFAIL`` of sysexits.h: a temporary failure, to be retried):
+    the run continues from its newest checkpoint (torchrun's restart, or ``--resume auto``)."""
+
+    exit_code = 75

@@ -331,12 +331,14 @@ class StopRequest:
 
 
 @contextmanager
-def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, notice: bool = True
-                    ) -> Iterator[StopRequest]:
+def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, notice: bool = True,
+                    insist: bool = True) -> Iterator[StopRequest]:
     """Within the block the first SIGINT or SIGTERM only sets the yielded flag (and says so on stderr): the loop
     is to finish its ``unit``, save and stop. A second Ctrl-C raises ``KeyboardInterrupt`` at once (the user
-    insists); a second SIGTERM is ignored -- the save is under way, and SIGKILL is the scheduler's way to insist.
-    The previous handlers are restored on exit. Outside the main thread the flag never turns on by signal."""
+    insists) unless ``insist`` is False -- under torchrun, where a Ctrl-C reaches each worker twice, from the
+    terminal and forwarded by the agent; a second SIGTERM is ignored -- the save is under way, and SIGKILL is the
+    scheduler's way to insist. The previous handlers are restored on exit. Outside the main thread the flag never
+    turns on by signal."""
     stop = stop if stop is not None else StopRequest()
 
     def say(text: str) -> None:
@@ -344,10 +346,12 @@ def stop_on_signals(unit: str = "step", stop: StopRequest | None = None, *, noti
             print(f"\nmodi: {text}", file=sys.stderr, flush=True)
 
     def on_sigint(signum, frame) -> None:  # noqa: ARG001
-        if stop:
+        if stop and insist:
             raise KeyboardInterrupt
+        if stop:
+            return
         stop.set(signal.SIGINT)
-        say(f"stopping after this {unit} and saving a checkpoint (Ctrl-C again to abort)")
+        say(f"stopping after this {unit} and saving a checkpoint" + (" (Ctrl-C again to abort)" if insist else ""))
 
     def on_sigterm(signum, frame) -> None:  # noqa: ARG001
         first = stop.signum != signal.SIGTERM

@@ -13,6 +13,8 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
   resumable checkpoint; SIGTERM there does the same and exits 143, see ``modi.faults``); SIGTERM elsewhere unwinds
   the same way as Ctrl-C (no temp file left behind) and exits 143;
 * a full disk, a read-only folder, or a run folder another run holds is one line and exit 2 (``modi.faults``);
+* a lost peer of a distributed run (a killed or hung rank, a lost machine) is one line and exit 75
+  (``modi.errors.PeerLostError``, EX_TEMPFAIL: continue with ``--resume auto``, or torchrun restarts it);
 * anything else is a bug: one line naming the exception, and ``MODI_TRACEBACK=1`` re-raises it with its traceback.
 """
 from __future__ import annotations
@@ -131,7 +133,32 @@ def _run(argv: list[str] | None) -> int:
         raise
 
 
+_kept: list = []  # what leave_without_teardown keeps alive until os._exit
+
+
+def leave_without_teardown(*keep) -> None:
+    """Have :func:`main` end the process with ``os._exit`` once its line is printed, keeping ``keep`` alive until
+    then: a command that used a torch.distributed process group must not tear it down. Freeing DDP's reducer frees
+    the gloo group, whose destructor joins gloo's worker threads while holding the GIL -- and a worker thread still
+    releasing the tensors of its last collective waits for the GIL: a deadlock, seen under torchrun as a worker
+    that never exits; after a lost peer, interpreter shutdown can abort instead ("terminate called without an
+    active exception"). Every file the command wrote is closed (and checkpoints fsynced) by then."""
+    _kept.append(keep)
+
+
 def main(argv: list[str] | None = None) -> int:
+    code = _main(argv)
+    if _kept:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(code)
+    return code
+
+
+def _main(argv: list[str] | None = None) -> int:
     from modi.faults import Terminated, sigterm_pending, terminate_on_sigterm
 
     try:
@@ -146,9 +173,9 @@ def main(argv: list[str] | None = None) -> int:
     except BadArguments as exc:
         print(exc, file=sys.stderr, flush=True)
         return 2
-    except UserError as exc:
+    except UserError as exc:  # 2, or 75 for a lost peer of a distributed run (PeerLostError)
         _say(str(exc))
-        return 2
+        return int(getattr(exc, "exit_code", 2))
     except KeyboardInterrupt:
         print("\nmodi: interrupted", file=sys.stderr, flush=True)
         return 130

@@ -6,8 +6,9 @@ MoDi's foot-touch and contact-consistency terms (through the FK op), lazy path-l
 ``g_reg_every`` steps, then the EMA generator and the tracked mean of W are updated.
 
 Exact resume: every source of randomness is a torch RNG whose state goes into the checkpoint (the global CPU/CUDA
-generators for latents and noise, a dedicated generator for batch indices), the optimisers' states are saved, and
-the loop only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
+generators for latents and noise), the real windows of a step follow from the step alone (one permutation per
+epoch, cut into the ranks' shards: ``distributed.shard_indices``), the optimisers' states are saved, and the loop
+only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
 Ctrl-C and SIGTERM (``modi.faults.stop_on_signals``) stop at the next boundary on every rank and save; the run
 folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 import inspect
 import json
 import os
+import shutil
 import tempfile
 import time
 import warnings
@@ -40,6 +42,7 @@ from modi.errors import CheckpointError, UserError
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict, load_checkpoint
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
+from modi.models.modi.distributed import init_distributed_from_env, shard_indices, under_torchrun
 from modi.models.modi.losses import (
     d_logistic_loss,
     d_r1_penalty,
@@ -98,7 +101,19 @@ def data_root(source: str | os.PathLike, fps: float, work_dir: str | os.PathLike
         base = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="modi_proc_"))
         folder = base / "procedural_data"
         if not any(folder.glob("*.bvh")):
-            write_procedural_data(folder, fps=fps)
+            # written beside, then renamed into place: the ranks of a run share the folder and write it at the
+            # same time; none may read a half-written set (the first rename wins, the others' copies are dropped)
+            base.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=".procedural_data.", dir=base))
+            try:
+                write_procedural_data(tmp, fps=fps)
+                try:
+                    os.rename(tmp, folder)
+                except OSError:
+                    if not any(folder.glob("*.bvh")):
+                        raise
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
         return folder
     root = Path(source)
     if not root.exists():
@@ -165,23 +180,6 @@ def _dist() -> tuple[bool, int, int]:
     return False, 0, 1
 
 
-def init_distributed_from_env(device: torch.device | None = None) -> tuple[int, int]:
-    """Initialise the default process group when launched by ``torchrun`` (WORLD_SIZE > 1); gloo on CPU, NCCL on GPU.
-
-    Returns ``(rank, world_size)``; a no-op (0, 1) for a single process.
-    """
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return 0, 1
-    if not dist.is_initialized():
-        use_cuda = (device is not None and device.type == "cuda") or (device is None and torch.cuda.is_available())
-        backend = "nccl" if use_cuda else "gloo"
-        if use_cuda:
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
-        dist.init_process_group(backend=backend)
-    return dist.get_rank(), dist.get_world_size()
-
-
 # =============================================================================================== trainer
 @dataclass
 class TrainResult:
@@ -202,7 +200,7 @@ class Trainer:
     """Trains G/D on ``data`` into ``run_dir`` (checkpoints, TensorBoard scalars, ``log.jsonl``, sample previews).
 
     In a ``torch.distributed`` process group the models are wrapped in DDP (gradients averaged), each rank draws
-    its own latents/noise/batches, and rank 0 writes every file.
+    its own latents and noise and trains on its own shard of each batch, and rank 0 writes every file.
     """
 
     def __init__(self, cfg: MoDiConfig, data: TrainingData, run_dir: str | os.PathLike, *,
@@ -249,7 +247,9 @@ class Trainer:
 
         self.step = 0
         self.mean_path_length = torch.zeros((), device=self.device)
-        self.data_rng = torch.Generator().manual_seed(tc.seed * 7919 + 17 + self.rank)
+        self._orders: dict[int, Tensor] = {}  # the newest epochs' window orders (see _batch_indices)
+        if self.distributed:
+            self._check_same_data()
         self.sample_z = torch.randn(tc.n_samples, cfg.model.latent_dim,
                                     generator=torch.Generator().manual_seed(tc.seed + 12345))
         self.last_losses: dict[str, float] = {}
@@ -279,8 +279,8 @@ class Trainer:
             try:
                 from torch.utils.tensorboard import SummaryWriter  # lazy: tensorboard costs ~1 s to import, only here
 
-                with faults.output_errors(self.run_dir / "tb"):
-                    self.writer = SummaryWriter(str(self.run_dir / "tb"))
+                with faults.output_errors(self.run_dir / "tb"):  # a resume drops the events past its step
+                    self.writer = SummaryWriter(str(self.run_dir / "tb"), purge_step=self.step or None)
             except faults.OutputError:
                 raise
             except Exception as exc:  # noqa: BLE001 - tensorboard is optional at run time
@@ -294,9 +294,31 @@ class Trainer:
             return list(torch.randn(2, n, dim, device=self.device).unbind(0))
         return [torch.randn(n, dim, device=self.device)]
 
+    def _batch_indices(self, step: int | None = None) -> Tensor:
+        """This rank's windows at ``step`` (default the current one): its shard of the step's global batch, from a
+        permutation of all windows per epoch (``distributed.shard_indices``): each window once per epoch across the
+        ranks, and a function of the step alone, so a resume continues the same stream."""
+        return shard_indices(self.windows.shape[0], self.cfg.train.batch, self.world, self.rank,
+                             self.cfg.train.seed, self.step if step is None else step, self._orders)
+
     def _real_batch(self) -> Tensor:
-        idx = torch.randint(self.windows.shape[0], (self.local_batch,), generator=self.data_rng)
-        return self.windows[idx.to(self.windows.device)]
+        return self.windows[self._batch_indices().to(self.windows.device)]
+
+    def _check_same_data(self) -> None:
+        """Every rank must hold the same windows in the same order (the shards are cut from one permutation):
+        compare their number and a checksum across the ranks."""
+        w = self.windows.detach().double()
+        mine = torch.tensor([float(w.shape[0]), float(w.sum()),
+                             float((w.flatten(1).sum(1) * torch.arange(1, w.shape[0] + 1, dtype=w.dtype,
+                                                                       device=w.device)).sum())],
+                            dtype=torch.float64, device=self.device)
+        every = [torch.zeros_like(mine) for _ in range(self.world)]
+        dist.all_gather(every, mine)
+        for r, theirs in enumerate(every):
+            if not torch.allclose(theirs, every[0], rtol=1e-9, atol=1e-6):
+                raise UserError(f"rank {r} has {int(theirs[0])} training windows and rank 0 {int(every[0][0])}, or "
+                                f"other ones: every process must read the same data (the same DATA_DIR and options "
+                                f"on every machine)")
 
     # ------------------------------------------------------------------------------------------- checks
     def _check_finite(self, losses: dict[str, Tensor]) -> None:
@@ -415,9 +437,11 @@ class Trainer:
         target = tc.iters if iters is None else int(iters)
         self.stop = faults.StopRequest()
         lock = faults.hold_run_folder(self.run_dir) if self.rank == 0 else nullcontext()
-        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0):
+        with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0,
+                                          insist=not under_torchrun()):
             if self.rank == 0:
                 faults.remove_stale_temps(self.run_dir / "checkpoint.pt")
+                _cut_log(self.run_dir / "log.jsonl", self.step)
             return self._train_to(target)
 
     def _train_to(self, target: int) -> TrainResult:
@@ -510,8 +534,13 @@ class Trainer:
         return out
 
     # ------------------------------------------------------------------------------------------- checkpoints
+    @property
+    def saved_step(self) -> int | None:
+        """The step of ``RUN/checkpoint.pt`` as this run wrote or loaded it (None before the first save)."""
+        return self._saved_step
+
     def _rng_state(self) -> dict[str, Any]:
-        st = {"torch": torch.get_rng_state(), "data": self.data_rng.get_state()}
+        st = {"torch": torch.get_rng_state()}
         if torch.cuda.is_available():
             st["cuda"] = torch.cuda.get_rng_state_all()
         return st
@@ -520,9 +549,13 @@ class Trainer:
         """Everything to generate, and to resume exactly (plain containers + tensors: loads with weights_only)."""
         rng = self._rng_state()
         rngs = [rng]
-        if self.distributed:
-            rngs = [None] * self.world
-            dist.all_gather_object(rngs, rng)
+        if self.distributed:  # the ranks' random states; and their steps, which must agree before a save
+            every: list[Any] = [None] * self.world
+            dist.all_gather_object(every, (self.step, rng))
+            steps = [s for s, _ in every]
+            if len(set(steps)) != 1:
+                raise RuntimeError(f"the ranks are at different steps {steps}: not saving a checkpoint")
+            rngs = [r for _, r in every]
         return checkpoint_dict(
             config=self.cfg, codec=self.codec, levels=self.levels, G=self.G, G_ema=self.G_ema, D=self.D,
             step=self.step,
@@ -584,8 +617,7 @@ class Trainer:
         rngs = st.get("rng") or []
         if len(rngs) == self.world:
             rng = rngs[self.rank]
-            torch.set_rng_state(rng["torch"])
-            self.data_rng.set_state(rng["data"])
+            torch.set_rng_state(rng["torch"])  # (checkpoints before issue 43 also hold a "data" generator: unused)
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all(rng["cuda"])
         else:
@@ -621,6 +653,57 @@ def _plain(obj: Any) -> Any:
     return str(obj)
 
 
+def _cut_log(path: Path, step: int) -> None:
+    """Drop the records of ``log.jsonl`` past ``step``: a run killed after its last checkpoint logged steps that
+    its resume trains again, and the log must read as one run (steps increasing)."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    except (FileNotFoundError, UnicodeDecodeError):
+        return
+    keep = []
+    for line in lines:
+        try:
+            rec_step = int(json.loads(line).get("step", 0))
+        except (ValueError, AttributeError, TypeError):
+            continue  # a half-written last line of a killed run
+        if rec_step <= step:
+            keep.append(line if line.endswith("\n") else line + "\n")
+    if len(keep) != len(lines):
+        faults.atomic_write(path, "".join(keep))
+
+
+def newest_checkpoint(run_dir: str | os.PathLike, warn: Callable[[str], None] | None = None
+                      ) -> tuple[Path, dict[str, Any]] | None:
+    """``(path, state)`` of the newest checkpoint of the run in ``run_dir`` that loads: ``checkpoint.pt``, or a
+    newer snapshot (``checkpoints/step_*.pt``), or when ``checkpoint.pt`` cannot be read the newest snapshot that
+    can (``warn`` is told why); None when there is none."""
+    run_dir = Path(run_dir)
+    warn = warn or (lambda msg: warnings.warn(msg, stacklevel=3))
+    main_path, main_state = run_dir / "checkpoint.pt", None
+    if main_path.is_file():
+        try:
+            main_state = load_checkpoint(main_path)
+        except CheckpointError as exc:
+            warn(f"{main_path} cannot be read ({exc}): looking for a snapshot")
+
+    def snap_step(p: Path) -> int:
+        try:
+            return int(p.stem.split("_", 1)[1])
+        except (IndexError, ValueError):
+            return -1
+
+    snaps = sorted((p for p in (run_dir / "checkpoints").glob("step_*.pt") if snap_step(p) >= 0),
+                   key=snap_step, reverse=True)
+    for snap in snaps:
+        if main_state is not None and snap_step(snap) <= int(main_state["step"]):
+            break
+        try:
+            return snap, load_checkpoint(snap)
+        except CheckpointError as exc:
+            warn(f"{snap} cannot be read ({exc}): trying an older one")
+    return (main_path, main_state) if main_state is not None else None
+
+
 def _skeleton_from(st: dict[str, Any]) -> Any:
     return Skeleton.from_dict(st["skeleton"])
 
@@ -638,4 +721,4 @@ def seconds_per_iteration(trainer: Trainer, n: int = 5, warmup: int = 1) -> floa
 
 __all__ = ["MotionCodec", "TrainingData", "prepare_data", "write_procedural_data", "Trainer", "TrainResult",
            "NonFiniteLossError", "atomic_torch_save", "init_distributed_from_env", "build_models",
-           "seconds_per_iteration"]
+           "seconds_per_iteration", "newest_checkpoint"]
