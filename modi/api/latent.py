@@ -1,6 +1,6 @@
 """MoDi's latent-space applications as files: what ``modi latent ACTION`` writes (BVH + GIF previews, plots, JSON).
 
-Each call takes a :class:`modi.ModiGenerator` (or :func:`open_generator` a checkpoint as the CLI does), writes into
+Each call takes a :class:`modi.ModiGenerator` (:func:`open_generator` opens a checkpoint as the CLI does), writes into
 ``out`` and returns what it wrote; the in-memory forms (``list[Motion]``) are the generator's own methods
 (:meth:`ModiGenerator.truncate`, :meth:`~ModiGenerator.interpolate`, :meth:`~ModiGenerator.crowd`, ...). Motions are
 synthesised with the generator's fixed noise, so a latent fixes its motion.
@@ -15,24 +15,14 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from modi.api._util import check_device, existing_file, set_threads
-from modi.api.generator import LatentLike, ModiGenerator, _steps
+from modi.api._util import existing_file
+from modi.api.generator import LatentLike, ModiGenerator, _steps, open_generator
 from modi.errors import UserError
 from modi.models.modi.latent import space
 from modi.models.modi.latent.clustering import ClusterResult, cluster_latent_space
 from modi.models.modi.latent.crowd import SIGMA_RANGE, Crowd, simulate_crowd
 from modi.models.modi.latent.editing import Boundary, EditReport, edit_latents, edit_report, plot_report
 from modi.models.modi.latent.inversion import InversionResult, invert, plot_history
-
-
-def open_generator(ckpt: str | os.PathLike, *, device: str = "cpu", threads: int | None = None,
-                   ema: bool = True) -> ModiGenerator:
-    """A checkpoint's generator as the ``modi latent`` actions open it: torch's CPU ``threads`` set (None: torch's
-    choice), ``device`` checked, the file checked, then read (well under a second)."""
-    set_threads(threads)
-    check_device(device)
-    existing_file(ckpt, "MoDi checkpoint file")
-    return ModiGenerator.from_checkpoint(ckpt, device=device, ema=ema)
 
 
 def _sequence(gen: ModiGenerator, seq: Tensor, out: Path, gif: str, label: str) -> list[Path]:

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from modi.models.modi.latent.space import as_wplus, mean_w, position_scale, random_w, save_figure
+from modi.models.modi.latent.space import as_wplus, mean_w, position_scale, pyplot, random_w, save_figure
 
 
 @dataclass
@@ -109,10 +109,7 @@ def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.0
 
 def plot_history(res: InversionResult, path: str | os.PathLike) -> Path:
     """PNG of the inversion's loss curve (total and representation term, log scale)."""
-    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: after use("Agg")
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(5, 3.4), dpi=120)
     ax.semilogy(res.history, label="total")

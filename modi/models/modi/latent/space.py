@@ -330,10 +330,19 @@ __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean
            "load_bvh_window", "window_from_motion", "decode_positions", "write_motions"]
 
 
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), for the plots of the latent applications."""
+    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported; plots are rare
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: after use("Agg")
+
+    return plt
+
+
 def save_figure(fig, path: str | os.PathLike) -> Path:
     """Lay out, write (making the folder) and close a matplotlib figure; returns the path."""
-    import matplotlib.pyplot as plt  # lazy: only the plotting functions, which chose the Agg backend, get here
-
+    plt = pyplot()
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
