@@ -262,4 +262,5 @@ def train_encoder(ckpt: str | os.PathLike, data: str | os.PathLike, out: str | o
             raise
 
 
-__all__ = ["Encoder", "TASKS", "open_encoder", "evaluate_encoder_file", "train_encoder", "EncoderTrainingInterrupted", "format_table5"]
+__all__ = ["Encoder", "TASKS", "open_encoder", "evaluate_encoder_file", "train_encoder", "EncoderTrainingInterrupted",
+           "format_table5"]

@@ -149,7 +149,8 @@ class GanimatorRun:
                               self._unit, contacts=labels))
         return out
 
-    def write(self, motions: Sequence[Motion], out: str | os.PathLike, *, gif: bool = True) -> tuple[list[Path], Path | None]:
+    def write(self, motions: Sequence[Motion], out: str | os.PathLike, *,
+              gif: bool = True) -> tuple[list[Path], Path | None]:
         """Write motions as ``modi ganimator generate`` does: ``sample.bvh`` (several: ``sample_NNN.bvh``, the
         requested ``--format``s, with contact labels) and, with ``gif``, ``sample.gif`` (several: ``crowd.gif``,
         one scene) with the viewer page ``view.html``. Returns the motion files and the GIF (None without)."""

@@ -306,8 +306,8 @@ class ModiGenerator:
 
 def open_generator(ckpt: str | os.PathLike, *, device: str = "cpu", threads: int | None = None,
                    ema: bool = True) -> ModiGenerator:
-    """A checkpoint's generator as ``modi generate`` and ``modi latent`` open it: torch's CPU ``threads`` set (None: torch's
-    choice), ``device`` checked, the file checked, then read (well under a second)."""
+    """A checkpoint's generator as ``modi generate`` and ``modi latent`` open it: torch's CPU ``threads`` set
+    (None: torch's choice), ``device`` checked, the file checked, then read (well under a second)."""
     set_threads(threads)
     check_device(device)
     existing_file(ckpt, "MoDi checkpoint file")

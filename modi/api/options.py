@@ -5,14 +5,14 @@ deeper; everything here is cheap to import (no model is built, no file read).
 """
 from __future__ import annotations
 
+from modi.core.body import UNITS_MM
 from modi.core.contacts import PREVIEW_RULE
 from modi.data.dataset import DatasetConfig
 from modi.data.procedural import KINDS as PROCEDURAL_KINDS
 from modi.models.ganimator.config import PRESETS as GANIMATOR_PRESETS
 from modi.models.ganimator.config import preset as ganimator_preset
-from modi.models.modi.latent.space import _UNITS_MM
 
-LENGTH_UNITS = tuple(_UNITS_MM)  # the named length units of the mm metrics (besides "auto")
+LENGTH_UNITS = tuple(UNITS_MM)  # the named length units of the mm metrics (besides "auto")
 GANIMATOR_PRESET_WHAT = {"paper": "the published schedule", "fast": "a CPU schedule", "tiny": "a smoke test"}
 
 

@@ -15,7 +15,8 @@ _FMT = argparse.ArgumentDefaultsHelpFormatter
 
 
 def register(subparsers) -> None:
-    from modi.api.options import GANIMATOR_PRESETS, ganimator_preset_help  # lazy: torch (read when the parser is built)
+    # lazy: torch (read when the parser is built)
+    from modi.api.options import GANIMATOR_PRESETS, ganimator_preset_help
 
     p = subparsers.add_parser("ganimator", help="GANimator: learn from one (or a few) BVH clips of any skeleton",
                               description="GANimator (Li et al. 2022): a coarse-to-fine pyramid of small GANs "

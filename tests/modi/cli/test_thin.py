@@ -119,8 +119,8 @@ def test_exceptions_name_real_commands_or_ones_on_their_way():
     ("from modi.viz.render import render_bvh\n", True),
     ("from modi import faults\n", True),
     ("from ...models import ganimator\n", True),
-    ("from modi.api.latent import write_mean\nfrom modi.cli import types as ct\nfrom modi.errors import UserError\n"
-     "from modi.io.formats import add_format_options\nfrom modi.viz import add_view_option\nimport argparse\n", False),
+    (("from modi.api.latent import write_mean\nfrom modi.cli import types as ct\nfrom modi.errors import UserError\n"
+      "from modi.io.formats import add_format_options\nfrom modi.viz import add_view_option\nimport argparse\n"), False),
     ("from . import data\n", False),
 ])
 def test_the_check_catches_a_planted_import(source, found):

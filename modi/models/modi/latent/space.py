@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.core.body import UNITS_MM
 from modi.data.dataset import motion_from_bvh
 from modi.data.motion import Motion
 from modi.errors import UserError
@@ -162,7 +163,7 @@ def interpolation_sequence(w_a: Tensor, w_b: Tensor, steps: int) -> Tensor:
 
 
 # --------------------------------------------------------------------------------------------- units
-_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "dm": 100.0}
+_UNITS_MM = UNITS_MM  # the mm metrics' named units (modi.core.body)
 
 
 def mm_per_unit(height: float, units: str = "auto") -> float:

@@ -471,12 +471,12 @@ def test_inplace_convs_default_is_resolved_by_the_head_everywhere(model, tmp_pat
 
 def _encoder_cli(monkeypatch, g, codec, data):
     """``modi encoder train`` on the in-process generator and windows (no files but the encoder checkpoint)."""
+    from modi.api import encoder as A_  # the command calls modi.api.encoder.train_encoder
     from modi.cli import main
-    from modi.models.modi.encoder import training as T_
 
-    monkeypatch.setattr(T_, "load_encoder_data", lambda *a, **k: data)
-    monkeypatch.setattr("modi.models.modi.sampling.load_checkpoint", lambda p: generator_bundle(g, codec))
-    monkeypatch.setattr("modi.models.modi.latent.space.load_model", lambda st, device: (g, codec, None))
+    monkeypatch.setattr(A_, "load_encoder_data", lambda *a, **k: data)
+    monkeypatch.setattr(A_, "load_checkpoint", lambda p: generator_bundle(g, codec))
+    monkeypatch.setattr(A_, "load_model", lambda st, device: (g, codec, None))
     return lambda out, *argv: main(["encoder", "train", "g.pt", "procedural", "--out", str(out), "--batch", "4",
                                     "--eval-every", "0", "--ckpt-every", "0", "--quiet", *argv])
 
