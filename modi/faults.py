@@ -29,7 +29,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any, Iterator
+from typing import IO, Any, Iterable, Iterator
 
 from modi.errors import UserError
 
@@ -561,6 +561,31 @@ __all__ = ["OutputError", "RunFolderBusy", "sigterm_pending", "atomic_output", "
            "atomic_save_npy", "append_line",
            "output_errors", "describe_os_error", "remove_stale_temps", "human_bytes", "StopRequest",
            "stop_on_signals", "exit_code", "Terminated", "terminate_on_sigterm", "hold_run_folder", "LOCK_NAME"]
+
+
+def refuse_overwrite(output: str | os.PathLike, inputs: Iterable[str | os.PathLike], what: str = "output") -> None:
+    """``UserError`` when ``output`` is (or links to) one of the ``inputs``: never write over what we read."""
+    out = Path(output)
+    if not out.exists():
+        return
+    for inp in inputs:
+        try:
+            same = Path(inp).exists() and os.path.samefile(out, inp)
+        except OSError:
+            same = False
+        if same:
+            raise UserError(f"{what} {output} is the input file {inp}; refusing to write over an input")
+
+
+def unique_names(option: str, names: Iterable[str] | None) -> None:
+    """``UserError`` for a joint given twice in ``option`` (e.g. ``--feet LeftToe LeftToe``)."""
+    if not names:
+        return
+    seen: set[str] = set()
+    for n in names:
+        if n in seen:
+            raise UserError(f"{option}: joint {n!r} is given twice")
+        seen.add(n)
 
 
 def existing_file(path: str | os.PathLike, what: str = "BVH file", option: str = "") -> Path:

@@ -5,18 +5,22 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Sequence, Union
+from typing import Any, Callable, Sequence, Union
 
 import torch
 from torch import Tensor
 
 from modi.data.motion import Motion
 from modi.errors import UserError
-from modi.faults import atomic_write
+from modi.faults import atomic_write, refuse_overwrite
 from modi.models.modi.encoder import applications as A
-from modi.models.modi.encoder.metrics import evaluate_encoder
-from modi.models.modi.encoder.training import EncoderBundle, load_encoder, load_encoder_data
-from modi.api._util import existing_file
+from modi.models.modi.checkpoint import load_checkpoint
+from modi.models.modi.encoder.metrics import evaluate_encoder, format_table5
+from modi.models.modi.encoder.training import (EncoderBundle, EncoderTrainConfig, EncoderTrainer,
+                                               EncoderTrainingInterrupted, EncoderTrainResult, hold_output,
+                                               load_encoder, load_encoder_data, resumed_train_options)
+from modi.models.modi.latent.space import load_model
+from modi.api._util import check_device, existing_file, set_threads
 from modi.api.generator import ModiGenerator
 
 MotionLike = Union[Motion, str, os.PathLike, Tensor]
@@ -177,4 +181,86 @@ class Encoder:
         return res
 
 
-__all__ = ["Encoder", "TASKS"]
+def open_encoder(enc: str | os.PathLike, *, device: str = "cpu", threads: int | None = None) -> Encoder:
+    """An encoder checkpoint opened as ``modi apply`` and ``modi encoder eval`` open it: torch's CPU ``threads``
+    set (None: torch's choice), ``device`` checked, the file checked, then read (well under a second)."""
+    set_threads(threads)
+    check_device(device)
+    existing_file(enc, "encoder checkpoint file")
+    return Encoder.from_checkpoint(enc, device=device)
+
+
+def evaluate_encoder_file(enc: str | os.PathLike, data: str | os.PathLike | None = None, *, split: str = "test",
+                          units: str = "auto", json_path: str | os.PathLike | None = None, device: str = "cpu",
+                          threads: int | None = None) -> tuple[dict[str, Any], Encoder]:
+    """``modi encoder eval``: :meth:`Encoder.evaluate` of an encoder checkpoint, also written as JSON to
+    ``json_path`` (never over the checkpoint). Returns the metrics and the encoder."""
+    set_threads(threads)
+    check_device(device)
+    existing_file(enc, "encoder checkpoint file")
+    if json_path:
+        refuse_overwrite(json_path, [enc], "--json")
+    encoder = Encoder.from_checkpoint(enc, device=device)
+    res = encoder.evaluate(data, split=split, units=units)
+    if json_path:
+        Path(json_path).write_text(json.dumps({k: v for k, v in res.items() if k != "source"}, indent=1))
+    return res, encoder
+
+
+def train_encoder(ckpt: str | os.PathLike, data: str | os.PathLike, out: str | os.PathLike, *, iters: int = 5000,
+                  batch: int = 16, losses: str | None = None, optimizer: str | None = None, head: str | None = None,
+                  lr: float | None = None, lambda_rec: float | None = None, lambda_contact: float | None = None,
+                  lambda_root: float | None = None, lambda_pos: float | None = None, prefix: int | None = None,
+                  channel_multiplier: float = 1.0, hidden: int | None = None, units: str = "auto", seed: int = 0,
+                  eval_every: int = 500, ckpt_every: int = 250, resume: bool = False, cache: bool = True,
+                  progress: bool = True, device: str = "cpu", threads: int | None = None,
+                  log: Callable[[str], Any] | None = None) -> EncoderTrainResult:
+    """``modi encoder train``: train the encoder I into W+ for the frozen generator of ``ckpt`` on the 80% split of
+    ``data`` (a BVH folder, or ``"procedural"``) and write ``out`` (one self-contained checkpoint with the generator
+    inside) and ``out.log.jsonl``; the Table 5 metrics on the test split are in the result (``format_table5``
+    prints them). Options left None take ``EncoderTrainConfig``'s defaults, or with ``resume`` the checkpoint's
+    (given ones must agree). ``out`` is locked for the call and never silently overwritten (``resume=True``
+    continues it). Ctrl-C / SIGTERM save a resumable checkpoint and raise :class:`EncoderTrainingInterrupted`
+    (with ``.step``). ``log`` gets the data line before training. Cost: ``iters`` steps (minutes to hours)."""
+    with hold_output(out):  # a second run writing OUT is refused before any work
+        set_threads(threads)
+        check_device(device)
+        out = Path(out)
+        if out.exists() and not resume:
+            raise UserError(f"{out} exists: pass --resume to continue it, or choose another --out")
+        if resume and not out.exists():
+            raise UserError(f"--resume: {out} does not exist")
+        options = {"losses": losses, "optimizer": optimizer, "head": head, "lr": lr, "lambda_rec": lambda_rec,
+                   "lambda_contact": lambda_contact, "lambda_root": lambda_root, "lambda_pos": lambda_pos}
+        if resume:  # the checkpoint's loss form, weights, optimizer and head, unless given (then they must agree)
+            options = resumed_train_options(out, options)
+        else:
+            options = {k: v for k, v in options.items() if v is not None}  # EncoderTrainConfig's defaults
+        if hidden is not None and options.get("head", "released") == "released":
+            raise UserError("--hidden is the width of the bottleneck head's hidden layer; the released head has none "
+                            "(its layers are n_latent x latent_dim wide): add --head bottleneck or drop --hidden")
+        st = load_checkpoint(ckpt)
+        gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
+                     if k in st}
+        g, codec, gcfg = load_model(st, device=device)
+        cfg = EncoderTrainConfig(iters=iters, batch=batch, **options, prefix_frames=prefix,
+                                 channel_multiplier=channel_multiplier, hidden=hidden, units=units, seed=seed,
+                                 eval_every=eval_every, ckpt_every=ckpt_every)
+        _, _, t = g.output_shape
+        if prefix is not None and not 0 < prefix < t:
+            raise UserError(f"--prefix must be in 1..{t - 1} (the model makes {t} frames), got {prefix}")
+        windows = load_encoder_data(codec, gcfg, data, cache=cache, progress=progress)
+        if log is not None:
+            log(f"modi encoder train: {windows.train.shape[0]} train / {windows.test.shape[0]} test windows "
+                f"{tuple(windows.train.shape[1:])}; generator step {st['step']}; {cfg.iters} steps")
+        trainer = EncoderTrainer((g, codec, gcfg), windows, out, cfg, generator_state=gen_state,
+                                 resume=out if resume else None, progress=progress)
+        try:
+            return trainer.train()
+        except EncoderTrainingInterrupted as exc:
+            exc.step = trainer.step
+            raise
+
+
+__all__ = ["Encoder", "TASKS", "open_encoder", "evaluate_encoder_file", "train_encoder", "EncoderTrainingInterrupted",
+           "format_table5"]

@@ -7,18 +7,22 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Sequence, Union
+from typing import Any, Callable, Sequence, Union
 
 import numpy as np
 
+from modi.api._util import set_threads
 from modi.api.generator import ModiGenerator
 from modi.core.kinematics import bvh_positions
 from modi.data.motion import Motion
 from modi.errors import UserError
 from modi.evaluation.distribution import distribution_metrics
+from modi.evaluation import features as F
 from modi.evaluation.features import FeatureExtractor, load_extractor
 from modi.evaluation.plausibility import aggregate, guess_feet, planted_heights, plausibility_metrics
-from modi.evaluation.single import shared_joints, shared_pose_frames, single_sequence_metrics
+from modi.evaluation.report import to_markdown, write_json, write_reports
+from modi.evaluation.single import bare_name, shared_joints, shared_pose_frames, single_sequence_metrics
+from modi.faults import existing_file, unique_names
 from modi.io import bvh as bvh_io
 
 MotionSource = Union[Motion, str, os.PathLike]
@@ -206,4 +210,127 @@ def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, 
     }
 
 
-__all__ = ["evaluate", "evaluate_real", "evaluate_single"]
+UP_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def train_features(data: str | os.PathLike, out: str | os.PathLike, *, label_key: str = "content",
+                   window: int = 64, fps: float = 30.0, stride: int = 4, eval_stride: int = 16,
+                   holdout: float = 0.2, epochs: int = 12, batch_size: int = 64, lr: float = 2e-3,
+                   max_minutes: float | None = None, up_axis: str = "y", seed: int = 0, threads: int | None = None,
+                   json_path: str | os.PathLike | None = None, log: Callable[[str], Any] | None = None,
+                   warn: Callable[[str], Any] | None = None) -> dict[str, Any]:
+    """``modi eval train-features``: train the ST-GCN action recogniser whose penultimate features FID, KID,
+    precision, recall and diversity use, on the labelled BVH clips of ``data`` (a JSON beside each; split by file,
+    stratified by class), and save it to ``out`` (with the training summary to ``json_path``). ``log`` gets the
+    data line before training, ``warn`` the warnings. Returns the training history (``val_top1`` etc. when clips
+    were held out) with ``train_clips``/``heldout_clips``. Cost: ``epochs`` passes over the windows (minutes on a
+    CPU for a few thousand)."""
+    if json_path and Path(json_path).absolute() == Path(out).absolute():
+        raise UserError(f"--json {json_path} is also --out, the extractor file; choose another name")
+    set_threads(None if threads is None else max(1, threads))
+    if window < 8:
+        raise UserError(f"--window must be at least 8 frames, got {window}")
+    if not 0 < holdout < 1:
+        raise UserError(f"--holdout must be between 0 and 1, got {holdout}")
+    if up_axis not in UP_AXES:
+        raise UserError(f"--up-axis must be one of x, y, z, got {up_axis!r}")
+    clips, class_names, joints, parents, height = F.load_labelled_folder(data, label_key, fps)
+    train_idx, held_idx = F.split_by_file(clips, holdout, seed)
+    config = F.FeatureConfig(joint_names=joints, parents=parents, class_names=class_names, window=window, fps=fps,
+                             up_axis=UP_AXES[up_axis], body_height=height, pairs=F.lr_pairs(joints, parents))
+    if not config.pairs and warn is not None:
+        warn("modi: warning: no left/right joint pair found by name; windows keep their heading")
+    wtr, ltr = F.windows_and_labels([clips[i] for i in train_idx], window, stride)
+    if held_idx:
+        who, lho = F.windows_and_labels([clips[i] for i in held_idx], window, eval_stride)
+    else:
+        who, lho = None, None
+    if log is not None:
+        log(f"{len(train_idx)} training clips ({len(wtr)} windows), {len(held_idx)} held-out clips "
+            f"({0 if who is None else len(who)} windows), {len(class_names)} classes, {len(joints)} joints")
+    extractor, hist = F.train_feature_extractor(
+        wtr, ltr, config, who, lho, epochs=epochs, batch_size=batch_size, lr=lr,
+        max_seconds=None if max_minutes is None else 60.0 * max_minutes, seed=seed)
+    extractor.info.update({
+        "data": str(Path(data).resolve()),
+        "label_key": label_key,
+        "train_files": [clips[i].name for i in train_idx],
+        "heldout_files": [clips[i].name for i in held_idx],
+        "seed": seed,
+        "stride": stride,
+        "eval_stride": eval_stride,
+    })
+    extractor.save(out)
+    if json_path:
+        summary = {k: v for k, v in hist.items() if k != "epochs"}
+        summary["out"] = str(out)
+        write_json({"summary": summary, "epochs": hist["epochs"]}, json_path)
+    return {**hist, "train_clips": len(train_idx), "heldout_clips": len(held_idx)}
+
+
+def _feet(path: Path, names: list[str], given: Sequence[str] | None) -> list[int]:
+    """Foot joints of a clip: guessed by name, or the ``given`` names (exact, or modulo a namespace prefix)."""
+    if given is None:
+        try:
+            return guess_feet(names)
+        except ValueError:
+            raise UserError(f"{path}: no foot joints found by name (foot/toe/ankle/heel); name them with "
+                            f"--feet JOINT ... (joints: {', '.join(names[:12])}{', ...' if len(names) > 12 else ''})"
+                            ) from None
+    unique_names("--feet", given)
+    # a name matches exactly, or modulo a namespace prefix (``mixamorig:LeftToeBase`` = ``LeftToeBase``)
+    bare = [bare_name(n) for n in names]
+    idx = []
+    for n in given:
+        hits = [j for j, (full, b) in enumerate(zip(names, bare)) if n in (full, b)]
+        if len(hits) > 1:
+            raise UserError(f"{path}: --feet: {n!r} names {len(hits)} joints; give the full names")
+        idx.append(hits[0] if hits else -1)
+    missing = [n for n, j in zip(given, idx) if j < 0]
+    if missing:
+        raise UserError(f"{path}: --feet: no joint named {', '.join(missing)}")
+    if 0 in idx:
+        raise UserError(f"--feet: the root joint {names[0]} cannot be a foot")
+    return idx
+
+
+def evaluate_plausibility(clips: Sequence[str | os.PathLike], *, up_axis: str = "y",
+                          feet: Sequence[str] | None = None, ground: float = 0.0,
+                          json_path: str | os.PathLike | None = None,
+                          each: Callable[[dict[str, Any]], Any] | None = None) -> dict[str, Any]:
+    """``modi eval plausibility``: foot skating (horizontal foot speed in contact), floating / penetration against
+    the ground at ``ground`` along ``up_axis``, and jitter (mean jerk) of BVH clips, in the files' units. ``feet``:
+    foot joints by name (default: joints named foot/toe/ankle/heel). ``each`` gets every clip's figures as they
+    come. Returns ``{"mean": ..., "per_file": [...]}`` (also written to ``json_path``). Cost: one FK pass a clip."""
+    if up_axis not in UP_AXES:
+        raise UserError(f"--up-axis must be one of x, y, z, got {up_axis!r}")
+    per = []
+    for f in clips:
+        p = existing_file(f)
+        b = bvh_io.load(p)
+        names = list(b.names)
+        foot = _feet(p, names, feet)
+        try:
+            m = plausibility_metrics(bvh_positions(b), float(b.fps), foot, up_axis=UP_AXES[up_axis], ground=ground)
+        except ValueError as exc:
+            raise UserError(f"{p}: {exc}") from None
+        row = dict(file=str(p), **m)
+        per.append(row)
+        if each is not None:
+            each(row)
+    out = {"mean": aggregate([{k: v for k, v in m.items() if k != "file"} for m in per]), "per_file": per}
+    if json_path:
+        write_json(out, json_path)
+    return out
+
+
+def write_report(results: dict[str, Any], title: str, *, json_path: str | os.PathLike | None = None,
+                 md_path: str | os.PathLike | None = None) -> str:
+    """Write an evaluation report as JSON and / or Markdown; returns its Markdown (what ``modi eval`` prints when
+    no Markdown file is asked for)."""
+    write_reports(results, json_path, md_path, title)
+    return to_markdown(results, title)
+
+
+__all__ = ["evaluate", "evaluate_real", "evaluate_single", "evaluate_plausibility", "train_features",
+           "write_report", "UP_AXES"]

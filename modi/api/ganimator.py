@@ -6,6 +6,7 @@ or x0.01 of a centimetre or inch rig, stay inside).
 --seed s`` writes (the CLI also places several motions on a crowd grid: ``spacing``)."""
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -18,12 +19,15 @@ from torch import Tensor
 from modi.core.skeleton import Skeleton
 from modi.data.motion import Motion
 from modi.errors import UserError
-from modi.models.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper
+from modi.faults import atomic_write, refuse_overwrite
+from modi.io.formats import save_motion
+from modi.models.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper, format_figures
 from modi.models.ganimator.generate import (check_generation_inputs, decode, evaluate_run, fix_contacts,
                                             rotation_frames, sample_features)
 from modi.models.ganimator.networks import GanimatorModel
 from modi.models.ganimator.training import checkpoint_path, load_model
 from modi.evaluation.single import single_sequence_metrics
+from modi.viz.render import render_positions
 
 
 class GanimatorRun:
@@ -145,6 +149,32 @@ class GanimatorRun:
                               self._unit, contacts=labels))
         return out
 
+    def write(self, motions: Sequence[Motion], out: str | os.PathLike, *,
+              gif: bool = True) -> tuple[list[Path], Path | None]:
+        """Write motions as ``modi ganimator generate`` does: ``sample.bvh`` (several: ``sample_NNN.bvh``, the
+        requested ``--format``s, with contact labels) and, with ``gif``, ``sample.gif`` (several: ``crowd.gif``,
+        one scene) with the viewer page ``view.html``. Returns the motion files and the GIF (None without)."""
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        crowd = len(motions) > 1
+        written = [save_motion(m.to_bvh(), out / (f"sample_{i:03d}.bvh" if crowd else "sample.bvh"),
+                               contacts=m.contact_arrays())
+                   for i, m in enumerate(motions)]
+        if not gif:
+            return written, None
+        sk = self._skeleton
+        masks = []
+        for m in motions:
+            mask = np.zeros((m.n_frames, sk.n_joints), dtype=bool)
+            for name, c in (m.contacts or {}).items():
+                mask[:, sk.names.index(name)] = c.numpy()
+            masks.append(mask)
+        path = out / ("crowd.gif" if crowd else "sample.gif")
+        render_positions([(m.positions() * self.scale).numpy() for m in motions], list(sk.parents), path,
+                         fps=self.fps, names=list(sk.names), contacts=masks, layout="scene" if crowd else "grid",
+                         view="view.html")
+        return written, path
+
     # ------------------------------------------------------------------------------------------- metrics
     def metrics(self, motions: Sequence[Motion]) -> dict[str, dict[str, Any]]:
         """Coverage (30-frame windows, threshold 2.0), global and local diversity of motions on the run's skeleton
@@ -181,4 +211,18 @@ class GanimatorRun:
         return None if self.path is None else checkpoint_path(self.path)
 
 
-__all__ = ["GanimatorRun"]
+def evaluate_ganimator(run: str | os.PathLike, *, n: int | None = None, frames: int | None = None, seed: int = 0,
+                       protocol: str = "ours", json_path: str | os.PathLike | None = None) -> dict[str, Any]:
+    """``modi ganimator evaluate``: :meth:`GanimatorRun.evaluate` of the run at ``run``, the figures also written
+    as JSON to ``json_path`` (never over the run's checkpoint). :func:`format_figures` makes the table the CLI
+    prints. Cost: sampling and scoring ``n`` motions (seconds for ours, minutes for the paper's protocol)."""
+    if json_path:
+        refuse_overwrite(json_path, [checkpoint_path(run)], "--json")
+    figures = GanimatorRun.from_checkpoint(run).evaluate(n=n, frames=frames, seed=seed, protocol=protocol)
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(json_path, json.dumps(figures, indent=2) + "\n")
+    return figures
+
+
+__all__ = ["GanimatorRun", "evaluate_ganimator", "format_figures"]

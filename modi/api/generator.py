@@ -10,6 +10,7 @@ them into a tensor. The latent applications synthesise with the generator's fixe
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, Union
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.api._util import check_device, existing_file, set_threads
 from modi.core.skeleton import Skeleton
 from modi.data.motion import Motion
 from modi.errors import UserError
@@ -27,7 +29,7 @@ from modi.models.modi.latent import space
 from modi.models.modi.latent.crowd import crowd_latents, grid_offsets
 from modi.models.modi.latent.editing import Boundary, edit_latents, sample_boundary
 from modi.models.modi.latent.inversion import invert as invert_latent
-from modi.models.modi.sampling import cleanup_feet, generate_tensors, load_generator
+from modi.models.modi.sampling import cleanup_feet, generate_tensors, load_generator, write_outputs
 
 LatentLike = Union[Tensor, np.ndarray, int, str, os.PathLike]
 
@@ -134,6 +136,21 @@ class ModiGenerator:
         label is on. Cost: one generator pass per ``batch`` motions (milliseconds each on a CPU for the small
         preset) plus decoding."""
         return self.decode(self.sample_tensors(n, seed=seed, psi=psi, batch=batch), ik=ik)
+
+    def write_samples(self, out: str | os.PathLike, n: int = 16, *, seed: int = 0, psi: float = 1.0,
+                      ik: bool = False, batch: int = 256, gif_max: int = 16) -> tuple[list[Path], float]:
+        """``modi generate``: write the ``n`` motions :meth:`sample` gives as ``motion_NNNN`` files (the requested
+        ``--format``s) with ``motion_NNNN_contacts.npy``, and the first ``gif_max`` in ``samples.gif`` (0: none).
+        Returns the motion files and the seconds sampling took (decoding and writing go ``batch`` at a time)."""
+        t0 = time.perf_counter()
+        x = self.sample_tensors(n, seed=seed, psi=psi, batch=batch)
+        seconds = time.perf_counter() - t0
+        written: list[Path] = []
+        for start in range(0, int(n), int(batch)):  # decode/write in chunks to bound memory
+            written += write_outputs(self.codec, x[start:start + batch], out, ik=ik, start_index=start, gif=False)
+        if gif_max:
+            write_outputs(self.codec, x[:gif_max], out, bvh=False, contacts=False, gif=True, max_gif=gif_max, ik=ik)
+        return written, seconds
 
     def decode(self, x: Tensor, *, ik: bool = False) -> list[Motion]:
         """Normalised model tensors ``(B, K, E, T)`` -> motions with contact labels (``ik``: feet pinned)."""
@@ -287,10 +304,20 @@ class ModiGenerator:
         return space.save_latent(path, latent)
 
 
+def open_generator(ckpt: str | os.PathLike, *, device: str = "cpu", threads: int | None = None,
+                   ema: bool = True) -> ModiGenerator:
+    """A checkpoint's generator as ``modi generate`` and ``modi latent`` open it: torch's CPU ``threads`` set
+    (None: torch's choice), ``device`` checked, the file checked, then read (well under a second)."""
+    set_threads(threads)
+    check_device(device)
+    existing_file(ckpt, "MoDi checkpoint file")
+    return ModiGenerator.from_checkpoint(ckpt, device=device, ema=ema)
+
+
 def _steps(n: int) -> int:
     if int(n) < 1:
         raise UserError(f"--steps must be >= 1, got {n}")
     return int(n)
 
 
-__all__ = ["ModiGenerator", "Inversion", "Boundary"]
+__all__ = ["ModiGenerator", "Inversion", "Boundary", "open_generator"]

@@ -25,6 +25,7 @@ from typing import Any, Callable, Mapping, Sequence
 import torch
 
 from modi import faults
+from modi.faults import unique_names
 from modi.api._util import check_device, existing_file, set_threads
 from modi.api.ganimator import GanimatorRun
 from modi.api.generator import ModiGenerator
@@ -98,7 +99,7 @@ def modi_config(preset: str = "small", ablations: Sequence[str] = (), config: Ma
             overrides[_MODI_SHORTCUTS[k]] = v
     feet = overrides.get("data.feet")
     if feet:
-        _unique("--feet", feet)
+        unique_names("--feet", feet)
     try:
         return make_config(preset, list(ablations), **overrides)
     except ValueError as exc:
@@ -186,21 +187,13 @@ class _GanimatorTrainer(GanimatorTrainer):
                                        b, len(self.blocks)))
 
 
-def _unique(option: str, names: Sequence[str]) -> None:
-    seen: set[str] = set()
-    for n in names:
-        if n in seen:
-            raise UserError(f"{option}: joint {n!r} is given twice")
-        seen.add(n)
-
-
 def ganimator_config(preset_name: str = "fast", **options: Any) -> GanimatorConfig:
     """A GANimator config: one of :data:`GANIMATOR_PRESETS` (``paper``, ``fast``, ``tiny``) with any
     :class:`~modi.models.ganimator.config.GanimatorConfig` field overridden (None keeps the preset's)."""
     if preset_name not in GANIMATOR_PRESETS:
         raise UserError(f"unknown preset {preset_name!r}; choose one of {', '.join(GANIMATOR_PRESETS)}")
     if options.get("feet"):
-        _unique("--feet", options["feet"])
+        unique_names("--feet", options["feet"])
     try:
         return preset(preset_name, **options)
     except TypeError as exc:

@@ -9,7 +9,9 @@ import numpy as np
 
 from modi.data.motion import Motion
 from modi.errors import UserError
-from modi.viz.viewer import ViewMotion, Viewer, as_view_motions, from_positions
+from modi.faults import existing_file, refuse_overwrite
+from modi.viz.render import render_bvh
+from modi.viz.viewer import ViewMotion, Viewer, as_view_motions, from_positions, load_motion, write_view
 from modi.viz.viewer import show as _show_page
 
 
@@ -63,4 +65,43 @@ def show(*items: Any, parents: Sequence[int] | None = None, names: Sequence[str]
     return _show_page(*views, layout=layout, height=height)
 
 
-__all__ = ["show"]
+def render(inputs: Sequence[str | os.PathLike], out: str | os.PathLike, *, fps: float = 30.0,
+           size: tuple[int, int] = (320, 320), layout: str = "grid", contacts: bool = False, up: str = "y",
+           scale: float | None = None, max_frames: int | None = None, azimuth: float = 35.0, elevation: float = 18.0,
+           view: bool = True) -> tuple[Path, Path | None]:
+    """``modi render``: a stick-figure GIF (or MP4 with ffmpeg) of BVH files, each scaled to metres (``scale``, or
+    its unit guessed), and with ``view`` the 3D viewer page ``OUT.html`` beside it. Returns the preview's and the
+    page's paths. Cost: drawing every frame (about a second per hundred frames and panel)."""
+    for f in inputs:
+        existing_file(f)
+    if not str(out).lower().endswith((".gif", ".mp4")):
+        raise UserError(f"{out}: the last argument is the output and must end in .gif or .mp4")
+    refuse_overwrite(out, inputs)
+    page = Path(out).with_suffix(".html")
+    if view:
+        refuse_overwrite(page, inputs, "viewer page")
+    path = render_bvh(list(inputs), out, fps=fps, size=size, layout=layout, contacts=contacts, up=up,
+                      max_frames=max_frames, azimuth=azimuth, elevation=elevation, scale=scale)
+    if not view:
+        return path, None
+    write_view(page, [load_motion(f, scale=scale, up=up) for f in inputs], layout=layout)
+    return path, page
+
+
+def write_page(inputs: Sequence[str | os.PathLike], out: str | os.PathLike = "view.html", *,
+               scale: float | None = None, up: str = "y", contacts: bool = True, title: str | None = None,
+               layout: str = "grid") -> list[ViewMotion]:
+    """``modi view``: one offline HTML page playing BVH/glTF files in 3D (BVH units guessed unless ``scale``).
+    Returns the motions shown (each with its guessed ``unit``). Cost: one FK pass per file."""
+    page = Path(out)
+    if page.suffix.lower() not in (".html", ".htm"):
+        raise UserError(f"--out {out}: the page must end in .html")
+    for f in inputs:
+        refuse_overwrite(page, [f])
+    motions = [load_motion(f, scale=scale, up=up, contacts=contacts) for f in inputs]
+    page.parent.mkdir(parents=True, exist_ok=True)
+    write_view(page, motions, title=title, layout=layout)
+    return motions
+
+
+__all__ = ["show", "render", "write_page"]

@@ -19,6 +19,7 @@ from typing import Callable, Iterable
 
 from modi.errors import UserError
 from modi.faults import existing_file as input_file  # one check of input files (API and CLI)
+from modi.faults import refuse_overwrite, unique_names  # noqa: F401  (the same checks for the API and the CLI)
 
 # Upper bounds of the sizes a user can ask for. They are far above anything the models are used with and far below
 # what would exhaust memory or run for hours by mistake.
@@ -190,31 +191,6 @@ def output_file(text: str) -> str:
 
 _named(output_dir, "folder")
 _named(output_file, "file")
-
-
-def refuse_overwrite(output: str | os.PathLike, inputs: Iterable[str | os.PathLike], what: str = "output") -> None:
-    """``UserError`` when ``output`` is (or links to) one of the ``inputs``: never write over what we read."""
-    out = Path(output)
-    if not out.exists():
-        return
-    for inp in inputs:
-        try:
-            same = Path(inp).exists() and os.path.samefile(out, inp)
-        except OSError:
-            same = False
-        if same:
-            raise UserError(f"{what} {output} is the input file {inp}; refusing to write over an input")
-
-
-def unique_names(option: str, names: Iterable[str] | None) -> None:
-    """``UserError`` for a joint given twice in ``option`` (e.g. ``--feet LeftToe LeftToe``)."""
-    if not names:
-        return
-    seen: set[str] = set()
-    for n in names:
-        if n in seen:
-            raise UserError(f"{option}: joint {n!r} is given twice")
-        seen.add(n)
 
 
 __all__ = ["int_range", "positive_int", "nonneg_int", "seed_int", "threads_int", "iters_int", "batch_int",

@@ -23,7 +23,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["Body", "side_of", "is_finger", "metres_scale", "SIDE_NAMES", "UnitGuess", "guess_unit", "unit_name", "UNIT_SCALES"]
+__all__ = ["Body", "side_of", "is_finger", "metres_scale", "SIDE_NAMES", "UnitGuess", "guess_unit", "unit_name", "UNIT_SCALES",
+           "UNITS_MM"]
 
 SIDE_NAMES = ("centre", "left", "right")
 _FINGER = re.compile(r"thumb|index|middle|ring|pinky|pinkie|little|finger", re.I)
@@ -86,6 +87,7 @@ class UnitGuess:
 
 _UNITS = (("metres", 1.0), ("inches", 0.0254), ("centimetres", 0.01), ("millimetres", 0.001))
 UNIT_SCALES = dict(_UNITS)  # metres per unit, by the long name
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "dm": 100.0}  # millimetres per unit, by the short name
 _UNIT_ALIASES = {"m": "metres", "meters": "metres", "meter": "metres", "metre": "metres", "cm": "centimetres",
                  "centimeters": "centimetres", "mm": "millimetres", "millimeters": "millimetres", "in": "inches",
                  "inch": "inches"}

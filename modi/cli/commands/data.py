@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import time
 from typing import Any
 
 from modi.cli import types as ct
@@ -11,7 +10,7 @@ from modi.errors import UserError
 
 def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
     """The dataset options, shared with any command that builds a dataset (e.g. ``modi train``)."""
-    from modi.data.dataset import DatasetConfig
+    from modi.api.options import DatasetConfig  # lazy: torch (read when the parser is built)
 
     d = DatasetConfig()
     p.add_argument("--fps", type=ct.fps_float, default=d.fps, help="resample every clip to this frame rate")
@@ -32,7 +31,7 @@ def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> Any:
-    from modi.data.dataset import DatasetConfig
+    from modi.api.options import DatasetConfig  # lazy: torch
 
     ct.unique_names("--feet", args.feet)
     return DatasetConfig(
@@ -43,12 +42,11 @@ def config_from_args(args: argparse.Namespace) -> Any:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from modi.data.dataset import build_dataset
+    from modi.api.data import dataset_info  # lazy: torch
 
-    t0 = time.perf_counter()
-    ds = build_dataset(args.dir, config_from_args(args), cache=not args.no_cache, cache_dir=args.cache_dir,
-                       progress=args.progress)
-    elapsed = time.perf_counter() - t0
+    info = dataset_info(args.dir, config_from_args(args), cache=not args.no_cache, cache_dir=args.cache_dir,
+                        progress=args.progress)
+    ds, elapsed, dropped = info.dataset, info.seconds, info.dropped
     s = ds.summary()
     sk, src = ds.skeleton, ds.source_skeleton
     print(f"folder:      {args.dir}")
@@ -56,7 +54,6 @@ def _info(args: argparse.Namespace) -> int:
     fps_src = ", ".join(f"{f:g}" for f in s["source_fps"])
     print(f"frames:      {s['source_frames']} at {fps_src} fps -> {s['frames']} at {s['fps']:g} fps "
           f"({s['frames'] / s['fps']:.1f} s)")
-    dropped = [n for j, n in enumerate(src.names) if j not in set(ds.kept_joints)]
     print(f"skeleton:    {src.n_joints} joints in file -> {sk.n_joints} used"
           + (f" (dropped {len(dropped)}: {', '.join(dropped[:8])}{', ...' if len(dropped) > 8 else ''})" if dropped else ""))
     print(f"root:        {sk.names[0]}; height {s['height']:.4g} (skeleton units)")

@@ -2,11 +2,8 @@
 from __future__ import annotations
 
 import argparse
-import time
-from pathlib import Path
 
 from modi.cli import types as ct
-from modi.errors import UserError
 from modi.viz import add_view_option
 
 DEFAULT_ITERS = 300  # ~0.65 s of CPU per iteration (small preset, 1 thread, modi_ext kernels): ~3.5 min in all
@@ -34,51 +31,18 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
+    from modi.api.demo import run_demo  # lazy: torch
 
-    from modi.models.modi.config import make_config
-    from modi.api.generator import ModiGenerator
-    from modi.models.modi.sampling import render_gif, write_outputs
-    from modi.models.modi.training import Trainer, prepare_data, write_procedural_data
-
-    if args.iters < 0:
-        raise UserError(f"--iters must be >= 0, got {args.iters}")
-    if args.clips < 2:
-        raise UserError(f"--clips must be >= 2, got {args.clips}")
-    if args.n < 1:
-        raise UserError(f"--n must be >= 1, got {args.n}")
-    if args.threads < 1:
-        raise UserError(f"--threads must be >= 1, got {args.threads}")
-    torch.set_num_threads(args.threads)
-    out = Path(args.out)
-    run_dir = out / "run"
-    if (run_dir / "checkpoint.pt").exists():
-        raise UserError(f"{out} already holds a demo run; choose another --out or delete it")
-    t0 = time.perf_counter()
-    cfg = make_config("small", **{"train.iters": args.iters, "train.seed": args.seed, "train.sample_every": 0,
-                                  "train.ckpt_every": max(50, args.iters // 4 or 1), "train.log_every": 10})
-    data_dir = write_procedural_data(out / "data", n_clips=args.clips, seed=args.seed, fps=cfg.data.fps)
-    data = prepare_data(data_dir, cfg, cache=False)
-    print(f"modi demo: {args.clips} procedural clips -> {data.windows.shape[0]} training windows "
-          f"{tuple(data.windows.shape[1:])}; hierarchy {data.hierarchy.entity_counts}; "
-          f"training the small preset for {args.iters} iterations", flush=True)
-    trainer = Trainer(cfg, data, run_dir, progress=not args.no_progress, write_samples=False)
-    result = trainer.train()
-    if result.interrupted:
-        print(f"modi demo: interrupted; checkpoint at {result.checkpoint}")
+    demo = run_demo(args.out, iters=args.iters, clips=args.clips, n=args.n, seed=args.seed, threads=args.threads,
+                    progress=not args.no_progress, log=lambda line: print(line, flush=True))
+    if demo.interrupted:
+        print(f"modi demo: interrupted; checkpoint at {demo.checkpoint}")
         return 130
-
-    real = data.windows[torch.linspace(0, data.windows.shape[0] - 1, args.n).long()]
-    dec = data.codec.decode(real)
-    render_gif(data.codec, [p.numpy() for p in dec["positions"]], [(c > 0.5).numpy() for c in dec["contacts"]],
-               out / "training_examples.gif", view="training_examples.html")
-    gen = ModiGenerator.from_checkpoint(result.checkpoint)
-    written = write_outputs(gen.codec, gen.sample_tensors(args.n, seed=args.seed), out / "samples", gif=True,
-                            gif_name="samples.gif")
-    print(f"modi demo: done in {time.perf_counter() - t0:.0f} s\n"
-          f"  checkpoint       {result.checkpoint}\n"
-          f"  sampled motions  {len(written)} BVH in {out / 'samples'} (preview {out / 'samples' / 'samples.gif'})\n"
+    out, ckpt = demo.out, demo.checkpoint
+    print(f"modi demo: done in {demo.seconds:.0f} s\n"
+          f"  checkpoint       {ckpt}\n"
+          f"  sampled motions  {len(demo.samples)} BVH in {out / 'samples'} (preview {out / 'samples' / 'samples.gif'})\n"
           f"  training clips   {out / 'training_examples.gif'}\n"
-          f"  more samples     modi generate {result.checkpoint} --n 64 --out {out / 'more'}\n"
-          f"  curves           tensorboard --logdir {run_dir / 'tb'}")
+          f"  more samples     modi generate {ckpt} --n 64 --out {out / 'more'}\n"
+          f"  curves           tensorboard --logdir {demo.run_dir / 'tb'}")
     return 0

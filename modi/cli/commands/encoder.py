@@ -7,22 +7,19 @@ trained on (unseen by both networks; ``--data`` points elsewhere).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
 from modi.cli import types as ct
-from modi.errors import UserError
 from modi.io.formats import add_format_options
 from modi.viz import add_view_option
 
 
 def _units(text: str) -> str:
     """A length unit of the mm metrics, checked while parsing (not after hours of training)."""
-    from modi.models.modi.latent.space import _UNITS_MM
+    from modi.api.options import LENGTH_UNITS  # lazy: torch
 
-    if text != "auto" and text not in _UNITS_MM:
-        raise argparse.ArgumentTypeError(f"unknown unit {text!r}; choose from auto, {', '.join(_UNITS_MM)}")
+    if text != "auto" and text not in LENGTH_UNITS:
+        raise argparse.ArgumentTypeError(f"unknown unit {text!r}; choose from auto, {', '.join(LENGTH_UNITS)}")
     return text
 
 
@@ -150,65 +147,21 @@ def register(subparsers) -> None:
         add_view_option(t)
 
 
-# --------------------------------------------------------------------------------------------- helpers
-def _threads(args: argparse.Namespace) -> None:
-    import torch
-
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
-    if str(args.device).startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda requested but torch has no CUDA device")
-
-
+# --------------------------------------------------------------------------------------------- actions
 def run_train(args: argparse.Namespace) -> int:
-    from modi.models.modi.encoder.training import hold_output
+    from modi.api.encoder import EncoderTrainingInterrupted, format_table5, train_encoder  # lazy: torch
 
-    with hold_output(args.out):  # a second run writing ENC is refused before any work
-        return _run_train(args)
-
-
-def _run_train(args: argparse.Namespace) -> int:
-    from modi.models.modi.encoder.metrics import format_table5
-    from modi.models.modi.encoder.training import (EncoderTrainConfig, EncoderTrainer, EncoderTrainingInterrupted,
-                                       load_encoder_data, resumed_train_options)
-    from modi.models.modi.latent.space import load_model
-    from modi.models.modi.sampling import load_checkpoint
-
-    _threads(args)
-    out = Path(args.out)
-    if out.exists() and not args.resume:
-        raise UserError(f"{out} exists: pass --resume to continue it, or choose another --out")
-    if args.resume and not out.exists():
-        raise UserError(f"--resume: {out} does not exist")
-    options = {"losses": args.losses, "optimizer": args.optimizer, "head": args.head, "lr": args.lr,
-               "lambda_rec": args.lambda_rec, "lambda_contact": args.lambda_contact,
-               "lambda_root": args.lambda_root, "lambda_pos": args.lambda_pos}
-    if args.resume:  # the checkpoint's loss form, weights, optimizer and head, unless given (then they must agree)
-        options = resumed_train_options(out, options)
-    else:
-        options = {k: v for k, v in options.items() if v is not None}  # EncoderTrainConfig's defaults
-    if args.hidden is not None and options.get("head", "released") == "released":
-        raise UserError("--hidden is the width of the bottleneck head's hidden layer; the released head has none "
-                        "(its layers are n_latent x latent_dim wide): add --head bottleneck or drop --hidden")
-    st = load_checkpoint(args.ckpt)
-    gen_state = {k: st[k] for k in ("format", "version", "config", "codec", "skeleton", "levels", "G_ema", "step")
-                 if k in st}
-    g, codec, gcfg = load_model(st, device=args.device)
-    cfg = EncoderTrainConfig(iters=args.iters, batch=args.batch, **options, prefix_frames=args.prefix,
-                             channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units,
-                             seed=args.seed, eval_every=args.eval_every, ckpt_every=args.ckpt_every)
-    _, _, t = g.output_shape
-    if args.prefix is not None and not 0 < args.prefix < t:
-        raise UserError(f"--prefix must be in 1..{t - 1} (the model makes {t} frames), got {args.prefix}")
-    data = load_encoder_data(codec, gcfg, args.data, cache=not args.no_cache, progress=not args.quiet)
-    print(f"modi encoder train: {data.train.shape[0]} train / {data.test.shape[0]} test windows "
-          f"{tuple(data.train.shape[1:])}; generator step {st['step']}; {cfg.iters} steps", flush=True)
-    trainer = EncoderTrainer((g, codec, gcfg), data, out, cfg, generator_state=gen_state,
-                             resume=out if args.resume else None, progress=not args.quiet)
     try:
-        res = trainer.train()
+        res = train_encoder(args.ckpt, args.data, args.out, iters=args.iters, batch=args.batch, losses=args.losses,
+                            optimizer=args.optimizer, head=args.head, lr=args.lr, lambda_rec=args.lambda_rec,
+                            lambda_contact=args.lambda_contact, lambda_root=args.lambda_root,
+                            lambda_pos=args.lambda_pos, prefix=args.prefix,
+                            channel_multiplier=args.channel_multiplier, hidden=args.hidden, units=args.units,
+                            seed=args.seed, eval_every=args.eval_every, ckpt_every=args.ckpt_every,
+                            resume=args.resume, cache=not args.no_cache, progress=not args.quiet, device=args.device,
+                            threads=args.threads, log=lambda line: print(line, flush=True))
     except EncoderTrainingInterrupted as exc:
-        print(f"modi encoder train: interrupted at step {trainer.step}; checkpoint saved to {exc.checkpoint} "
+        print(f"modi encoder train: interrupted at step {exc.step}; checkpoint saved to {exc.checkpoint} "
               "(add --resume to the same command to continue)", file=sys.stderr)
         return exc.exit_code
     print(f"modi encoder train: step {res.step} in {res.seconds:.0f} s; checkpoint {res.checkpoint}")
@@ -218,31 +171,22 @@ def _run_train(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from modi.api.encoder import Encoder
-    from modi.models.modi.encoder.metrics import format_table5
+    from modi.api.encoder import evaluate_encoder_file, format_table5  # lazy: torch
 
-    _threads(args)
-    ct.input_file(args.enc, "encoder checkpoint file")
-    if args.json:
-        ct.refuse_overwrite(args.json, [args.enc], "--json")
-    enc = Encoder.from_checkpoint(args.enc, device=args.device)
-    res = enc.evaluate(args.data, split=args.split, units=args.units)
+    res, enc = evaluate_encoder_file(args.enc, args.data, split=args.split, units=args.units, json_path=args.json,
+                                     device=args.device, threads=args.threads)
     source = res.pop("source")
     pre = f" (prefix encoder: sees frames < {enc.prefix_frames})" if enc.prefix_frames else ""
     print(f"modi encoder eval: {args.split} split of {source}, {res['n_windows']} windows, "
           f"{res['mm_per_unit']:g} mm per unit{pre}")
     print(format_table5(res))
-    if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1))
     return 0
 
 
 def run_apply(args: argparse.Namespace) -> int:
-    from modi.api.encoder import Encoder
+    from modi.api.encoder import open_encoder  # lazy: torch
 
-    _threads(args)
-    ct.input_file(args.enc, "encoder checkpoint file")
-    enc = Encoder.from_checkpoint(args.enc, device=args.device)
+    enc = open_encoder(args.enc, device=args.device, threads=args.threads)
     res = enc.apply(args.task, args.inputs, args.out, start=args.start, data=args.data,
                     optim_steps=getattr(args, "optim_steps", 200), frame=getattr(args, "frame", None),
                     sigma=getattr(args, "sigma", 0.5), smooth=getattr(args, "smooth", 2.0),

@@ -11,16 +11,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from modi.cli import types as ct
-from modi.errors import UserError
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
-_AXES = {"x": 0, "y": 1, "z": 2}
+_AXES = ("x", "y", "z")  # the up-axis choices (modi.api.evaluation.UP_AXES maps them)
 # a frame rate above 2 fps (a Frame Time under 0.5 s, what ``_motion`` accepts from a header) and at most MAX_FPS
 _single_fps = ct.float_range(2.0, ct.MAX_FPS, lo_inclusive=False)
 
@@ -133,84 +129,34 @@ def _metric_args(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------------------------------------------
 
 
-def _threads(n: int | None) -> None:
-    if n is not None:
-        import torch
-
-        torch.set_num_threads(max(1, n))
-
-
 def _dump(results: dict[str, Any], args: argparse.Namespace, title: str) -> None:
-    from modi.evaluation.report import to_markdown, write_reports
+    from modi.api.evaluation import write_report  # lazy: torch
 
-    write_reports(results, getattr(args, "json", None), getattr(args, "md", None), title)
+    text = write_report(results, title, json_path=getattr(args, "json", None), md_path=getattr(args, "md", None))
     if getattr(args, "md", None) is None:
-        print(to_markdown(results, title))
+        print(text)
 
 
 def cmd_train_features(args: argparse.Namespace) -> int:
-    from modi.evaluation import features as F
+    from modi.api.evaluation import train_features  # lazy: torch
 
-    if args.json and Path(args.json).absolute() == Path(args.out).absolute():
-        raise UserError(f"--json {args.json} is also --out, the extractor file; choose another name")
-    _threads(args.threads)
-    if args.window < 8:
-        raise UserError(f"--window must be at least 8 frames, got {args.window}")
-    if not 0 < args.holdout < 1:
-        raise UserError(f"--holdout must be between 0 and 1, got {args.holdout}")
-    clips, class_names, joints, parents, height = F.load_labelled_folder(args.data, args.label_key, args.fps)
-    train_idx, held_idx = F.split_by_file(clips, args.holdout, args.seed)
-    config = F.FeatureConfig(joint_names=joints, parents=parents, class_names=class_names, window=args.window,
-                             fps=args.fps, up_axis=_AXES[args.up_axis], body_height=height,
-                             pairs=F.lr_pairs(joints, parents))
-    if not config.pairs:
-        print("modi: warning: no left/right joint pair found by name; windows keep their heading", file=sys.stderr)
-    wtr, ltr = F.windows_and_labels([clips[i] for i in train_idx], args.window, args.stride)
-    if held_idx:
-        who, lho = F.windows_and_labels([clips[i] for i in held_idx], args.window, args.eval_stride)
-    else:
-        who, lho = None, None
-    print(f"{len(train_idx)} training clips ({len(wtr)} windows), {len(held_idx)} held-out clips "
-          f"({0 if who is None else len(who)} windows), {len(class_names)} classes, {len(joints)} joints")
-    extractor, hist = F.train_feature_extractor(
-        wtr, ltr, config, who, lho, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-        max_seconds=None if args.max_minutes is None else 60.0 * args.max_minutes, seed=args.seed)
-    extractor.info.update({
-        "data": str(Path(args.data).resolve()),
-        "label_key": args.label_key,
-        "train_files": [clips[i].name for i in train_idx],
-        "heldout_files": [clips[i].name for i in held_idx],
-        "seed": args.seed,
-        "stride": args.stride,
-        "eval_stride": args.eval_stride,
-    })
-    extractor.save(args.out)
-    summary = {k: v for k, v in hist.items() if k != "epochs"}
-    summary["out"] = str(args.out)
+    hist = train_features(args.data, args.out, label_key=args.label_key, window=args.window, fps=args.fps,
+                          stride=args.stride, eval_stride=args.eval_stride, holdout=args.holdout, epochs=args.epochs,
+                          batch_size=args.batch_size, lr=args.lr, max_minutes=args.max_minutes, up_axis=args.up_axis,
+                          seed=args.seed, threads=args.threads, json_path=args.json,
+                          log=lambda line: print(line), warn=lambda line: print(line, file=sys.stderr))
     if "val_top1" in hist:
         print(f"held-out top-1: {hist['val_top1']:.3f} (class-balanced {hist['val_balanced_top1']:.3f}) "
-              f"on {hist['val_windows']} windows of {len(held_idx)} clips; trained {hist['seconds']:.0f} s "
+              f"on {hist['val_windows']} windows of {hist['heldout_clips']} clips; trained {hist['seconds']:.0f} s "
               f"({hist['cpu_seconds']:.0f} CPU s)")
     else:
         print(f"no held-out clips; trained {hist['seconds']:.0f} s")
     print(f"wrote {args.out}")
-    if args.json:
-        from modi.evaluation.report import write_json
-
-        write_json({"summary": summary, "epochs": hist["epochs"]}, args.json)
     return 0
 
 
-def _load_bvh_positions(path: Path) -> tuple[np.ndarray, list[str], float]:
-    from modi.io import bvh as bvh_io
-    from modi.core.kinematics import bvh_positions
-
-    b = bvh_io.load(path)
-    return bvh_positions(b), list(b.names), float(b.fps)
-
-
 def cmd_real(args: argparse.Namespace) -> int:
-    from modi.api.evaluation import evaluate_real
+    from modi.api.evaluation import evaluate_real  # lazy: torch
 
     for opt in ("json", "md"):
         if getattr(args, opt):
@@ -222,7 +168,7 @@ def cmd_real(args: argparse.Namespace) -> int:
 
 
 def cmd_gen(args: argparse.Namespace) -> int:
-    from modi.api.evaluation import evaluate
+    from modi.api.evaluation import evaluate  # lazy: torch
 
     for opt in ("json", "md"):
         if getattr(args, opt):
@@ -238,8 +184,7 @@ def cmd_gen(args: argparse.Namespace) -> int:
 
 
 def cmd_single(args: argparse.Namespace) -> int:
-    from modi.api.evaluation import evaluate_single
-    from modi.evaluation.report import to_markdown, write_reports
+    from modi.api.evaluation import evaluate_single, write_report  # lazy: torch
 
     for opt in ("json", "md"):
         if getattr(args, opt):
@@ -252,64 +197,23 @@ def cmd_single(args: argparse.Namespace) -> int:
           + " ".join(joints))
     if left_out:
         print(f"  not in every generated file, so not scored: {' '.join(left_out)}")
-    write_reports(out, args.json, args.md, "Single-sequence metrics")
+    write_report(out, "Single-sequence metrics", json_path=args.json, md_path=args.md)
     print(f"coverage {out['coverage']:.4f}  global diversity {out['global_diversity']:.4f}  "
           f"local diversity {out['local_diversity']:.4f}  ({out['protocol']['n_samples']} file(s), "
           f"{out['seconds']:.1f} s)")
     if args.json is None and args.md is None:
-        print(to_markdown({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
+        print(write_report({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
     return 0
 
 
-def _plausibility_feet(path: Path, names: list[str], given: list[str] | None) -> list[int]:
-    from modi.evaluation.plausibility import guess_feet
-
-    if given is None:
-        try:
-            return guess_feet(names)
-        except ValueError:
-            raise UserError(f"{path}: no foot joints found by name (foot/toe/ankle/heel); name them with "
-                            f"--feet JOINT ... (joints: {', '.join(names[:12])}{', ...' if len(names) > 12 else ''})"
-                            ) from None
-    from modi.evaluation.single import bare_name
-
-    ct.unique_names("--feet", given)
-    # a name matches exactly, or modulo a namespace prefix (``mixamorig:LeftToeBase`` = ``LeftToeBase``)
-    bare = [bare_name(n) for n in names]
-    idx = []
-    for n in given:
-        hits = [j for j, (full, b) in enumerate(zip(names, bare)) if n in (full, b)]
-        if len(hits) > 1:
-            raise UserError(f"{path}: --feet: {n!r} names {len(hits)} joints; give the full names")
-        idx.append(hits[0] if hits else -1)
-    missing = [n for n, j in zip(given, idx) if j < 0]
-    if missing:
-        raise UserError(f"{path}: --feet: no joint named {', '.join(missing)}")
-    if 0 in idx:
-        raise UserError(f"--feet: the root joint {names[0]} cannot be a foot")
-    return idx
-
-
 def cmd_plausibility(args: argparse.Namespace) -> int:
-    from modi.evaluation.plausibility import aggregate, plausibility_metrics
-    from modi.evaluation.report import write_json
+    from modi.api.evaluation import evaluate_plausibility  # lazy: torch
 
     if args.json:
         ct.refuse_overwrite(args.json, args.clips, "--json")
-    axis = _AXES[args.up_axis]
-    per = []
-    for f in args.clips:
-        p = ct.input_file(f)
-        pos, names, fps = _load_bvh_positions(p)
-        feet = _plausibility_feet(p, names, args.feet)
-        try:
-            m = plausibility_metrics(pos, fps, feet, up_axis=axis, ground=args.ground)
-        except ValueError as exc:
-            raise UserError(f"{p}: {exc}") from None
-        per.append(dict(file=str(p), **m))
-        print(f"{p}: " + "  ".join(f"{k} {v:.4g}" for k, v in m.items()))
-    out = {"mean": aggregate([{k: v for k, v in m.items() if k != "file"} for m in per]), "per_file": per}
-    if args.json:
-        write_json(out, args.json)
+    out = evaluate_plausibility(args.clips, up_axis=args.up_axis, feet=args.feet, ground=args.ground,
+                                json_path=args.json, each=lambda m: print(f"{m['file']}: " + "  ".join(
+                                    f"{k} {v:.4g}" for k, v in m.items() if k != "file")))
+    per = out["per_file"]
     print(json.dumps(out["mean"], indent=1) if len(per) > 1 else "", end="\n" if len(per) > 1 else "")
     return 0

@@ -5,10 +5,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 
 from modi.cli import types as ct
-from modi.errors import UserError
 
 
 def register(subparsers) -> None:
@@ -77,97 +75,38 @@ def register(subparsers) -> None:
 
 
 def _contact_rule() -> str:
-    from modi.core.contacts import PREVIEW_RULE
+    from modi.api.options import PREVIEW_RULE  # lazy: torch (read when the parser is built)
 
     return PREVIEW_RULE
 
 
 def run_gltf(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from modi.api.conversion import export_gltf  # lazy: torch
 
-    from modi.io import bvh, gltf
-    from modi.io.formats import check_motion
-
-    out = Path(args.output)
-    if out.suffix.lower() not in gltf.SUFFIXES:
-        raise UserError(f"{args.output}: the output name must end in .glb or .gltf")
-    if args.side_buffer and out.suffix.lower() != ".gltf":
-        raise UserError("--side-buffer needs an output ending in .gltf")
-    ct.input_file(args.input)
-    if not out.absolute().parent.is_dir():
-        raise UserError(f"{args.output}: folder {out.absolute().parent} does not exist")
-    ct.refuse_overwrite(args.output, [args.input])
-    if args.side_buffer:
-        ct.refuse_overwrite(out.with_suffix(".bin"), [args.input], "buffer file")
-    b = bvh.load(args.input)
-    check_motion(b, args.input)
-    contacts = None
-    if not args.no_contacts:  # the same labels as the GIF and the viewer page (modi.core.contacts.preview_contacts)
-        import numpy as np
-
-        from modi.core.contacts import feet_of, preview_contacts
-        from modi.core.kinematics import bvh_positions
-
-        p = np.asarray(bvh_positions(b), dtype=np.float64)
-        if args.up == "z":
-            p = np.stack([p[..., 0], p[..., 2], -p[..., 1]], -1)
-        feet = feet_of(b)
-        lab = preview_contacts(p, feet, b.fps, b.parents, b.names)
-        contacts = {b.names[f]: lab[:, f] for f in feet}
-    unit = gltf.save(b, out, scale=args.scale, side_buffer=args.side_buffer, contacts=contacts, mesh=args.mesh,
-                     up=args.up)
-    print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {unit.describe()}")
+    res = export_gltf(args.input, args.output, scale=args.scale, up=args.up, mesh=args.mesh,
+                      contacts=not args.no_contacts, side_buffer=args.side_buffer)
+    b = res.bvh
+    print(f"{args.output}: {b.n_joints} joints, {b.n_frames} frames at {b.fps:g} fps; {res.unit.describe()}")
     return 0
 
 
 def run_onnx(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from modi.api.conversion import export_onnx, sidecar_path  # lazy: torch
 
-    from modi.export.onnx import export_onnx
-    from modi.export.onnx_runner import sidecar_path
-
-    src, out = Path(args.source), Path(args.output)
-    if not src.exists():
-        raise UserError(f"{args.source}: no such run folder or checkpoint file")
-    if not out.absolute().parent.is_dir():
-        raise UserError(f"{args.output}: folder {out.absolute().parent} does not exist")
-    ct.refuse_overwrite(out, [src])
-    ct.refuse_overwrite(sidecar_path(out), [src], "sidecar")
-    side = export_onnx(src, out, frames=args.frames, input_kind=args.input_kind, ema=not args.raw_weights,
-                       opset=args.opset)
+    side = export_onnx(args.source, args.output, frames=args.frames, input_kind=args.input_kind,
+                       ema=not args.raw_weights, opset=args.opset)
     ins = ", ".join(f"{i['name']} {tuple(i['shape'])}" for i in side["inputs"])
     outs = ", ".join(f"{o['name']} {tuple(o['shape'])}" for o in side["outputs"])
     fr = side["dims"]["frames"]
     length = f"{fr['fixed']} frames" if "fixed" in fr else f"frames >= {fr['min']}"
     print(f"{args.output}: {side['kind']} model, {len(side['skeleton']['names'])} joints at {side['fps']:g} fps, "
-          f"{length}; inputs {ins}; outputs {outs}; sidecar {sidecar_path(out)}")
+          f"{length}; inputs {ins}; outputs {outs}; sidecar {sidecar_path(args.output)}")
     return 0
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
+    from modi.api.conversion import export_positions  # lazy: torch
 
-    from modi.core.kinematics import bvh_positions
-    from modi.io import bvh
-
-    if os.path.isdir(args.input):
-        raise UserError(f"{args.input}: is a folder, expected a .bvh file")
-    if not os.path.exists(args.input):
-        raise UserError(f"{args.input}: no such file")
-    out_dir = os.path.dirname(os.path.abspath(args.output))
-    if not os.path.isdir(out_dir):
-        raise UserError(f"{args.output}: folder {out_dir} does not exist")
-    ct.refuse_overwrite(args.output, [args.input])
-    if args.names:
-        ct.refuse_overwrite(args.names, [args.input], "--names")
-        if os.path.abspath(args.names) == os.path.abspath(args.output):
-            raise UserError(f"--names {args.names} is the output array's file; choose another name")
-    b = bvh.load(args.input)
-    pos = bvh_positions(b).astype(np.float32)
-    from modi.faults import atomic_save_npy, atomic_write
-
-    atomic_save_npy(args.output, pos)
-    if args.names:
-        atomic_write(args.names, "\n".join(b.names) + "\n")
+    pos, b = export_positions(args.input, args.output, names=args.names)
     print(f"{args.output}: {pos.shape[0]} frames x {pos.shape[1]} joints x 3 (float32, {b.fps:g} fps)")
     return 0

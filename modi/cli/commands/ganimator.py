@@ -9,26 +9,15 @@ from pathlib import Path
 from modi.cli import types as ct
 from modi.errors import UserError
 from modi.io.formats import add_format_options
-from modi.models.ganimator.config import PRESETS, preset
 from modi.viz import add_view_option
 
 _FMT = argparse.ArgumentDefaultsHelpFormatter
-_PRESET_WHAT = {"paper": "the published schedule", "fast": "a CPU schedule", "tiny": "a smoke test"}
-
-
-def _preset_help() -> str:
-    """The presets and their schedules, read from ``modi.models.ganimator.config`` (not restated here)."""
-    parts = []
-    for name in PRESETS:
-        cfg = preset(name)
-        first, rest = cfg.block_budgets(2)
-        coarse = f", {first} on the coarsest" if first != rest else ""
-        parts.append(f"{name}: {_PRESET_WHAT.get(name, 'preset')} ({rest} iterations per block{coarse}; "
-                     f"{cfg.d_steps} discriminator steps per generator step)")
-    return "; ".join(parts)
 
 
 def register(subparsers) -> None:
+    # lazy: torch (read when the parser is built)
+    from modi.api.options import GANIMATOR_PRESETS, ganimator_preset_help
+
     p = subparsers.add_parser("ganimator", help="GANimator: learn from one (or a few) BVH clips of any skeleton",
                               description="GANimator (Li et al. 2022): a coarse-to-fine pyramid of small GANs "
                                           "trained on a single short motion of any skeleton.",
@@ -43,7 +32,7 @@ def register(subparsers) -> None:
                                    "another run is refused.")
     t.add_argument("bvh", nargs="+", help="training BVH file(s); several = motion mixing (same skeleton)")
     t.add_argument("--out", required=True, type=ct.output_dir, help="run directory (checkpoint ganimator.ckpt, TensorBoard logs)")
-    t.add_argument("--preset", default="paper", choices=PRESETS, help=_preset_help())
+    t.add_argument("--preset", default="paper", choices=GANIMATOR_PRESETS, help=ganimator_preset_help())
     t.add_argument("--iterations", type=ct.iters_int, default=None,
                    help="iterations per block of levels (preset's if omitted); the coarsest block trains ITERATIONS "
                         "× --coarse-multiplier (the fast preset multiplies it by 3)")
@@ -141,7 +130,7 @@ def _int_csv(s: str | None, flag: str) -> list[int] | None:
 
 
 def _train(args) -> int:
-    from modi.api.training import TrainingInterrupted, train_ganimator
+    from modi.api.training import TrainingInterrupted, train_ganimator  # lazy: torch
 
     try:
         train_ganimator(args.bvh, args.out, preset=args.preset, resume=True, conditional_from=args.conditional_from,
@@ -173,56 +162,24 @@ def _mode(args, run) -> str:
 
 
 def _generate(args) -> int:
-    import numpy as np
-
-    from modi.api.ganimator import GanimatorRun
-    from modi.io.formats import save_motion
-    from modi.viz.render import render_positions
+    from modi.api.ganimator import GanimatorRun  # lazy: torch
 
     run = GanimatorRun.from_checkpoint(args.run)
     spacing = None if args.crowd_spacing is None else args.crowd_spacing / run.scale  # the option is in GANimator's units
     motions = run.generate(args.n, frames=args.frames, seed=args.seed, keyframes=args.keyframes,
                            trajectory=args.trajectory, style=args.content, stream=args.stream,
                            fine_noise=args.fine_noise, ik=args.ik, spacing=spacing)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    crowd = len(motions) > 1
-    written = [str(save_motion(m.to_bvh(), out / (f"sample_{i:03d}.bvh" if crowd else "sample.bvh"),
-                               contacts=m.contact_arrays()))
-               for i, m in enumerate(motions)]
-    gif = None
-    if not args.no_gif:
-        sk = run.skeleton
-        masks = []
-        for m in motions:
-            mask = np.zeros((m.n_frames, sk.n_joints), dtype=bool)
-            for name, c in (m.contacts or {}).items():
-                mask[:, sk.names.index(name)] = c.numpy()
-            masks.append(mask)
-        gif = out / ("crowd.gif" if crowd else "sample.gif")
-        render_positions([(m.positions() * run.scale).numpy() for m in motions], list(sk.parents), gif, fps=run.fps,
-                         names=list(sk.names), contacts=masks, layout="scene" if crowd else "grid", view="view.html")
-    print(f"{_mode(args, run)}: wrote {len(written)} BVH to {out}" + (f" and {gif}" if gif else ""))
+    written, gif = run.write(motions, args.out, gif=not args.no_gif)
+    print(f"{_mode(args, run)}: wrote {len(written)} BVH to {Path(args.out)}" + (f" and {gif}" if gif else ""))
     if args.evaluate:
         print(json.dumps(run.metrics(motions), indent=2))
     return 0
 
 
 def _evaluate(args) -> int:
-    from modi.api.ganimator import GanimatorRun
-    from modi.models.ganimator.evaluate_paper import format_figures
+    from modi.api.ganimator import evaluate_ganimator, format_figures  # lazy: torch
 
-    if args.json and args.json != "-":
-        from modi.models.ganimator.training import checkpoint_path
-
-        ct.refuse_overwrite(args.json, [checkpoint_path(args.run)], "--json")
-    figures = GanimatorRun.from_checkpoint(args.run).evaluate(n=args.n, frames=args.frames, seed=args.seed,
-                                                              protocol=args.protocol)
-    text = json.dumps(figures, indent=2)
-    print(text if args.json == "-" else format_figures(figures))
-    if args.json and args.json != "-":
-        from modi.faults import atomic_write
-
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(args.json, text + "\n")
+    figures = evaluate_ganimator(args.run, n=args.n, frames=args.frames, seed=args.seed, protocol=args.protocol,
+                                 json_path=args.json if args.json != "-" else None)
+    print(json.dumps(figures, indent=2) if args.json == "-" else format_figures(figures))
     return 0

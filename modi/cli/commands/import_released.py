@@ -6,10 +6,8 @@ trust in whoever sent the file.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from modi.cli import types as ct
-from modi.errors import UserError
 
 
 def register(subparsers) -> None:
@@ -60,40 +58,26 @@ def register(subparsers) -> None:
     g.set_defaults(func=run_ganimator)
 
 
-def _input(path: str, what: str) -> Path:
-    p = Path(path)
-    if not p.exists():
-        raise UserError(f"{path}: no such {what}")
-    return p
-
-
 def run_modi(args) -> int:
-    from modi.interop.modi_released import import_checkpoint
+    from modi.api.conversion import import_released  # lazy: torch
 
-    out = import_checkpoint(_input(args.ckpt, "checkpoint file"), _input(args.data, "data file or folder"),
-                            Path(args.out), fps=args.fps)
+    out = import_released("modi-released", args.ckpt, args.out, data=args.data, fps=args.fps)
     print(f"modi import: released MoDi model -> {out} (sample it with 'modi generate {out} --out DIR')")
     return 0
 
 
 def run_encoder(args) -> int:
-    try:
-        from modi.interop.encoder_released import import_checkpoint
-    except ImportError as exc:
-        raise UserError(f"encoder import is not available in this modi ({exc})") from None
-    out = import_checkpoint(_input(args.ckpt, "checkpoint file"), _input(args.generator, "checkpoint file"),
-                            _input(args.data, "data file or folder"), Path(args.out), fps=args.fps)
+    from modi.api.conversion import import_released  # lazy: torch
+
+    out = import_released("encoder-released", args.ckpt, args.out, generator=args.generator, data=args.data,
+                          fps=args.fps)
     print(f"modi import: released MoDi encoder -> {out}")
     return 0
 
 
 def run_ganimator(args) -> int:
-    try:
-        from modi.interop.ganimator_released import import_checkpoint
-    except ImportError:
-        raise UserError("GANimator import is not available in this modi (modi.interop.ganimator_released is "
-                        "missing)") from None
-    data = _input(args.data, "BVH file") if args.data is not None else None
-    out = import_checkpoint(_input(args.ckpt, "checkpoint file"), data, Path(args.out))
+    from modi.api.conversion import import_released  # lazy: torch
+
+    out = import_released("ganimator-released", args.ckpt, args.out, data=args.data)
     print(f"modi import: released GANimator model -> {out}")
     return 0

@@ -7,7 +7,6 @@ Latents on the command line: an integer (or ``seed:N``) is the latent of motion 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from modi.cli import types as ct
@@ -129,16 +128,10 @@ def register(subparsers) -> None:
 
 # --------------------------------------------------------------------------------------------- helpers
 def _setup(args: argparse.Namespace):
-    """The generator of CKPT as ``(network, codec, config)`` (through :class:`modi.ModiGenerator`)."""
-    from modi.api._util import check_device, set_threads
-    from modi.api.generator import ModiGenerator
+    """The :class:`modi.ModiGenerator` of CKPT, opened as every action opens it."""
+    from modi.api.latent import open_generator  # lazy: torch
 
-    set_threads(args.threads)
-    check_device(args.device)
-    ct.input_file(args.ckpt, "MoDi checkpoint file")
-    gen = ModiGenerator.from_checkpoint(args.ckpt, device=args.device, ema=not args.raw_weights)
-    args.generator = gen
-    return gen.network, gen.codec, gen.config
+    return open_generator(args.ckpt, device=args.device, threads=args.threads, ema=not args.raw_weights)
 
 
 def _latent(gen, spec: str, option: str):
@@ -160,168 +153,80 @@ def _latent(gen, spec: str, option: str):
     return w, label
 
 
-def _steps(n: int) -> int:
-    if n < 1:
-        raise UserError(f"--steps must be >= 1, got {n}")
-    return n
-
-
-def _write_sequence(codec, g, seq, out: Path, gif: str, label: str) -> list[Path]:
-    from modi.models.modi.latent.space import synthesize, write_motions
-
-    x = synthesize(g, seq)
-    c = seq.shape[0] - 1
-    names = [f"step_{i:02d}" for i in range(c + 1)]
-    titles = [f"{label} {i}/{c}" for i in range(c + 1)]
-    return write_motions(codec, x, out, names, gif=gif, titles=titles)
-
-
 # --------------------------------------------------------------------------------------------- actions
 def run_mean(args: argparse.Namespace) -> int:
-    from modi.models.modi.latent.space import mean_motion, mean_w, save_latent, write_motions
+    from modi.api.latent import write_mean  # lazy: torch
 
-    g, codec, _ = _setup(args)
-    out = Path(args.out)
-    w = mean_w(g)
-    write_motions(codec, mean_motion(g, w), out, ["mean"], gif="mean.gif", titles=["mean motion G(w_avg)"])
-    save_latent(out / "mean_w.npy", w)
-    print(f"modi latent mean: {out / 'mean.bvh'}, {out / 'mean.gif'}, {out / 'mean_w.npy'}")
+    files = write_mean(_setup(args), args.out)
+    print(f"modi latent mean: {files['bvh']}, {files['gif']}, {files['latent']}")
     return 0
 
 
 def run_truncate(args: argparse.Namespace) -> int:
-    from modi.models.modi.latent.space import mean_w, truncation_sequence
+    from modi.api.latent import write_truncation  # lazy: torch
 
-    g, codec, _ = _setup(args)
-    w, label = _latent(args.generator, args.latent, "--latent")
-    seq = truncation_sequence(w, _steps(args.steps), mean_w(g))
-    paths = _write_sequence(codec, g, seq, Path(args.out), "truncation.gif", "to mean")
+    gen = _setup(args)
+    w, label = _latent(gen, args.latent, "--latent")
+    paths = write_truncation(gen, w, args.out, args.steps)
     print(f"modi latent truncate: {len(paths)} motions from {label} to the mean in {args.out} (truncation.gif)")
     return 0
 
 
 def run_interpolate(args: argparse.Namespace) -> int:
-    from modi.models.modi.latent.space import interpolation_sequence
+    from modi.api.latent import write_interpolation  # lazy: torch
 
-    g, codec, _ = _setup(args)
-    a, la = _latent(args.generator, args.a, "--from")
-    b, lb = _latent(args.generator, args.b, "--to")
-    seq = interpolation_sequence(a, b, _steps(args.steps))
-    space = "W+" if seq.ndim == 3 else "W"
-    paths = _write_sequence(codec, g, seq, Path(args.out), "interpolation.gif", "")
+    gen = _setup(args)
+    a, la = _latent(gen, args.a, "--from")
+    b, lb = _latent(gen, args.b, "--to")
+    paths, space = write_interpolation(gen, a, b, args.out, args.steps)
     print(f"modi latent interpolate: {len(paths)} motions from {la} to {lb} in {space}, {args.out} "
           f"(interpolation.gif)")
     return 0
 
 
 def run_cluster(args: argparse.Namespace) -> int:
-    from modi.models.modi.latent.clustering import cluster_latent_space
+    from modi.api.latent import write_clusters  # lazy: torch
 
-    g, codec, _ = _setup(args)
-    if args.n < args.k:
-        raise UserError(f"--n ({args.n}) must be at least --k ({args.k})")
-    if args.per_cluster < 0 or args.tsne_max < 0:
-        raise UserError("--per-cluster and --tsne-max must be >= 0")
-    res = cluster_latent_space(g, codec, args.out, n=args.n, k=args.k, per_cluster=args.per_cluster, seed=args.seed,
-                               tsne_max=args.tsne_max, how=args.pick, render=args.per_cluster > 0)
+    res = write_clusters(_setup(args), args.out, n=args.n, k=args.k, per_cluster=args.per_cluster, pick=args.pick,
+                         tsne_max=args.tsne_max, seed=args.seed)
     print(f"modi latent cluster: {args.n} samples, k={args.k}, sizes {res.sizes}; "
           f"{res.files.get('tsne', 'no t-SNE')}, {len(res.files.get('gifs', []))} cluster GIFs in {args.out}")
     return 0
 
 
 def run_edit(args: argparse.Namespace) -> int:
-    import numpy as np
+    from modi.api.latent import write_edit  # lazy: torch
 
-    from modi.models.modi.latent.editing import Boundary, edit_latents, edit_report, plot_report, sample_boundary
-    from modi.models.modi.latent.space import seed_w, synthesize, write_motions
-
-    if any(b <= a for a, b in zip(args.alphas, args.alphas[1:])):
-        raise UserError(f"--alphas must be increasing, got {' '.join(f'{a:g}' for a in args.alphas)}")
-    g, codec, _ = _setup(args)
+    boundary, report = write_edit(_setup(args), args.out, attribute=args.attribute, svm=args.svm, n=args.n,
+                                  ratio=args.ratio, boundary=args.boundary, held_out=args.held_out,
+                                  first_seed=args.first_seed, alphas=args.alphas, render=args.render, seed=args.seed)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.held_out < 1:
-        raise UserError(f"--held-out must be >= 1, got {args.held_out}")
-    if args.boundary:
-        boundary = Boundary.load(args.boundary)
-        if len(boundary.normal) != g.latent_dim:
-            raise UserError(f"{args.boundary}: boundary has {len(boundary.normal)} dims, the model {g.latent_dim}")
-    else:
-        if args.n < 10:
-            raise UserError(f"--n must be >= 10, got {args.n}")
-        boundary, _, scores = sample_boundary(g, codec, args.attribute, n=args.n, seed=args.seed, ratio=args.ratio,
-                                              method=args.svm)
-        boundary.extra["score_mean"] = float(np.mean(scores))
-        boundary.extra["score_std"] = float(np.std(scores))
-        boundary.save(out / "boundary.json")
-    seeds = list(range(args.first_seed, args.first_seed + args.held_out))
-    report = edit_report(g, codec, boundary, seeds, args.alphas, attribute=args.attribute)
-    (out / "report.json").write_text(json.dumps(report.to_dict(), indent=1))
-    plot_report(report, out / "score_vs_alpha.png")
-    for s in seeds[:max(0, args.render)]:
-        lat = edit_latents(seed_w(g, [s])[0], boundary.normal, report.alphas)
-        names = [f"edit_{s}_alpha{a:+.1f}".replace(".", "p") for a in report.alphas_sigma]
-        write_motions(codec, synthesize(g, lat), out / f"edit_{s}", names, gif=f"../edit_{s}.gif", view=f"edit_{s}.html",
-                      titles=[f"alpha={a:+g} sd" for a in report.alphas_sigma])
     print(f"modi latent edit: boundary accuracy {boundary.accuracy:.2f} (held-out extremes); {report.summary()}")
     print(f"modi latent edit: {out / 'report.json'}, {out / 'score_vs_alpha.png'}")
     return 0
 
 
 def run_crowd(args: argparse.Namespace) -> int:
-    from modi.models.modi.latent.crowd import SIGMA_RANGE, simulate_crowd
+    from modi.api.latent import SIGMA_RANGE, write_crowd  # lazy: torch
 
-    g, codec, _ = _setup(args)
+    gen = _setup(args)
     if not SIGMA_RANGE[0] <= args.sigma <= SIGMA_RANGE[1]:
         print(f"modi latent crowd: note: σ={args.sigma:g} is outside the paper's range "
               f"{SIGMA_RANGE[0]}-{SIGMA_RANGE[1]}")
-    w, label = _latent(args.generator, args.latent, "--latent")
-    crowd = simulate_crowd(g, codec, w, args.out, k=args.k, sigma=args.sigma, seed=args.seed,
-                           include_source=not args.no_source, spacing=args.spacing)
+    w, label = _latent(gen, args.latent, "--latent")
+    crowd = write_crowd(gen, w, args.out, k=args.k, sigma=args.sigma, seed=args.seed,
+                        include_source=not args.no_source, spacing=args.spacing)
     print(f"modi latent crowd: {len(crowd.files['bvh'])} characters around {label} (σ={args.sigma:g}) in "
           f"{args.out}; scene preview {crowd.files.get('gif')}")
     return 0
 
 
 def run_invert(args: argparse.Namespace) -> int:
-    import torch
+    from modi.api.latent import write_inversion  # lazy: torch
 
-    from modi.models.modi.latent.inversion import invert
-    from modi.models.modi.latent.space import load_bvh_window, save_latent, write_motions
-
-    g, codec, _ = _setup(args)
+    res = write_inversion(_setup(args), args.bvh, args.out, start=args.start, steps=args.steps, lr=args.lr,
+                          lambda_fk=args.lambda_fk, init=args.init)
     out = Path(args.out)
-    if args.steps < 0:
-        raise UserError(f"--steps must be >= 0, got {args.steps}")
-    if args.lr <= 0 or args.lambda_fk < 0:
-        raise UserError("--lr must be positive and --lambda-fk >= 0")
-    ct.input_file(args.bvh)
-    _, _, t = g.output_shape
-    target = load_bvh_window(codec, args.bvh, t, args.start).unsqueeze(0)
-    res = invert(g, codec, target, steps=args.steps, lr=args.lr, lambda_fk=args.lambda_fk,
-                 init=args.init)
-    write_motions(codec, torch.cat([target.cpu(), res.motion.cpu()]), out, ["input", "inverted"],
-                  gif="inversion.gif", titles=["input", f"G(W+) after {args.steps} steps"])
-    save_latent(out / "wplus.npy", res.wplus[0])
-    (out / "history.json").write_text(json.dumps({"total": res.history, "rec": res.rec, "fk": res.fk}))
-    _plot_history(res, out / "loss.png")
     print(f"modi latent invert: loss {res.history[0]:.4f} -> {res.history[-1]:.4f} (rec {res.rec[-1]:.4f}, "
           f"fk {res.fk[-1]:.4f}); {out / 'inversion.gif'}, {out / 'wplus.npy'}")
     return 0
-
-
-def _plot_history(res, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.4), dpi=120)
-    ax.semilogy(res.history, label="total")
-    ax.semilogy(res.rec, label="representation MSE")
-    ax.set_xlabel("step")
-    ax.set_ylabel("loss")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)

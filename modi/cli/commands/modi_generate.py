@@ -33,24 +33,12 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from modi.api._util import check_device, existing_file
-    from modi.api.generator import ModiGenerator
-    from modi.models.modi.sampling import write_outputs
+    from modi.api.generator import open_generator  # lazy: torch
 
-    check_device(args.device)
-    existing_file(args.ckpt, "MoDi checkpoint file")
     t0 = time.perf_counter()
-    gen = ModiGenerator.from_checkpoint(args.ckpt, ema=not args.raw_weights, device=args.device)
-    t1 = time.perf_counter()
-    x = gen.sample_tensors(args.n, seed=args.seed, psi=args.psi, batch=args.batch)
-    t_gen = time.perf_counter() - t1
-    written = []
-    for start in range(0, args.n, args.batch):  # decode/write in chunks to bound memory
-        written += write_outputs(gen.codec, x[start:start + args.batch], args.out, ik=args.ik, start_index=start,
-                                 gif=False)
-    if args.gif_max:
-        write_outputs(gen.codec, x[:args.gif_max], args.out, bvh=False, contacts=False, gif=True,
-                      max_gif=args.gif_max, ik=args.ik)
+    gen = open_generator(args.ckpt, device=args.device, ema=not args.raw_weights)
+    written, t_gen = gen.write_samples(args.out, args.n, seed=args.seed, psi=args.psi, ik=args.ik, batch=args.batch,
+                                       gif_max=args.gif_max)
     what = f"{len(written)} motion files ({','.join(args.format)})" if written else f"{args.n} position arrays"
     print(f"modi generate: {what} in {args.out} (sampling {t_gen:.2f} s, {args.n / max(t_gen, 1e-9):.1f} motions/s; "
           f"total {time.perf_counter() - t0:.1f} s)")

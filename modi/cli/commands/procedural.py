@@ -5,12 +5,11 @@ import argparse
 import time
 
 from modi.cli import types as ct
-from modi.errors import UserError
 from modi.io.formats import add_format_options
 
 
 def register(subparsers) -> None:
-    from modi.data.procedural import KINDS
+    from modi.api.options import PROCEDURAL_KINDS as KINDS  # lazy: torch (read when the parser is built)
 
     p = subparsers.add_parser(
         "synth", help="write procedural walk/run/jump/wave/squat/idle BVH clips",
@@ -28,21 +27,11 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from modi.data.procedural import KINDS, write_dataset
+    from modi.api.data import write_procedural  # lazy: torch
 
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-    bad = [k for k in kinds if k not in KINDS]
-    if bad or not kinds:
-        raise UserError(f"--kinds: unknown kind(s) {', '.join(bad) or '(none given)'}; choose from {', '.join(KINDS)}")
-    if args.n < 1:
-        raise UserError(f"--n must be >= 1, got {args.n}")
-    if args.frames < 2:
-        raise UserError(f"--frames must be >= 2, got {args.frames}")
-    if not args.fps > 0:
-        raise UserError(f"--fps must be > 0, got {args.fps}")
     start = time.perf_counter()
-    paths = write_dataset(args.out_dir, n_clips=args.n, frames=args.frames, seed=args.seed, fps=args.fps,
-                          kinds=kinds)
+    paths = write_procedural(args.out_dir, n=args.n, frames=args.frames, fps=args.fps, seed=args.seed,
+                             kinds=[k.strip() for k in args.kinds.split(",") if k.strip()])
     print(f"wrote {len(paths)} clips ({args.frames} frames at {args.fps:g} fps) and labels.json to {args.out_dir} "
           f"in {time.perf_counter() - start:.2f} s")
     return 0

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from modi.cli import types as ct
 from modi.errors import UserError
@@ -19,7 +18,7 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _rule() -> str:
-    from modi.core.contacts import PREVIEW_RULE
+    from modi.api.options import PREVIEW_RULE  # lazy: torch (read when the parser is built)
 
     return PREVIEW_RULE
 
@@ -53,30 +52,19 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from modi.viz.render import render_bvh
+    from modi.api.viewing import render  # lazy: torch, Pillow
 
     if len(args.files) < 2:
         raise UserError("render needs at least one input .bvh and an output .gif/.mp4")
     *inputs, out = args.files
-    for f in inputs:
-        ct.input_file(f)
-    if not out.lower().endswith((".gif", ".mp4")):
-        raise UserError(f"{out}: the last argument is the output and must end in .gif or .mp4")
     try:
         ct.output_file(out)
     except argparse.ArgumentTypeError as exc:
         raise UserError(f"output {exc}") from None
-    ct.refuse_overwrite(out, inputs)
-    page = Path(out).with_suffix(".html")
-    if not args.no_view:
-        ct.refuse_overwrite(page, inputs, "viewer page")
-    path = render_bvh(inputs, out, fps=args.fps, size=args.size, layout=args.layout, contacts=args.contacts,
-                      up=args.up, max_frames=args.max_frames, azimuth=args.azimuth, elevation=args.elevation,
-                      scale=args.scale)
+    path, page = render(inputs, out, fps=args.fps, size=args.size, layout=args.layout, contacts=args.contacts,
+                        up=args.up, scale=args.scale, max_frames=args.max_frames, azimuth=args.azimuth,
+                        elevation=args.elevation, view=not args.no_view)
     print(path)
-    if not args.no_view:
-        from modi.viz.viewer import load_motion, write_view
-
-        write_view(page, [load_motion(f, scale=args.scale, up=args.up) for f in inputs], layout=args.layout)
+    if page is not None:
         print(page)
     return 0

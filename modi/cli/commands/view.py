@@ -5,11 +5,10 @@ import argparse
 from pathlib import Path
 
 from modi.cli import types as ct
-from modi.errors import UserError
 
 
 def _rule() -> str:
-    from modi.core.contacts import PREVIEW_RULE
+    from modi.api.options import PREVIEW_RULE  # lazy: torch (read when the parser is built)
 
     return PREVIEW_RULE
 
@@ -45,19 +44,14 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from modi.viz.viewer import load_motion, write_view
+    from modi.api.viewing import write_page  # lazy: torch
 
-    out = Path(args.out)
-    if out.suffix.lower() not in (".html", ".htm"):
-        raise UserError(f"--out {args.out}: the page must end in .html")
-    for f in args.inputs:
-        ct.refuse_overwrite(out, [f])
-    motions = [load_motion(f, scale=args.scale, up=args.up, contacts=not args.no_contacts) for f in args.inputs]
+    motions = write_page(args.inputs, args.out, scale=args.scale, up=args.up, contacts=not args.no_contacts,
+                         title=args.title, layout=args.layout)
     for f, m in zip(args.inputs, motions):
         if m.unit:
             print(f"{f}: {m.unit}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_view(out, motions, title=args.title, layout=args.layout)
+    out = Path(args.out)
     frames = max(m.positions.shape[0] for m in motions)
     print(f"{out}: {len(motions)} motion{'s' if len(motions) > 1 else ''}, up to {frames} frames, "
           f"{out.stat().st_size / 1024:.0f} KiB")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from modi.errors import UserError
-from modi.models.modi.latent.space import decode_positions, random_w, save_figure, synthesize, write_motions
+from modi.models.modi.latent.space import decode_positions, pyplot, random_w, save_figure, synthesize, write_motions
 from modi.models.modi.sampling import render_gif
 
 
@@ -67,10 +67,7 @@ def tsne_embed(w: np.ndarray, n_max: int = 2000, seed: int = 0,
 
 def plot_clusters(emb: np.ndarray, labels: np.ndarray, path: str | Path, title: str = "") -> Path:
     """Scatter of a 2-D embedding coloured by cluster label, with each cluster's number at its median."""
-    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: after use("Agg")
+    plt = pyplot()
 
     k = int(labels.max()) + 1 if len(labels) else 0
     cmap = plt.get_cmap("tab10" if k <= 10 else "tab20")

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from modi.errors import UserError
-from modi.models.modi.latent.space import random_w, save_figure, seed_w, synthesize
+from modi.models.modi.latent.space import pyplot, random_w, save_figure, seed_w, synthesize
 
 UP = torch.tensor([0.0, 1.0, 0.0])
 
@@ -403,10 +403,7 @@ def edit_report(g: Any, codec: Any, boundary: Boundary, seeds: Sequence[int], al
 
 def plot_report(report: EditReport, path: str | Path) -> Path:
     """PNG of score vs α: each held-out seed thin, the mean thick."""
-    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: after use("Agg")
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(5, 3.6), dpi=120)
     for row in report.scores:

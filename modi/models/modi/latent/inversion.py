@@ -9,14 +9,16 @@ Starting from the mean latent rather than random noise converges faster and stay
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from modi.models.modi.latent.space import as_wplus, mean_w, position_scale, random_w
+from modi.models.modi.latent.space import as_wplus, mean_w, position_scale, pyplot, random_w, save_figure
 
 
 @dataclass
@@ -105,4 +107,17 @@ def invert(g: Any, codec: Any, target: Tensor, steps: int = 300, lr: float = 0.0
     return res
 
 
-__all__ = ["InversionResult", "inversion_loss", "invert"]
+def plot_history(res: InversionResult, path: str | os.PathLike) -> Path:
+    """PNG of the inversion's loss curve (total and representation term, log scale)."""
+    plt = pyplot()
+
+    fig, ax = plt.subplots(figsize=(5, 3.4), dpi=120)
+    ax.semilogy(res.history, label="total")
+    ax.semilogy(res.rec, label="representation MSE")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+__all__ = ["InversionResult", "inversion_loss", "invert", "plot_history"]

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from modi.core.body import UNITS_MM
 from modi.data.dataset import motion_from_bvh
 from modi.data.motion import Motion
 from modi.errors import UserError
@@ -162,7 +163,7 @@ def interpolation_sequence(w_a: Tensor, w_b: Tensor, steps: int) -> Tensor:
 
 
 # --------------------------------------------------------------------------------------------- units
-_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "dm": 100.0}
+_UNITS_MM = UNITS_MM  # the mm metrics' named units (modi.core.body)
 
 
 def mm_per_unit(height: float, units: str = "auto") -> float:
@@ -330,10 +331,19 @@ __all__ = ["load_model", "seed_z", "map_z", "seed_w", "random_w", "estimate_mean
            "load_bvh_window", "window_from_motion", "decode_positions", "write_motions"]
 
 
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files only), for the plots of the latent applications."""
+    import matplotlib  # lazy: the Agg backend must be chosen before pyplot is first imported; plots are rare
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: after use("Agg")
+
+    return plt
+
+
 def save_figure(fig, path: str | os.PathLike) -> Path:
     """Lay out, write (making the folder) and close a matplotlib figure; returns the path."""
-    import matplotlib.pyplot as plt  # lazy: only the plotting functions, which chose the Agg backend, get here
-
+    plt = pyplot()
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

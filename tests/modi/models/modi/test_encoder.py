@@ -405,8 +405,8 @@ def test_released_optimizer_and_old_checkpoints_keep_their_head(model, tmp_path)
 def test_encoder_cli_options_reach_the_config(monkeypatch, tmp_path):
     import argparse
 
+    from modi.api import encoder as A_
     from modi.cli.commands import encoder as cmd
-    from modi.models.modi.encoder import training as T_
 
     seen = {}
 
@@ -419,10 +419,10 @@ def test_encoder_cli_options_reach_the_config(monkeypatch, tmp_path):
 
     parser = argparse.ArgumentParser()
     cmd.register(parser.add_subparsers())
-    monkeypatch.setattr(T_, "EncoderTrainer", fake_trainer)
-    monkeypatch.setattr(T_, "load_encoder_data", lambda *a, **k: split_windows(torch.zeros(10, 4, 3, 16)))
-    monkeypatch.setattr("modi.models.modi.sampling.load_checkpoint", lambda p: {"step": 0})
-    monkeypatch.setattr("modi.models.modi.latent.space.load_model", lambda st, device: (type("G", (), {
+    monkeypatch.setattr(A_, "EncoderTrainer", fake_trainer)  # the command calls modi.api.encoder.train_encoder
+    monkeypatch.setattr(A_, "load_encoder_data", lambda *a, **k: split_windows(torch.zeros(10, 4, 3, 16)))
+    monkeypatch.setattr(A_, "load_checkpoint", lambda p: {"step": 0})
+    monkeypatch.setattr(A_, "load_model", lambda st, device: (type("G", (), {
         "output_shape": (4, 3, 16)})(), None, None))
     for argv, want in ((["--quiet"], ("released", "released", "released", 10.0)),
                        (["--quiet", "--losses", "ours", "--optimizer", "ours", "--head", "bottleneck",
@@ -471,12 +471,12 @@ def test_inplace_convs_default_is_resolved_by_the_head_everywhere(model, tmp_pat
 
 def _encoder_cli(monkeypatch, g, codec, data):
     """``modi encoder train`` on the in-process generator and windows (no files but the encoder checkpoint)."""
+    from modi.api import encoder as A_  # the command calls modi.api.encoder.train_encoder
     from modi.cli import main
-    from modi.models.modi.encoder import training as T_
 
-    monkeypatch.setattr(T_, "load_encoder_data", lambda *a, **k: data)
-    monkeypatch.setattr("modi.models.modi.sampling.load_checkpoint", lambda p: generator_bundle(g, codec))
-    monkeypatch.setattr("modi.models.modi.latent.space.load_model", lambda st, device: (g, codec, None))
+    monkeypatch.setattr(A_, "load_encoder_data", lambda *a, **k: data)
+    monkeypatch.setattr(A_, "load_checkpoint", lambda p: generator_bundle(g, codec))
+    monkeypatch.setattr(A_, "load_model", lambda st, device: (g, codec, None))
     return lambda out, *argv: main(["encoder", "train", "g.pt", "procedural", "--out", str(out), "--batch", "4",
                                     "--eval-every", "0", "--ckpt-every", "0", "--quiet", *argv])
 
