@@ -20,6 +20,7 @@ turns user mistakes (``UserError`` and friends) into one line on stderr and exit
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import shutil
 import sys
@@ -27,6 +28,7 @@ from pathlib import Path
 
 from modi._version import __version__
 from modi.errors import UserError
+from modi.faults import Terminated, describe_os_error, sigterm_pending, signals_held, terminate_on_sigterm
 
 TRACEBACK_ENV = "MODI_TRACEBACK"
 
@@ -108,8 +110,6 @@ def _run(argv: list[str] | None) -> int:
     if (sys.argv[1:] if argv is None else list(argv))[:1] == ["--version"]:  # answered before torch is imported
         print(version_line())
         return 0
-    from modi.faults import signals_held
-
     with signals_held():  # a Ctrl-C inside torch's C++ start-up would half-import numpy or abort: it waits
         import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
         import numpy  # noqa: F401
@@ -159,8 +159,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    from modi.faults import Terminated, sigterm_pending, terminate_on_sigterm
-
     try:
         with terminate_on_sigterm():
             code = _run(argv)
@@ -195,11 +193,7 @@ def _main(argv: list[str] | None = None) -> int:
         _say("out of memory: ask for fewer or shorter motions, or a smaller --batch")
         return 2
     except OSError as exc:  # disk full, read-only file system, ...: the environment, not a bug
-        import errno
-
         if exc.filename and exc.errno in (errno.ENOSPC, errno.EROFS):
-            from modi.faults import describe_os_error
-
             _say(describe_os_error(exc, exc.filename))
         else:
             _say(f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror or exc}")
