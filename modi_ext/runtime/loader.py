@@ -11,6 +11,7 @@ import json
 import os
 import sys
 import warnings
+from importlib.machinery import EXTENSION_SUFFIXES
 
 import torch  # before _C: the extension's symbols resolve against libtorch
 
@@ -89,7 +90,10 @@ else:
 
         HAS_EXT = True
     except ImportError as exc:  # not built (no compiler at install time), or a build with no record
-        LOAD_ERROR = str(exc)
+        here = os.path.dirname(BUILD_INFO)
+        built = any(os.path.exists(os.path.join(here, "_C" + suffix)) for suffix in EXTENSION_SUFFIXES)
+        # Python's message for a missing module inside a package being imported blames a circular import
+        LOAD_ERROR = str(exc) if built else f"no compiled _C in {here}: installed without a C++ compiler or torch"
 
 IMPLS = ("auto", "ext", "dense", "ref")
 
@@ -112,7 +116,7 @@ def warn_not_built() -> None:
         warnings.warn(
             "modi_ext: the C++ extension is not built "
             f"({LOAD_ERROR}); using the dense pure-torch path (slower, same results). "
-            "Reinstall with a C++ compiler present to build it.",
+            "Install the modi wheel, or build from source with a C++ compiler (docs/install.md).",
             RuntimeWarning,
             stacklevel=_caller_stacklevel(),
         )
