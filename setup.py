@@ -118,8 +118,8 @@ def torch_requirement(ext_built: bool, argv: list[str]) -> str:
 
     A wheel (or an install) that carries the compiled _C requires exactly the torch release it was compiled against:
     torch's C++ ABI changes between releases, as torch-scatter and xformers pin it too.  The local label is left out
-    (``torch==2.13.0`` admits 2.13.0+cpu and 2.13.0+cu130: a CPU-only _C loads under both).  The sdist, and a build
-    without the extension, run on the dense path with any torch >= 2.4."""
+    (``torch==2.13.0`` admits 2.13.0+cpu and 2.13.0+cu130: a CPU-only _C loads under both).  The sdist (the wheel
+    built from it where it is installed decides again) and a build without the extension: any torch >= 2.4."""
     if ext_built and "sdist" not in argv:
         import torch
         return "torch==" + str(torch.__version__).split("+")[0]
