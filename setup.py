@@ -9,10 +9,15 @@ Environment switches:
   MODI_EXT_DEBUG=1      -O0 -g
   MODI_EXT_EMU=0        skip the test-only emulated-CUDA module modi_ext._C_emu (tests/test_cuda_emulated.py)
   TORCH_CUDA_ARCH_LIST  GPU architectures of the CUDA build; default: the visible GPUs, else 8.0;9.0+PTX
+
+A wheel (``make wheel``: ``python -m build --no-isolation``, then ``auditwheel repair``) carries modi_ext._C compiled
+against the torch of the build, records that torch in modi_ext/_build_info.json (the loader checks it before loading
+_C) and requires exactly that torch release (docs/install.md says why).
 """
 from __future__ import annotations
 
 import glob
+import json
 import os
 import re
 import shutil
@@ -82,6 +87,45 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
     )
 
 
+BUILD_INFO = "_build_info.json"  # in the modi_ext package; read by modi_ext/runtime/loader.py
+
+
+def build_info(torch, use_cuda: bool) -> dict:
+    """What the compiled _C depends on, for the loader to compare with the torch it meets at import time."""
+    return {"torch": str(torch.__version__), "cuda": torch.version.cuda if use_cuda else None,
+            "python": f"{sys.version_info[0]}.{sys.version_info[1]}", "modi": _version()}
+
+
+def _build_ext_class(cpp_extension, info: dict):
+    """torch's BuildExtension (ninja) that also writes modi_ext/_build_info.json beside the compiled modules:
+    into the build tree (so it lands in the wheel) or, with ``--inplace``, into the source tree."""
+    base = cpp_extension.BuildExtension.with_options(use_ninja=True)
+
+    class BuildExtWithInfo(base):
+        def run(self):
+            super().run()
+            pkg = os.path.join(ROOT, "modi_ext") if self.inplace else os.path.join(self.build_lib, "modi_ext")
+            os.makedirs(pkg, exist_ok=True)
+            with open(os.path.join(pkg, BUILD_INFO), "w", encoding="utf-8") as f:
+                json.dump(info, f)
+                f.write("\n")
+
+    return BuildExtWithInfo
+
+
+def torch_requirement(ext_built: bool, argv: list[str]) -> str:
+    """The torch requirement of the metadata being written.
+
+    A wheel (or an install) that carries the compiled _C requires exactly the torch release it was compiled against:
+    torch's C++ ABI changes between releases, as torch-scatter and xformers pin it too.  The local label is left out
+    (``torch==2.13.0`` admits 2.13.0+cpu and 2.13.0+cu130: a CPU-only _C loads under both).  The sdist (the wheel
+    built from it where it is installed decides again) and a build without the extension: any torch >= 2.4."""
+    if ext_built and "sdist" not in argv:
+        import torch
+        return "torch==" + str(torch.__version__).split("+")[0]
+    return "torch>=2.4"
+
+
 def extension_modules():
     if _flag("MODI_EXT_BUILD") in ("0", "false", "no", "off"):
         print("modi_ext: MODI_EXT_BUILD=0, not building the extension", file=sys.stderr)
@@ -141,7 +185,7 @@ def extension_modules():
     ext = cpp_extension.CUDAExtension(**kwargs) if use_cuda else cpp_extension.CppExtension(**kwargs)
     print(f"modi_ext: building the {'CPU+CUDA' if use_cuda else 'CPU'} extension", file=sys.stderr)
     emu = _emu_module(cpp_extension, cxx_flags)
-    build_ext = cpp_extension.BuildExtension.with_options(use_ninja=True)
+    build_ext = _build_ext_class(cpp_extension, build_info(torch, use_cuda))
     return [ext] + ([emu] if emu is not None else []), {"build_ext": build_ext}
 
 
@@ -157,7 +201,7 @@ setup(
     packages=find_packages(include=["modi", "modi.*", "modi_ext", "modi_ext.*"]),
     package_data={"modi": ["py.typed"], "modi.viz": ["*.js"], "modi.blender": ["*.toml"]},
     install_requires=[
-        "torch>=2.4",
+        torch_requirement(bool(ext_modules), sys.argv),
         "numpy>=1.24",
         "scipy>=1.10",
         "tqdm>=4.60",
