@@ -1,7 +1,7 @@
 #pragma once
 // Batched forward kinematics (modi_ext::fk): local unit quaternions (w, x, y, z) per joint,
 // rest offsets, a topologically sorted parent list and the root translation -> global joint
-// positions and global rotations. Semantics (shared with modi.kinematics and modi_ext.fk.fk_reference):
+// positions and global rotations. Semantics (shared with modi.core.kinematics and modi_ext.fk.reference.fk_reference):
 //   Q[0] = q[0], P[0] = root;   for j > 0, p = parents[j]:
 //   Q[j] = Q[p] (x) q[j],       P[j] = P[p] + rotate(Q[p], offsets[j])
 // where rotate(Q, v) = v + 2w (u x v) + 2u x (u x v) with Q = (w, u); no normalisation is applied.
