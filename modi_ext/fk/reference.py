@@ -1,8 +1,8 @@
 """The one forward kinematics and quaternion product in Python: what ``modi`` and the tests use.
 
 There is no other FK in the repository's Python.  ``modi.core.kinematics.forward_kinematics`` and
-``modi.core.rotations``'s ``quat_mul`` / ``quat_apply`` are these functions (modi imports them: modi_ext is the lower layer and never imports
-modi); the C++ kernel (``torch.ops.modi_ext.fk``, ``modi_ext.fk.ops``) is tested against ``fk_reference`` and falls
+``modi.core.rotations``'s ``quat_mul`` / ``quat_apply`` are these functions (modi imports them: modi_ext is the
+lower layer and never imports modi); the C++ kernel (``torch.ops.modi_ext.fk``, ``modi_ext.fk.ops``) is tested against ``fk_reference`` and falls
 back to it where a device has no kernel.
 
 Conventions: quaternions are ``(w, x, y, z)``, unit, in the parent's frame, and every function broadcasts over
