@@ -84,6 +84,7 @@ def _emu_module(cpp_extension, cxx_flags: list[str]):
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=[("MODI_EXT_EMULATE_CUDA", "1")],
         extra_compile_args={"cxx": flags},
+        extra_link_args=SHARED_LIBSTDCXX,
     )
 
 
@@ -138,9 +139,7 @@ def extension_modules():
               "(install torch first and use --no-build-isolation)", file=sys.stderr)
         return [], {}
     # One host compiler for every object of _C: nvcc compiles the .cu files' host code with it too (-ccbin; torch
-    # would otherwise pass $CC). On the first GPU run (2026-12-04, an image with CC=/opt/gcc/bin/gcc and c++ = GCC
-    # 13) the two compilers' copies of libstdc++'s inline stream code met in one library, and the first TORCH_CHECK
-    # that formatted an integer crashed in ostream::_M_insert<long> (tests/modi_ext/test_cuda_ops.py, bad style).
+    # would otherwise pass $CC).
     cxx = os.environ.get("CXX", "c++")
     if shutil.which(cxx) is None:
         print(f"modi_ext: no C++ compiler ({cxx}) found; the extension is skipped, "
@@ -175,7 +174,7 @@ def extension_modules():
         include_dirs=[os.path.join(ROOT, "csrc")],
         define_macros=define_macros,
         extra_compile_args={"cxx": cxx_flags, "nvcc": _nvcc_flags(opt) + ["-ccbin", shutil.which(cxx)]},
-        extra_link_args=["-fopenmp"],
+        extra_link_args=["-fopenmp"] + SHARED_LIBSTDCXX,
     )
     if use_cuda:
         arch = _default_cuda_arch_list(os.environ.get("TORCH_CUDA_ARCH_LIST"), torch.cuda.device_count() > 0)
@@ -188,6 +187,16 @@ def extension_modules():
     build_ext = _build_ext_class(cpp_extension, build_info(torch, use_cuda))
     return [ext] + ([emu] if emu is not None else []), {"build_ext": build_ext}
 
+
+# libstdc++ as a shared library, whatever the compiler's search path finds first: _C shares C++ objects (streams,
+# locales, exceptions) with libtorch, which uses the process's one libstdc++.so.6.  The GPU image of 2026-12-04 wraps
+# GCC 13 in /opt/gcc/bin/g++ with -B/opt/gcc/lib/gcc/x86_64-linux-gnu/13/, where libstdc++.so is a dangling link and
+# libstdc++.a is not, so a plain -lstdc++ linked a private static copy into _C.  Its locale facet ids are not
+# libtorch's, and the first TORCH_CHECK message that formatted an integer segfaulted in ostream::_M_insert<long>.
+# "-l:libstdc++.so.6" names the shared library's file, which the linker finds in the system's library folders
+# (checked there: the library then needs libstdc++.so.6; the same sources built by the system g++ passed all 326 CUDA
+# tests).  tests/modi_ext/test_build.py checks the built module for it.
+SHARED_LIBSTDCXX = ["-l:libstdc++.so.6"] if sys.platform.startswith("linux") else []
 
 ext_modules, cmdclass = extension_modules()
 
