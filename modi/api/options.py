@@ -11,6 +11,8 @@ from modi.data.dataset import DatasetConfig
 from modi.data.procedural import KINDS as PROCEDURAL_KINDS
 from modi.models.ganimator.config import PRESETS as GANIMATOR_PRESETS
 from modi.models.ganimator.config import preset as ganimator_preset
+from modi.models.modi.config import ABLATIONS as MODI_ABLATIONS
+from modi.models.modi.config import PRESETS as MODI_PRESETS
 
 LENGTH_UNITS = tuple(UNITS_MM)  # the named length units of the mm metrics (besides "auto")
 GANIMATOR_PRESET_WHAT = {"paper": "the published schedule", "fast": "a CPU schedule", "tiny": "a smoke test"}
@@ -28,5 +30,6 @@ def ganimator_preset_help() -> str:
     return "; ".join(parts)
 
 
-__all__ = ["PREVIEW_RULE", "DatasetConfig", "PROCEDURAL_KINDS", "GANIMATOR_PRESETS", "LENGTH_UNITS",
+__all__ = ["PREVIEW_RULE", "DatasetConfig", "PROCEDURAL_KINDS", "GANIMATOR_PRESETS", "MODI_PRESETS", "MODI_ABLATIONS",
+           "LENGTH_UNITS",
            "ganimator_preset_help"]

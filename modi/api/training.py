@@ -18,11 +18,13 @@ from __future__ import annotations
 import json
 import os
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
+import torch.distributed as dist
 
 from modi import faults
 from modi.faults import unique_names
@@ -36,8 +38,9 @@ from modi.models.ganimator.data import check_training_length, load_sequences, se
 from modi.models.ganimator.training import Trainer as GanimatorTrainer
 from modi.models.ganimator.training import TrainingInterrupted, blocks_of, checkpoint_path, load_model
 from modi.models.modi.checkpoint import load_checkpoint
-from modi.models.modi.config import MoDiConfig, make_config
-from modi.models.modi.training import NonFiniteLossError, Trainer, prepare_data
+from modi.models.modi import distributed as mdist
+from modi.models.modi.config import ABLATIONS, MoDiConfig, make_config
+from modi.models.modi.training import NonFiniteLossError, Trainer, TrainResult, newest_checkpoint, prepare_data
 from modi.data.normalization import Normalizer
 
 
@@ -82,7 +85,12 @@ class _ModiTrainer(Trainer):
 
 _MODI_SHORTCUTS = {"iters": "train.iters", "batch": "train.batch", "seed": "train.seed", "lr": "train.lr",
                    "frames": "data.n_frames", "fps": "data.fps", "feet": "data.feet"}
-_RESUMABLE = {"train.iters", "train.log_every", "train.sample_every", "train.ckpt_every"}
+_RESUMABLE = ("train.iters", "train.log_every", "train.sample_every", "train.ckpt_every")  # may change on a resume
+LATEST = "latest"  # resume: the run's newest checkpoint, which must exist
+
+# How a message names what the caller gave: Python's spelling here; the CLI passes its flags (``spelling=``).
+PYTHON_SPELLING = {"resume": "resume=True", "resume_auto": "resume='auto'", "resume_path": "resume", "out": "out",
+                   "preset": "preset", "ablation": "ablations"}
 
 
 def modi_config(preset: str = "small", ablations: Sequence[str] = (), config: Mapping[str, Any] | None = None,
@@ -90,13 +98,7 @@ def modi_config(preset: str = "small", ablations: Sequence[str] = (), config: Ma
     """A MoDi config: a preset (``small``, ``paper``), named ablations, dotted overrides (``{"train.iters": 100}``)
     and the shortcuts ``iters``, ``batch``, ``seed``, ``lr``, ``frames``, ``fps``, ``feet`` (``UserError`` for an
     unknown name or a bad value)."""
-    overrides = dict(config or {})
-    for k, v in shortcuts.items():
-        if k not in _MODI_SHORTCUTS:
-            raise UserError(f"unknown option {k!r}; give config={{'section.key': value}} or one of "
-                            f"{', '.join(_MODI_SHORTCUTS)}")
-        if v is not None:
-            overrides[_MODI_SHORTCUTS[k]] = v
+    overrides = _dotted(config, shortcuts)
     feet = overrides.get("data.feet")
     if feet:
         unique_names("--feet", feet)
@@ -106,7 +108,241 @@ def modi_config(preset: str = "small", ablations: Sequence[str] = (), config: Ma
         raise UserError(str(exc)) from None
 
 
-def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str = "small",
+def _dotted(config: Mapping[str, Any] | None, shortcuts: Mapping[str, Any]) -> dict[str, Any]:
+    overrides = dict(config or {})
+    for k, v in shortcuts.items():
+        if k not in _MODI_SHORTCUTS:
+            raise UserError(f"unknown option {k!r}; give config={{'section.key': value}} or one of "
+                            f"{', '.join(_MODI_SHORTCUTS)}")
+        if v is not None:
+            overrides[_MODI_SHORTCUTS[k]] = v
+    return overrides
+
+
+def config_differences(cfg: MoDiConfig, preset: str | None, ablations: Sequence[str], overrides: Mapping[str, Any],
+                       spelling: Mapping[str, str] = PYTHON_SPELLING) -> list[str]:
+    """What was asked for that disagrees with ``cfg`` (a checkpoint's config), one entry per option, named as the
+    caller gave it (``spelling[key]``, e.g. ``--lr 0.001``; else ``key=value``); the keys of ``_RESUMABLE`` may
+    change and are not compared."""
+
+    def show(v) -> str:
+        return " ".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v)
+
+    def norm(v):
+        return list(v) if isinstance(v, (list, tuple)) else v
+
+    out = []
+    if preset is not None and preset != cfg.preset:
+        out.append(f"{spelling.get('preset', 'preset')} {preset} (the checkpoint has {cfg.preset})")
+    wanted: dict[str, tuple[str, object]] = {}  # config key -> (the option as given, the value it sets)
+    for name in ablations:
+        if name not in ABLATIONS:
+            raise UserError(f"unknown ablation {name!r}; choose from {', '.join(sorted(ABLATIONS))}")
+        for key, value in ABLATIONS[name].items():
+            wanted[key] = (f"{spelling.get('ablation', 'ablation')} {name}", value)
+    for key, value in overrides.items():
+        if key in _RESUMABLE:
+            continue
+        wanted[key] = (spelling.get(key, f"{key}={show(value)}"), value)
+    for key, (given, value) in wanted.items():
+        section, _, attr = key.partition(".")
+        try:
+            have = getattr(getattr(cfg, section), attr)
+        except AttributeError:
+            raise UserError(f"unknown config key {key!r}") from None
+        if norm(have) != norm(value) and not any(o.startswith(given + " (") for o in out):
+            out.append(f"{given} ({key} is {show(have)} in the checkpoint)")
+    return out
+
+
+def launched_by_torchrun() -> bool:
+    """Whether this process is one of several that torchrun started (``WORLD_SIZE`` > 1)."""
+    return int(os.environ.get("WORLD_SIZE", "1") or 1) > 1
+
+
+def modi_device(device: str | torch.device = "auto") -> torch.device:
+    """``check_device``, plus ``auto`` (CUDA when there is one, else the CPU) and, under torchrun, ``cuda`` without
+    an index meaning this process's GPU (``LOCAL_RANK``)."""
+    local = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0") or 0))
+    if str(device) == "auto":
+        return local if torch.cuda.is_available() else torch.device("cpu")
+    dev = check_device(device)
+    return local if dev.type == "cuda" and dev.index is None else dev
+
+
+def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset: str | None = None,
+                      default_preset: str = "small", ablations: Sequence[str] = (),
+                      config: Mapping[str, Any] | None = None, resume: bool | str | os.PathLike | None = None,
+                      device: str | torch.device = "auto", threads: int | None = None,
+                      dist_timeout: float | None = None, tensorboard: bool = True, cache: bool = True,
+                      bar: bool = True, log: Callable[[str], Any] | None = None,
+                      progress: ProgressCallback | None = None, spelling: Mapping[str, str] = PYTHON_SPELLING,
+                      hold: list | None = None) -> TrainResult:
+    """One MoDi training run into the run folder ``out``, in this process or as one rank of a torchrun launch
+    (``modi train`` is this call); returns the trainer's result (``exit_code`` 130 / 143 after Ctrl-C / SIGTERM,
+    with a resumable checkpoint saved).
+
+    * config: ``preset`` (else ``default_preset``) + ``ablations`` + ``config`` (dotted keys) for a new run; a
+      resumed run keeps its checkpoint's, and an option that differs from it is refused, except ``_RESUMABLE``;
+    * ``resume``: None/False -- a new run (an existing ``checkpoint.pt`` is refused); True or ``"latest"`` -- the
+      run's newest checkpoint, which must exist; ``"auto"`` -- that checkpoint when there is one, else a new run
+      (what a torchrun restart does unasked); a path -- that checkpoint file;
+    * under torchrun: rank 0 takes the run-folder lock, decides what to resume and reads it, and tells the others;
+      a lost peer is one ``PeerLostError`` line (exit 75). ``hold`` gets the trainer appended, for a caller that
+      must keep the process group alive until it exits (see ``modi.cli.leave_without_teardown``);
+    * ``log`` gets rank 0's summary lines; ``bar`` shows progress bars on rank 0; ``progress`` is called after
+      every step; messages name the options as ``spelling`` says (the CLI's flags, or Python's arguments)."""
+    set_threads(threads)
+    dev = modi_device(device)
+    state: dict = {"trainer": None, "resumed": None}  # what a lost peer's line reports
+    if hold is not None:
+        hold.append(state)
+    distributed = launched_by_torchrun()
+    run_dir = Path(out)
+    try:
+        rank, world = mdist.init_distributed_from_env(dev, dist_timeout)
+        with _run_folder_lock(run_dir, rank, world, dev):
+            return _train(data, run_dir, preset, default_preset, ablations, dict(config or {}), resume, dev, rank,
+                          world, state, tensorboard, cache, bar, log, progress, spelling)
+    except Exception as exc:
+        if distributed and mdist.is_peer_failure(exc):
+            mdist.leave_quietly_on_signals()
+            raise _peer_lost(exc, run_dir, state) from None
+        raise
+
+
+def _peer_lost(exc: Exception, run_dir: Path, state: dict) -> UserError:
+    """The one line for a lost peer: the step this rank was at and the newest checkpoint it knows of."""
+    trainer, resumed = state["trainer"], state["resumed"]
+    step = trainer.step if trainer is not None else None
+    saved = trainer.saved_step if trainer is not None else None
+    where = run_dir / "checkpoint.pt" if saved is not None else None
+    if saved is None and resumed is not None:
+        where, saved = resumed
+    if where is None and (run_dir / "checkpoint.pt").is_file():
+        where = run_dir / "checkpoint.pt"
+    return mdist.peer_lost_error(exc, step=step, checkpoint=where, checkpoint_step=saved)
+
+
+def _run_folder_lock(run_dir: Path, rank: int, world: int, device: torch.device) -> ExitStack:
+    """Rank 0 takes the run folder's lock before anything else (a second run is refused at once, before any data is
+    read); under torchrun every rank learns the outcome, so all of them stop together."""
+    stack, refusal = ExitStack(), None
+    if rank == 0:
+        try:
+            stack.enter_context(faults.hold_run_folder(run_dir))
+        except UserError as exc:
+            refusal = exc
+    if world > 1:
+        flag = torch.tensor([int(refusal is not None)], device=device if device.type == "cuda" else "cpu")
+        dist.broadcast(flag, 0)
+        if int(flag.item()) and refusal is None:
+            refusal = UserError(f"{run_dir}: rank 0 could not take the run folder (see its message)")
+    if refusal is not None:
+        stack.close()
+        raise refusal
+    return stack
+
+
+def _resume_state(resume: bool | str | os.PathLike | None, run_dir: Path, rank: int, world: int,
+                  spelling: Mapping[str, str], log: Callable[[str], Any] | None) -> tuple[Path, dict] | None:
+    """``(path, state)`` of the checkpoint this start continues, or None to start afresh (see
+    ``run_modi_training``'s ``resume``; a torchrun restart without one is ``"auto"``, and with a path continues
+    the run's own newest checkpoint once there is one). Rank 0 decides and reads it and hands it to the other
+    ranks, so every rank loads the same step."""
+    ckpt = run_dir / "checkpoint.pt"
+    again, auto, out_name = spelling["resume"], spelling["resume_auto"], spelling["out"]
+
+    def decide():
+        restart = mdist.torchrun_restart() > 0
+        mode = LATEST if resume is True else (None if resume is False else resume)
+        if mode is None and restart:
+            mode = "auto"
+        if mode is None:
+            if ckpt.exists():
+                raise UserError(f"{ckpt} exists: pass {again} to continue it ({auto} under torchrun), or choose a "
+                                f"new {out_name}")
+            return None
+        if mode in ("auto", LATEST) or restart:
+            found = newest_checkpoint(run_dir, warn=lambda msg: _say(log, f"modi: {msg}"))
+            if found is None and ckpt.exists():
+                raise UserError(f"{ckpt} cannot be read and no snapshot can: move it away to start the run afresh, "
+                                f"or choose a new {out_name}")
+            if found is not None or mode == "auto":
+                return found
+            if mode == LATEST:
+                raise UserError(f"{ckpt}: no checkpoint to resume in {run_dir} ({auto} starts a new run when there "
+                                f"is none)")
+        path = existing_file(mode, "checkpoint to resume", spelling["resume_path"])
+        return path, load_checkpoint(path)
+
+    found, error = None, None
+    if rank == 0:
+        try:
+            found = decide()
+        except Exception as exc:  # noqa: BLE001 - told to the other ranks (not left waiting), then raised here
+            error = exc
+    if world > 1:
+        box = [(found, None if error is None else str(error))]
+        dist.broadcast_object_list(box, 0)
+        found, message = box[0]
+        if message is not None and error is None:
+            error = UserError(f"rank 0 could not resume the run (see its message: {message})")
+    if error is not None:
+        raise error
+    return found
+
+
+def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: dict, resume, dev: torch.device,
+           rank: int, world: int, state: dict, tensorboard: bool, cache: bool, bar: bool, log, progress,
+           spelling: Mapping[str, str]) -> TrainResult:
+    say = log if rank == 0 else None
+    found = _resume_state(resume, run_dir, rank, world, spelling, say)
+    resume_state = None
+    if found is not None:
+        ckpt_path, resume_state = found
+        cfg = MoDiConfig.from_dict(resume_state["config"])
+        diffs = config_differences(cfg, preset, ablations, overrides, spelling)
+        if diffs:
+            raise UserError(f"{ckpt_path} was trained with another config: {'; '.join(diffs)}. A resumed run keeps "
+                            f"its checkpoint's config: drop these options to continue it, or choose a new "
+                            f"{spelling['out']}")
+        for key in _RESUMABLE:
+            if key in overrides:
+                section, _, attr = key.partition(".")
+                setattr(getattr(cfg, section), attr, overrides[key])
+        try:
+            cfg.validate()
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        state["resumed"] = (ckpt_path, int(resume_state["step"]))
+        _say(say, f"modi train: continuing {ckpt_path} from step {int(resume_state['step'])}")
+    else:
+        cfg = modi_config(preset or default_preset, ablations, overrides)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    normalizer = (Normalizer.from_state_dict(resume_state["codec"]["normalizer"]) if resume_state is not None
+                  else None)
+    td = prepare_data(data, cfg, work_dir=run_dir, cache=cache, progress=bar and rank == 0, normalizer=normalizer)
+    if rank == 0:
+        faults.atomic_write(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=1) + "\n")
+        s = td.summary
+        _say(say, f"modi train: {td.windows.shape[0]} training windows {tuple(td.windows.shape[1:])} from "
+                  f"{s.get('train_clips', '?')} clips; hierarchy {td.hierarchy.entity_counts}; preset {cfg.preset}; "
+                  f"{world} process(es) on {dev}; {cfg.train.iters} iterations")
+    trainer = _ModiTrainer(cfg, td, run_dir, device=dev, resume=resume_state, progress=bar, tensorboard=tensorboard,
+                           log=log or (lambda _m: None), progress_fn=progress)
+    state["trainer"] = trainer
+    try:
+        result = trainer.train()
+    except NonFiniteLossError as exc:
+        raise UserError(str(exc)) from None
+    losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items()
+                       if k in ("d", "g", "r1", "path", "touch", "contact"))
+    _say(say, f"modi train: step {result.step} in {result.seconds:.1f} s; checkpoint {result.checkpoint}; {losses}")
+    return result
+
+
+def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str | None = None,
                ablations: Sequence[str] = (), config: Mapping[str, Any] | None = None, iters: int | None = None,
                batch: int | None = None, seed: int | None = None, resume: bool | str | os.PathLike = False,
                device: str | torch.device = "cpu", threads: int | None = None,
@@ -115,53 +351,20 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str =
     """Train MoDi on every BVH under ``data`` (or the word ``procedural``: the built-in clips) into the run folder
     ``out`` (``checkpoint.pt``, ``log.jsonl``, ``config.json``, sample previews); returns the trained generator.
 
-    The config is ``preset`` + ``ablations`` + ``config`` (dotted keys) + the shortcuts ``iters``, ``batch``,
-    ``seed``. ``resume=True`` continues ``out/checkpoint.pt`` (``resume=PATH``: that file) with its config (``iters``
-    may extend it). ``bar`` shows tqdm's bar; ``log`` receives the summary lines (e.g. ``print``). Cost: the data
-    preparation (cached in ``out``), then ``iters`` steps (about 0.1 s each for the small preset on a CPU core).
-    See the module for the guarantees (lock, no overwrite, signals)."""
-    set_threads(threads)
-    dev = check_device(device)
-    run_dir = Path(out)
-    with faults.hold_run_folder(run_dir):  # a second run into the folder is refused before any work
-        ckpt = run_dir / "checkpoint.pt"
-        state = None
-        if resume:
-            if batch is not None or seed is not None or ablations or preset != "small":
-                raise UserError("a resumed run keeps its checkpoint's config: give only iters (and config "
-                                f"keys {', '.join(sorted(_RESUMABLE))}) with resume")
-            path = ckpt if resume is True else Path(resume)
-            existing_file(path, "checkpoint to resume", "--resume")
-            state = load_checkpoint(path)
-            cfg = MoDiConfig.from_dict(state["config"])
-            given = {**dict(config or {}), **({"train.iters": iters} if iters is not None else {})}
-            for key, value in given.items():
-                if key not in _RESUMABLE:
-                    raise UserError(f"{key}: a resumed run keeps its checkpoint's config (only "
-                                    f"{', '.join(sorted(_RESUMABLE))} may change)")
-                section, _, attr = key.partition(".")
-                setattr(getattr(cfg, section), attr, value)
-            cfg.validate()
-        else:
-            cfg = modi_config(preset, ablations, config, iters=iters, batch=batch, seed=seed)
-            if ckpt.exists():
-                raise UserError(f"{ckpt} exists: pass resume=True to continue it, or choose a new out")
-        normalizer = Normalizer.from_state_dict(state["codec"]["normalizer"]) if state is not None else None
-        td = prepare_data(data, cfg, work_dir=run_dir, cache=cache, progress=bar, normalizer=normalizer)
-        faults.atomic_write(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=1) + "\n")
-        s = td.summary
-        _say(log, f"modi train: {td.windows.shape[0]} training windows {tuple(td.windows.shape[1:])} from "
-                  f"{s.get('train_clips', '?')} clips; hierarchy {td.hierarchy.entity_counts}; preset {cfg.preset}; "
-                  f"1 process(es) on {dev}; {cfg.train.iters} iterations")
-        trainer = _ModiTrainer(cfg, td, run_dir, device=dev, resume=state, progress=bar, tensorboard=tensorboard,
-                               log=log or (lambda _m: None), progress_fn=progress)
-        try:
-            result = trainer.train()
-        except NonFiniteLossError as exc:
-            raise UserError(str(exc)) from None
+    The config is ``preset`` (default ``small``) + ``ablations`` + ``config`` (dotted keys) + the shortcuts
+    ``iters``, ``batch``, ``seed``. ``resume=True`` continues the run's newest checkpoint (``resume="auto"``: when
+    there is one, else a new run; ``resume=PATH``: that file) with its config: ``iters`` may extend it, an option
+    that differs from it is refused. ``bar`` shows tqdm's bar; ``log`` receives the summary lines (e.g. ``print``).
+    Cost: the data preparation (cached in ``out``), then ``iters`` steps (about 0.1 s each for the small preset on a
+    CPU core). Under torchrun every rank makes this call. See the module for the guarantees (lock, no overwrite,
+    signals); ``run_modi_training`` is the same run, returning the trainer's result instead."""
+    overrides = _dotted(config, {"iters": iters, "batch": batch, "seed": seed})
+    result = run_modi_training(data, out, preset=preset, ablations=ablations, config=overrides, resume=resume,
+                               device=device, threads=threads, tensorboard=tensorboard, cache=cache, bar=bar,
+                               log=log, progress=progress)
     if result.interrupted:
         raise TrainingInterrupted(result.checkpoint, result.signum)
-    return ModiGenerator.from_checkpoint(result.checkpoint, device=dev)
+    return ModiGenerator.from_checkpoint(result.checkpoint, device=modi_device(device))
 
 
 # ============================================================================================== GANimator
@@ -255,5 +458,6 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
     return GanimatorRun(load_model(run_dir, device=cfg.device) if ckpt.is_file() else model, path=str(run_dir))
 
 
-__all__ = ["Progress", "ProgressCallback", "train_modi", "train_ganimator", "modi_config", "ganimator_config",
-           "TrainingInterrupted", "GANIMATOR_PRESETS"]
+__all__ = ["Progress", "ProgressCallback", "train_modi", "run_modi_training", "train_ganimator", "modi_config",
+           "ganimator_config", "config_differences", "launched_by_torchrun", "modi_device", "TrainingInterrupted",
+           "GANIMATOR_PRESETS"]

@@ -28,11 +28,7 @@ ALLOWED_MODULES = ("modi.api", "modi.cli", "modi.errors")  # and their submodule
 ALLOWED_NAMES = {"modi.io.formats": {"add_format_options"}, "modi.viz": {"add_view_option"}}
 
 # commands not thinned yet, each with its reason (remove an entry when its command is thinned)
-EXCEPTIONS = {
-    "modi_train": "being reworked in parallel (distributed training, issue 43); thin it onto modi.api.train_modi "
-                  "after that: it still reads modi.models.modi.{config,training,sampling,distributed}, modi.faults "
-                  "and modi.data.normalization",
-}
+EXCEPTIONS: dict[str, str] = {}
 
 
 def _imports(source: str, module: str) -> list[tuple[int, str, list[str], bool]]:
