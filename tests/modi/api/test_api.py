@@ -137,6 +137,21 @@ def test_train_modi_refuses_an_existing_run_and_resumes_with_one_argument(proc_d
         modi.train_modi(proc_dir, run, resume=True, config={"train.lr": 0.1})
 
 
+def test_train_modi_resume_auto_and_the_refusal_name_the_options(proc_dir, modi_run, tmp_path, tiny_modi):
+    """``resume="auto"`` starts a run when the folder has none and continues it when it has one; a resumed run
+    refuses an option that differs from its checkpoint's config, naming it, and accepts one that agrees."""
+    import shutil
+
+    fresh = modi.train_modi(proc_dir, tmp_path / "new", config=tiny_modi, iters=1, resume="auto", cache=False)
+    assert fresh.step == 1
+    run = tmp_path / "run"
+    shutil.copytree(modi_run, run)
+    with pytest.raises(UserError, match=r"train\.seed=5 \(train\.seed is 0 in the checkpoint\)"):
+        modi.train_modi(proc_dir, run, resume="auto", seed=5, iters=3, cache=False)
+    gen = modi.train_modi(proc_dir, run, resume="auto", seed=0, iters=3, cache=False)
+    assert gen.step == 3
+
+
 def test_the_run_lock_holds_from_python(proc_dir, tmp_path, tiny_modi):
     from modi import faults
 
