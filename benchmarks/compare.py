@@ -72,7 +72,7 @@ import torch  # noqa: E402
 
 from modi_ext import HAS_EXT  # noqa: E402
 from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv, SkeletalDownsample, SkeletalUpsample  # noqa: E402
-from roofline import Sgemm, count_flops  # noqa: E402  (benchmarks/roofline.py)
+from roofline import Sgemm, blas_at_conv_shapes, count_flops  # noqa: E402  (benchmarks/roofline.py)
 
 # Bandai-Namco motion capture skeleton (22 joints), parents in file order.
 BANDAI_PARENTS = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]
@@ -437,10 +437,34 @@ def main(argv: list[str] | None = None) -> int:
     busy.close()
     sgemm.remeasure()
     _roofline(results, sgemm)
+    if any(n.startswith(("skeletal_conv.finest", "modulated_conv.finest")) for n in results):
+        _blas_bound(results, sgemm, info)
     _backward_over_forward(results)
     _targets(results)
     write_json(args.json, results)
     return 0
+
+
+def _blas_bound(results: dict, sgemm: Sgemm, info: dict) -> None:
+    """torch's sgemm at the finest skeletal conv's own GEMM shapes (``roofline.blas_at_conv_shapes``), and each
+    finest-level conv row's rate as a fraction of it (``ext_frac_blas_shape``): what a GEMM library reaches on the
+    products the conv is made of."""
+    neigh, _, _ = bandai_hierarchy()
+    c, t = MODI_LEVELS[0]
+    nb = neigh[0]
+    shapes = dict(n_out=len(nb), nnz=sum(len(v) for v in nb), c_out=c, c_in=c, taps=3, batch=BATCH, frames=t)
+    rates = blas_at_conv_shapes(**shapes)
+    best = max(rates.values())
+    print(f"# torch sgemm at the finest conv's GEMM shapes ({shapes['n_out']} x {c} x "
+          f"{round(shapes['nnz'] / shapes['n_out']) * c * 3} x {BATCH * t}): "
+          + ", ".join(f"{k} {v:.1f} GF/s ({v / sgemm.gflops:.2f} of sgemm)" for k, v in rates.items()))
+    results["blas_at_conv_shapes.finest"] = {"shapes": shapes, **{f"{k}_gflops": round(v, 2) for k, v in rates.items()},
+                                             **{f"{k}_frac_sgemm": round(v / sgemm.gflops, 4) for k, v in rates.items()},
+                                             **sgemm.describe()}
+    for name, r in results.items():
+        if name.startswith(("skeletal_conv.finest", "modulated_conv.finest")) and "ext_gflops" in r:
+            r["ext_frac_blas_shape"] = round(r["ext_gflops"] / best, 4)
+            print(f"#   {name:36s} ext {r['ext_gflops']:6.1f} GF/s = {r['ext_frac_blas_shape']:.2f} of the best of those")
 
 
 def _roofline(results: dict, sgemm: Sgemm) -> None:

@@ -233,6 +233,31 @@ def sgemm_gflops(n: int = 1024, min_time: float = 0.3, reps: int = 5, m: int | N
     return 2.0 * m * n * k / statistics.median(times) / 1e9
 
 
+def blas_at_conv_shapes(n_out: int, nnz: int, c_out: int, c_in: int, taps: int, batch: int, frames: int,
+                        min_time: float = 0.3) -> dict[str, float]:
+    """GF/s of torch's own sgemm (``torch.bmm``, contiguous operands, no gather) at the GEMM shapes a skeletal conv is
+    made of: ``n_out`` products of ``c_out x K`` by ``K x batch*frames`` with ``K = nnz/n_out * c_in * taps`` (the
+    forward), and the input- and weight-gradient products of the same sizes.  The best a GEMM library does at the
+    conv's own shapes: a bound for the conv that the 1024^3 rate is not (a 32-row product reuses each loaded column
+    32 times, a 1024-row one 1024 times)."""
+    k = max(1, round(nnz / n_out)) * c_in * taps
+    n = batch * frames
+    g = torch.Generator().manual_seed(0)
+    r = lambda *shape: torch.randn(*shape, generator=g)  # noqa: E731
+    a, b, at, gy, x = r(n_out, c_out, k), r(n_out, k, n), r(n_out, k, c_out), r(n_out, c_out, n), r(n_out, n, k)
+    out = {}
+    for name, (lhs, rhs) in {"fwd": (a, b), "grad_input": (at, gy), "grad_weight": (gy, x)}.items():
+        torch.bmm(lhs, rhs)
+        times: list[float] = []
+        start = time.perf_counter()
+        while len(times) < 5 or (time.perf_counter() - start < min_time and len(times) < 200):
+            t0 = time.perf_counter()
+            torch.bmm(lhs, rhs)
+            times.append(time.perf_counter() - t0)
+        out[name] = 2.0 * n_out * c_out * k * n / statistics.median(times) / 1e9
+    return out
+
+
 class Sgemm:
     """The sgemm rate of this run: measured at the start and again at the end (``remeasure``); the faster of the
     two is the reference (a busy moment can only slow one down)."""

@@ -91,6 +91,24 @@ def test_sgemm_rate_is_positive_and_fractions_are_ratios():
     assert gf == pytest.approx(2.0) and frac == pytest.approx(2.0 / s.gflops)
 
 
+def test_blas_at_conv_shapes_times_the_three_products(monkeypatch):
+    """Each of the three products is timed at the conv's sizes: the FLOPs it divides by are 2 * E * Cout * K * N
+    with K = round(nnz / E) * Cin * taps (a spy on torch.bmm sees those operand shapes)."""
+    seen = []
+    real = torch.bmm
+
+    def spy(a, b):
+        seen.append((tuple(a.shape), tuple(b.shape)))
+        return real(a, b)
+
+    monkeypatch.setattr(R.torch, "bmm", spy)
+    rates = R.blas_at_conv_shapes(n_out=5, nnz=14, c_out=4, c_in=3, taps=3, batch=2, frames=8, min_time=0.0)
+    assert set(rates) == {"fwd", "grad_input", "grad_weight"} and all(v > 0 for v in rates.values())
+    k, n = 3 * 3 * 3, 16
+    assert {(5, 4, k), (5, k, n)} <= {s for pair in seen for s in pair}
+    assert set(seen) == {((5, 4, k), (5, k, n)), ((5, k, 4), (5, 4, n)), ((5, 4, n), (5, n, k))}
+
+
 @needs_ext
 def test_profile_step_runs_and_rows_fit_in_the_wall_time(tmp_path):
     import profile_step
