@@ -65,10 +65,13 @@ def _region_of(ev) -> str | None:
     return None
 
 
-def breakdown(events, wall_ms: float, steps: int, top: int = 6) -> list[dict]:
-    """Rows ``{"row", "ms_per_step", "percent"}`` from the profiler's events; they add up to the wall time."""
+def breakdown(events, wall_ms: float, steps: int, top: int = 6,
+              kernel_ops: dict[str, float] | None = None) -> list[dict]:
+    """Rows ``{"row", "ms_per_step", "percent"}`` from the profiler's events; they add up to the wall time.
+    ``kernel_ops``, when given, receives the kernel row split by op (ms per step)."""
     region_ms: dict[str, float] = defaultdict(float)
     kernels = 0.0
+    by_kernel: dict[str, float] = defaultdict(float)
     ops: dict[str, float] = defaultdict(float)
     for ev in events:
         region = _region_of(ev)
@@ -80,9 +83,12 @@ def breakdown(events, wall_ms: float, steps: int, top: int = 6) -> list[dict]:
             continue
         if ev.name.startswith("modi_ext::"):
             kernels += ev.self_cpu_time_total / 1e3
+            by_kernel[ev.name] += ev.self_cpu_time_total / 1e3
         elif ev.name.startswith(("aten::", "prim::")):
             ops[ev.name] += ev.self_cpu_time_total / 1e3
     rows = [("modi_ext kernels", kernels)]
+    if kernel_ops is not None:
+        kernel_ops.update({k: round(v / steps, 3) for k, v in sorted(by_kernel.items(), key=lambda kv: -kv[1])})
     ranked = sorted(ops.items(), key=lambda kv: -kv[1])
     rows += [(f"torch: {name}", ms) for name, ms in ranked[:top]]
     rows.append(("torch: other ops", sum(ms for _, ms in ranked[top:])))
@@ -140,7 +146,8 @@ def profile_modi(preset: str, batch: int, iters: int, data_dir: str | None, warm
             wall_ms = (time.perf_counter() - t) * 1e3
     finally:
         training._accumulate = accumulate
-    rows = breakdown(prof.events(), wall_ms, iters, top)
+    kernel_ops: dict[str, float] = {}
+    rows = breakdown(prof.events(), wall_ms, iters, top, kernel_ops)
     io = amortised_io(tr, cfg, work)
     step_ms = wall_ms / iters
     rows.append({"row": "logging + checkpoint (amortised)", "ms_per_step": round(io["per_step_ms"], 3),
@@ -149,7 +156,8 @@ def profile_modi(preset: str, batch: int, iters: int, data_dir: str | None, warm
             "threads": torch.get_num_threads(), "wall_ms_per_step": round(step_ms, 3),
             "wall_unprofiled_ms_per_step": round(unprofiled_ms, 3),
             "log_ms": round(io["log_ms"], 3), "ckpt_ms": round(io["ckpt_ms"], 3),
-            "log_every": cfg.train.log_every, "ckpt_every": cfg.train.ckpt_every, "rows": rows}
+            "log_every": cfg.train.log_every, "ckpt_every": cfg.train.ckpt_every, "rows": rows,
+            "kernel_ops_ms_per_step": kernel_ops}
 
 
 def print_table(res: dict) -> None:
@@ -160,6 +168,9 @@ def print_table(res: dict) -> None:
     print(f"{'row':42s} {'ms/step':>9s} {'% step':>7s}")
     for r in res["rows"]:
         print(f"{r['row']:42s} {r['ms_per_step']:9.2f} {r['percent']:6.1f}%")
+        if r["row"] == "modi_ext kernels":
+            for name, ms in res.get("kernel_ops_ms_per_step", {}).items():
+                print(f"  {name:40s} {ms:9.2f} {100.0 * ms / res['wall_ms_per_step']:6.1f}%")
 
 
 def main(argv: list[str] | None = None) -> int:

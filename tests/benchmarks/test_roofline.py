@@ -121,4 +121,7 @@ def test_profile_step_runs_and_rows_fit_in_the_wall_time(tmp_path):
     step_rows = [r for r in res["rows"] if "amortised" not in r["row"]]
     assert all(r["ms_per_step"] >= 0 for r in res["rows"])
     assert sum(r["ms_per_step"] for r in step_rows) <= res["wall_ms_per_step"] * 1.001 + 1e-3
-    assert next(r for r in res["rows"] if r["row"] == "modi_ext kernels")["ms_per_step"] > 0
+    kernel_ms = next(r for r in res["rows"] if r["row"] == "modi_ext kernels")["ms_per_step"]
+    assert kernel_ms > 0
+    by_op = res["kernel_ops_ms_per_step"]
+    assert "modi_ext::skeletal_conv" in by_op and sum(by_op.values()) == pytest.approx(kernel_ms, rel=1e-3, abs=0.01)
