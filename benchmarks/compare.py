@@ -458,13 +458,15 @@ def _blas_bound(results: dict, sgemm: Sgemm, info: dict) -> None:
     print(f"# torch sgemm at the finest conv's GEMM shapes ({shapes['n_out']} x {c} x "
           f"{round(shapes['nnz'] / shapes['n_out']) * c * 3} x {BATCH * t}): "
           + ", ".join(f"{k} {v:.1f} GF/s ({v / sgemm.gflops:.2f} of sgemm)" for k, v in rates.items()))
-    results["blas_at_conv_shapes.finest"] = {"shapes": shapes, **{f"{k}_gflops": round(v, 2) for k, v in rates.items()},
-                                             **{f"{k}_frac_sgemm": round(v / sgemm.gflops, 4) for k, v in rates.items()},
-                                             **sgemm.describe()}
+    row: dict = {"shapes": shapes}
+    for k, v in rates.items():
+        row[f"{k}_gflops"], row[f"{k}_frac_sgemm"] = round(v, 2), round(v / sgemm.gflops, 4)
+    results["blas_at_conv_shapes.finest"] = {**row, **sgemm.describe()}
     for name, r in results.items():
         if name.startswith(("skeletal_conv.finest", "modulated_conv.finest")) and "ext_gflops" in r:
             r["ext_frac_blas_shape"] = round(r["ext_gflops"] / best, 4)
-            print(f"#   {name:36s} ext {r['ext_gflops']:6.1f} GF/s = {r['ext_frac_blas_shape']:.2f} of the best of those")
+            print(f"#   {name:36s} ext {r['ext_gflops']:6.1f} GF/s = {r['ext_frac_blas_shape']:.2f} "
+                  "of the best of those")
 
 
 def _roofline(results: dict, sgemm: Sgemm) -> None:

@@ -188,8 +188,8 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
       run's newest checkpoint, which must exist; ``"auto"`` -- that checkpoint when there is one, else a new run
       (what a torchrun restart does unasked); a path -- that checkpoint file;
     * under torchrun: rank 0 takes the run-folder lock, decides what to resume and reads it, and tells the others;
-      a lost peer is one ``PeerLostError`` line (exit 75). ``hold`` gets the trainer appended, for a caller that
-      must keep the process group alive until it exits (see ``modi.cli.leave_without_teardown``);
+      a lost peer is one ``PeerLostError`` line (exit 75). ``hold`` gets the run's state (its trainer) appended,
+      for a caller that must keep the process group alive until it exits (``modi.cli.leave_without_teardown``);
     * ``log`` gets rank 0's summary lines; ``bar`` shows progress bars on rank 0; ``progress`` is called after
       every step; messages name the options as ``spelling`` says (the CLI's flags, or Python's arguments)."""
     set_threads(threads)
