@@ -124,7 +124,7 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
         # exits (module caches of CSR maps, say) are never freed, so a leak report is about Python object
         # lifetimes, not about a kernel's memory safety (the first GPU run, 2026-12-04, reported 496 such "leaks").
         # initcheck watches every kernel: a write by a kernel left out by --kernel-name is not tracked, so torch's own
-        # kernels (the bias gradient's sum, a dtype conversion) would leave "uninitialized" memory behind them that
+        # kernels (e.g. the bias gradient's sum) would leave "uninitialized" memory behind them that
         # our kernels then read and a copy to the host then reports (the first GPU run, 2026-12-04: 75 such errors,
         # every oracle comparison of the same run passing).
         extra = [] if tool == "initcheck" else ["--kernel-name", KERNEL_FILTER]
