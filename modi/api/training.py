@@ -157,13 +157,13 @@ def config_differences(cfg: MoDiConfig, preset: str | None, ablations: Sequence[
 
 def launched_by_torchrun() -> bool:
     """Whether this process is one of several that torchrun started (``WORLD_SIZE`` > 1)."""
-    return int(os.environ.get("WORLD_SIZE", "1") or 1) > 1
+    return mdist.world_size_from_env() > 1
 
 
 def modi_device(device: str | torch.device = "auto") -> torch.device:
     """``check_device``, plus ``auto`` (CUDA when there is one, else the CPU) and, under torchrun, ``cuda`` without
     an index meaning this process's GPU (``LOCAL_RANK``)."""
-    local = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0") or 0))
+    local = torch.device("cuda", mdist.local_rank())
     if str(device) == "auto":
         return local if torch.cuda.is_available() else torch.device("cpu")
     dev = check_device(device)

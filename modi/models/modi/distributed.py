@@ -54,6 +54,16 @@ def dist_timeout_s(value: float | None = None) -> float:
         return DEFAULT_TIMEOUT_S
 
 
+def world_size_from_env() -> int:
+    """The number of processes torchrun started (``WORLD_SIZE``; 1 outside torchrun)."""
+    return int(os.environ.get("WORLD_SIZE", "1") or 1)
+
+
+def local_rank() -> int:
+    """This process's index on its machine (``LOCAL_RANK``; 0 outside torchrun): the GPU it uses."""
+    return int(os.environ.get("LOCAL_RANK", "0") or 0)
+
+
 def init_distributed_from_env(device: torch.device | None = None, timeout_s: float | None = None
                               ) -> tuple[int, int]:
     """Initialise the default process group when launched by ``torchrun`` (WORLD_SIZE > 1); gloo on CPU, NCCL on
@@ -61,15 +71,14 @@ def init_distributed_from_env(device: torch.device | None = None, timeout_s: flo
 
     Returns ``(rank, world_size)``; a no-op (0, 1) for a single process.
     """
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
+    if world_size_from_env() <= 1:
         return 0, 1
     timeout = dist_timeout_s(timeout_s)
     if not dist.is_initialized():
         use_cuda = (device is not None and device.type == "cuda") or (device is None and torch.cuda.is_available())
         backend = "nccl" if use_cuda else "gloo"
         if use_cuda:
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(local_rank())
         # torchrun's static rendezvous (--master-addr/--master-port) keeps one store for all restarts, so the
         # restarted ranks would read the addresses the previous attempt's ranks left there and wait on dead ports
         # (gloo's connectFullMesh): each attempt gets keys of its own.
@@ -294,6 +303,7 @@ def shard_indices(n: int, batch: int, world: int, rank: int, seed: int, step: in
     return out
 
 
-__all__ = ["DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "dist_timeout_s", "init_distributed_from_env",
+__all__ = ["DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "dist_timeout_s", "world_size_from_env", "local_rank",
+           "init_distributed_from_env",
            "torchrun_restart", "under_torchrun", "without_resume", "continue_command", "is_peer_failure",
            "gone_ranks", "peer_lost_error", "leave_quietly_on_signals", "epoch_order", "shard_indices"]
