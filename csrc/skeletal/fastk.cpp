@@ -263,7 +263,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
     const PackEntities pe(csr, direct ? 0 : Co, w, g.nnz * Ci * U, Ci * U);
     const Phase prep[] = {xb.phase(), pe.phase()};
     const Cols& xc = xb.cl;
-    const int64_t nb = batch_tile(g.B, Tq, g.Eout);
+    const int64_t nb = batch_tile(g.B, Tq, g.Eout, 512, nn_col_tile());
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_deg * Ci * U;
     const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.off);
     SlotScratch<float> accs;
@@ -312,7 +312,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
   const PackTransposed<decltype(base)> pt(csr, g.Eout, 2, U, Co, Ci, U, base);
   const Phase prep[] = {xb.phase(), pt.phase()};
   const Cols& xc = xb.cl;
-  const int64_t nb = batch_tile(g.B, Tq, g.Eout);
+  const int64_t nb = batch_tile(g.B, Tq, g.Eout, 512, nn_col_tile());
   const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
   const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
   SlotScratch<float> accs, rowbuf;
@@ -399,7 +399,7 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
             ptr[(s * Co + o) * U + u] = gvc.row(u % 2, o, csr.idx[p0 + s]) + b0 * Tq + u / 2;
       return k * Co * U;
     };
-    const int64_t nb = batch_tile(B, Tq, Ei);
+    const int64_t nb = batch_tile(B, Tq, Ei, 512, nn_col_tile());
     const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Ci, MR);
     const std::vector<int64_t> order = want_input ? lpt_tiles(B, nb, Ei, csr.off) : std::vector<int64_t>{};
     auto input_task = [&](int64_t t, int slot) {
@@ -476,7 +476,7 @@ void backward(const Geo& g, const Csr& csr, const float* gy, const Scale<float>&
     if (!shared_gy) prep.push_back(glb.phase());
   }
 
-  const int64_t nb = batch_tile(B, Tqi, Ei);
+  const int64_t nb = batch_tile(B, Tqi, Ei, 512, nn_col_tile());
   const int64_t ldacc = round_up(nb * Tqi, NR), rows = round_up(Ci, MR);
   const int64_t maxKi = std::max<int64_t>(1, csr.max_tdeg * Co * R), maxKw = csr.max_deg * Ci * U;
   const std::vector<int64_t> order = want_input ? lpt_tiles(B, nb, Ei, csr.toff) : std::vector<int64_t>{};

@@ -52,6 +52,11 @@ inline bool use512() {
 #endif
 }
 
+// The column step of nn_gemm's kernels: a pair of NR tiles on AVX-512, one on AVX2 (batch_tile's col_tile).
+inline int64_t nn_col_tile() {
+  return use512() ? 2 * NR : NR;
+}
+
 // ---- GEMM drivers (fastk_gemm.cpp)
 
 // acc (round_up(M,4) x ldacc) = packed A (panels of 4 rows x K) * pointer rows, columns [0, N) (tiles of 24; the
