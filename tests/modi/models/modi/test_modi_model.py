@@ -13,7 +13,7 @@ from modi.models.modi.losses import (contact_probability, d_logistic_loss, d_r1_
                                     foot_contact_consistency_loss, foot_touch_loss, g_nonsaturating_loss,
                                     lazy_regularization_adam_params, path_length_penalty)
 from modi.models.modi.networks import (Discriminator, Generator, StyledConv, build_levels, fir_blur_time,
-                                      fir_downsample_time, fir_upsample_time, minibatch_stddev)
+                                      fir_downsample_time, fir_upsample_time, minibatch_stddev, std_entities_frames)
 from modi.core.skeleton import Skeleton
 from modi.core.topology import build_hierarchy
 
@@ -360,3 +360,14 @@ def test_codec_ankles_are_the_toe_parents():
     codec = MotionCodec(rep, Normalizer(torch.zeros(rep.K, rep.n_entities), torch.ones(rep.K, rep.n_entities)), 30.0)
     assert [sk.names[j] for j in codec.feet] == ["LeftToe", "RightToe"]
     assert [sk.names[j] for j in codec.ankles] == ["LeftFoot", "RightFoot"]
+
+
+@pytest.mark.parametrize("shape", [(3, 4, 5, 7), (2, 1, 1, 9), (1, 3, 24, 64)])
+def test_std_entities_frames_is_torch_std_with_its_gradients(shape):
+    """The released generator's activation demodulation divides by this: it must equal torch's unbiased std over
+    (entities, frames), with first and second derivatives (path length and R1 differentiate through it)."""
+    g = torch.Generator().manual_seed(sum(shape))
+    x = (torch.randn(shape, generator=g, dtype=torch.float64) * 3 + 1).requires_grad_(True)
+    torch.testing.assert_close(std_entities_frames(x), x.std((2, 3), keepdim=True), rtol=1e-12, atol=0)
+    assert torch.autograd.gradcheck(std_entities_frames, (x,))
+    assert torch.autograd.gradgradcheck(std_entities_frames, (x,))
