@@ -194,7 +194,12 @@ struct PackEntities {
 
 // Output of a stride-2 transposed pass lives in two phase accumulators; rebuild a padded row of length Lp.
 inline void interleave_row(const float* a0, const float* a1, float* out, int64_t Lp) {
-  for (int64_t q = 0; q < Lp; ++q) out[q] = (q & 1) ? a1[q >> 1] : a0[q >> 1];
+  const int64_t pairs = Lp / 2;  // in pairs, without a test per element: the compiler vectorises it
+  for (int64_t i = 0; i < pairs; ++i) {
+    out[2 * i] = a0[i];
+    out[2 * i + 1] = a1[i];
+  }
+  if (Lp & 1) out[Lp - 1] = a0[pairs];
 }
 
 // Transposed pass (output entity list = transposed CSR): acc rows = Mrows channels of output entity n; the
