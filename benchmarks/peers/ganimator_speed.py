@@ -29,7 +29,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from benchmarks.peers import released_ganimator as R
-from benchmarks.peers.speed_released import _measured, _pinned, _run_group, peak_rss_mb
+from benchmarks.peers.speed_released import measured, peak_rss_mb, pinned, run_group
 
 GOAL = 5.0  # issue 41: GANimator whole run >= 5x the authors' code
 CLIP = R.DATA / "Joe" / "Salsa-Dancing-6.bvh"
@@ -52,7 +52,7 @@ def run_arm(arm: str, bvh: Path, iters: int, core: int | None, work: Path, timeo
         cmd = ["modi", "ganimator", "train", str(bvh), "--out", str(out), "--preset", "paper", "--iterations",
                str(iters), "--threads", "1", "--quiet", "--seed", "0"]
     t0 = time.perf_counter()
-    proc = _run_group(_measured(_pinned(cmd, core), rss), timeout)
+    proc = run_group(measured(pinned(cmd, core), rss), timeout)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"{arm} ({iters} iterations per block) failed ({proc.returncode}): "

@@ -46,10 +46,10 @@ def max_rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max().clamp_min(1e-300))
 
 
-def timed(fn: Callable[[], torch.Tensor]) -> tuple[float, torch.Tensor]:
+def timed(fn: Callable[[], torch.Tensor]) -> float:
     t0 = time.perf_counter()
-    out = fn()
-    return time.perf_counter() - t0, out
+    fn()
+    return time.perf_counter() - t0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
                 diffs[name] = max_rel_diff(outs[name], outs["theirs"])
             for _ in range(a.reps):
                 for name, fn in arms.items():
-                    times[name].append(timed(fn)[0])
+                    times[name].append(timed(fn))
 
     summary = {name: {"median_s": statistics.median(t), "range_s": [min(t), max(t)],
                       "motions_per_s": a.n / statistics.median(t), "max_rel_diff": diffs.get(name, 0.0)}
@@ -113,8 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": "python3 benchmarks/peers/sample_speed.py " + " ".join(argv if argv is not None
                                                                               else sys.argv[1:]),
               "config": {"n": a.n, "reps": a.reps, "threads": a.threads, "core": a.core, "bvh_files": names,
-                         "levels": [int(lv.n_entities) for lv in levels] if hasattr(levels[0], "n_entities")
-                         else None, "channels": channels},
+                         "entities_per_level": [int(lv.n_entities) for lv in levels],
+                         "channels": channels},
               "machine": {"cpu": platform.processor() or platform.machine(), "nproc": os.cpu_count(),
                           "torch": torch.__version__},
               "arms": summary, "ratios": ratios, "times_s": times}

@@ -121,7 +121,7 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
            "--ckpt-every", "0", "--no-tensorboard", "--seed", "0"]
     t0 = time.perf_counter()
     rss = workdir / "modi.rss"
-    proc = _run_group(_measured(_pinned(cmd, core), rss), timeout)
+    proc = run_group(measured(pinned(cmd, core), rss), timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"modi train failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
     from modi.models.modi.checkpoint import load_checkpoint
@@ -135,16 +135,16 @@ def run_modi(bvh_dir: Path, batch: int, iters: int, core: int | None, workdir: P
             "channels": [int(lv["channels"]) for lv in levels], "peak_rss_mb": peak_rss_mb(rss)}
 
 
-def _pinned(cmd: list[str], core: int | None) -> list[str]:
+def pinned(cmd: list[str], core: int | None) -> list[str]:
     return (["taskset", "-c", str(core)] + cmd) if core is not None else cmd
 
 
-def _measured(cmd: list[str], rss_file: Path) -> list[str]:
+def measured(cmd: list[str], rss_file: Path) -> list[str]:
     """``cmd`` under the peak-RSS wrapper (``_PEAK_RSS``): after it exits, ``peak_rss_mb(rss_file)``."""
     return [sys.executable, "-c", _PEAK_RSS, str(rss_file)] + cmd
 
 
-def _run_group(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:
+def run_group(cmd: list[str], timeout: float) -> subprocess.CompletedProcess:
     """``subprocess.run`` in a session of its own, whose timeout kills the whole group: the measured process is
     the wrapper's child, which killing the wrapper alone would leave running."""
     proc = subprocess.Popen(cmd, env=one_thread_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -165,8 +165,9 @@ def peak_rss_mb(rss_file: Path) -> float:
 def torch_floor_mb(workdir: Path) -> float:
     """Peak RSS of a process that imports torch and exits: what every arm pays before any work."""
     rss = workdir / "floor.rss"
-    subprocess.run(_measured([sys.executable, "-c", "import torch"], rss), env=one_thread_env(), check=True,
-                   capture_output=True, timeout=300)
+    proc = run_group(measured([sys.executable, "-c", "import torch"], rss), timeout=300)
+    if proc.returncode != 0:
+        raise RuntimeError(f"importing torch failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
     return peak_rss_mb(rss)
 
 
@@ -176,7 +177,7 @@ def run_theirs(arm: str, npy: Path, batch: int, iters: int, core: int | None, wo
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", arm, "--npy", str(npy), "--batch", str(batch),
            "--iters", str(iters), "--workdir", str(workdir / arm), "--worker-out", str(out)]
     rss = workdir / f"{arm}.rss"
-    proc = _run_group(_measured(_pinned(cmd, core), rss), timeout)
+    proc = run_group(measured(pinned(cmd, core), rss), timeout)
     if proc.returncode != 0:
         raise RuntimeError(f"{arm} worker failed ({proc.returncode}): {proc.stderr.strip()[-2000:]}")
     return {**json.loads(out.read_text()), "peak_rss_mb": peak_rss_mb(rss)}

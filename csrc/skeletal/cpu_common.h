@@ -184,11 +184,11 @@ inline int64_t batch_tile(int64_t B, int64_t cols_per_b, int64_t n_entities, int
   };
   const int64_t max_cols = std::max(2 * target, base * cols);
   const int64_t min_tasks = std::min(kMinTasks, ((B + base - 1) / base) * n_entities);
+  auto dist = [&](int64_t n) { return n > base ? n * 1.0 / base : base * 1.0 / n; };  // from the default, as a ratio
   int64_t best = base, best_cost = padded(base);
   for (int64_t n = 1; n <= B; ++n) {
-    if (n == best || n * cols > max_cols || ((B + n - 1) / n) * n_entities < min_tasks) continue;
+    if (n * cols > max_cols || ((B + n - 1) / n) * n_entities < min_tasks) continue;
     const int64_t cost = padded(n);
-    const auto dist = [&](int64_t v) { return v > base ? v * 1.0 / base : base * 1.0 / v; };
     if (cost < best_cost || (cost == best_cost && dist(n) < dist(best))) best = n, best_cost = cost;
   }
   return best;
@@ -215,50 +215,42 @@ inline void fold_row(const T* g, T* out, int64_t L, int64_t h, bool reflect) {
   }
 }
 
-// StyleGAN2 blur after upsampling: y[t] = (v[t-2] + 3 v[t-1] + 3 v[t] + v[t+1]) / 4, zero outside [0, L).  The
-// interior runs without the edge tests, so the compiler vectorises it (the up pass's epilogue was a quarter of its
-// forward); the sums keep the edge form's order, so every value is the same.
-template <typename T>
-inline void blur_row(const T* v, T* y, int64_t L) {
+// The [1 3 3 1] / 4 FIR of a row, zero outside [0, L): y[t] = (3 v[t] + v[t+A] + 3 v[t+B] + v[t+C]) / 4, summed in
+// that order.  The interior runs without the edge tests, so the compiler vectorises it (the up pass's epilogue was
+// a quarter of its forward); the edges add the same terms where they exist, so every value is the same.
+template <typename T, int A, int B, int C>
+inline void fir1331_row(const T* v, T* y, int64_t L) {
+  static_assert(A < 0 && C > 0 && A < B && B < C, "taps around t");
   auto edge = [&](int64_t t) {
+    auto tap = [&](int64_t q) { return q >= 0 && q < L ? v[q] : T(0); };
     T acc = T(3) * v[t];
-    if (t >= 2) acc += v[t - 2];
-    if (t >= 1) acc += T(3) * v[t - 1];
-    if (t + 1 < L) acc += v[t + 1];
+    acc += tap(t + A);
+    acc += T(3) * tap(t + B);
+    acc += tap(t + C);
     return T(0.25) * acc;
   };
-  const int64_t lo = std::min<int64_t>(2, L), hi = std::max<int64_t>(lo, L - 1);
+  const int64_t lo = std::min<int64_t>(-A, L), hi = std::max<int64_t>(lo, L - C);
   for (int64_t t = 0; t < lo; ++t) y[t] = edge(t);
   for (int64_t t = lo; t < hi; ++t) {
     T acc = T(3) * v[t];
-    acc += v[t - 2];
-    acc += T(3) * v[t - 1];
-    acc += v[t + 1];
+    acc += v[t + A];
+    acc += T(3) * v[t + B];
+    acc += v[t + C];
     y[t] = T(0.25) * acc;
   }
   for (int64_t t = hi; t < L; ++t) y[t] = edge(t);
 }
 
-// Its adjoint: gv[s] = (g[s-1] + 3 g[s] + 3 g[s+1] + g[s+2]) / 4 (interior without edge tests, as blur_row).
+// StyleGAN2 blur after upsampling: y[t] = (v[t-2] + 3 v[t-1] + 3 v[t] + v[t+1]) / 4.
+template <typename T>
+inline void blur_row(const T* v, T* y, int64_t L) {
+  fir1331_row<T, -2, -1, 1>(v, y, L);
+}
+
+// Its adjoint: gv[s] = (g[s-1] + 3 g[s] + 3 g[s+1] + g[s+2]) / 4.
 template <typename T>
 inline void blur_adjoint_row(const T* g, T* gv, int64_t L) {
-  auto edge = [&](int64_t s) {
-    T acc = T(3) * g[s];
-    if (s >= 1) acc += g[s - 1];
-    if (s + 1 < L) acc += T(3) * g[s + 1];
-    if (s + 2 < L) acc += g[s + 2];
-    return T(0.25) * acc;
-  };
-  const int64_t lo = std::min<int64_t>(1, L), hi = std::max<int64_t>(lo, L - 2);
-  for (int64_t s = 0; s < lo; ++s) gv[s] = edge(s);
-  for (int64_t s = lo; s < hi; ++s) {
-    T acc = T(3) * g[s];
-    acc += g[s - 1];
-    acc += T(3) * g[s + 1];
-    acc += g[s + 2];
-    gv[s] = T(0.25) * acc;
-  }
-  for (int64_t s = hi; s < L; ++s) gv[s] = edge(s);
+  fir1331_row<T, -1, 1, 2>(g, gv, L);
 }
 
 // Epilogue shared by the input-gradient passes: gx' row (length L) -> gx = gx' * s and the style partial.

@@ -17,7 +17,7 @@ ALLOCATE = "b = bytearray({mb} << 20); b[::4096] = b'x' * len(b[::4096])"  # tou
 
 def _peak(tmp_path: Path, code: str) -> float:
     rss = tmp_path / "child.rss"
-    proc = S._run_group(S._measured([sys.executable, "-c", code], rss), timeout=120)
+    proc = S.run_group(S.measured([sys.executable, "-c", code], rss), timeout=120)
     assert proc.returncode == 0, proc.stderr
     return S.peak_rss_mb(rss)
 
@@ -47,7 +47,7 @@ def test_timeout_kills_the_measured_process_too(tmp_path):
     marker = tmp_path / "alive"
     code = f"import time, pathlib\nwhile True:\n    pathlib.Path({str(marker)!r}).touch()\n    time.sleep(0.05)\n"
     with pytest.raises(subprocess.TimeoutExpired):
-        S._run_group(S._measured([sys.executable, "-c", code], tmp_path / "x.rss"), timeout=3)
+        S.run_group(S.measured([sys.executable, "-c", code], tmp_path / "x.rss"), timeout=3)
     time.sleep(0.5)
     marker.unlink()
     time.sleep(0.5)

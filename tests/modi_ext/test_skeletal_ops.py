@@ -90,6 +90,19 @@ def call(kind: str, fn_mod, args, kw):
     return getattr(R, f"skeletal_{kind}")(*args, kw["style"], kw["demodulate"], kw["padding_mode"])
 
 
+def check_fp32_against_reference(kind: str, args, kw) -> None:
+    """float32 forward and every gradient (input, weight, bias, style) of the ext op against the reference, judged
+    on an O(1) scale: demodulation makes the style gradient a near-cancelling sum."""
+    leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
+    for t in leaves:
+        t.requires_grad_(True)
+    ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
+    torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
+    g = torch.randn_like(yr)
+    for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+
+
 # ----------------------------------------------------------------------------------------------- naive oracle
 def naive_conv(x, dense, bias, style, demod, padding, stride):
     """Loops straight from ARCHITECTURE.md's formula; dense (Cout, Cin, Eo, Ei, U)."""
@@ -274,14 +287,7 @@ def test_narrow_layers_fp32_match_reference(kind, threads):
                                  T=rng.randint(17, 48), padding="reflect")
             # (cin >= 2: with one input channel, demodulation makes the output independent of the style, and its
             # float32 style gradient is pure cancellation noise around 0)
-            leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
-            for t in leaves:
-                t.requires_grad_(True)
-            ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
-            torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
-            g = torch.randn_like(yr)
-            for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
-                torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+            check_fp32_against_reference(kind, args, kw)
     finally:
         torch.set_num_threads(old)
 
@@ -296,14 +302,7 @@ def test_batch_tiles_fp32_match_reference(kind):
     for B, T in ((16, 64), (13, 62), (16, 30)):
         args, kw = make_case(kind, rng, dtype=torch.float32, n_joints=rng.randint(6, 14), distance=1, U=3, B=B,
                              cin=12, cout=12, T=T, padding="zeros")
-        leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
-        for t in leaves:
-            t.requires_grad_(True)
-        ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
-        torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
-        g = torch.randn_like(yr)
-        for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+        check_fp32_against_reference(kind, args, kw)
 
 
 @needs_ext
@@ -316,15 +315,7 @@ def test_gradients_fp32_match_reference(monkeypatch, kind, cpu_kernel):
     for _ in range(12):
         args, kw = make_case(kind, rng, dtype=torch.float32, B=rng.randint(1, 5), cin=rng.randint(1, 9),
                              cout=rng.randint(1, 9), T=rng.randint(3, 40))
-        leaves = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
-        for t in leaves:
-            t.requires_grad_(True)
-        ye, yr = call(kind, ops, args, kw), call(kind, R, args, kw)
-        torch.testing.assert_close(ye, yr, rtol=1e-4, atol=1e-4 * float(yr.abs().max()) + 1e-6)
-        g = torch.randn_like(yr)
-        for a, b in zip(torch.autograd.grad(ye, leaves, g), torch.autograd.grad(yr, leaves, g)):
-            # demodulation makes the style gradient a near-cancelling sum: judge errors on an O(1) scale
-            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+        check_fp32_against_reference(kind, args, kw)
 
 
 @needs_ext
