@@ -35,7 +35,7 @@ from modi.models.ganimator.config import GanimatorConfig
 from modi.models.ganimator.data import K, check_compatible, real_pyramid, resample, sequence_pyramid
 from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, synthesize
-from modi.models.optim import fused_adam
+from modi.models.optim import frozen_heap, fused_adam
 from modi_ext.layers import ForwardKinematics
 
 FORMAT = "modi.ganimator/1"
@@ -427,7 +427,7 @@ class Trainer:
                 log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
                     f"iteration {self.state['iteration']}")
         # Ctrl-C / SIGTERM: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
-        with faults.stop_on_signals("iteration") as stop:
+        with faults.stop_on_signals("iteration") as stop, frozen_heap():
             return self._run_blocks(progress, log, max_seconds, stop)
 
     def _run_blocks(self, progress: bool, log: Callable[[str], None] | None, max_seconds: float | None,

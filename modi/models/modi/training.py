@@ -55,7 +55,7 @@ from modi.models.modi.losses import (
 )
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
 from modi.models.modi.sampling import write_outputs
-from modi.models.optim import fused_adam
+from modi.models.optim import frozen_heap, fused_adam
 
 
 class NonFiniteLossError(RuntimeError):
@@ -438,7 +438,7 @@ class Trainer:
         self.stop = faults.StopRequest()
         lock = faults.hold_run_folder(self.run_dir) if self.rank == 0 else nullcontext()
         with lock, faults.stop_on_signals("iteration", self.stop, notice=self.rank == 0,
-                                          insist=not under_torchrun()):
+                                          insist=not under_torchrun()), frozen_heap():
             if self.rank == 0:
                 faults.remove_stale_temps(self.run_dir / "checkpoint.pt")
                 _cut_log(self.run_dir / "log.jsonl", self.step)
