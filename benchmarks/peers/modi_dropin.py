@@ -1,12 +1,14 @@
 """Run the authors' MoDi ``train.py`` on ``modi_ext`` layers: a run-time patch of their layer classes.
 
 Inside :func:`dropin` (itself inside ``released_modi.peer_runtime``) their ``models.gan.ModulatedConv`` (the
-generator's modulated skeletal convolutions: in place, upsampling, and the to-motion projection) and
+generator's modulated skeletal convolutions: in place, upsampling, and the to-motion projection),
 ``models.gan.EqualConv`` (the discriminator's skeletal convolutions and its convolutional scalers, 3-tap and 1x1)
-are subclasses that build exactly as theirs do (same random draws, same masks and fan-in factors), then keep only
-the entries their mask connects: ``weight`` becomes the compact per-pair ``(C, nnz, C', U)`` parameter that
-``modi_ext.skeletal.ops`` reads, under the same name, so their optimiser (built from ``parameters()`` after
-construction), ``accumulate`` (EMA by parameter name) and checkpoints keep working:
+and ``models.gan.Blur`` (the anti-alias filter before the scalers, as modi's discriminator computes it;
+``blur=False`` keeps theirs) are subclasses that build exactly as theirs do (same random draws, same masks and
+fan-in factors); the convolutions then keep only the entries their mask connects: ``weight`` becomes the compact
+per-pair ``(C, nnz, C', U)`` parameter that ``modi_ext.skeletal.ops`` reads, under the same name, so their optimiser
+(built from ``parameters()`` after construction), ``accumulate`` (EMA by parameter name) and checkpoints keep
+working:
 
 * ``state_dict()`` writes ``weight`` back in their dense masked shape (zeros off the mask: those entries are
   multiplied by zero in their forward), so a checkpoint of the patched script is one of theirs;
@@ -15,7 +17,8 @@ construction), ``accumulate`` (EMA by parameter name) and checkpoints keep worki
 
 Optimiser state follows the parameter, so an Adam state saved by the patched script is compact (resume it with
 the patch). Only their ``--skeleton --conv3fast`` traits (the released model's) are patched; other traits are
-refused at construction. Their ``out / out.std`` activation demodulation and lazy intervals are untouched.
+refused at construction. Their ``out / out.std`` activation demodulation is the same statistic computed as
+modi's generator does (``std_entities_frames``); their lazy intervals are untouched.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from modi.interop.modi_released import MaskViolation, check_masks
+from modi.models.modi.networks import std_entities_frames
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import from_dense, to_dense
 from modi_ext.topology import csr_from_lists
@@ -113,8 +117,9 @@ def _dense_weight_hook(module: Any, state_dict: dict, prefix: str, local_metadat
     state_dict[prefix + "weight"] = module.dense_weight()
 
 
-def _classes(gan: types.ModuleType) -> tuple[type, type]:
-    """Subclasses of their ``ModulatedConv`` and ``EqualConv`` (built per loaded copy of their ``models.gan``)."""
+def _classes(gan: types.ModuleType) -> tuple[type, type, type]:
+    """Subclasses of their ``ModulatedConv``, ``EqualConv`` and ``Blur`` (built per loaded copy of their
+    ``models.gan``)."""
     cached = getattr(gan, "_modi_dropin_classes", None)
     if cached is not None:
         return cached
@@ -144,8 +149,8 @@ def _classes(gan: types.ModuleType) -> tuple[type, type]:
                                       self.n_in_entities, style=s)[..., 2:]
             else:
                 out = ops.skeletal_conv(input.contiguous(), w, None, self.pair_index, self.pair_offsets, style=s)
-            if self.demod_obj == "data":
-                out = out / out.std((2, 3), keepdim=True)
+            if self.demod_obj == "data":  # their out / out.std((2, 3), keepdim=True), as modi's generator computes it
+                out = out / std_entities_frames(out)
             return out
 
     class DropInEqualConv(_Compact, gan.EqualConv):
@@ -180,22 +185,50 @@ def _classes(gan: types.ModuleType) -> tuple[type, type]:
                                     self.pair_offsets)
             return out[..., crop:crop + n]
 
-    gan._modi_dropin_classes = (DropInModulatedConv, DropInEqualConv)
+    class DropInBlur(gan.Blur):
+        """Their ``Blur`` (the [1,3,3,1]/8 anti-alias filter before every stride-2 discriminator conv) as the sum of
+        shifted frames that modi's own discriminator uses (``modi.models.modi.networks.fir_blur_time``).
+
+        On the CPU theirs is ``upfirdn2d_native``: a one-channel ``conv2d`` over a batch of every (sample, channel)
+        row, which oneDNN runs slowly, the backward most (a third of a drop-in iteration in ``torch.profiler``:
+        ``convolution_backward`` 26%, ``mkldnn_convolution`` 6%). Same filter on the frame axis, same padding: the
+        outputs differ by float rounding."""
+
+        def __init__(self, kernel: Any, pad: Any, upsample_factor: int = 1, skeleton_traits: Any = None) -> None:
+            super().__init__(kernel, pad, upsample_factor=upsample_factor, skeleton_traits=skeleton_traits)
+            _check_traits(skeleton_traits, "Blur")
+            if self.kernel.dim() != 2 or self.kernel.shape[0] != 1 or len(self.pad) != 4 or any(self.pad[2:]):
+                raise ValueError(f"modi_dropin: a Blur of kernel {tuple(self.kernel.shape)} and padding {self.pad} "
+                                 "is not patched (only a filter along the frames)")
+
+        def forward(self, input: torch.Tensor) -> torch.Tensor:
+            taps = self.kernel[0].flip(0).to(input.dtype)  # conv2d correlates with the flipped kernel, as theirs
+            y = F.pad(input, (self.pad[0], self.pad[1]))
+            n = y.shape[-1] - taps.shape[0] + 1
+            out = y[..., 0:n] * taps[0]
+            for j in range(1, taps.shape[0]):
+                out = out + y[..., j:j + n] * taps[j]
+            return out
+
+    gan._modi_dropin_classes = (DropInModulatedConv, DropInEqualConv, DropInBlur)
     return gan._modi_dropin_classes
 
 
 @contextlib.contextmanager
-def dropin(peer: types.SimpleNamespace) -> Iterator[tuple[type, type]]:
+def dropin(peer: types.SimpleNamespace, blur: bool = True) -> Iterator[tuple[type, ...]]:
     """While the block runs, models built from their ``models.gan`` (their ``Generator``, ``Discriminator``, their
-    ``train.main``) use the ``modi_ext`` layers. ``peer``: what ``released_modi.peer_runtime()`` yields."""
+    ``train.main``) use the ``modi_ext`` layers, and (``blur``) modi's blur before the stride-2 convs. ``peer``:
+    what ``released_modi.peer_runtime()`` yields."""
     gan = peer.gan
-    mod_cls, eq_cls = _classes(gan)
-    old = gan.ModulatedConv, gan.EqualConv
+    mod_cls, eq_cls, blur_cls = _classes(gan)
+    old = gan.ModulatedConv, gan.EqualConv, gan.Blur
     gan.ModulatedConv, gan.EqualConv = mod_cls, eq_cls
+    if blur:
+        gan.Blur = blur_cls
     try:
-        yield mod_cls, eq_cls
+        yield (mod_cls, eq_cls, blur_cls) if blur else (mod_cls, eq_cls)
     finally:
-        gan.ModulatedConv, gan.EqualConv = old
+        gan.ModulatedConv, gan.EqualConv, gan.Blur = old
 
 
 __all__ = ["dropin", "MaskViolation", "SUPPORTED_TRAITS"]
