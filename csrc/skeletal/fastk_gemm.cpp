@@ -111,75 +111,34 @@ __attribute__((target("avx2,fma"))) inline float hsum(__m256 v) {
   return _mm_cvtss_f32(s);
 }
 
-// C[i][j] += sum_{col in [c0, c0+n)} l[i][col] * p[j][col]  for a 4 x 3 tile.
-__attribute__((target("avx2,fma"))) void nt_kernel(const float* const* l, const float* const* p, int64_t c0,
-                                                    int64_t n, float* C, int64_t ldc) {
-  __m256 a00 = _mm256_setzero_ps(), a01 = a00, a02 = a00, a10 = a00, a11 = a00, a12 = a00;
-  __m256 a20 = a00, a21 = a00, a22 = a00, a30 = a00, a31 = a00, a32 = a00;
-  const float *l0 = l[0], *l1 = l[1], *l2 = l[2], *l3 = l[3], *p0 = p[0], *p1 = p[1], *p2 = p[2];
-  int64_t c = c0;
-  const int64_t end = c0 + n;
-#define MODI_NT_STEP(x0, x1, x2, x3, y0, y1, y2)                                                      \
-  do {                                                                                                 \
-    const __m256 X0 = (x0), X1 = (x1), X2 = (x2), X3 = (x3), Y0 = (y0), Y1 = (y1), Y2 = (y2);          \
-    a00 = _mm256_fmadd_ps(X0, Y0, a00);                                                                \
-    a01 = _mm256_fmadd_ps(X0, Y1, a01);                                                                \
-    a02 = _mm256_fmadd_ps(X0, Y2, a02);                                                                \
-    a10 = _mm256_fmadd_ps(X1, Y0, a10);                                                                \
-    a11 = _mm256_fmadd_ps(X1, Y1, a11);                                                                \
-    a12 = _mm256_fmadd_ps(X1, Y2, a12);                                                                \
-    a20 = _mm256_fmadd_ps(X2, Y0, a20);                                                                \
-    a21 = _mm256_fmadd_ps(X2, Y1, a21);                                                                \
-    a22 = _mm256_fmadd_ps(X2, Y2, a22);                                                                \
-    a30 = _mm256_fmadd_ps(X3, Y0, a30);                                                                \
-    a31 = _mm256_fmadd_ps(X3, Y1, a31);                                                                \
-    a32 = _mm256_fmadd_ps(X3, Y2, a32);                                                                \
-  } while (0)
-  for (; c + 8 <= end; c += 8) {  // the pointer rows in registers; the left rows one at a time (16 registers)
-    __m256 Y0 = _mm256_loadu_ps(p0 + c), Y1 = _mm256_loadu_ps(p1 + c), Y2 = _mm256_loadu_ps(p2 + c);
-    MODI_PIN_REGISTER(Y0);
-    MODI_PIN_REGISTER(Y1);
-    MODI_PIN_REGISTER(Y2);
-    __m256 X = _mm256_loadu_ps(l0 + c);
-    a00 = _mm256_fmadd_ps(X, Y0, a00); a01 = _mm256_fmadd_ps(X, Y1, a01); a02 = _mm256_fmadd_ps(X, Y2, a02);
-    X = _mm256_loadu_ps(l1 + c);
-    a10 = _mm256_fmadd_ps(X, Y0, a10); a11 = _mm256_fmadd_ps(X, Y1, a11); a12 = _mm256_fmadd_ps(X, Y2, a12);
-    X = _mm256_loadu_ps(l2 + c);
-    a20 = _mm256_fmadd_ps(X, Y0, a20); a21 = _mm256_fmadd_ps(X, Y1, a21); a22 = _mm256_fmadd_ps(X, Y2, a22);
-    X = _mm256_loadu_ps(l3 + c);
-    a30 = _mm256_fmadd_ps(X, Y0, a30); a31 = _mm256_fmadd_ps(X, Y1, a31); a32 = _mm256_fmadd_ps(X, Y2, a32);
-  }
-  if (c < end) {
-    const __m256i m = _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(end - c)),
-                                         _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
-    MODI_NT_STEP(_mm256_maskload_ps(l0 + c, m), _mm256_maskload_ps(l1 + c, m), _mm256_maskload_ps(l2 + c, m),
-                 _mm256_maskload_ps(l3 + c, m), _mm256_maskload_ps(p0 + c, m), _mm256_maskload_ps(p1 + c, m),
-                 _mm256_maskload_ps(p2 + c, m));
-  }
-#undef MODI_NT_STEP
-  C[0] += hsum(a00);
-  C[1] += hsum(a01);
-  C[2] += hsum(a02);
-  C[ldc] += hsum(a10);
-  C[ldc + 1] += hsum(a11);
-  C[ldc + 2] += hsum(a12);
-  C[2 * ldc] += hsum(a20);
-  C[2 * ldc + 1] += hsum(a21);
-  C[2 * ldc + 2] += hsum(a22);
-  C[3 * ldc] += hsum(a30);
-  C[3 * ldc + 1] += hsum(a31);
-  C[3 * ldc + 2] += hsum(a32);
-}
 #else
 void nn_kernel(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
 template <int R>
 void nn_rows(int64_t, const float*, const float* const*, int64_t, float*, int64_t) {}
-void nt_kernel(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t) {}
 #endif
 
-// Edge tiles of the NT product (fewer than 4 rows or 3 pointer rows), vectorised like the full tile.  GANimator's
-// layers have 3-9 output channels, so an edge row is a large share of the weight gradient there.
+// The AVX2 NT tile: C[i][j] += sum_{col in [c0, c0+n)} l[i][col] * p[j][col] for MT x KT (up to 4 x 3) dot
+// products, 8 lanes.  The pointer-row strips stay in registers and the left rows are loaded one at a time, so the
+// full 4 x 3 tile fits the 16 registers (12 accumulators).  Edge tiles matter: GANimator's layers have 3-9 output
+// channels, so an edge row is a large share of the weight gradient there.
 #if defined(__x86_64__)
+// One 8-column step of the tile (Masked: the last, partial one, lanes past `m` read as zeros).
+template <int MT, int KT, bool Masked>
+__attribute__((target("avx2,fma"), always_inline)) inline void nt_step(const float* const* l, const float* const* p,
+                                                                        int64_t c, __m256i m, __m256 (&a)[MT][KT]) {
+#define MODI_NT_LOAD(r) (Masked ? _mm256_maskload_ps((r) + c, m) : _mm256_loadu_ps((r) + c))
+  __m256 Y[KT];
+  for (int j = 0; j < KT; ++j) {
+    Y[j] = MODI_NT_LOAD(p[j]);
+    MODI_PIN_REGISTER(Y[j]);
+  }
+  for (int i = 0; i < MT; ++i) {
+    const __m256 X = MODI_NT_LOAD(l[i]);
+    for (int j = 0; j < KT; ++j) a[i][j] = _mm256_fmadd_ps(X, Y[j], a[i][j]);
+  }
+#undef MODI_NT_LOAD
+}
+
 template <int MT, int KT>
 __attribute__((target("avx2,fma"))) void nt_tile(const float* const* l, const float* const* p, int64_t c0, int64_t n,
                                                   float* C, int64_t ldc) {
@@ -188,30 +147,18 @@ __attribute__((target("avx2,fma"))) void nt_tile(const float* const* l, const fl
     for (int j = 0; j < KT; ++j) a[i][j] = _mm256_setzero_ps();
   int64_t c = c0;
   const int64_t end = c0 + n;
-  for (; c + 8 <= end; c += 8) {
-    __m256 X[MT], Y[KT];
-    for (int i = 0; i < MT; ++i) X[i] = _mm256_loadu_ps(l[i] + c);
-    for (int j = 0; j < KT; ++j) {
-      Y[j] = _mm256_loadu_ps(p[j] + c);
-      MODI_PIN_REGISTER(Y[j]);
-    }
-    for (int i = 0; i < MT; ++i)
-      for (int j = 0; j < KT; ++j) a[i][j] = _mm256_fmadd_ps(X[i], Y[j], a[i][j]);
-  }
+  const __m256i none = _mm256_setzero_si256();
+  for (; c + 8 <= end; c += 8) nt_step<MT, KT, false>(l, p, c, none, a);
   if (c < end) {
     const __m256i m = _mm256_cmpgt_epi32(_mm256_set1_epi32(static_cast<int>(end - c)),
                                          _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
-    __m256 X[MT], Y[KT];
-    for (int i = 0; i < MT; ++i) X[i] = _mm256_maskload_ps(l[i] + c, m);
-    for (int j = 0; j < KT; ++j) Y[j] = _mm256_maskload_ps(p[j] + c, m);
-    for (int i = 0; i < MT; ++i)
-      for (int j = 0; j < KT; ++j) a[i][j] = _mm256_fmadd_ps(X[i], Y[j], a[i][j]);
+    nt_step<MT, KT, true>(l, p, c, m, a);
   }
   for (int i = 0; i < MT; ++i)
     for (int j = 0; j < KT; ++j) C[i * ldc + j] += hsum(a[i][j]);
 }
 
-void nt_edge(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n, float* C,
+void nt_avx2(const float* const* l, int64_t mr, const float* const* p, int64_t kr, int64_t c0, int64_t n, float* C,
              int64_t ldc) {
   using Fn = void (*)(const float* const*, const float* const*, int64_t, int64_t, float*, int64_t);
   static constexpr Fn table[TM][TK] = {{nt_tile<1, 1>, nt_tile<1, 2>, nt_tile<1, 3>},
@@ -221,7 +168,7 @@ void nt_edge(const float* const* l, int64_t mr, const float* const* p, int64_t k
   table[mr - 1][kr - 1](l, p, c0, n, C, ldc);
 }
 #else
-void nt_edge(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
+void nt_avx2(const float* const*, int64_t, const float* const*, int64_t, int64_t, int64_t, float*, int64_t) {}
 #endif
 
 // AVX-512 variants of the two kernels (same operands, twice the lanes), used when the CPU has AVX-512F
@@ -487,12 +434,7 @@ void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K,
       const int64_t mr = wide ? (M - m0 + (row_tiles - rt) - 1) / (row_tiles - rt) : std::min(TM, M - m0);
       for (int64_t k0 = 0; k0 < K; k0 += kt) {
         const int64_t kr = std::min(kt, K - k0);
-        if (wide)
-          nt512_tile(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
-        else if (mr == TM && kr == TK)
-          nt_kernel(l + m0, p + k0, c0, n, C + m0 * ldc + k0, ldc);
-        else
-          nt_edge(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
+        (wide ? nt512_tile : nt_avx2)(l + m0, mr, p + k0, kr, c0, n, C + m0 * ldc + k0, ldc);
       }
       m0 += mr;
     }
