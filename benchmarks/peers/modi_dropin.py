@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from modi.interop.modi_released import MaskViolation, check_masks
-from modi.models.modi.networks import std_entities_frames
+from modi.models.modi.networks import fir_blur_time, std_entities_frames
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import from_dense, to_dense
 from modi_ext.topology import csr_from_lists
@@ -186,8 +186,8 @@ def _classes(gan: types.ModuleType) -> tuple[type, type, type]:
             return out[..., crop:crop + n]
 
     class DropInBlur(gan.Blur):
-        """Their ``Blur`` (the [1,3,3,1]/8 anti-alias filter before every stride-2 discriminator conv) as the sum of
-        shifted frames that modi's own discriminator uses (``modi.models.modi.networks.fir_blur_time``).
+        """Their ``Blur`` (the [1,3,3,1]/8 anti-alias filter before every stride-2 discriminator conv) as modi's own
+        discriminator computes it: ``modi.models.modi.networks.fir_blur_time``, a sum of shifted frames.
 
         On the CPU theirs is ``upfirdn2d_native``: a one-channel ``conv2d`` over a batch of every (sample, channel)
         row, which oneDNN runs slowly, the backward most (a third of a drop-in iteration in ``torch.profiler``:
@@ -197,18 +197,20 @@ def _classes(gan: types.ModuleType) -> tuple[type, type, type]:
         def __init__(self, kernel: Any, pad: Any, upsample_factor: int = 1, skeleton_traits: Any = None) -> None:
             super().__init__(kernel, pad, upsample_factor=upsample_factor, skeleton_traits=skeleton_traits)
             _check_traits(skeleton_traits, "Blur")
-            if self.kernel.dim() != 2 or self.kernel.shape[0] != 1 or len(self.pad) != 4 or any(self.pad[2:]):
-                raise ValueError(f"modi_dropin: a Blur of kernel {tuple(self.kernel.shape)} and padding {self.pad} "
-                                 "is not patched (only a filter along the frames)")
+            k = self.kernel
+            # fir_blur_time pads 1 frame before and 2 after: theirs (pad0 >= 1, pad1 <= 2) is that after pad0 - 1
+            # more zeros before, cropped to their length.  Any other blur (their ModulatedConv builds an upsampling
+            # one that the drop-in's forward never calls) runs as theirs.
+            self.as_modi = (k.shape == (1, 4) and bool(torch.allclose(k, k.new_tensor([[1.0, 3.0, 3.0, 1.0]]) / 8))
+                            and len(self.pad) == 4 and not any(self.pad[2:]) and self.pad[0] >= 1
+                            and self.pad[1] <= 2)
 
         def forward(self, input: torch.Tensor) -> torch.Tensor:
-            taps = self.kernel[0].flip(0).to(input.dtype)  # conv2d correlates with the flipped kernel, as theirs
-            y = F.pad(input, (self.pad[0], self.pad[1]))
-            n = y.shape[-1] - taps.shape[0] + 1
-            out = y[..., 0:n] * taps[0]
-            for j in range(1, taps.shape[0]):
-                out = out + y[..., j:j + n] * taps[j]
-            return out
+            if not self.as_modi:
+                return super().forward(input)
+            pad0, pad1 = self.pad[0], self.pad[1]
+            n = input.shape[-1] + pad0 + pad1 - 3
+            return fir_blur_time(F.pad(input, (pad0 - 1, 0)))[..., :n]
 
     gan._modi_dropin_classes = (DropInModulatedConv, DropInEqualConv, DropInBlur)
     return gan._modi_dropin_classes

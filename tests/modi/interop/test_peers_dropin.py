@@ -98,6 +98,7 @@ def test_every_replaced_layer_equals_theirs(peer, data, feet):
         assert type(conv_b).__name__.startswith("DropIn") and not type(conv_a).__name__.startswith("DropIn"), name
         if "blur" in name:  # the scaler's anti-alias filter is the drop-in's too
             assert [type(m).__name__ for m in b][0] == "DropInBlur" and type(a[0]).__name__ == "Blur", name
+            assert b[0].as_modi, name
         # the patched layer stores only the connected pairs; what it writes back is their weight x mask
         assert rel(conv_b.state_dict()["weight"], conv_a.weight * conv_a.mask) == 0.0, name
         assert conv_b.weight.numel() <= conv_a.weight.numel(), name  # equal where a level is fully connected
