@@ -7,6 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 
+# A kernel that fails its first-use self-check would otherwise be swapped for the dense path with a warning, and
+# every test comparing "the kernel" with the reference would pass on the dense path.  Strict makes it an error.
+# (Tests of the fallback itself set the variable with monkeypatch; subprocesses of the CLI tests inherit it.)
+os.environ.setdefault("MODI_EXT_SELFCHECK", "strict")
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MODI_SHARED_DATA", REPO.parent / "shared" / "data"))
 

@@ -301,6 +301,7 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
   const int64_t lda = g.nnz * g.Cin * g.U;
   const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
   SlotScratch<T> panels, accs, rows;
+  const fastk::UpRowFn up_row = std::is_same_v<T, float> && fastk::wanted() ? fastk::up_row_fn() : nullptr;
   auto task = [&](int64_t t, int slot) {
     BlasSequential blas_guard;
     const int64_t bt = order[t] / g.Eout, f = order[t] % g.Eout;
@@ -325,9 +326,15 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
       for (int64_t o = 0; o < g.Cout; ++o) {
         const T fs = scale ? scale[(b * g.Cout + o) * g.Eout + f] : T(1);
         const T bb = bias ? bias[o] : T(0);
+        T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
+        if constexpr (std::is_same_v<T, float>) {
+          if (up_row) {  // the same row pass, vectorised (the padded row folded in place)
+            up_row(nullptr, nullptr, acc + o * N + bl * Tp, dst, g.Tout, g.h, g.reflect, fs, bb);
+            continue;
+          }
+        }
         fold_row<T>(acc + o * N + bl * Tp, v, g.Tout, g.h, g.reflect);
         blur_row<T>(v, bl_out, g.Tout);
-        T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
         for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = bl_out[t2] * fs + bb;
       }
     }
@@ -341,7 +348,7 @@ void forward_dispatch(const Geo& g, const Csr& csr, const T* x, const T* w, cons
                       const T* scale, T* y) {
   if constexpr (std::is_same_v<T, float>) {
     const int64_t frames = g.kind == kUp ? g.Tin : g.Tout;  // columns per batch element of the product
-    if (frames >= fastk::kMinFrames && fastk::wanted()) {
+    if (frames >= fastk::min_frames(static_cast<SkeletalKind>(g.kind), false) && fastk::wanted()) {
       fastk::forward(g, csr, x, w, bias, sty, scale, y);
       return;
     }
@@ -421,7 +428,7 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
   // which reads the inputs in place, wins.
   bool fast_input = false, fast_weight = false;
   if constexpr (std::is_same_v<T, float>) {
-    const bool fast_ok = fastk::wanted() && g.Tin >= fastk::kMinFrames;
+    const bool fast_ok = fastk::wanted() && g.Tin >= fastk::min_frames(static_cast<SkeletalKind>(g.kind), true);
     fast_weight = gw && fast_ok && ((g.kind == kUp ? Ci : Co) <= fastk::kNarrowRows || fastk::use512());
     fast_input = (gx || gs) && fast_ok;
   }

@@ -320,15 +320,13 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
   const int64_t nb = batch_tile(g.B, Tq, g.Eout, 512, nn_col_tile());
   const int64_t ldacc = round_up(nb * Tq, NR), rows = round_up(Co, MR), maxK = csr.max_tdeg * Ci * R;
   const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
-  SlotScratch<float> accs, rowbuf;
+  SlotScratch<float> accs;
   SlotScratch<const float*> ptrs;
+  const UpRowFn up_row = up_row_fn();
   auto task = [&](int64_t t, int slot) {
     float* a0 = accs.get(slot, static_cast<size_t>(2 * rows * ldacc));
     float* const acc[2] = {a0, a0 + rows * ldacc};
     const float** ptr = ptrs.get(slot, static_cast<size_t>(std::max<int64_t>(maxK, 1)));
-    float* vp = rowbuf.get(slot, static_cast<size_t>(Lpf + 2 * g.Tout));
-    float* v = vp + Lpf;
-    float* vb = v + g.Tout;
     const int64_t bt = order[t] / g.Eout, f = order[t] % g.Eout;
     const int64_t b0 = bt * nb, nbl = std::min(nb, g.B - b0), N = nbl * Tq;
     transposed_products(xc, Ci, csr, f, b0, 2, U, Co, pt.pk, ptr, acc, N, ldacc);
@@ -337,11 +335,8 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
       for (int64_t o = 0; o < Co; ++o) {
         const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
         const float bb = bias ? bias[o] : 0.f;
-        interleave_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, vp, Lpf);
-        fold_row<float>(vp, v, g.Tout, h, g.reflect);
-        blur_row<float>(v, vb, g.Tout);
-        float* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
-        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = vb[t2] * fs + bb;
+        up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, nullptr,
+               y + ((b * Co + o) * g.Eout + f) * g.Tout, g.Tout, h, g.reflect, fs, bb);
       }
     }
   };

@@ -23,7 +23,6 @@ namespace fastk {
 
 constexpr int64_t MR = 4, NR = 24;  // NN tile: 4 output rows x 24 columns = 12 ymm accumulators
 constexpr int64_t TM = 4, TK = 3;   // NT tile: 4 x 3 dot products, 8 lanes each
-constexpr int64_t kMinFrames = 16;  // below this the padded columns waste more than the kernels gain
 constexpr int64_t kNarrowRows = 10; // weight-gradient rows up to which the indirect NT kernel beats BLAS (measured:
                                     // 9 rows 1.2x faster at MoDi's batch 16, 12 rows 1.4x slower; GANimator 3-9)
 
@@ -36,6 +35,19 @@ inline bool wanted() {
 #else
   return false;
 #endif
+}
+
+// The fewest frames (the product's columns per batch element: output frames of conv / down, input frames of up) at
+// which a pass takes the indirect kernels rather than cpu.cpp's gather + BLAS path.  Below 16 the padded columns
+// (2h per element) usually cost more than the kernels gain, with two measured exceptions (MoDi's coarse levels,
+// in-process A/B on AVX-512 and on the AVX2 kernels, 2026-12-05): the up forward wins at every size (batch 64 at 5
+// and 9 input frames: 1.4x and 1.6x faster; batch 16: 4% and 16%), since the BLAS path there gathers a panel and
+// folds each row apart; and the conv backward wins from 8 frames (batch 16, 128 channels: 5%; at 4 frames 20%
+// slower).
+inline int64_t min_frames(SkeletalKind kind, bool backward) {
+  if (kind == kUp && !backward) return 1;
+  if (kind == kConv && backward) return 8;
+  return 16;
 }
 
 inline int64_t round_up(int64_t a, int64_t m) { return (a + m - 1) / m * m; }
@@ -79,6 +91,16 @@ void wgrad512(const float* const* l, int64_t M, const float* const* p, int64_t K
 
 // C (M x K, ldc) += L (M pointer rows) * P^T (K pointer rows), contraction over columns [0, N).
 void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K, int64_t N, float* C, int64_t ldc);
+
+// ---- row passes (fastk_rows.cpp)
+
+// One output row of an up pass: the padded row P (length L + 2h; its even positions in a0 and odd ones in a1, read
+// in place, or a plain row in P when a0 is null, folded in place) folded onto [0, L), blurred with [1 3 3 1] / 4,
+// times fs plus bb, into dst.  The same terms as fold_row + blur_row of cpu_common.h, vectorised at the kernels'
+// ISA.  up_row_fn() picks the ISA once (the choice reads the environment), so a pass calls it once, not per row.
+using UpRowFn = void (*)(const float* a0, const float* a1, float* P, float* dst, int64_t L, int64_t h, bool reflect,
+                         float fs, float bb);
+UpRowFn up_row_fn();
 
 // ---- the passes (fastk.cpp)
 

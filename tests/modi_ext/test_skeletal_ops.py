@@ -306,6 +306,26 @@ def test_batch_tiles_fp32_match_reference(kind):
 
 
 @needs_ext
+@pytest.mark.parametrize("cpu_kernel", ["auto", "avx2"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_coarse_levels_fp32_match_reference(monkeypatch, kind, cpu_kernel):
+    """Every frame count from 1 to 15 (MoDi's coarse levels, below the fast path's usual threshold), where the up
+    forward runs the indirect kernels at any size and the conv backward from 8 frames: the values and gradients
+    against the reference, with both paddings (reflect where the frames allow it), on random skeletons."""
+    monkeypatch.setenv("MODI_EXT_CPU_KERNEL", cpu_kernel)
+    rng = random.Random({"conv": 51, "down": 52, "up": 53}[kind])
+    for T in range(1, 16):
+        U = rng.choice([1, 3, 5])
+        frames = 2 * T if kind == "up" else T  # the frames reflect padding needs more of than U // 2
+        padding = rng.choice(["zeros", "reflect"]) if U // 2 < frames else "zeros"
+        if kind == "down" and T < 2:
+            continue
+        args, kw = make_case(kind, rng, dtype=torch.float32, B=rng.randint(1, 5), cin=rng.randint(1, 12),
+                             cout=rng.randint(1, 12), T=T, U=U, padding=padding)
+        check_fp32_against_reference(kind, args, kw)
+
+
+@needs_ext
 @pytest.mark.parametrize("cpu_kernel", ["auto", "blas"])
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradients_fp32_match_reference(monkeypatch, kind, cpu_kernel):
