@@ -12,6 +12,9 @@ random initialisation (``released_modi.random_init_checkpoint``; sampling costs 
 whatever the values). Each arm's output is compared with theirs (``max_rel_diff``: max |a - b| / max |b|), so a
 figure is only reported for arms that computed the same motions. Reported: per arm the median and range of the
 reps, and the ratios their ÷ arm with issue 41's goal (modi >= 60x their generator).
+
+The process first applies ``modi.models.optim.retain_freed_memory`` (what the ``modi`` command does at start), so
+every arm, theirs included, reuses freed blocks instead of page-faulting them in anew.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ from benchmarks.peers import released_modi as R
 from benchmarks.peers.modi_dropin import dropin
 from benchmarks.peers.speed_released import prepare_data
 from modi.interop import modi_released as M
+from modi.models.optim import retain_freed_memory
 
 GOAL = 60.0  # issue 41: sampling 64 motions, modi >= 60x their generator
 SAME = 1e-3  # max relative difference (fp32) below which two arms computed the same motions
@@ -71,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     except R.PeerUnavailable as exc:
         print(f"sample_speed: {exc}", file=sys.stderr)
         return 2
+    retained = retain_freed_memory()
     if a.core is not None:
         os.sched_setaffinity(0, {a.core})
     torch.set_num_threads(a.threads)
@@ -114,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                               else sys.argv[1:]),
               "config": {"n": a.n, "reps": a.reps, "threads": a.threads, "core": a.core, "bvh_files": names,
                          "entities_per_level": [int(lv.n_entities) for lv in levels],
-                         "channels": channels},
+                         "channels": channels, "retain_freed_memory": retained},
               "machine": {"cpu": platform.processor() or platform.machine(), "nproc": os.cpu_count(),
                           "torch": torch.__version__},
               "arms": summary, "ratios": ratios, "times_s": times}

@@ -114,7 +114,9 @@ def _run(argv: list[str] | None) -> int:
         import modi_ext  # noqa: F401  first, before the commands import torch: it picks the OpenMP spin (omp_wait)
         import numpy  # noqa: F401
         import torch  # noqa: F401
+    from modi.models.optim import retain_freed_memory  # imports torch: after the held start-up above
 
+    retain_freed_memory()  # every command's tensors: freed blocks reused, not page-faulted in anew
     parser = build_parser()
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)

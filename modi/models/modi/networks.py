@@ -353,6 +353,19 @@ def std_entities_frames(x: torch.Tensor) -> torch.Tensor:
     return (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).sqrt()[..., None, None]
 
 
+def std_normalised_leaky_relu_(x: torch.Tensor, bias: torch.Tensor, slope: float = 0.2) -> torch.Tensor:
+    """``fused_leaky_relu(x / std_entities_frames(x), bias)`` for inference, in ``x``'s memory (a copy first only if
+    ``x`` is not contiguous): sqrt(2) / std folds into one per-(sample, channel) factor, and the scale, the bias and
+    the activation run in place, where the autograd form allocates a tensor at each of its six elementwise steps.
+    Same values to float rounding; no graph (call it under ``torch.no_grad()``)."""
+    x = x.contiguous()
+    f = x.view(*x.shape[:2], -1)
+    d = f - f.mean(-1, keepdim=True)
+    s = (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).rsqrt_().mul_(SQRT2)
+    x.mul_(s[..., None, None]).add_((bias * SQRT2).view(1, -1, 1, 1))
+    return F.leaky_relu_(x, slope)
+
+
 class StyledConv(nn.Module):
     """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
 
@@ -371,6 +384,9 @@ class StyledConv(nn.Module):
 
     def forward(self, x: torch.Tensor, w: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         x = self.conv(F.pad(x, (1, 0)), w)[..., 2:] if self.stylegan2_up else self.conv(x, w)
+        if self.demodulate_activations and self.noise is None and self.act.bias is not None \
+                and not torch.is_grad_enabled():  # sampling: the same values without the autograd form's tensors
+            return std_normalised_leaky_relu_(x, self.act.bias)
         if self.demodulate_activations:
             x = x / std_entities_frames(x)
         if self.noise is not None:

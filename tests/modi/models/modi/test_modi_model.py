@@ -13,7 +13,8 @@ from modi.models.modi.losses import (contact_probability, d_logistic_loss, d_r1_
                                     foot_contact_consistency_loss, foot_touch_loss, g_nonsaturating_loss,
                                     lazy_regularization_adam_params, path_length_penalty)
 from modi.models.modi.networks import (Discriminator, Generator, StyledConv, build_levels, fir_blur_time,
-                                      fir_downsample_time, fir_upsample_time, minibatch_stddev, std_entities_frames)
+                                      fir_downsample_time, fir_upsample_time, fused_leaky_relu, minibatch_stddev,
+                                      std_entities_frames, std_normalised_leaky_relu_)
 from modi.core.skeleton import Skeleton
 from modi.core.topology import build_hierarchy
 
@@ -360,6 +361,50 @@ def test_codec_ankles_are_the_toe_parents():
     codec = MotionCodec(rep, Normalizer(torch.zeros(rep.K, rep.n_entities), torch.ones(rep.K, rep.n_entities)), 30.0)
     assert [sk.names[j] for j in codec.feet] == ["LeftToe", "RightToe"]
     assert [sk.names[j] for j in codec.ankles] == ["LeftFoot", "RightFoot"]
+
+
+@pytest.mark.parametrize("crop", [0, 2])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_std_normalised_leaky_relu_is_the_autograd_form(dtype, crop):
+    """Sampling's in-place form of the released generator's activation demodulation + bias + leaky ReLU: the
+    values of the autograd form, on a contiguous tensor and on the cropped view the StyleGAN2-padded upsampler
+    leaves (which it must copy, not write through)."""
+    g = torch.Generator().manual_seed(crop)
+    full = torch.randn(4, 6, 5, 11 + crop, generator=g, dtype=dtype) * 3 + 1
+    x = full[..., crop:]
+    bias = torch.randn(6, generator=g, dtype=dtype)
+    want = fused_leaky_relu(x / std_entities_frames(x), bias)
+    kept = full.clone()
+    got = std_normalised_leaky_relu_(x if crop else x.clone(), bias)
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
+    torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+    if crop:
+        assert torch.equal(full, kept)  # the view was copied, its base left as it was
+
+
+def test_styled_conv_samples_as_it_trains(monkeypatch):
+    """The released StyledConv (activation demodulation) takes the in-place path under no_grad, with the output of
+    the autograd path it takes when training."""
+    import modi.models.modi.networks as networks
+
+    class StyleScale(torch.nn.Module):  # a stand-in conv: what matters here is what follows it
+        def forward(self, x, w):
+            return x * w.mean(1).view(-1, 1, 1, 1)
+
+    torch.manual_seed(0)
+    layer = StyledConv(StyleScale(), 6, 5, 16, use_noise=False, demodulate_activations=True)
+    with torch.no_grad():
+        layer.act.bias.normal_()
+    calls = []
+    real = networks.std_normalised_leaky_relu_
+    monkeypatch.setattr(networks, "std_normalised_leaky_relu_", lambda *a: calls.append(1) or real(*a))
+    x, w = torch.randn(3, 6, 5, 16), torch.randn(3, 8)
+    want = layer(x, w)
+    assert want.grad_fn is not None and not calls
+    with torch.no_grad():
+        got = layer(x, w)
+    assert calls == [1]
+    torch.testing.assert_close(got, want.detach(), rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("shape", [(3, 4, 5, 7), (2, 1, 1, 9), (1, 3, 24, 64)])
