@@ -14,7 +14,8 @@ figure is only reported for arms that computed the same motions. Reported: per a
 reps, and the ratios their ÷ arm with issue 41's goal (modi >= 60x their generator).
 
 The process first applies ``modi.models.optim.retain_freed_memory`` (what the ``modi`` command does at start), so
-every arm, theirs included, reuses freed blocks instead of page-faulting them in anew.
+every arm, theirs included, reuses freed blocks instead of page-faulting them in anew; ``--malloc default`` leaves
+glibc's defaults for all three.
 """
 from __future__ import annotations
 
@@ -64,6 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--core", type=int, default=None, help="pin this process to one core (with --threads 1)")
     ap.add_argument("--bvh", type=int, default=8, help="Bandai-Namco files for their statics (the first N)")
+    ap.add_argument("--malloc", choices=("retain", "default"), default="retain",
+                    help="retain: glibc keeps freed blocks (as the modi command sets it), for every arm")
     ap.add_argument("--json", type=Path, default=REPO / "benchmarks" / "results" / "peers_sample.json")
     a = ap.parse_args(argv)
     if min(a.n, a.reps, a.threads) < 1:
@@ -75,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     except R.PeerUnavailable as exc:
         print(f"sample_speed: {exc}", file=sys.stderr)
         return 2
-    retained = retain_freed_memory()
+    retained = retain_freed_memory() if a.malloc == "retain" else False
     if a.core is not None:
         os.sched_setaffinity(0, {a.core})
     torch.set_num_threads(a.threads)
