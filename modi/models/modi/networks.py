@@ -112,12 +112,15 @@ def _pool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
 
 # --------------------------------------------------------------------------------------------- small building blocks
 def fir_upsample_time(x: torch.Tensor) -> torch.Tensor:
-    """Double the last axis with StyleGAN2's [1,3,3,1] FIR (zero-insertion, gain 2) -- linear interpolation."""
-    n = x.shape[-1]
-    y = x.new_zeros(*x.shape[:-1], 2 * n)
-    y[..., ::2] = x
-    y = F.pad(y, (2, 1))
-    return 0.25 * y[..., 0 : 2 * n] + 0.75 * y[..., 1 : 2 * n + 1] + 0.75 * y[..., 2 : 2 * n + 2] + 0.25 * y[..., 3:]
+    """Double the last axis with StyleGAN2's [1,3,3,1] FIR (zero-insertion, gain 2) -- linear interpolation.
+
+    On the zero-inserted signal every output frame has two nonzero taps: frame 2i is 0.25 x[i-1] + 0.75 x[i] and
+    frame 2i+1 is 0.75 x[i] + 0.25 x[i+1] (x zero outside), computed so, at the input's length, and interleaved --
+    the same values bit for bit as filtering the zero-inserted signal (the skipped terms are exact zeros, the sums
+    in the same order), in 8 elementwise ops at the input's length where that took 11 at twice it."""
+    xp = F.pad(x, (1, 1))
+    three = 0.75 * x
+    return torch.stack([0.25 * xp[..., :-2] + three, three + 0.25 * xp[..., 2:]], dim=-1).flatten(-2)
 
 
 def fir_downsample_time(x: torch.Tensor) -> torch.Tensor:

@@ -7,6 +7,7 @@ import random
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from modi.models.modi.config import ABLATIONS, MoDiConfig, ModelConfig, make_config
 from modi.models.modi.losses import (contact_probability, d_logistic_loss, d_r1_penalty,
@@ -208,6 +209,26 @@ def test_fir_filters():
     down = fir_downsample_time(torch.ones(1, 16))
     assert down.shape[-1] == 8 and torch.allclose(down[..., 1:-1], torch.ones(1, 6))
     assert fir_blur_time(torch.ones(3, 9)).shape == (3, 9)
+
+
+def test_fir_upsample_is_the_filtered_zero_insertion():
+    """The two-tap form equals StyleGAN2's definition (zero-insert, pad (2, 1), [1 3 3 1] / 4 with gain 2) bit for
+    bit, and its gradients are that linear map's."""
+    def zero_inserted(x):
+        n = x.shape[-1]
+        y = x.new_zeros(*x.shape[:-1], 2 * n)
+        y[..., ::2] = x
+        y = F.pad(y, (2, 1))
+        return 0.25 * y[..., :2 * n] + 0.75 * y[..., 1:2 * n + 1] + 0.75 * y[..., 2:2 * n + 2] + 0.25 * y[..., 3:]
+
+    g = torch.Generator().manual_seed(3)
+    for shape in [(7,), (2, 3, 5, 1), (3, 4, 6, 16)]:
+        x = torch.randn(shape, generator=g)
+        assert torch.equal(fir_upsample_time(x), zero_inserted(x))
+    x = torch.randn(2, 3, 9, dtype=torch.float64, generator=g, requires_grad=True)
+    gy = torch.randn(2, 3, 18, dtype=torch.float64, generator=g)
+    torch.testing.assert_close(torch.autograd.grad(fir_upsample_time(x), x, gy)[0],
+                               torch.autograd.grad(zero_inserted(x), x, gy)[0], rtol=1e-14, atol=1e-14)
 
 
 def test_minibatch_stddev_values():
