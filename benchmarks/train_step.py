@@ -31,6 +31,9 @@ Roofline (``benchmarks/roofline.py``): the FLOPs of each step kind (MoDi) or of 
 once during the warm-up on the extension's path (``flops``: the sparse per-pair formulas for the modi_ext ops, torch's
 for the rest, every order of backward as it runs), and sgemm (``torch.mm`` 1024^3, same threads) is timed in this
 process at the start and the end; every time gets GF/s and its fraction of the faster sgemm figure.
+
+The process keeps freed blocks in glibc's heap, as the ``modi`` command does (``retain_freed_memory``);
+``--malloc default`` leaves glibc's defaults.
 """
 from __future__ import annotations
 
@@ -60,6 +63,7 @@ import torch  # noqa: E402
 from compare import forced_env, machine, write_json  # noqa: E402  (benchmarks/compare.py)
 from roofline import Sgemm, count_flops  # noqa: E402  (benchmarks/roofline.py)
 from modi_ext import HAS_EXT  # noqa: E402
+from modi.models.optim import retain_freed_memory  # noqa: E402
 
 SIDES = {"ref": {"MODI_EXT_IMPL": "ref", "MODI_EXT_DOUBLE": "ext"},
          "dense": {"MODI_EXT_IMPL": "dense", "MODI_EXT_DOUBLE": "ext"},
@@ -300,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--malloc", choices=("retain", "default"), default="retain",
+                    help="retain: glibc keeps freed blocks, as the modi command sets it")
     ap.add_argument("--busy", type=int, default=0, metavar="N",
                     help="keep N cores busy with spinning helper processes while timing (compare.py --busy)")
     args = ap.parse_args(argv)
@@ -312,6 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     bad = [s for s in sides if s not in SIDES]
     if bad or not sides:
         ap.error(f"--sides: unknown {bad}; choose among {', '.join(SIDES)}")
+    retained = retain_freed_memory() if args.malloc == "retain" else False
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -328,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"# {args.busy} core(s) kept busy by spinning helper processes (pinned to {taken})")
         body = bench_modi(args, sides, device) if args.model == "modi" else bench_ganimator(args, sides, device)
     res = {"machine": desc, "date": time.strftime("%Y-%m-%d"), "device": str(device), "model": args.model,
+           "retain_freed_memory": retained,
            "omp_wait": modi_ext.omp_wait_policy(), "busy": args.busy, **body}
     if args.sgemm is not None:
         res["roofline"] = args.sgemm.describe()
