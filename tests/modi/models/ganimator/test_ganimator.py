@@ -118,6 +118,21 @@ def test_fixed_grid_resample_matches_interpolate_and_is_prefix_stable():
     assert torch.allclose(a[..., :30], b[..., :30])
 
 
+def test_resample_grids_are_kept_per_length_ratio_dtype():
+    """The cached grids serve each (length, ratio, input length, dtype) its own: a float64 call after a float32 one
+    of the same shape stays float64 and exact, and the cached tensors are not changed by use."""
+    x32 = torch.randn(1, 6, 2, 11)
+    a = resample(x32, 15, 11 / 15)
+    x64 = x32.double()
+    b = resample(x64, 15, 11 / 15)
+    assert a.dtype == torch.float32 and b.dtype == torch.float64
+    ref = torch.nn.functional.interpolate(x64.reshape(1, 12, 11), size=15, mode="linear", align_corners=False)
+    torch.testing.assert_close(b.reshape(1, 12, 15), ref, rtol=1e-12, atol=1e-12)
+    b.add_(1.0)  # the result is the caller's: the next call computes afresh
+    torch.testing.assert_close(resample(x64, 15, 11 / 15).reshape(1, 12, 15), ref, rtol=1e-12, atol=1e-12)
+    assert resample(x32, 7, 11 / 7).shape[-1] == 7  # another length, another grid
+
+
 # ------------------------------------------------------------------------------------------- features
 
 
