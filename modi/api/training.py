@@ -209,6 +209,14 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
             mdist.leave_quietly_on_signals()
             raise _peer_lost(exc, run_dir, state) from None
         raise
+    except faults.Terminated:
+        # torchrun SIGTERMs every worker once one has died; it can reach this rank before its own next collective
+        # fails, or while a collective's error unwinds to the handler above: then the lost peer is what to report
+        lost = mdist.stopped_for_a_lost_peer() if distributed else None
+        if lost is None:
+            raise
+        mdist.leave_quietly_on_signals()
+        raise _peer_lost(lost, run_dir, state) from None
 
 
 def _peer_lost(exc: Exception, run_dir: Path, state: dict) -> UserError:

@@ -219,6 +219,17 @@ def gone_ranks(settle_s: float = 2.0) -> tuple[list[int], bool]:
     return [], False
 
 
+def stopped_for_a_lost_peer() -> BaseException | None:
+    """Called on a SIGTERM that reached this rank outside its training loop: when a rank on this host has already
+    ended, the SIGTERM is torchrun's reaction to that loss, and the loss is the story (the error to report, which
+    this returns), not the signal. Looked at once, without waiting: a job stopped as a whole sends every rank its
+    SIGTERM at once, and none of them has ended by the time the first one handles it."""
+    ranks, certain = gone_ranks(settle_s=0.0)
+    if not (ranks and certain):
+        return None
+    return RuntimeError("torchrun stopped this worker (SIGTERM) after the loss")
+
+
 def peer_lost_error(exc: BaseException, *, step: int | None, checkpoint: Path | None,
                     checkpoint_step: int | None) -> PeerLostError:
     """The one line for a peer lost while this rank was at ``step``: who went away (when known) and why it is
@@ -306,4 +317,5 @@ def shard_indices(n: int, batch: int, world: int, rank: int, seed: int, step: in
 __all__ = ["DEFAULT_TIMEOUT_S", "TIMEOUT_ENV", "dist_timeout_s", "world_size_from_env", "local_rank",
            "init_distributed_from_env",
            "torchrun_restart", "under_torchrun", "without_resume", "continue_command", "is_peer_failure",
-           "gone_ranks", "peer_lost_error", "leave_quietly_on_signals", "epoch_order", "shard_indices"]
+           "gone_ranks", "stopped_for_a_lost_peer", "peer_lost_error", "leave_quietly_on_signals", "epoch_order",
+           "shard_indices"]

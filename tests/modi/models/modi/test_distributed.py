@@ -489,6 +489,28 @@ def test_lost_peer_errors_are_told_from_bugs_and_make_one_line(monkeypatch):
         ["train", "d", "--iters", "5"]
 
 
+def test_a_sigterm_after_a_peer_died_is_told_as_the_lost_peer(monkeypatch):
+    """torchrun SIGTERMs the survivors once a worker died; when that signal reaches rank 0 before its own collective
+    fails, rank 0 reports the lost peer (exit 75), not "terminated". A job stopped as a whole (its peers alive when
+    the signal arrives) stays a plain SIGTERM."""
+    host = socket.gethostname()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # ended and reaped
+    monkeypatch.setitem(mdist._state, "rank", 0)
+    monkeypatch.setitem(mdist._state, "timeout_s", 4.0)
+    monkeypatch.setenv("TORCHELASTIC_RESTART_COUNT", "0")
+    monkeypatch.setenv("TORCHELASTIC_MAX_RESTARTS", "2")
+    monkeypatch.setitem(mdist._state, "peers", [(host, os.getpid()), (host, os.getppid())])
+    assert mdist.stopped_for_a_lost_peer() is None  # the peer is alive: the whole job was stopped
+    monkeypatch.setitem(mdist._state, "peers", [(host, os.getpid()), (host, dead.pid)])
+    lost = mdist.stopped_for_a_lost_peer()
+    assert lost is not None
+    text = str(mdist.peer_lost_error(lost, step=16, checkpoint=Path("RUN/checkpoint.pt"), checkpoint_step=10))
+    assert text.startswith(f"rank 1 (pid {dead.pid} on {host}) has ended at step 16 (torchrun stopped this "
+                           "worker (SIGTERM) after the loss); the newest checkpoint, step 10 in RUN/checkpoint.pt, "
+                           "is intact; torchrun restarts the job from it (restart 1 of 2)"), text
+
+
 def test_resume_auto_starts_continues_and_refuses_another_config(data, tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
     tiny = ["train", str(data), "--out", str(run), *SMALL]
