@@ -150,7 +150,12 @@ def resample(x: Tensor, length: int, ratio: float) -> Tensor:
     L_in = x.shape[-1]
     if L_in == 0:
         raise ValueError("resample: empty input")
-    lo, hi, w, w1 = _resample_grid(int(length), float(ratio), L_in, x.dtype, x.device)
+    if type(x) is not torch.Tensor or torch.compiler.is_compiling():
+        # traced (ONNX export, torch.compile): built afresh as ops of the trace, its sizes left symbolic -- a grid
+        # made under a fake mode must never reach the cache, nor a cached one a trace
+        lo, hi, w, w1 = _resample_grid.__wrapped__(length, ratio, L_in, x.dtype, x.device)
+    else:
+        lo, hi, w, w1 = _resample_grid(int(length), float(ratio), int(L_in), x.dtype, x.device)
     return x.index_select(-1, lo) * w1 + x.index_select(-1, hi) * w
 
 
@@ -159,13 +164,15 @@ def _resample_grid(length: int, ratio: float, L_in: int, dtype: torch.dtype, dev
                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """resample's source frames and weights (lo, hi, w, 1 - w) for one (length, ratio, input length): a training
     run asks for the same few grids thousands of times (every level of every forward), and building one took a
-    dozen small tensor ops, more than the resampling itself. Callers only read them."""
-    pos = (torch.arange(length, dtype=torch.float64) + 0.5) * ratio - 0.5
-    pos = pos.clamp(0.0, L_in - 1)
-    lo = pos.floor().long()
-    hi = (lo + 1).clamp(max=L_in - 1)
-    w = (pos - lo.to(torch.float64)).to(dtype).to(device)
-    return lo.to(device), hi.to(device), w, 1 - w
+    dozen small tensor ops, more than the resampling itself. Callers only read them. Made outside inference mode,
+    so that a grid first built while sampling can be saved for a backward later."""
+    with torch.inference_mode(False):
+        pos = (torch.arange(length, dtype=torch.float64) + 0.5) * ratio - 0.5
+        pos = pos.clamp(0.0, L_in - 1)
+        lo = pos.floor().long()
+        hi = (lo + 1).clamp(max=L_in - 1)
+        w = (pos - lo.to(torch.float64)).to(dtype).to(device)
+        return lo.to(device), hi.to(device), w, 1 - w
 
 
 def resample_support(i: int, ratio: float, L_in: int | None = None) -> tuple[int, int]:

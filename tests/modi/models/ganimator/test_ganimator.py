@@ -131,6 +131,11 @@ def test_resample_grids_are_kept_per_length_ratio_dtype():
     b.add_(1.0)  # the result is the caller's: the next call computes afresh
     torch.testing.assert_close(resample(x64, 15, 11 / 15).reshape(1, 12, 15), ref, rtol=1e-12, atol=1e-12)
     assert resample(x32, 7, 11 / 7).shape[-1] == 7  # another length, another grid
+    with torch.inference_mode():  # a grid first built while sampling ...
+        resample(x32, 9, 11 / 9)
+    y = x32.clone().requires_grad_(True)
+    resample(y, 9, 11 / 9).sum().backward()  # ... serves a backward later (its tensors are saved for it)
+    assert y.grad is not None and y.grad.abs().sum() > 0
 
 
 # ------------------------------------------------------------------------------------------- features
