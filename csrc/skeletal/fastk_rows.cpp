@@ -31,17 +31,14 @@ __attribute__((always_inline)) inline void up_row_body(const float* a0, const fl
     acc += v1;
     return (0.25f * acc) * fs + bb;
   };
-  if (!a0) {
-    float* v = P + h;  // the fold writes inside v and reads the pad positions outside it
+  if (!a0) {  // cpu_common.h's fold (in place) and FIR, then the scale and bias
+    float* v = P + h;
     if (reflect) {
       for (int64_t q = 0; q < h; ++q) v[mirror(q - h, L)] += P[q];
       for (int64_t q = L + h; q < Lp; ++q) v[mirror(q - h, L)] += P[q];
     }
-    auto tap = [&](int64_t q) { return q >= 0 && q < L ? v[q] : 0.f; };
-    const int64_t lo = std::min<int64_t>(2, L), hi = std::max<int64_t>(lo, L - 1);
-    for (int64_t t = 0; t < lo; ++t) dst[t] = out(v[t], tap(t - 2), tap(t - 1), tap(t + 1));
-    for (int64_t t = lo; t < hi; ++t) dst[t] = out(v[t], v[t - 2], v[t - 1], v[t + 1]);
-    for (int64_t t = hi; t < L; ++t) dst[t] = out(v[t], tap(t - 2), tap(t - 1), tap(t + 1));
+    blur_row<float>(v, dst, L);
+    for (int64_t t = 0; t < L; ++t) dst[t] = dst[t] * fs + bb;
     return;
   }
   auto src = [&](int64_t n) { return (n & 1 ? a1 : a0) + (n >> 1); };  // arithmetic shift: floor for n < 0

@@ -204,15 +204,13 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
         with _run_folder_lock(run_dir, rank, world, dev):
             return _train(data, run_dir, preset, default_preset, ablations, dict(config or {}), resume, dev, rank,
                           world, state, tensorboard, cache, bar, log, progress, spelling)
-    except Exception as exc:
-        if distributed and mdist.is_peer_failure(exc):
-            mdist.leave_quietly_on_signals()
-            raise _peer_lost(exc, run_dir, state) from None
-        raise
-    except faults.Terminated:
-        # torchrun SIGTERMs every worker once one has died; it can reach this rank before its own next collective
-        # fails, or while a collective's error unwinds to the handler above: then the lost peer is what to report
-        lost = mdist.stopped_for_a_lost_peer() if distributed else None
+    except (Exception, faults.Terminated) as exc:
+        # a peer's failure; or torchrun's SIGTERM, sent to every worker once one has died, which can reach this
+        # rank before its own next collective fails: either way the lost peer is what to report
+        lost = None
+        if distributed:
+            lost = mdist.stopped_for_a_lost_peer() if isinstance(exc, faults.Terminated) else \
+                exc if mdist.is_peer_failure(exc) else None
         if lost is None:
             raise
         mdist.leave_quietly_on_signals()

@@ -362,10 +362,7 @@ def std_normalised_leaky_relu_(x: torch.Tensor, bias: torch.Tensor, slope: float
     the activation run in place, where the autograd form allocates a tensor at each of its six elementwise steps.
     Same values to float rounding; no graph (call it under ``torch.no_grad()``)."""
     x = x.contiguous()
-    f = x.view(*x.shape[:2], -1)
-    d = f - f.mean(-1, keepdim=True)
-    s = (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).rsqrt_().mul_(SQRT2)
-    x.mul_(s[..., None, None]).add_((bias * SQRT2).view(1, -1, 1, 1))
+    x.mul_(std_entities_frames(x).reciprocal_().mul_(SQRT2)).add_((bias * SQRT2).view(1, -1, 1, 1))
     return F.leaky_relu_(x, slope)
 
 
