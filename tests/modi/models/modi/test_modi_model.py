@@ -15,7 +15,8 @@ from modi.models.modi.losses import (contact_probability, d_logistic_loss, d_r1_
                                     lazy_regularization_adam_params, path_length_penalty)
 from modi.models.modi.networks import (Discriminator, Generator, StyledConv, build_levels, fir_blur_time,
                                       fir_downsample_time, fir_upsample_time, fused_leaky_relu, minibatch_stddev,
-                                      std_entities_frames, std_normalised_leaky_relu_)
+                                      inv_std_entities_frames, std_entities_frames,
+                                      std_normalised_leaky_relu_)
 from modi.core.skeleton import Skeleton
 from modi.core.topology import build_hierarchy
 
@@ -437,3 +438,17 @@ def test_std_entities_frames_is_torch_std_with_its_gradients(shape):
     torch.testing.assert_close(std_entities_frames(x), x.std((2, 3), keepdim=True), rtol=1e-12, atol=0)
     assert torch.autograd.gradcheck(std_entities_frames, (x,))
     assert torch.autograd.gradgradcheck(std_entities_frames, (x,))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(3, 4, 5, 7), (2, 1, 1, 9), (2, 3, 24, 64), (1, 2, 1, 1)])
+def test_inv_std_entities_frames_is_one_over_torch_std(shape, dtype):
+    """Sampling's 1 / std from layer-norm moments: torch's unbiased std over (entities, frames), inverted, also where
+    the mean is a hundred times the spread (a one-pass sum of squares would lose digits there) and, for a single
+    value, nan as torch.std gives it."""
+    g = torch.Generator().manual_seed(sum(shape))
+    x = torch.randn(shape, generator=g, dtype=dtype) + 100.0 * torch.randn(shape[:2] + (1, 1), generator=g,
+                                                                           dtype=dtype)
+    want = x.double().std((2, 3), keepdim=True).reciprocal()
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(inv_std_entities_frames(x).double(), want, rtol=tol, atol=0, equal_nan=True)
