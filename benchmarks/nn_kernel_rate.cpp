@@ -36,6 +36,10 @@ double seconds_per_call(const std::function<void()>& fn, int calls, int reps) {
 int main(int argc, char** argv) {
   using namespace modi_ext::skeletal::fastk;
   at::set_num_threads(1);
+  if (!use512() && !wanted()) {  // the extension runs BLAS here, not these kernels
+    std::fprintf(stderr, "nn_kernel_rate: this CPU has neither AVX-512F nor AVX2+FMA (or MODI_EXT_CPU_KERNEL=blas)\n");
+    return 2;
+  }
   const int64_t M = argc > 1 ? std::atoll(argv[1]) : 32, K = argc > 2 ? std::atoll(argv[2]) : 288;
   const int64_t N = argc > 3 ? std::atoll(argv[3]) : 528;
   const int64_t stride = N + 16;  // the column layout's rows: N columns and the padding of the next tile
@@ -61,7 +65,7 @@ int main(int argc, char** argv) {
   };
   std::printf("{\"kernel\": \"%s\", \"M\": %ld, \"K\": %ld, \"N\": %ld, \"rounds\": %zu, \"nn_gemm_gflops\": %.1f, "
               "\"sgemm_1thread_gflops\": %.1f, \"nn_gemm_frac_sgemm\": %.3f, \"frac_range\": [%.3f, %.3f]}\n",
-              use512() ? "avx512" : (wanted() ? "avx2" : "none"), static_cast<long>(M), static_cast<long>(K),
+              use512() ? "avx512" : "avx2", static_cast<long>(M), static_cast<long>(K),
               static_cast<long>(N), frac.size(), median(nn), median(mm), median(frac),
               *std::min_element(frac.begin(), frac.end()), *std::max_element(frac.begin(), frac.end()));
   return 0;
