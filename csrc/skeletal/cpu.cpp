@@ -301,7 +301,6 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
   const int64_t lda = g.nnz * g.Cin * g.U;
   const std::vector<int64_t> order = lpt_tiles(g.B, nb, g.Eout, csr.toff);
   SlotScratch<T> panels, accs, rows;
-  const fastk::UpRowFn up_row = std::is_same_v<T, float> && fastk::wanted() ? fastk::up_row_fn() : nullptr;
   auto task = [&](int64_t t, int slot) {
     BlasSequential blas_guard;
     const int64_t bt = order[t] / g.Eout, f = order[t] % g.Eout;
@@ -326,15 +325,9 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
       for (int64_t o = 0; o < g.Cout; ++o) {
         const T fs = scale ? scale[(b * g.Cout + o) * g.Eout + f] : T(1);
         const T bb = bias ? bias[o] : T(0);
-        T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
-        if constexpr (std::is_same_v<T, float>) {
-          if (up_row) {  // the same row pass, vectorised (the padded row folded in place)
-            up_row(nullptr, nullptr, acc + o * N + bl * Tp, dst, g.Tout, g.h, g.reflect, fs, bb);
-            continue;
-          }
-        }
         fold_row<T>(acc + o * N + bl * Tp, v, g.Tout, g.h, g.reflect);
         blur_row<T>(v, bl_out, g.Tout);
+        T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
         for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = bl_out[t2] * fs + bb;
       }
     }

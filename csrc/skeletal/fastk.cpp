@@ -335,8 +335,8 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
       for (int64_t o = 0; o < Co; ++o) {
         const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
         const float bb = bias ? bias[o] : 0.f;
-        up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, nullptr,
-               y + ((b * Co + o) * g.Eout + f) * g.Tout, g.Tout, h, g.reflect, fs, bb);
+        up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, y + ((b * Co + o) * g.Eout + f) * g.Tout,
+               g.Tout, h, g.reflect, fs, bb);
       }
     }
   };

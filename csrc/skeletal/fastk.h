@@ -95,11 +95,11 @@ void nt_gemm(const float* const* l, int64_t M, const float* const* p, int64_t K,
 // ---- row passes (fastk_rows.cpp)
 
 // One output row of an up pass: the padded row P (length L + 2h; its even positions in a0 and odd ones in a1, read
-// in place, or a plain row in P when a0 is null, folded in place) folded onto [0, L), blurred with [1 3 3 1] / 4,
-// times fs plus bb, into dst.  The same terms as fold_row + blur_row of cpu_common.h, vectorised at the kernels'
-// ISA.  up_row_fn() picks the ISA once (the choice reads the environment), so a pass calls it once, not per row.
-using UpRowFn = void (*)(const float* a0, const float* a1, float* P, float* dst, int64_t L, int64_t h, bool reflect,
-                         float fs, float bb);
+// in place) folded onto [0, L), blurred with [1 3 3 1] / 4, times fs plus bb, into dst.  The same terms as fold_row
+// + blur_row of cpu_common.h, vectorised at the kernels' ISA.  up_row_fn() picks the ISA once (the choice reads the
+// environment), so a pass calls it once, not per row.
+using UpRowFn = void (*)(const float* a0, const float* a1, float* dst, int64_t L, int64_t h, bool reflect, float fs,
+                         float bb);
 UpRowFn up_row_fn();
 
 // ---- the passes (fastk.cpp)

@@ -17,12 +17,11 @@ namespace {
 // (v[t] = P[t + h], plus the pad positions' mirror images under reflect padding) and blur the [1 3 3 1] / 4 FIR
 // y[t] = (3 v[t] + v[t-2] + 3 v[t-1] + v[t+1]) / 4.
 //
-// Interleaved (a0 != null): P's even positions are in a0 and its odd ones in a1, so P[2i + n] = src(n)[i].  The
-// interior then reads both phase rows in place and writes even and odd outputs in one pass: interleaving P into a
-// scratch row first and reading it back at shifted offsets stalled on store forwarding (a third of the pass).
-// Contiguous (a0 == null): P is a plain row (the BLAS path's accumulator), folded in place, then blurred.
-__attribute__((always_inline)) inline void up_row_body(const float* a0, const float* a1, float* P, float* dst,
-                                                      int64_t L, int64_t h, bool reflect, float fs, float bb) {
+// P's even positions are in a0 and its odd ones in a1, so P[2i + n] = src(n)[i].  The interior reads both phase
+// rows in place and writes even and odd outputs in one pass: interleaving P into a scratch row first and reading it
+// back at shifted offsets stalled on store forwarding (a third of the pass).
+__attribute__((always_inline)) inline void up_row_body(const float* a0, const float* a1, float* dst, int64_t L,
+                                                      int64_t h, bool reflect, float fs, float bb) {
   const int64_t Lp = L + 2 * h;
   auto out = [&](float v0, float vm2, float vm1, float v1) {  // the FIR's terms in cpu_common.h's order
     float acc = 3.f * v0;
@@ -31,16 +30,6 @@ __attribute__((always_inline)) inline void up_row_body(const float* a0, const fl
     acc += v1;
     return (0.25f * acc) * fs + bb;
   };
-  if (!a0) {  // cpu_common.h's fold (in place) and FIR, then the scale and bias
-    float* v = P + h;
-    if (reflect) {
-      for (int64_t q = 0; q < h; ++q) v[mirror(q - h, L)] += P[q];
-      for (int64_t q = L + h; q < Lp; ++q) v[mirror(q - h, L)] += P[q];
-    }
-    blur_row<float>(v, dst, L);
-    for (int64_t t = 0; t < L; ++t) dst[t] = dst[t] * fs + bb;
-    return;
-  }
   auto src = [&](int64_t n) { return (n & 1 ? a1 : a0) + (n >> 1); };  // arithmetic shift: floor for n < 0
   auto P_at = [&](int64_t n) { return src(n)[0]; };
   auto vq = [&](int64_t q) {  // v[q], 0 outside [0, L), with fold_row's additions in its order
@@ -70,18 +59,18 @@ __attribute__((always_inline)) inline void up_row_body(const float* a0, const fl
 }
 
 #if defined(__x86_64__)
-__attribute__((target("avx512f,avx2,fma"))) void up_row512(const float* a0, const float* a1, float* P, float* dst,
-                                                           int64_t L, int64_t h, bool reflect, float fs, float bb) {
-  up_row_body(a0, a1, P, dst, L, h, reflect, fs, bb);
+__attribute__((target("avx512f,avx2,fma"))) void up_row512(const float* a0, const float* a1, float* dst, int64_t L,
+                                                           int64_t h, bool reflect, float fs, float bb) {
+  up_row_body(a0, a1, dst, L, h, reflect, fs, bb);
 }
-__attribute__((target("avx2,fma"))) void up_row256(const float* a0, const float* a1, float* P, float* dst,
-                                                   int64_t L, int64_t h, bool reflect, float fs, float bb) {
-  up_row_body(a0, a1, P, dst, L, h, reflect, fs, bb);
+__attribute__((target("avx2,fma"))) void up_row256(const float* a0, const float* a1, float* dst, int64_t L, int64_t h,
+                                                   bool reflect, float fs, float bb) {
+  up_row_body(a0, a1, dst, L, h, reflect, fs, bb);
 }
 #endif
-void up_row_body_plain(const float* a0, const float* a1, float* P, float* dst, int64_t L, int64_t h, bool reflect,
-                       float fs, float bb) {
-  up_row_body(a0, a1, P, dst, L, h, reflect, fs, bb);
+void up_row_body_plain(const float* a0, const float* a1, float* dst, int64_t L, int64_t h, bool reflect, float fs,
+                       float bb) {
+  up_row_body(a0, a1, dst, L, h, reflect, fs, bb);
 }
 
 }  // namespace
