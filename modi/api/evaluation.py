@@ -1,6 +1,6 @@
 """The metrics of ``modi eval`` from Python, without the glue: distribution metrics (FID, KID, precision, recall,
 diversity) and plausibility of MoDi samples against real clips, and GANimator's single-sequence coverage and
-diversity against the source."""
+diversity against the source, with SinMDM's scorecard (SIFID, inter/intra diversity, harmonic mean) beside them."""
 from __future__ import annotations
 
 import os
@@ -21,6 +21,7 @@ from modi.evaluation import features as F
 from modi.evaluation.features import FeatureExtractor, load_extractor
 from modi.evaluation.plausibility import aggregate, guess_feet, planted_heights, plausibility_metrics
 from modi.evaluation.report import to_markdown, write_json, write_reports
+from modi.evaluation.scorecard import HM_NORMALISERS, scorecard_metrics
 from modi.evaluation.single import bare_name, shared_joints, shared_pose_frames, single_sequence_metrics
 from modi.faults import existing_file, unique_names
 from modi.io import bvh as bvh_io
@@ -153,17 +154,55 @@ def _as_motion(item: MotionSource, fps: float | None = None, remedy: str = "") -
     return Motion.from_bvh(b)
 
 
+def _bvh_files(items: Sequence[MotionSource]) -> list[MotionSource]:
+    """Motions and paths as given, a folder replaced by the ``.bvh`` files directly inside it (sorted by name)."""
+    out: list[MotionSource] = []
+    for g in items:
+        if not isinstance(g, Motion) and Path(g).is_dir():
+            files = sorted(p for p in Path(g).iterdir() if p.suffix.lower() == ".bvh" and p.is_file())
+            if not files:
+                raise UserError(f"no .bvh files in the folder {g}")
+            out.extend(files)
+        else:
+            out.append(g)
+    return out
+
+
+def _extractor_clip(ext: FeatureExtractor, m: Motion, label: str) -> np.ndarray:
+    """``m``'s global joint positions on the extractor's joints, matched by bare name (namespace prefix ignored)."""
+    by_bare = {bare_name(n): n for n in ext.config.joint_names}
+    names = [by_bare.get(bare_name(n), n) for n in m.skeleton.names]
+    try:
+        return ext.clip_positions(m.positions().detach().cpu().numpy(), names, m.fps)
+    except UserError as exc:
+        raise UserError(f"{label}: {exc}") from None
+
+
 def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, fps: float = 30.0,
                     gen_fps: float | None = None, joints: str = "reduced", representation: str = "6d",
                     window: int = 30, threshold: float = 2.0, min_segment: int = 30,
-                    local_window: int = 15) -> dict[str, Any]:
+                    local_window: int = 15, features: FeatureExtractor | str | os.PathLike | None = None,
+                    sifid_stride: int = 8, normalisers: Sequence[float] = HM_NORMALISERS) -> dict[str, Any]:
     """``modi eval single``: GANimator's coverage (``window``-frame windows within ``threshold``), global diversity
     (patched nearest neighbour, segments >= ``min_segment``) and local diversity (``local_window``-frame windows) of
-    generated motions (Motions or BVH paths) against the ``source`` clip, as the GANimator authors measure them: at
-    ``fps``, on the (``joints="reduced"``) joints every file shares, matched by name. ``gen_fps`` is the generated
-    files' true rate when their header is wrong. Returns the means, the protocol and per-motion values."""
+    generated motions (Motions, BVH paths, or folders of BVH files) against the ``source`` clip, as the GANimator
+    authors measure them: at ``fps``, on the (``joints="reduced"``) joints every file shares, matched by name.
+    ``gen_fps`` is the generated files' true rate when their header is wrong.
+
+    With ``features`` (a feature-extractor file from ``modi eval train-features`` on the source's rig, or one
+    loaded) it adds SinMDM's scorecard under ``"scorecard"``: SIFID (temporal feature vectors of windows every
+    ``sifid_stride`` frames), inter-diversity, intra-diversity and its difference from the source's, and the
+    harmonic mean with ``normalisers`` (default: the SinMDM authors', see :mod:`modi.evaluation.scorecard`).
+    Returns the means, the protocol and per-motion values."""
     if joints not in ("reduced", "all"):
         raise UserError(f"joints must be 'reduced' or 'all', got {joints!r}")
+    if sifid_stride < 1:
+        raise UserError(f"--sifid-stride must be at least 1 frame, got {sifid_stride}")
+    if len(normalisers) != 3 or not all(np.isfinite(float(n)) and float(n) > 0 for n in normalisers):
+        raise UserError(f"the harmonic mean's normalisers must be three positive numbers (SIFID, inter-diversity, "
+                        f"intra-diversity difference), got {list(normalisers)}")
+    ext = None if features is None else _extractor(features)
+    generated = _bvh_files(generated)
     labels = [str(g) if not isinstance(g, Motion) else f"motion {i}" for i, g in enumerate(generated)]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # stretchy-bone warnings do not affect rotation metrics
@@ -183,12 +222,24 @@ def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, 
                                       min_segment=min_segment, local_window=local_window)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    card = None
+    if ext is not None:
+        clip_src = _extractor_clip(ext, src, "source")
+        clips = [_extractor_clip(ext, m, label) for m, label in zip(gens, labels)]
+        try:
+            card = scorecard_metrics(ext, clip_src, clips, sifid_stride=sifid_stride, normalisers=normalisers)
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        card["features"] = str(features) if not isinstance(features, FeatureExtractor) else "(in memory)"
+        for row, v in zip(res["per_sequence"], card.pop("per_sequence")):
+            row.update(v)
     lengths = sorted({int(f.shape[0]) for f in feats})
     left_out = [n for n in shared_joints([src.skeleton], joints == "reduced") if n not in names]
     return {
         "coverage": res["coverage"],
         "global_diversity": res["global_diversity"],
         "local_diversity": res["local_diversity"],
+        **({} if card is None else {"scorecard": card}),
         "source": str(source) if not isinstance(source, Motion) else "(motion)",
         "protocol": {
             "joints": joints,

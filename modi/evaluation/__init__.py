@@ -3,6 +3,7 @@
 * ``distribution`` -- FID, KID (+ standard error), precision/recall, diversity over feature vectors (MoDi).
 * ``features`` -- the ST-GCN action recogniser whose penultimate features those metrics use.
 * ``single`` -- coverage, patched-nearest-neighbour global diversity, local diversity (GANimator).
+* ``scorecard`` -- SIFID, inter- and intra-diversity and their harmonic mean over a feature network (SinMDM).
 * ``plausibility`` -- foot skating, floating/penetration, jitter in the skeleton's units.
 * ``report`` -- JSON and Markdown reports.
 

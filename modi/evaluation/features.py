@@ -312,7 +312,7 @@ class STGCN(nn.Module):
         self.blocks = nn.ModuleList(blocks)
         self.head = nn.Linear(cin, config.n_classes)
 
-    def features(self, x: Tensor) -> Tensor:
+    def _feature_map(self, x: Tensor) -> Tensor:
         n, c, t, v = x.shape
         if self.joint_norm:
             x = self.data_bn(x.permute(0, 1, 3, 2).reshape(n, c * v, t)).view(n, c, v, t).permute(0, 1, 3, 2)
@@ -320,7 +320,15 @@ class STGCN(nn.Module):
             x = self.data_bn(x)
         for b in self.blocks:
             x = b(x)
-        return x.mean(dim=(2, 3))
+        return x
+
+    def features(self, x: Tensor) -> Tensor:
+        return self._feature_map(x).mean(dim=(2, 3))
+
+    def temporal_features(self, x: Tensor) -> Tensor:
+        """The last block's map averaged over joints, before the temporal pooling: ``(N, T', feature_dim)``, one
+        vector per output time step (``T' = T / prod(strides)``) -- the samples SIFID's Gaussians are fitted to."""
+        return self._feature_map(x).mean(dim=3).transpose(1, 2)
 
     def forward(self, x: Tensor) -> Tensor:
         return self.head(self.features(x))
@@ -381,6 +389,12 @@ class FeatureExtractor:
     def features(self, windows: np.ndarray, batch: int = 256) -> np.ndarray:
         """Penultimate-layer features ``(n, feature_dim)`` float64 of raw windows ``(n, T, J, 3)``."""
         return self._run(windows, "features", batch)
+
+    def temporal_features(self, windows: np.ndarray, batch: int = 256) -> np.ndarray:
+        """Per-time-step features ``(n, T', feature_dim)`` float64 of raw windows (``features`` is their mean)."""
+        if windows.shape[0] == 0:
+            return np.zeros((0, 0, self.config.feature_dim))
+        return self._run(windows, "temporal_features", batch)
 
     def logits(self, windows: np.ndarray, batch: int = 256) -> np.ndarray:
         return self._run(windows, "forward", batch)

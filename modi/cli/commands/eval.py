@@ -3,7 +3,7 @@
     modi eval train-features DATA --out features.pt      # ST-GCN on labelled clips; prints held-out top-1
     modi eval real DATA --features features.pt           # held-out vs train clips: the floor for generators
     modi eval gen --ckpt CKPT --features F --data DIR    # MoDi samples vs the real clips of DIR
-    modi eval single --source SRC.bvh GEN.bvh ...        # GANimator coverage / global / local diversity
+    modi eval single --source SRC.bvh GEN_DIR/ [--features F]  # GANimator coverage / diversity (+ SinMDM scorecard)
     modi eval plausibility CLIP.bvh ...                  # foot skating, floating/penetration, jitter
 """
 from __future__ import annotations
@@ -82,8 +82,8 @@ def register(subparsers: Any) -> None:
                                    "windows) of generated BVH files against the source they were trained on, "
                                    "as the GANimator authors measure them: at 30 fps, on the reduced joints both "
                                    "files share (matched by name, namespace prefix ignored).")
-    s.add_argument("generated", nargs="+", help="generated BVH files (the source's rig; joints are matched by name, "
-                                                "namespace prefix and sibling order ignored)")
+    s.add_argument("generated", nargs="+", help="generated BVH files or folders of them (the source's rig; joints "
+                                                "are matched by name, namespace prefix and sibling order ignored)")
     s.add_argument("--source", required=True, help="the training sequence (BVH)")
     s.add_argument("--json", default=None, type=ct.output_file, help="write the results (means and per-file values) here")
     s.add_argument("--md", default=None, type=ct.output_file, help="also write a Markdown summary here")
@@ -103,6 +103,14 @@ def register(subparsers: Any) -> None:
     s.add_argument("--joints", choices=["reduced", "all"], default="reduced",
                    help="score on GANimator's reduced joint set (no fingers or head-top: 24 joints of a Mixamo "
                         "rig, as the published figures) or on every joint; either way on the joints both files have")
+    s.add_argument("--features", default=None,
+                   help="feature extractor (modi eval train-features) on the source's rig: adds SinMDM's scorecard, "
+                        "SIFID, inter/intra diversity and their harmonic mean (docs/scorecard.md)")
+    s.add_argument("--sifid-stride", type=ct.int_range(1, ct.MAX_FRAMES), default=8,
+                   help="frames between the feature windows whose temporal feature vectors SIFID compares")
+    s.add_argument("--hm-norms", nargs=3, type=ct.positive_finite_float, metavar=("SIFID", "INTER", "INTRA_DIFF"),
+                   default=None, help="the harmonic mean's normalisers (unset: the SinMDM authors', from their "
+                                      "issue #26; docs/scorecard.md)")
     s.set_defaults(func=cmd_single)
 
     q = sub.add_parser("plausibility", formatter_class=_FMT, help="foot skating, floating, jitter of BVH clips",
@@ -188,10 +196,13 @@ def cmd_single(args: argparse.Namespace) -> int:
 
     for opt in ("json", "md"):
         if getattr(args, opt):
-            ct.refuse_overwrite(getattr(args, opt), [args.source, *args.generated], f"--{opt}")
+            ct.refuse_overwrite(getattr(args, opt), [args.source, *args.generated, *filter(None, [args.features])],
+                                f"--{opt}")
     out = evaluate_single(args.generated, args.source, fps=args.fps, gen_fps=args.gen_fps, joints=args.joints,
                           representation=args.representation, window=args.window, threshold=args.threshold,
-                          min_segment=args.min_segment, local_window=args.local_window)
+                          min_segment=args.min_segment, local_window=args.local_window, features=args.features,
+                          sifid_stride=args.sifid_stride,
+                          **({} if args.hm_norms is None else {"normalisers": args.hm_norms}))
     joints, n_source, left_out = out["protocol"]["joint_names"], out.pop("source_joints"), out.pop("left_out")
     print(f"scoring {len(joints)} joints ({args.joints}; of the source's {n_source}) at {args.fps:g} fps: "
           + " ".join(joints))
@@ -201,6 +212,12 @@ def cmd_single(args: argparse.Namespace) -> int:
     print(f"coverage {out['coverage']:.4f}  global diversity {out['global_diversity']:.4f}  "
           f"local diversity {out['local_diversity']:.4f}  ({out['protocol']['n_samples']} file(s), "
           f"{out['seconds']:.1f} s)")
+    card = out.get("scorecard")
+    if card is not None:
+        inter, hm = card["inter_diversity"], card["harmonic_mean"]
+        print(f"SIFID {card['sifid']:.4f}  inter-diversity " + ("n/a (one file)" if inter is None else f"{inter:.4f}")
+              + f"  intra-diversity {card['intra_diversity']:.4f} (source {card['intra_diversity_source']:.4f}, "
+              f"diff {card['intra_diversity_diff']:.4f})  harmonic mean " + ("n/a" if hm is None else f"{hm:.4f}"))
     if args.json is None and args.md is None:
         print(write_report({k: v for k, v in out.items() if k != "per_file"}, "Single-sequence metrics"))
     return 0
