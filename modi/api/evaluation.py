@@ -168,12 +168,13 @@ def _bvh_files(items: Sequence[MotionSource]) -> list[MotionSource]:
     return out
 
 
-def _extractor_clip(ext: FeatureExtractor, m: Motion, label: str) -> np.ndarray:
-    """``m``'s global joint positions on the extractor's joints, matched by bare name (namespace prefix ignored)."""
+def _extractor_clip(ext: FeatureExtractor, m: Motion, label: str, unit: str) -> np.ndarray:
+    """``m``'s global joint positions in ``unit`` (the source's: a file another tool wrote in metres meets a
+    centimetre source) on the extractor's joints, matched by bare name (namespace prefix ignored)."""
     by_bare = {bare_name(n): n for n in ext.config.joint_names}
     names = [by_bare.get(bare_name(n), n) for n in m.skeleton.names]
     try:
-        return ext.clip_positions(m.positions().detach().cpu().numpy(), names, m.fps)
+        return ext.clip_positions(m.positions(unit).detach().cpu().numpy(), names, m.fps)
     except UserError as exc:
         raise UserError(f"{label}: {exc}") from None
 
@@ -224,8 +225,8 @@ def evaluate_single(generated: Sequence[MotionSource], source: MotionSource, *, 
         raise UserError(str(exc)) from None
     card = None
     if ext is not None:
-        clip_src = _extractor_clip(ext, src, "source")
-        clips = [_extractor_clip(ext, m, label) for m, label in zip(gens, labels)]
+        clip_src = _extractor_clip(ext, src, "source", src.unit)
+        clips = [_extractor_clip(ext, m, label, src.unit) for m, label in zip(gens, labels)]
         try:
             card = scorecard_metrics(ext, clip_src, clips, sifid_stride=sifid_stride, normalisers=normalisers)
         except ValueError as exc:

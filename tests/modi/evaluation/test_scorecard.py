@@ -169,6 +169,16 @@ def test_cli_single_adds_the_scorecard_for_a_folder_of_another_tools_files(scene
     assert math.isfinite(card["harmonic_mean"]) and card["harmonic_mean"] >= 0
 
 
+def test_positions_are_compared_in_the_sources_unit(scene):
+    from modi.api.evaluation import evaluate_single
+
+    src = scene.src
+    sk = dataclasses.replace(src.skeleton, offsets=src.skeleton.offsets / 100)  # the source, in metres
+    metres = type(src)(sk, src.rotations, src.root_positions / 100, src.fps, unit="metres")
+    card = evaluate_single([metres], src, features=scene.dir / "tiny.pt")["scorecard"]
+    assert card["sifid"] == pytest.approx(0.0, abs=1e-6) and card["intra_diversity_diff"] == pytest.approx(0, abs=1e-9)
+
+
 def test_bad_input_is_one_line_and_exit_code_2(scene, tmp_path, capsys):
     from modi.cli import main
     from modi.core.skeleton import Skeleton
