@@ -22,6 +22,7 @@ from modi.errors import UserError
 from modi.faults import atomic_write, refuse_overwrite
 from modi.io.formats import save_motion
 from modi.models.ganimator.evaluate_paper import N_SAMPLES, evaluate_paper, format_figures
+from modi.models.ganimator.editing import edit_features, paste
 from modi.models.ganimator.generate import (check_generation_inputs, decode, evaluate_run, fix_contacts,
                                             rotation_frames, sample_features)
 from modi.models.ganimator.networks import GanimatorModel
@@ -107,29 +108,58 @@ class GanimatorRun:
     # ------------------------------------------------------------------------------------------- generation
     def generate(self, n: int = 1, *, frames: int | None = None, seed: int = 0,
                  keyframes: str | os.PathLike | None = None, trajectory: str | os.PathLike | None = None,
-                 style: str | os.PathLike | None = None, stream: int = 0, fine_noise: bool = False, ik: bool = False,
-                 spacing: float | None = 0.0) -> list[Motion]:
+                 style: str | os.PathLike | None = None, style_level: int = 0, loop: bool = False,
+                 loop_root: str = "travel", inbetween: tuple[str | os.PathLike, str | os.PathLike] | None = None,
+                 expand: str | os.PathLike | None = None, at: int | None = None,
+                 edit: str | os.PathLike | None = None, keep: str | Sequence[str] | None = None, stream: int = 0,
+                 fine_noise: bool = False, ik: bool = False, spacing: float | None = 0.0) -> list[Motion]:
         """``n`` motions with contact labels, in the training file's units.
 
         * random (default): ``frames`` frames each (default: the training clip's);
         * ``keyframes``: a BVH of coarse-level poses on the run's rig (key-frame editing);
         * ``trajectory``: a root-trajectory BVH for a trajectory-conditioned run (which samples one when not
           given); ``stream`` feeds it in segments of that many frames (same result);
-        * ``style``: a content BVH whose coarse motion gets the training clip's detail (style transfer).
+        * ``style``: a content BVH whose coarse motion gets the training clip's detail (style transfer); with
+          ``style_level`` > 0 the content enters at that finer level and keeps its poses: harmonisation of a clip
+          pasted together by hand;
+        * ``loop``: ``frames`` frames whose last frame flows into the first; ``loop_root="return"`` brings the root
+          back to its start, ``"travel"`` lets it move on;
+        * ``inbetween=(START, END)``: START, then ``frames`` generated frames, then END (clips, or ``PATH@F`` for
+          frame F as a pose), both kept exactly and where they are in the scene;
+        * ``expand``: a clip inside a ``frames``-frame motion, unchanged from frame ``at`` (default: centred);
+        * ``edit`` with ``keep``: the clip's kept joints (names, or ``"upper"`` / ``"lower"``) unchanged bit for
+          bit, the rest generated to go with them.
 
-        ``seed`` fixes the result (as ``modi ganimator generate --seed``); ``fine_noise`` adds noise at every level;
-        ``ik`` pins each foot while its contact label is on; ``spacing`` places several motions on a grid that far
-        apart (None: 1.5 body sizes, as the CLI's crowd; 0: each at its own start). Cost: one pass through the level
-        generators per motion (milliseconds for a small run on a CPU)."""
+        A given span or joint is exact on the returned motion before ``ik``. ``seed`` fixes the result (as
+        ``modi ganimator generate --seed``); ``fine_noise`` adds noise at every level; ``ik`` pins each foot while
+        its contact label is on; ``spacing`` places several motions on a grid that far apart (None: 1.5 body sizes,
+        as the CLI's crowd; 0: each at its own start). Cost: one pass through the level generators per motion
+        (milliseconds for a small run on a CPU)."""
         m = self.model
-        check_generation_inputs(m, frames, content=style, keyframes=keyframes, trajectory=trajectory)
+        edits = {"--loop": loop, "--inbetween": inbetween, "--expand": expand, "--edit": edit}
+        chosen = [k for k, v in {**edits, "--content": style, "--keyframes": keyframes,
+                                 "--trajectory": trajectory}.items() if v]
+        if len(chosen) > 1:
+            raise UserError(f"use only one of {', '.join(chosen)}")
+        if any(edits.values()):
+            samples, constraints, start, _ = edit_features(
+                m, int(n), frames, int(seed), loop=loop, loop_root=loop_root, inbetween=inbetween, expand=expand,
+                at=at, edit=edit, keep=keep, fine_noise=fine_noise)
+            return self.decode(samples, start=start, ik=ik, spacing=spacing, constraints=constraints)
+        if keep is not None or at is not None:
+            raise UserError("--keep goes with --edit CLIP" if keep is not None else "--at goes with --expand CLIP")
+        check_generation_inputs(m, frames, content=style, keyframes=keyframes, trajectory=trajectory,
+                                content_level=style_level)
         samples, start, _ = sample_features(m, int(n), frames, int(seed), content=style, keyframes=keyframes,
-                                            trajectory=trajectory, stream=int(stream), fine_noise=fine_noise)
+                                            trajectory=trajectory, stream=int(stream), fine_noise=fine_noise,
+                                            content_level=int(style_level))
         return self.decode(samples, start=start, ik=ik, spacing=spacing)
 
     def decode(self, samples: Sequence[Tensor], *, start: Tensor | None = None, ik: bool = False,
-               spacing: float | None = 0.0) -> list[Motion]:
-        """Generator outputs ``(6, E, T)`` -> motions (see :meth:`generate` for ``ik`` and ``spacing``)."""
+               spacing: float | None = 0.0, constraints: Sequence | None = None) -> list[Motion]:
+        """Generator outputs ``(6, E, T)`` -> motions (see :meth:`generate` for ``ik`` and ``spacing``);
+        ``constraints`` (from :func:`modi.models.ganimator.editing.edit_features`) paste the given rotations and
+        root track back exactly, before ``ik``."""
         seq = self.model.seqs[0]
         inv = 1.0 / seq.scale
         step = 1.5 * seq.size if spacing is None else float(spacing) * seq.scale  # working units
@@ -138,6 +168,9 @@ class GanimatorRun:
         out = []
         for i, s in enumerate(samples):
             quats, root, contacts = decode(self.model, s, root_start=start)
+            c = constraints[i] if constraints is not None else None
+            if c is not None:
+                quats, root = paste(c, quats.to(torch.float64), root)
             if ik:
                 quats, root = fix_contacts(seq, quats, root, contacts)
             if len(samples) > 1 and step:  # a crowd: on a grid

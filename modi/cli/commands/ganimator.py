@@ -70,20 +70,47 @@ def register(subparsers) -> None:
 
     g = sub.add_parser("generate", help="sample motions from a trained run", formatter_class=_FMT,
                        description="Generate BVH (+ GIF previews) from a trained run: random motions of any "
-                                   "length, style transfer (--content), key-frame editing (--keyframes), "
-                                   "trajectory control (--trajectory).")
+                                   "length, style transfer and harmonisation (--content [--content-level]), "
+                                   "key-frame editing (--keyframes), trajectory control (--trajectory), loops "
+                                   "(--loop), in-betweens (--inbetween), expansion (--expand) and body-part "
+                                   "editing (--edit --keep). Given frames and kept joints are exact in the output "
+                                   "(before --ik).")
     g.add_argument("run", help="run directory (or .ckpt file)")
-    g.add_argument("--frames", type=ct.frames_int, default=None, help="frames per motion (default: the training clip's)")
+    g.add_argument("--frames", type=ct.frames_int, default=None,
+                   help="frames per motion (default: the training clip's); with --inbetween: the frames generated "
+                        "between START and END; with --expand: the expanded length")
     g.add_argument("--n", type=ct.int_range(1, 1000), default=1, help="number of motions (a crowd when > 1)")
     g.add_argument("--out", required=True, type=ct.output_dir, help="output directory")
     g.add_argument("--seed", type=ct.seed_int, default=0, help="random seed")
     g.add_argument("--content", default=None, help="style transfer: BVH whose coarse motion replaces level 0")
+    g.add_argument("--content-level", type=ct.int_range(0, 64), default=0,
+                   help="with --content: the pyramid level the content enters at; 0 is style transfer, a finer level "
+                        "is harmonisation (a clip pasted together by hand keeps its poses, the finer levels blend "
+                        "it into the run's style)")
     g.add_argument("--keyframes", default=None, help="key-frame editing: BVH of coarse-level poses")
+    g.add_argument("--loop", action="store_true",
+                   help="a loop of --frames frames: the last frame flows into the first (pose and velocity)")
+    g.add_argument("--loop-root", choices=["travel", "return"], default="travel",
+                   help="with --loop: the root moves on each repetition (travel) or returns to its start (return)")
+    g.add_argument("--inbetween", nargs=2, metavar=("START", "END"), default=None,
+                   help="in-betweening: START, then --frames generated frames, then END, both kept exactly where "
+                        "they are; each a BVH on the run's rig, or BVH@F for its frame F as a pose (@-1: the last)")
+    g.add_argument("--expand", default=None, metavar="CLIP",
+                   help="expansion: a --frames-long motion that holds CLIP unchanged from frame --at")
+    g.add_argument("--at", type=ct.int_range(0, ct.MAX_FRAMES), default=None,
+                   help="with --expand: the output frame where CLIP starts (default: centred)")
+    g.add_argument("--edit", default=None, metavar="CLIP",
+                   help="body-part editing: CLIP's --keep joints unchanged, the other joints generated to go with them")
+    g.add_argument("--keep", default=None,
+                   help="with --edit: comma-separated joint names to keep, or upper / lower (found from a humanoid's "
+                        "tree)")
     g.add_argument("--trajectory", default=None,
                    help="root trajectory BVH (conditional runs); without it a conditional run samples one")
     g.add_argument("--stream", type=ct.int_range(0, ct.MAX_FRAMES), default=0,
                    help="with --trajectory: feed the trajectory in segments of this many frames (streaming API)")
-    g.add_argument("--ik", action="store_true", help="fix foot sliding with IK where contacts are predicted")
+    g.add_argument("--ik", action="store_true",
+                   help="fix foot sliding with IK where contacts are predicted (moves the root and the leg joints "
+                        "above each foot, also kept or given ones: docs/single_clip.md)")
     g.add_argument("--fine-noise", action="store_true", help="random noise at every level (default: coarsest only)")
     g.add_argument("--crowd-spacing", type=ct.nonneg_finite_float, default=None,
                    help="grid spacing of a crowd (default: 1.5 x body size; 0: every motion at its own start)")
@@ -152,8 +179,16 @@ def _train(args) -> int:
 
 
 def _mode(args, run) -> str:
+    if args.loop:
+        return f"loop ({args.loop_root})"
+    if args.inbetween:
+        return "in-between"
+    if args.expand:
+        return "expansion"
+    if args.edit:
+        return "body-part editing"
     if args.content:
-        return "style transfer"
+        return "style transfer" if not args.content_level else f"harmonisation (level {args.content_level})"
     if args.keyframes:
         return "key-frame editing"
     if args.trajectory or run.conditional:
@@ -167,7 +202,9 @@ def _generate(args) -> int:
     run = GanimatorRun.from_checkpoint(args.run)
     spacing = None if args.crowd_spacing is None else args.crowd_spacing / run.scale  # the option is in GANimator's units
     motions = run.generate(args.n, frames=args.frames, seed=args.seed, keyframes=args.keyframes,
-                           trajectory=args.trajectory, style=args.content, stream=args.stream,
+                           trajectory=args.trajectory, style=args.content, style_level=args.content_level,
+                           loop=args.loop, loop_root=args.loop_root, inbetween=args.inbetween, expand=args.expand,
+                           at=args.at, edit=args.edit, keep=args.keep, stream=args.stream,
                            fine_noise=args.fine_noise, ik=args.ik, spacing=spacing)
     written, gif = run.write(motions, args.out, gif=not args.no_gif)
     print(f"{_mode(args, run)}: wrote {len(written)} BVH to {Path(args.out)}" + (f" and {gif}" if gif else ""))

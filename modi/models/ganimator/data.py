@@ -262,6 +262,10 @@ class Sequence:
     size: float                 # body size in working units (for scale-free comparisons)
     kept_joints: list[int] = field(default_factory=list)   # indices in the file's skeleton
     sixd: str = "rows"          # 6D layout of ``features`` ("rows" or "columns" of the rotation matrix)
+    # the clip's own local rotations (T, J, 4) and root track (T, 3, working units) before the 6-D features round
+    # them: constrained generation pastes these back so a kept joint is unchanged bit for bit (not checkpointed)
+    source_rotations: Tensor | None = field(default=None, repr=False)
+    source_root: Tensor | None = field(default=None, repr=False)
 
     @property
     def n_frames(self) -> int:
@@ -379,7 +383,8 @@ def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq
     if like is not None and order != kept:
         motion = _permute_clip(motion, [order.index(k) for k in kept])
     stride = _fps_stride(motion.fps, cfg.fps)
-    rot = motion.rotations[::stride].to(torch.float32)
+    rot_source = motion.rotations[::stride]
+    rot = rot_source.to(torch.float32)
     root = motion.root_positions[::stride].to(torch.float64)
     fps = motion.fps / stride
     skel = motion.skeleton
@@ -399,7 +404,8 @@ def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq
         scale = _scale_for(body_height(raw_pos.numpy()))
         skel = Skeleton(skel.names, skel.parents, skel.offsets * scale,
                         {k: np.asarray(v) * scale for k, v in skel.end_sites.items()}, skel.rotation_orders)
-    root = (root * scale).to(torch.float32)
+    root_source = root * scale
+    root = root_source.to(torch.float32)
     with torch.no_grad():
         pos, _ = forward_kinematics(rot, torch.as_tensor(skel.offsets, dtype=torch.float32), skel.parents, root)
     pos_np = pos.numpy().astype(np.float64)
@@ -428,7 +434,8 @@ def sequence_from_clip(motion: RawClip, name: str, cfg=None, *, keep_joints: Seq
     sixd = like.sixd if like is not None else cfg.sixd
     features = motion_to_features(rot, root, labels if foot_idx else None, sixd=sixd)
     return Sequence(name=name, skeleton=skel, feet=foot_idx, features=features, root_start=root[0].clone(),
-                    fps=fps, scale=scale, contact_threshold=threshold, size=size, kept_joints=kept, sixd=sixd)
+                    fps=fps, scale=scale, contact_threshold=threshold, size=size, kept_joints=kept, sixd=sixd,
+                    source_rotations=rot_source, source_root=root_source)
 
 
 def _permute_clip(clip: RawClip, perm: list[int]) -> RawClip:

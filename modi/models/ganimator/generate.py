@@ -24,8 +24,9 @@ from modi.errors import UserError
 from modi.evaluation.single import rotation_features, single_sequence_metrics
 from modi.io.bvh import Bvh
 from modi.io.formats import check_finite, save_motion
-from modi.models.ganimator.data import K, coarsest_needed, features_to_motion, load_sequence, min_frames, resample
+from modi.models.ganimator.data import K, coarsest_needed, features_to_motion, load_sequence, resample
 from modi.models.ganimator.data import Sequence as Clip
+from modi.models.ganimator.editing import min_output_frames
 from modi.models.ganimator.networks import GanimatorModel, make_noise, synthesize
 from modi.models.ganimator.training import load_model, run_summary
 
@@ -141,8 +142,8 @@ def evaluate_run(run: str | Path, n: int = 10, n_frames: int | None = None, seed
 
 
 def coarse_from_clip(model: GanimatorModel, clip: Clip, n_frames: int, frame_step: float = 1.0,
-                     base: int = 0) -> Tensor:
-    """A clip as level 0 of an ``n_frames`` output ``(1, 6, E, L0)``.
+                     base: int = 0, level: int = 0) -> Tensor:
+    """A clip as level ``level`` of an ``n_frames`` output ``(1, 6, E, L)`` (the coarsest by default).
 
     ``frame_step``: output frames per clip frame (1 for a content motion at the model's rate; ``n_frames / F`` for
     ``F`` key-frames spread over the output). Root displacement is rescaled to per-output-frame units.
@@ -151,16 +152,30 @@ def coarse_from_clip(model: GanimatorModel, clip: Clip, n_frames: int, frame_ste
     J = model.n_joints
     f[0, J] = f[0, J] / frame_step
     f[2, J] = f[2, J] / frame_step
-    L0 = model.level_lengths(n_frames, base)[0]
+    L = model.level_lengths(n_frames, base)[level]
     F = f.shape[-1]
-    return resample(f, L0, F / L0).unsqueeze(0).to(model.device)
+    return (resample(f, L, F / L) if L != F else f).unsqueeze(0).to(model.device)
 
 
-def style_transfer(model: GanimatorModel, content: str | Path, seed: int = 0) -> Tensor:
-    """The content motion's coarse level with the trained clip's detail: ``(1, 6, E, T_content)``."""
+def check_content_level(model: GanimatorModel, level: int) -> int:
+    """The level a content clip is injected at: 0 (style transfer) up to the level below the finest."""
+    top = model.n_levels - 2
+    if not 0 <= int(level) <= top:
+        raise UserError(f"--content-level {level}: this run has {model.n_levels} levels; inject at 0 (style "
+                        f"transfer) to {top} (harmonisation keeps more of the content the finer the level)")
+    return int(level)
+
+
+def style_transfer(model: GanimatorModel, content: str | Path, seed: int = 0, level: int = 0) -> Tensor:
+    """The content motion at pyramid level ``level`` with the trained clip's finer detail: ``(1, 6, E, T)``.
+
+    Level 0 is style transfer: only the content's coarse motion survives. A finer level is harmonisation (as
+    SinGAN's): a clip pasted together by hand keeps its poses and timing, and the levels above ``level``
+    regenerate the detail in the run's style, which smooths the seams."""
+    level = check_content_level(model, level)
     clip = load_sequence(content, model.cfg, like=model.seqs[0])
-    coarse = coarse_from_clip(model, clip, clip.n_frames)
-    return model.sample(clip.n_frames, 1, replace={0: coarse}, generator=torch.Generator().manual_seed(seed))
+    coarse = coarse_from_clip(model, clip, clip.n_frames, level=level)
+    return model.sample(clip.n_frames, 1, replace={level: coarse}, generator=torch.Generator().manual_seed(seed))
 
 
 def keyframe_edit(model: GanimatorModel, keyframes: str | Path, n_frames: int | None = None, seed: int = 0) -> Tensor:
@@ -346,13 +361,9 @@ class TrajectoryStream:
 # ------------------------------------------------------------------------------------------- the command
 
 
-def min_output_frames(model: GanimatorModel) -> int:
-    """Shortest output length whose coarsest level is long enough for the model's convolutions."""
-    return min_frames(model.cfg, lambda n: model.level_lengths(n)[0])
-
-
 def check_generation_inputs(model: GanimatorModel, frames: int | None = None, content: str | Path | None = None,
-                            keyframes: str | Path | None = None, trajectory: str | Path | None = None) -> None:
+                            keyframes: str | Path | None = None, trajectory: str | Path | None = None,
+                            content_level: int = 0) -> None:
     """Refuse an output length or an input clip too short for the run's pyramid (``UserError`` naming the option),
     before anything is generated or written."""
     need, n_min = coarsest_needed(model.cfg), min_output_frames(model)
@@ -362,6 +373,10 @@ def check_generation_inputs(model: GanimatorModel, frames: int | None = None, co
         raise UserError(f"--frames {frames} is too short for this run: at least {n_min} frames, because {why}")
     if sum(x is not None for x in (content, keyframes, trajectory)) > 1:
         raise UserError("use only one of --content, --keyframes, --trajectory")
+    if content_level:
+        if content is None:
+            raise UserError("--content-level goes with --content CLIP")
+        check_content_level(model, content_level)
     for opt, path in (("--content", content), ("--keyframes", keyframes), ("--trajectory", trajectory)):
         if path is None:
             continue
@@ -379,12 +394,13 @@ def check_generation_inputs(model: GanimatorModel, frames: int | None = None, co
 
 def sample_features(model: GanimatorModel, n: int = 1, frames: int | None = None, seed: int = 0, *,
                     content: str | Path | None = None, keyframes: str | Path | None = None,
-                    trajectory: str | Path | None = None, stream: int = 0, fine_noise: bool = False
-                    ) -> tuple[list[Tensor], Tensor | None, str]:
+                    trajectory: str | Path | None = None, stream: int = 0, fine_noise: bool = False,
+                    content_level: int = 0) -> tuple[list[Tensor], Tensor | None, str]:
     """What ``modi ganimator generate`` samples: ``(features (6, E, T) per motion, root start or None, mode)``.
 
-    Random motions draw from one generator seeded with ``seed``; style transfer (``content``), key-frame editing
-    (``keyframes``) and trajectory control (``trajectory``, or a trajectory sampled from the run's source for a
+    Random motions draw from one generator seeded with ``seed``; style transfer (``content``; ``content_level`` >
+    0: harmonisation), key-frame editing (``keyframes``) and trajectory control (``trajectory``, or a trajectory
+    sampled from the run's source for a
     conditional run) use ``seed + i`` for motion ``i``. ``stream`` feeds a trajectory in segments of that many
     frames (:class:`TrajectoryStream`, equal to the offline result)."""
     seq = model.seqs[0]
@@ -399,8 +415,8 @@ def sample_features(model: GanimatorModel, n: int = 1, frames: int | None = None
     if content:
         start = load_sequence(content, model.cfg, like=seq).root_start
         for i in range(n):
-            samples.append(style_transfer(model, content, seed=seed + i)[0])
-        mode = "style transfer"
+            samples.append(style_transfer(model, content, seed=seed + i, level=content_level)[0])
+        mode = "style transfer" if content_level == 0 else f"harmonisation (level {content_level})"
     elif keyframes:
         start = load_sequence(keyframes, model.cfg, like=seq).root_start
         for i in range(n):
