@@ -38,3 +38,23 @@ def test_ganimator_generate_equals_modi_ganimator_generate(gan_run, tmp_path, n,
     names = ["sample.bvh"] if n == 1 else [f"sample_{i:03d}.bvh" for i in range(n)]
     for m, name in zip(motions, names):
         assert bvh_io.dumps(m.to_bvh()) == (out / name).read_text(), name
+
+
+@pytest.mark.parametrize("mode", ["loop", "expand", "edit"])
+def test_ganimator_applications_equal_their_cli(gan_run, tmp_path, mode):
+    """The applications of docs/single_clip.md: the CLI writes what GanimatorRun.generate returns."""
+    run = modi.load(gan_run)
+    src = tmp_path / "src.bvh"
+    run.write(run.generate(1, frames=run.n_frames, seed=9), tmp_path / "src", gif=False)
+    (tmp_path / "src" / "sample.bvh").rename(src)
+    keep = run.skeleton.names[1]
+    cli = {"loop": ["--loop", "--frames", "60", "--loop-root", "return"],
+           "expand": ["--expand", str(src), "--frames", str(run.n_frames + 20), "--at", "5"],
+           "edit": ["--edit", str(src), "--keep", keep]}[mode]
+    api = {"loop": dict(loop=True, frames=60, loop_root="return"),
+           "expand": dict(expand=src, frames=run.n_frames + 20, at=5),
+           "edit": dict(edit=src, keep=keep)}[mode]
+    out = tmp_path / "gen"
+    assert main(["ganimator", "generate", str(gan_run), "--seed", "4", "--out", str(out), "--no-gif", *cli]) == 0
+    m = run.generate(1, seed=4, **api)[0]
+    assert bvh_io.dumps(m.to_bvh()) == (out / "sample.bvh").read_text()
