@@ -113,7 +113,8 @@ def register(subparsers) -> None:
                         "above each foot, also kept or given ones: docs/single_clip.md)")
     g.add_argument("--fine-noise", action="store_true", help="random noise at every level (default: coarsest only)")
     g.add_argument("--crowd-spacing", type=ct.nonneg_finite_float, default=None,
-                   help="grid spacing of a crowd (default: 1.5 x body size; 0: every motion at its own start)")
+                   help="grid spacing of a crowd (default: 1.5 x body size, and 0 with --inbetween, --expand, "
+                        "--edit, whose given clips keep their places; 0: every motion at its own start)")
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
     g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
     add_format_options(g)
@@ -201,6 +202,8 @@ def _generate(args) -> int:
 
     run = GanimatorRun.from_checkpoint(args.run)
     spacing = None if args.crowd_spacing is None else args.crowd_spacing / run.scale  # the option is in GANimator's units
+    if spacing is None and (args.inbetween or args.expand or args.edit):
+        spacing = 0.0  # given clips stay where they are in the scene: no crowd grid unless asked for
     motions = run.generate(args.n, frames=args.frames, seed=args.seed, keyframes=args.keyframes,
                            trajectory=args.trajectory, style=args.content, style_level=args.content_level,
                            loop=args.loop, loop_root=args.loop_root, inbetween=args.inbetween, expand=args.expand,
