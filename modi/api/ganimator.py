@@ -211,7 +211,7 @@ class GanimatorRun:
     # ------------------------------------------------------------------------------------------- metrics
     def metrics(self, motions: Sequence[Motion]) -> dict[str, dict[str, Any]]:
         """Coverage (30-frame windows, threshold 2.0), global and local diversity of motions on the run's skeleton
-        against each training clip (what ``modi ganimator generate --evaluate`` prints)."""
+        against each training clip (what ``modi ganimator generate --eval`` prints)."""
         gens = [rotation_frames(m.rotations) for m in motions]
         out: dict[str, dict[str, Any]] = {}
         lengths = sorted({m.n_frames for m in motions})
@@ -223,7 +223,7 @@ class GanimatorRun:
 
     def evaluate(self, *, n: int | None = None, frames: int | None = None, seed: int = 0,
                  protocol: str = "ours") -> dict[str, Any]:
-        """``modi ganimator evaluate``: sample and score against every training clip. ``protocol="ours"`` (10
+        """``modi ganimator eval``: sample and score against every training clip. ``protocol="ours"`` (10
         samples of the clip's length by default, rotations decoded as any BVH output) or ``"paper"`` (the authors'
         released evaluate.py: 200 samples of 2x the total source length, raw generator channels)."""
         if self.path is None:
@@ -246,7 +246,7 @@ class GanimatorRun:
 
 def evaluate_ganimator(run: str | os.PathLike, *, n: int | None = None, frames: int | None = None, seed: int = 0,
                        protocol: str = "ours", json_path: str | os.PathLike | None = None) -> dict[str, Any]:
-    """``modi ganimator evaluate``: :meth:`GanimatorRun.evaluate` of the run at ``run``, the figures also written
+    """``modi ganimator eval``: :meth:`GanimatorRun.evaluate` of the run at ``run``, the figures also written
     as JSON to ``json_path`` (never over the run's checkpoint). :func:`format_figures` makes the table the CLI
     prints. Cost: sampling and scoring ``n`` motions (seconds for ours, minutes for the paper's protocol)."""
     if json_path:

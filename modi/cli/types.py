@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -24,7 +25,8 @@ from modi.faults import refuse_overwrite, unique_names  # noqa: F401  (the same 
 # Upper bounds of the sizes a user can ask for. They are far above anything the models are used with and far below
 # what would exhaust memory or run for hours by mistake.
 MAX_FPS = 1000.0          # mocap is captured at <= 480 fps; resampling up to 1e6 fps allocates gigabytes per clip
-MAX_BATCH = 1024          # MoDi's paper batch is 16
+MAX_BATCH = 1024          # --batch when training (MoDi's paper batch is 16): activations and gradients of each
+MAX_SAMPLE_BATCH = 4096   # --batch when only sampling (no gradients): motions per forward pass
 MAX_SAMPLES = 20_000      # motions generated / sampled in one command (~0.5 GB of MoDi output at 64 frames)
 MAX_FRAMES = 100_000      # ~55 minutes at 30 fps
 MAX_THREADS = 1024
@@ -77,6 +79,7 @@ seed_int = int_range(0, MAX_SEED)
 threads_int = int_range(1, MAX_THREADS)
 iters_int = int_range(0, MAX_ITERS)
 batch_int = int_range(1, MAX_BATCH, " (a larger batch does not fit in memory)")
+sample_batch_int = int_range(1, MAX_SAMPLE_BATCH, " (motions per forward pass)")
 samples_int = int_range(1, MAX_SAMPLES)
 frames_int = int_range(2, MAX_FRAMES)
 
@@ -91,6 +94,43 @@ def multiple_of(m: int, lo: int | None = None, hi: int | None = None) -> Callabl
             raise argparse.ArgumentTypeError(f"must be a multiple of {m}, got {v} (e.g. {max(m, v // m * m)})")
         return v
     return _named(parse, "int")
+
+
+# ------------------------------------------------------------------------------------------------ old spellings
+class _Renamed(argparse.Action):
+    """An old option spelling: still works, hidden from ``--help``, and says once what replaced it."""
+
+    def __init__(self, option_strings, dest, new: str = "", flag: bool = False, **kw) -> None:
+        self.new, self.flag = new, flag
+        super().__init__(option_strings, dest, nargs=0 if flag else None, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"modi: note: {option_string} is now {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, True if self.flag else values)
+
+
+def renamed_option(parser: argparse.ArgumentParser, old: str, new: str, dest: str, type: Callable | None = None,
+                   flag: bool = False) -> None:
+    """Keep ``old`` working as a hidden alias of ``new`` (same ``dest`` and checks; ``flag``: an on/off switch), so
+    no user's script breaks."""
+    kw = {} if flag else {"type": type}
+    parser.add_argument(old, dest=dest, action=_Renamed, new=new, flag=flag, help=argparse.SUPPRESS,
+                        default=argparse.SUPPRESS, **kw)
+
+
+def renamed_command(sub, old: str, new: str, build: Callable[[argparse.ArgumentParser], None], **kw
+                    ) -> argparse.ArgumentParser:
+    """Keep subcommand ``old`` working as a hidden alias of ``new``: the same options (``build`` adds them to a
+    parser), left out of the listing (no ``help=``), and a note naming the new spelling when it runs."""
+    p = sub.add_parser(old, **kw)
+    build(p)
+    run = p.get_default("func")
+
+    def func(args):
+        print(f"modi: note: '{old}' is now '{new}'", file=sys.stderr)
+        return run(args)
+    p.set_defaults(func=func)
+    return p
 
 
 # ------------------------------------------------------------------------------------------------ floats
@@ -194,10 +234,11 @@ _named(output_file, "file")
 
 
 __all__ = ["int_range", "positive_int", "nonneg_int", "seed_int", "threads_int", "iters_int", "batch_int",
-           "samples_int", "frames_int", "multiple_of", "float_range", "finite_float", "positive_finite_float",
+           "sample_batch_int", "renamed_option", "renamed_command", "samples_int", "frames_int", "multiple_of", "float_range", "finite_float", "positive_finite_float",
            "nonneg_finite_float", "fps_float", "lr_float", "probability", "minutes_float", "angle_float",
            "available_devices", "device_type", "device", "device_or_auto", "output_dir", "output_file",
-           "input_file", "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLES", "MAX_FRAMES"]
+           "input_file", "refuse_overwrite", "unique_names", "MAX_FPS", "MAX_BATCH", "MAX_SAMPLE_BATCH", "MAX_SAMPLES",
+           "MAX_FRAMES"]
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -1,4 +1,4 @@
-"""``modi ganimator train|generate|evaluate``: single-sequence GANimator from the command line."""
+"""``modi ganimator train|generate|eval``: single-sequence GANimator from the command line."""
 from __future__ import annotations
 
 import argparse
@@ -116,18 +116,25 @@ def register(subparsers) -> None:
                    help="grid spacing of a crowd (default: 1.5 x body size, and 0 with --inbetween, --expand, "
                         "--edit, whose given clips keep their places; 0: every motion at its own start)")
     g.add_argument("--no-gif", action="store_true", help="do not render GIF previews")
-    g.add_argument("--evaluate", action="store_true", help="print coverage / diversity of each motion vs the sources")
+    g.add_argument("--eval", dest="evaluate", action="store_true",
+                   help="print coverage / diversity of each motion vs the sources")
+    ct.renamed_option(g, "--evaluate", "--eval", "evaluate", flag=True)
     add_format_options(g)
     g.set_defaults(func=_generate)
     add_view_option(g)
 
-    e = sub.add_parser("evaluate", help="coverage and diversity of random samples of a run", formatter_class=_FMT,
-                       description="Sample motions and report coverage (30-frame windows, threshold 2.0), global "
-                                   "(patched nearest neighbour) and local diversity against every training clip. "
-                                   "--protocol ours (default): rotations decoded from the samples, as any BVH "
-                                   "output is scored. --protocol paper: the authors' released evaluate.py (200 "
-                                   "samples of 2x the total source length, the generator's raw 6D + contact "
-                                   "channels, per-clip figures and the script's running average over clips).")
+    eval_description = ("Sample motions and report coverage (30-frame windows, threshold 2.0), global (patched nearest "
+                        "neighbour) and local diversity against every training clip. --protocol ours (default): "
+                        "rotations decoded from the samples, as any BVH output is scored. --protocol paper: the "
+                        "authors' released evaluate.py (200 samples of 2x the total source length, the generator's raw "
+                        "6D + contact channels, per-clip figures and the script's running average over clips).")
+    _eval_options(sub.add_parser("eval", help="coverage and diversity of random samples of a run",
+                                 formatter_class=_FMT, description=eval_description))
+    ct.renamed_command(sub, "evaluate", "eval", _eval_options, formatter_class=_FMT, description=eval_description)
+
+
+def _eval_options(e: argparse.ArgumentParser) -> None:
+    """``modi ganimator eval``'s options (also on its old spelling, ``evaluate``)."""
     e.add_argument("run", help="run directory (or .ckpt file)")
     e.add_argument("--protocol", choices=["ours", "paper"], default="ours",
                    help="ours: rotation-only features decoded as from BVH; paper: the released evaluate.py")

@@ -23,7 +23,7 @@ def register(subparsers) -> None:
                    help="truncation in [-2, 2]: 1 = none, 0 = the mean motion")
     p.add_argument("--seed", type=ct.seed_int, default=0, help="seed; motion i of a seed is fixed")
     p.add_argument("--ik", action="store_true", help="pin feet with IK while their contact label is on")
-    p.add_argument("--batch", type=ct.int_range(1, 4096), default=256, help="motions per forward pass")
+    p.add_argument("--batch", type=ct.sample_batch_int, default=256, help="motions per forward pass")
     p.add_argument("--gif-max", type=ct.int_range(0, 256), default=16, help="motions in the GIF grid (0: no GIF)")
     p.add_argument("--raw-weights", action="store_true", help="use the raw generator instead of its EMA")
     p.add_argument("--device", default="cpu", type=ct.device, help="cpu, cuda or cuda:N")

@@ -1,6 +1,6 @@
 """GANimator's single-sequence metrics under the authors' released evaluation protocol (``evaluate.py``).
 
-``modi ganimator evaluate RUN --protocol paper``. What the released script does, and this module reproduces:
+``modi ganimator eval RUN --protocol paper``. What the released script does, and this module reproduces:
 
 * **Samples**: 200 random motions of ``2 x`` the *total* length of the training clips (all of them when mixing).
   The level pyramid is rebuilt for that length with the training rule (coarsest ``int(N * coarse_ratio)``, then

@@ -198,7 +198,7 @@ CASES: list[tuple[str, str]] = [
     ("eval plausibility {clip} --json {d}", "is a folder, expected a file"),
     ("eval plausibility {clip} --json {clip}", "refusing to write over an input"),
     ("encoder eval {tiny} --json {tiny}", "refusing to write over an input"),
-    ("ganimator evaluate {gan} --json {gan}/ganimator.ckpt", "refusing to write over an input"),
+    ("ganimator eval {gan} --json {gan}/ganimator.ckpt", "refusing to write over an input"),
     ("eval train-features {d} --out {out}.pt --json {out}.pt", "is also --out"),
     # --- glTF export, the viewer and --format
     ("export gltf {d}/nope.bvh {out}.glb", "no such BVH file"),

@@ -1,6 +1,6 @@
 """GANimator as the authors' released code runs and measures it: the 5:1 discriminator ratio and per-block budgets,
 the loss-level options (contact rescaling, first-frame contact label, bias init, rows/columns 6D), old checkpoints,
-and the paper evaluation protocol (``modi ganimator evaluate --protocol paper``)."""
+and the paper evaluation protocol (``modi ganimator eval --protocol paper``)."""
 from __future__ import annotations
 
 import json
@@ -356,22 +356,28 @@ def test_cli_evaluate_both_protocols_report_samples_and_length(tmp_path, capsys)
 
     _rec_model(tmp_path, iterations=2)
     run = str(tmp_path / "rec")
-    assert main(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "2", "--json",
+    assert main(["ganimator", "eval", run, "--protocol", "paper", "--n", "2", "--json",
                  str(tmp_path / "p.json")]) == 0
     out = capsys.readouterr().out
     assert "protocol paper" in out and "(2 samples x 80 frames" in out
     figs = json.loads((tmp_path / "p.json").read_text())
     assert figs["protocol"] == "paper" and figs["samples"] == 2 and figs["frames"] == 80
     assert all(f["samples"] == 2 and f["frames"] == 80 for f in figs["per_sequence"].values())
-    assert main(["ganimator", "evaluate", run, "--n", "2", "--json", "-"]) == 0
-    ours = json.loads(capsys.readouterr().out)
+    assert main(["ganimator", "evaluate", run, "--n", "2", "--json", "-"]) == 0  # the old spelling still works
+    cap = capsys.readouterr()
+    ours = json.loads(cap.out)
+    assert "modi: note: 'evaluate' is now 'eval'" in cap.err
     assert ours["protocol"] == "ours" and all(f["samples"] == 2 and f["frames"] == 40 for f in ours["metrics"].values())
     assert ours["iterations_per_block"] == [2, 2]
     assert main(["ganimator", "generate", run, "--n", "2", "--frames", "45", "--out", str(tmp_path / "g"),
-                 "--no-gif", "--evaluate"]) == 0
+                 "--no-gif", "--eval"]) == 0
     out = capsys.readouterr().out
     assert '"samples": 2' in out and '"frames": 45' in out
-    assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--n", "0"]) == 2
+    assert main(["ganimator", "generate", run, "--n", "1", "--frames", "45", "--out", str(tmp_path / "g2"),
+                 "--no-gif", "--evaluate"]) == 0
+    cap = capsys.readouterr()
+    assert '"samples": 1' in cap.out and "modi: note: --evaluate is now --eval" in cap.err
+    assert _exit_code(["ganimator", "eval", run, "--protocol", "paper", "--n", "0"]) == 2
     assert _exit_code(["ganimator", "evaluate", run, "--protocol", "paper", "--frames", "10"]) == 2
 
 
