@@ -1,4 +1,5 @@
-"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.skeletal.ops``.
+"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.skeletal.ops``, and the StyleGAN2 pieces they are used
+with: the equalised-lr linear layer (``EqualLinear``) and the fused bias + leaky ReLU.
 
 Topology comes in as plain lists and is turned into CSR buffers (not saved in ``state_dict``: the topology is a
 constructor argument).  Weights are stored compactly, one ``(Cout, Cin, U)`` block per (output entity, input entity)
@@ -12,6 +13,7 @@ import math
 from typing import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
@@ -20,7 +22,7 @@ from modi_ext.skeletal.reference import to_dense
 from modi_ext.topology import SparseTopology, csr_from_lists
 
 __all__ = ["SkeletalConv", "SkeletalDownsample", "SkeletalUpsample", "ModulatedSkeletalConv", "EqualLinear",
-           "ForwardKinematics"]
+           "FusedLeakyReLU", "fused_leaky_relu", "ForwardKinematics"]
 
 
 def _check_channels(**kw: int) -> None:
@@ -158,21 +160,55 @@ class SkeletalUpsample(_SkeletalBase):
                 f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
 
 
+SQRT2 = math.sqrt(2.0)
+
+
+def fused_leaky_relu(x: torch.Tensor, bias: torch.Tensor | None, slope: float = 0.2) -> torch.Tensor:
+    """Bias + leaky ReLU + gain sqrt(2), which keeps the activations' second moment at 1 (StyleGAN2); ``bias``
+    ``(C,)`` is added along dimension 1.
+
+    Computed as leaky_relu(sqrt(2) x + sqrt(2) b): leaky ReLU is positively homogeneous, so the gain moves inside,
+    where the bias add applies it (``add``'s ``alpha``), and the activation runs in place on that fresh tensor:
+    one elementwise pass and one allocation less than add, activation, multiply."""
+    if bias is None:
+        return F.leaky_relu(x * SQRT2, slope, inplace=True)
+    b = (bias * SQRT2).view(1, -1, *([1] * (x.ndim - 2)))
+    return F.leaky_relu(torch.add(b, x, alpha=SQRT2), slope, inplace=True)
+
+
+class FusedLeakyReLU(nn.Module):
+    """:func:`fused_leaky_relu` with a learned per-channel bias (starting at zero)."""
+
+    def __init__(self, channels: int, bias: bool = True):
+        super().__init__()
+        self.bias = nn.Parameter(torch.zeros(channels)) if bias else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return fused_leaky_relu(x, self.bias)
+
+
 class EqualLinear(nn.Module):
-    """StyleGAN2 equalised-lr linear layer: ``y = x @ (W * lr_mul / sqrt(in)).T + b * lr_mul``."""
+    """StyleGAN2 equalised-lr linear layer: ``y = x @ (W * lr_mul / sqrt(in)).T + b * lr_mul``.
+
+    ``lr_mul`` is the learning-rate multiplier (MoDi's mapping network: 0.01); ``activate`` follows the layer with
+    :func:`fused_leaky_relu`, its bias added there. Parameters: ``weight`` ``(out, in)`` and ``bias`` ``(out,)``
+    (none with ``bias=False``)."""
 
     def __init__(self, in_dim: int, out_dim: int, bias: bool = True, bias_init: float = 0.0,
-                 lr_mul: float = 1.0) -> None:
+                 lr_mul: float = 1.0, activate: bool = False) -> None:
         super().__init__()
         _check_channels(in_dim=in_dim, out_dim=out_dim)
         self.weight = nn.Parameter(torch.randn(out_dim, in_dim) / lr_mul)
         self.bias = nn.Parameter(torch.full((out_dim,), float(bias_init) / lr_mul)) if bias else None
         self.scale = lr_mul / math.sqrt(in_dim)
         self.lr_mul = lr_mul
+        self.activate = activate
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         b = self.bias * self.lr_mul if self.bias is not None else None
-        return torch.nn.functional.linear(x, self.weight * self.scale, b)
+        if self.activate:
+            return fused_leaky_relu(F.linear(x, self.weight * self.scale), b)
+        return F.linear(x, self.weight * self.scale, b)
 
 
 class ModulatedSkeletalConv(nn.Module):

@@ -26,10 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from modi_ext.demod.reference import DEMOD_EPS
+from modi_ext.fir import FIR_TAPS, UP_GAIN
 from modi_ext.topology import pair_entity
-
-BLUR_KERNEL = (1.0, 3.0, 3.0, 1.0)
-BLUR_GAIN = 2.0  # the up factor: keeps DC gain after zero-stuffed upsampling (StyleGAN2's convention)
 PADDING_MODES = ("zeros", "reflect")
 
 
@@ -165,9 +163,10 @@ def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None
 
 
 def blur(v: torch.Tensor) -> torch.Tensor:
-    """The up-sampler's FIR ``[1,3,3,1] / 4`` along the last axis, zero padded (2 before, 1 after)."""
+    """The up-sampler's FIR (``modi_ext.fir.FIR_TAPS``, ``[1,3,3,1] / 4``) along the last axis, zero padded (2 before,
+    1 after)."""
     shape = v.shape
-    k = torch.tensor(BLUR_KERNEL, dtype=v.dtype, device=v.device)
-    k = (k * (BLUR_GAIN / k.sum())).view(1, 1, 4)
+    k = torch.tensor(FIR_TAPS, dtype=v.dtype, device=v.device)
+    k = (k * (UP_GAIN / k.sum())).view(1, 1, 4)
     flat = F.pad(v.reshape(-1, 1, shape[-1]), (2, 1))
     return F.conv1d(flat, k).reshape(shape)

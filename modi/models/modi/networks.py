@@ -2,7 +2,8 @@
 
 Shapes follow the project convention ``(B, K, E, T)``. The hierarchy runs coarse (level 0, learned constant) to
 fine (last level, the motion's own entities and frames); each finer level doubles the frames and un-merges entities
-along the skeleton's automatic pooling map. Skeleton-aware layers come from ``modi_ext.layers``; the ablation
+along the skeleton's automatic pooling map. The layers come from ``modi_ext.layers`` (skeleton-aware convs, the
+equalised-lr linear layer, the fused bias + leaky ReLU) and the time filter from ``modi_ext.fir``; the ablation
 variants (skeletal pooling, pseudo-image convolutions) are built here from plain torch.
 """
 from __future__ import annotations
@@ -17,6 +18,10 @@ from torch import nn
 
 from modi.models.modi.config import ModelConfig
 from modi_ext import layers as ext
+from modi_ext.fir import blur_time as fir_blur_time
+from modi_ext.fir import downsample_time as fir_downsample_time
+from modi_ext.fir import upsample_time as fir_upsample_time
+from modi_ext.layers import EqualLinear, FusedLeakyReLU, fused_leaky_relu  # noqa: F401  (fused_leaky_relu re-exported)
 
 SQRT2 = math.sqrt(2.0)
 
@@ -111,76 +116,9 @@ def _pool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------------------------- small building blocks
-def fir_upsample_time(x: torch.Tensor) -> torch.Tensor:
-    """Double the last axis with StyleGAN2's [1,3,3,1] FIR (zero-insertion, gain 2) -- linear interpolation.
-
-    On the zero-inserted signal every output frame has two nonzero taps: frame 2i is 0.25 x[i-1] + 0.75 x[i] and
-    frame 2i+1 is 0.75 x[i] + 0.25 x[i+1] (x zero outside), computed so, at the input's length, and interleaved --
-    the same values bit for bit as filtering the zero-inserted signal (the skipped terms are exact zeros, the sums
-    in the same order), in 8 elementwise ops at the input's length where that took 11 at twice it."""
-    xp = F.pad(x, (1, 1))
-    three = 0.75 * x
-    return torch.stack([0.25 * xp[..., :-2] + three, three + 0.25 * xp[..., 2:]], dim=-1).flatten(-2)
-
-
-def fir_downsample_time(x: torch.Tensor) -> torch.Tensor:
-    """Halve the last axis: [1,3,3,1]/8 blur then stride 2 (StyleGAN2's anti-aliased downsampling)."""
-    y = F.pad(x, (1, 1))
-    n = y.shape[-1] - 3
-    b = (y[..., 0:n] + 3 * y[..., 1 : n + 1] + 3 * y[..., 2 : n + 2] + y[..., 3 : n + 3]) / 8.0
-    return b[..., ::2]
-
-
-def fir_blur_time(x: torch.Tensor) -> torch.Tensor:
-    """[1,3,3,1]/8 blur keeping the length (pad 1 before, 2 after): the anti-alias filter StyleGAN2 puts before
-    every strided discriminator conv, so a stride-2 conv then centres coarse frame t on fine frame 2t + 1/2."""
-    y = F.pad(x, (1, 2))
-    n = x.shape[-1]
-    return (y[..., 0:n] + 3 * y[..., 1 : n + 1] + 3 * y[..., 2 : n + 2] + y[..., 3 : n + 3]) / 8.0
-
-
-def fused_leaky_relu(x: torch.Tensor, bias: torch.Tensor | None, slope: float = 0.2) -> torch.Tensor:
-    """Bias + leaky ReLU + gain sqrt(2), which keeps the activations' second moment at 1 (StyleGAN2).
-
-    Computed as leaky_relu(sqrt(2) x + sqrt(2) b): leaky ReLU is positively homogeneous, so the gain moves inside,
-    where the bias add applies it (``add``'s ``alpha``), and the activation runs in place on that fresh tensor --
-    one elementwise pass and one allocation less than add, activation, multiply (fwd+bwd at [16, 32, 25, 64], 2
-    threads: 1.16 -> 0.77 ms, in-process A/B, 2026-12-04)."""
-    if bias is None:
-        return F.leaky_relu(x * SQRT2, slope, inplace=True)
-    b = (bias * SQRT2).view(1, -1, *([1] * (x.ndim - 2)))
-    return F.leaky_relu(torch.add(b, x, alpha=SQRT2), slope, inplace=True)
-
-
-class FusedLeakyReLU(nn.Module):
-    def __init__(self, channels: int, bias: bool = True):
-        super().__init__()
-        self.bias = nn.Parameter(torch.zeros(channels)) if bias else None
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return fused_leaky_relu(x, self.bias)
-
-
 class PixelNorm(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * torch.rsqrt(x.pow(2).mean(1, keepdim=True) + 1e-8)
-
-
-class EqualLinear(nn.Module):
-    """Linear layer with equalised learning rate and an optional learning-rate multiplier (mapping net: 0.01)."""
-
-    def __init__(self, in_dim: int, out_dim: int, bias_init: float = 0.0, lr_mul: float = 1.0, activate: bool = False):
-        super().__init__()
-        self.weight = nn.Parameter(torch.randn(out_dim, in_dim) / lr_mul)
-        self.bias = nn.Parameter(torch.full((out_dim,), float(bias_init) / lr_mul))
-        self.scale = lr_mul / math.sqrt(in_dim)
-        self.lr_mul = lr_mul
-        self.activate = activate
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.activate:
-            return fused_leaky_relu(F.linear(x, self.weight * self.scale), self.bias * self.lr_mul)
-        return F.linear(x, self.weight * self.scale, self.bias * self.lr_mul)
 
 
 class MappingNetwork(nn.Module):

@@ -22,8 +22,8 @@ from torch import Tensor, nn
 
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.latent.space import mean_w
-from modi.models.modi.networks import ConvAct, EqualLinear, LevelSpec, PseudoImageConv, ResBlock
-from modi_ext.layers import SkeletalConv
+from modi.models.modi.networks import ConvAct, LevelSpec, PseudoImageConv, ResBlock
+from modi_ext.layers import EqualLinear, SkeletalConv
 
 ENCODER_HEADS = ("released", "bottleneck")
 
