@@ -31,20 +31,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any, Iterable, Iterator
 
-from modi.errors import UserError
-
-
-class OutputError(UserError):
-    """An output could not be written (no space left, read-only folder, permission): the final name is untouched.
-    ``errno`` is the OS error number when one caused it."""
-
-    def __init__(self, message: str, errno_: int | None = None) -> None:
-        super().__init__(message)
-        self.errno = errno_
-
-
-class RunFolderBusy(UserError):
-    """Another live process holds the run folder's lock."""
+from modi.errors import OutputError, RunFolderBusy, UserError  # noqa: F401  (OutputError, RunFolderBusy re-exported)
 
 
 def describe_os_error(exc: OSError, path: str | os.PathLike) -> str:

@@ -40,7 +40,7 @@ from modi.models.ganimator.training import TrainingInterrupted, blocks_of, check
 from modi.models.modi.checkpoint import load_checkpoint
 from modi.models.modi import distributed as mdist
 from modi.models.modi.config import ABLATIONS, MoDiConfig, make_config
-from modi.models.modi.training import NonFiniteLossError, Trainer, TrainResult, newest_checkpoint, prepare_data
+from modi.models.modi.training import Trainer, TrainResult, newest_checkpoint, prepare_data
 from modi.data.normalization import Normalizer
 
 
@@ -338,10 +338,7 @@ def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: di
     trainer = _ModiTrainer(cfg, td, run_dir, device=dev, resume=resume_state, progress=bar, tensorboard=tensorboard,
                            log=log or (lambda _m: None), progress_fn=progress)
     state["trainer"] = trainer
-    try:
-        result = trainer.train()
-    except NonFiniteLossError as exc:
-        raise UserError(str(exc)) from None
+    result = trainer.train()  # a NaN/inf loss: NonFiniteLossError, a UserError (one line, exit 2)
     losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items()
                        if k in ("d", "g", "r1", "path", "touch", "contact"))
     _say(say, f"modi train: step {result.step} in {result.seconds:.1f} s; checkpoint {result.checkpoint}; {losses}")

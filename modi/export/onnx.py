@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 from modi._version import __version__ as modi_version
 from modi.core.body import guess_unit
-from modi.errors import CheckpointError, UserError
+from modi.errors import CheckpointError, OnnxExportError, UserError
 from modi.export import onnx_runner
 from modi.io.safe_load import earlier_modi_globals, load_data
 from modi.models.ganimator.data import K, features_to_motion, resample
@@ -57,10 +57,6 @@ OPSET = 18  # the opset onnxscript's torch library is written in: no version con
 SIDECAR_FORMAT = onnx_runner.SIDECAR_FORMAT
 PSI_RANGE = (-2.0, 2.0)  # what 'modi generate --psi' accepts
 _EXAMPLE_BATCH = 2  # a batch of 1 would be specialised (torch.export treats sizes 0 and 1 as constants)
-
-
-class OnnxExportError(UserError):
-    """The export could not be done (a missing package, a model kind the graph cannot express)."""
 
 
 # ------------------------------------------------------------------------------------------- graphs

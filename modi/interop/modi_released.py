@@ -33,7 +33,7 @@ import torch
 from modi.core.skeleton import Skeleton
 from modi.data.normalization import Normalizer
 from modi.data.representation import MotionRepresentation
-from modi.errors import CheckpointError, UserError
+from modi.errors import CheckpointError, MaskViolation, UserError
 from modi.interop.provenance import file_record, record, released_iterations, window_and_stride
 from modi.interop.released_files import load_released_file, load_released_npy
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict
@@ -42,10 +42,6 @@ from modi.models.modi.config import ModelConfig, MoDiConfig
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec
 
 REQUIRED = ("g", "g_ema", "d", "args", "mean_joints", "std_joints")
-
-
-class MaskViolation(CheckpointError):
-    """A released weight is non-zero where its mask is zero (the compact form cannot hold it)."""
 
 
 # --------------------------------------------------------------------------------------------- reading

@@ -20,26 +20,10 @@ import torch
 from numpy._core import multiarray
 from torch.torch_version import TorchVersion
 
-from modi.errors import CheckpointError
+from modi.errors import CheckpointError, UnreadableFileError, UnsafeFileError
 
 _GLOBAL = re.compile(r"GLOBAL ([\w.]+)")
 _OPERAND = re.compile(r"Unsupported operand (\d+)")
-
-
-class UnreadableFileError(CheckpointError):
-    """Not a torch file at all, or a truncated/corrupt one; ``reason`` is torch's first line."""
-
-    def __init__(self, message: str, path: Path, reason: str) -> None:
-        super().__init__(message)
-        self.path, self.reason = path, reason
-
-
-class UnsafeFileError(CheckpointError):
-    """The file names code (a global outside the allow-list): refused without calling anything."""
-
-    def __init__(self, message: str, path: Path, global_name: str) -> None:
-        super().__init__(message)
-        self.path, self.global_name = path, global_name
 
 
 def numpy_data_globals() -> list:

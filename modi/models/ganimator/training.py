@@ -29,7 +29,7 @@ from modi import faults
 from modi._version import __version__ as modi_version
 from modi.core.rotations import sixd_to_quat
 from modi.core.skeleton import Skeleton
-from modi.errors import CheckpointError, UserError
+from modi.errors import CheckpointError, NonFiniteLossError, UserError
 from modi.io.safe_load import UnreadableFileError, earlier_modi_globals, load_data
 from modi.models.ganimator.config import GanimatorConfig
 from modi.models.ganimator.data import K, check_compatible, real_pyramid, resample, sequence_pyramid
@@ -97,11 +97,6 @@ def atomic_save(obj: dict, path: Path, previous: str | None = None) -> None:
 def checkpoint_path(run: str | Path) -> Path:
     run = Path(run)
     return run if run.suffix == ".ckpt" or run.is_file() else run / CHECKPOINT_NAME
-
-
-class NonFiniteLossError(UserError):
-    """A loss (or, at a save, a weight) became NaN/inf: training stops before that optimiser step and writes
-    nothing, so the checkpoint on disk is the last good one (one line from the CLI, exit 2)."""
 
 
 class TrainingInterrupted(KeyboardInterrupt):

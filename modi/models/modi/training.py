@@ -38,7 +38,7 @@ from modi.core.topology import build_hierarchy
 from modi.data.dataset import DatasetConfig, build_dataset
 from modi.data.normalization import Normalizer
 from modi.data.procedural import write_dataset
-from modi.errors import CheckpointError, UserError
+from modi.errors import CheckpointError, NonFiniteLossError, UserError
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict, load_checkpoint
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
@@ -56,10 +56,6 @@ from modi.models.modi.losses import (
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
 from modi.models.modi.sampling import write_outputs
 from modi.models.optim import frozen_heap, fused_adam
-
-
-class NonFiniteLossError(RuntimeError):
-    """A loss became NaN/inf: training stops before the optimiser step, and no checkpoint is written."""
 
 
 # =============================================================================================== data
