@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         gen = modi.train_modi(bvh.parent, out / "modi", config=tiny, iters=2, resume=(out / "modi" /
                                                                                  "checkpoint.pt").exists())
     print(gen)
-    samples = gen.sample(4, seed=0, psi=0.7)
+    samples = gen.generate(4, seed=0, psi=0.7)
     blend = gen.interpolate(0, 1, steps=4)
     print(f"  MoDi: {len(samples)} samples, an interpolation of {len(blend)} motions; feet {gen.feet}")
     print(f"  what modi info says: {modi.inspect(gen.path).kind}")

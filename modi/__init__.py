@@ -7,7 +7,7 @@ The public Python API::
     clip = modi.load("walk.bvh")                     # a modi.Motion (fps and length unit known)
     clip.positions(unit="m")                         # (T, J, 3) in metres
     gen = modi.load("runs/modi/checkpoint.pt")       # a ModiGenerator
-    motions = gen.sample(8, seed=0)                  # list[modi.Motion], as `modi generate --n 8 --seed 0`
+    motions = gen.generate(8, seed=0)                  # list[modi.Motion], as `modi generate --n 8 --seed 0`
     run = modi.train_ganimator("walk.bvh", "runs/g", preset="tiny")
     run.generate(2, frames=120, seed=1)[0].to_gltf("walk.glb")
     modi.show(motions, out="view.html")

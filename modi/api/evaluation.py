@@ -80,9 +80,9 @@ def evaluate(samples: ModiGenerator | str | os.PathLike | Sequence[Motion], *,
     if isinstance(samples, (str, os.PathLike)):
         what["ckpt"] = str(samples)
         samples = ModiGenerator.from_checkpoint(samples)
-    if hasattr(samples, "sample"):  # a ModiGenerator (or anything that samples like one)
+    if isinstance(samples, ModiGenerator):
         what.setdefault("ckpt", getattr(samples, "path", None))
-        motions = samples.sample(n, seed=seed, psi=psi, ik=ik)
+        motions = samples.generate(n, seed=seed, psi=psi, ik=ik)
     else:
         motions = list(samples)
         if not motions:

@@ -5,12 +5,13 @@ Latents: a W vector ``(D,)``, a W+ tensor ``(L, D)``, an integer seed (the laten
 ``modi generate --seed N``), ``"mean"`` (w̄) or a path to a ``.npy`` latent; :meth:`ModiGenerator.latent` turns any of
 them into a tensor. The latent applications synthesise with the generator's fixed noise, so a latent fixes its motion
 (as ``modi latent``); :meth:`ModiGenerator.sample` draws per-motion noise exactly as ``modi generate`` does, so
-``modi.load(ckpt).sample(n, seed=s)`` is the ``n`` motions ``modi generate CKPT --n n --seed s`` writes.
+``modi.load(ckpt).generate(n, seed=s)`` is the ``n`` motions ``modi generate CKPT --n n --seed s`` writes.
 """
 from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence, Union
@@ -119,7 +120,7 @@ class ModiGenerator:
 
     # ------------------------------------------------------------------------------------------- sampling
     def sample_tensors(self, n: int, *, seed: int = 0, psi: float = 1.0, batch: int = 256) -> Tensor:
-        """``n`` normalised model tensors ``(n, K, E, T)`` (what :meth:`sample` decodes): motion ``i`` of a seed is
+        """``n`` normalised model tensors ``(n, K, E, T)`` (what :meth:`generate` decodes): motion ``i`` of a seed is
         the same whatever ``n`` or ``batch``."""
         if not -2.0 <= float(psi) <= 2.0:
             raise UserError(f"psi must be in [-2, 2], got {psi}")
@@ -128,18 +129,24 @@ class ModiGenerator:
         check_finite(x)
         return x
 
-    def sample(self, n: int = 1, *, seed: int = 0, psi: float = 1.0, ik: bool = False,
-               batch: int = 256) -> list[Motion]:
-        """``n`` generated motions: the ones ``modi generate CKPT --n n --seed seed --psi psi`` writes.
+    def generate(self, n: int = 1, *, seed: int = 0, psi: float = 1.0, ik: bool = False,
+                 batch: int = 256) -> list[Motion]:
+        """``n`` generated motions: the ones ``modi generate CKPT --n n --seed seed --psi psi`` writes (the same
+        verb as :meth:`modi.api.ganimator.GanimatorRun.generate`).
 
         ``psi`` truncates toward the mean (1: none, 0: the mean motion); ``ik`` pins each foot while its contact
         label is on. Cost: one generator pass per ``batch`` motions (milliseconds each on a CPU for the small
         preset) plus decoding."""
         return self.decode(self.sample_tensors(n, seed=seed, psi=psi, batch=batch), ik=ik)
 
+    def sample(self, n: int = 1, **kw) -> list[Motion]:
+        """The old name of :meth:`generate` (kept so scripts keep working; it warns once)."""
+        warnings.warn("ModiGenerator.sample is now ModiGenerator.generate", DeprecationWarning, stacklevel=2)
+        return self.generate(n, **kw)
+
     def write_samples(self, out: str | os.PathLike, n: int = 16, *, seed: int = 0, psi: float = 1.0,
                       ik: bool = False, batch: int = 256, gif_max: int = 16) -> tuple[list[Path], float]:
-        """``modi generate``: write the ``n`` motions :meth:`sample` gives as ``motion_NNNN`` files (the requested
+        """``modi generate``: write the ``n`` motions :meth:`generate` gives as ``motion_NNNN`` files (the requested
         ``--format``s) with ``motion_NNNN_contacts.npy``, and the first ``gif_max`` in ``samples.gif`` (0: none).
         Returns the motion files and the seconds sampling took (decoding and writing go ``batch`` at a time)."""
         t0 = time.perf_counter()

@@ -102,11 +102,13 @@ def test_topology_gives_joint_only_maps_that_fit_the_layers(clip):
 def test_modi_generator_samples_interpolates_edits_and_inverts(modi_run, clip, tmp_path):
     gen = modi.load(modi_run)
     assert isinstance(gen, modi.ModiGenerator) and "16 frames" in repr(gen)
-    motions = gen.sample(3, seed=4)
+    motions = gen.generate(3, seed=4)
     assert len(motions) == 3 and all(isinstance(m, modi.Motion) for m in motions)
     m = motions[0]
     assert m.n_frames == 16 and m.fps == gen.fps and set(m.contacts) == set(gen.feet)
-    torch.testing.assert_close(gen.sample(1, seed=4)[0].rotations, m.rotations)  # motion i of a seed: any n
+    torch.testing.assert_close(gen.generate(1, seed=4)[0].rotations, m.rotations)  # motion i of a seed: any n
+    with pytest.warns(DeprecationWarning, match="is now ModiGenerator.generate"):  # the old verb still works
+        torch.testing.assert_close(gen.sample(1, seed=4)[0].rotations, m.rotations)
     seq = gen.interpolate(0, 1, steps=2)
     assert len(seq) == 3
     torch.testing.assert_close(seq[0].rotations, gen.synthesize([0])[0].rotations)

@@ -1,4 +1,4 @@
-"""Seed for seed, the Python API gives the motions the CLI writes: ``modi.load(ckpt).sample(n, seed=s)`` and
+"""Seed for seed, the Python API gives the motions the CLI writes: ``modi.load(ckpt).generate(n, seed=s)`` and
 ``modi generate CKPT --n n --seed s``; ``modi.load(run).generate(n, frames=F, seed=s)`` and ``modi ganimator generate
 RUN --n n --frames F --seed s``. Compared as the BVH text each writes (6 decimals), which must be identical."""
 from __future__ import annotations
@@ -20,7 +20,7 @@ def test_modi_sample_equals_modi_generate(modi_run, tmp_path, n, seed, batch, ex
     assert main(["generate", str(modi_run / "checkpoint.pt"), "--n", str(n), "--seed", str(seed), "--out", str(out),
                  "--gif-max", "0", *(["--batch", str(batch)] if batch else []), *extra]) == 0
     psi = float(extra[1]) if extra else 1.0
-    motions = modi.load(modi_run / "checkpoint.pt").sample(n, seed=seed, psi=psi, ik="--ik" in extra,
+    motions = modi.load(modi_run / "checkpoint.pt").generate(n, seed=seed, psi=psi, ik="--ik" in extra,
                                                            **({"batch": batch} if batch else {}))
     assert len(motions) == n
     for i, m in enumerate(motions):
