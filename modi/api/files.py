@@ -11,8 +11,6 @@ import torch
 from modi.api.encoder import Encoder
 from modi.api.ganimator import GanimatorRun
 from modi.api.generator import ModiGenerator
-from modi.core.rotations import matrix_to_quat, quat_mul
-from modi.core.skeleton import Skeleton
 from modi.data.motion import Motion
 from modi.errors import UserError
 from modi.evaluation.features import FeatureExtractor, load_extractor
@@ -26,31 +24,15 @@ _FORMATS = {"modi-checkpoint": "modi", "modi-encoder": "encoder", "modi.ganimato
 
 
 def motion_from_gltf(path: str | os.PathLike) -> Motion:
-    """A glTF file's skeleton animation as a Motion in metres (bones rigid: a non-root joint's offset is the mean of
-    its translation track; the transform above the skeleton is folded into the root)."""
-    tr = gltf.read_tracks(path)
-    above = np.asarray(tr.above, dtype=np.float64)
-    s = float(np.linalg.norm(above[:3, 0])) or 1.0
-    rot = torch.from_numpy(above[:3, :3] / s)
-    q_above = matrix_to_quat(rot).to(torch.float64)
-    trans = tr.translations.to(torch.float64)
-    root = s * trans[:, 0] @ rot.T + torch.from_numpy(above[:3, 3])
-    rotations = tr.rotations.to(torch.float64).clone()
-    rotations[:, 0] = quat_mul(q_above.expand_as(rotations[:, 0]), rotations[:, 0])
-    offsets = s * trans.mean(0).numpy()
-    offsets[0] = root[0].numpy()
-    skeleton = Skeleton(list(tr.names), list(tr.parents), offsets)
-    contacts = None
-    if tr.contacts is not None and tr.contacts.any():
-        contacts = {tr.names[j]: tr.contacts[:, j] for j in range(len(tr.names)) if tr.contacts[:, j].any()}
-    return Motion(skeleton, rotations, root, tr.fps, "metres", contacts=contacts)
+    """A glTF file's skeleton animation as a Motion in metres: :meth:`Motion.from_gltf`, under its earlier name."""
+    return Motion.from_gltf(path)
 
 
 def load(path: str | os.PathLike, *, device: str | torch.device = "cpu", raw_weights: bool = False) -> Loaded:
     """The right object for any file modi reads:
 
     * ``.bvh`` -> :class:`modi.Motion` (through :meth:`Motion.from_bvh`), ``.glb`` / ``.gltf`` -> :class:`Motion` in
-      metres;
+      metres (through :meth:`Motion.from_gltf`);
     * a MoDi checkpoint (``modi train``, or a released one imported with ``modi import``) or its run folder ->
       :class:`ModiGenerator` (EMA weights; ``raw_weights`` for the raw generator);
     * an encoder checkpoint -> :class:`Encoder`; a GANimator run folder or ``ganimator.ckpt`` ->
@@ -72,7 +54,7 @@ def load(path: str | os.PathLike, *, device: str | torch.device = "cpu", raw_wei
     if suffix == ".bvh":
         return Motion.from_bvh(p)
     if suffix in gltf.SUFFIXES:
-        return motion_from_gltf(p)
+        return Motion.from_gltf(p)
     if suffix == ".npy":
         try:
             return torch.from_numpy(np.load(p, allow_pickle=False).astype(np.float32))

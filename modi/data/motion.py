@@ -25,6 +25,7 @@ from modi.core.body import UNIT_SCALES, guess_unit, unit_name
 from modi.core.kinematics import forward_kinematics
 from modi.core.rotations import (
     euler_to_quat,
+    matrix_to_quat,
     quat_apply,
     quat_canonical,
     quat_inverse,
@@ -357,6 +358,28 @@ class Motion:
     def contact_arrays(self) -> dict[str, np.ndarray] | None:
         """The contact labels as numpy arrays ({joint name: (T,) bool}), or None: what the file writers take."""
         return None if self.contacts is None else {k: v.numpy() for k, v in self.contacts.items()}
+
+    @classmethod
+    def from_gltf(cls, path: str | os.PathLike) -> "Motion":
+        """A glTF file's skeleton animation as a Motion in metres (bones rigid: a non-root joint's offset is the mean
+        of its translation track; the transform above the skeleton is folded into the root); contact labels come
+        back from the animation's extras, as :meth:`to_gltf` writes them."""
+        tr = gltf.read_tracks(path)
+        above = np.asarray(tr.above, dtype=np.float64)
+        s = float(np.linalg.norm(above[:3, 0])) or 1.0
+        rot = torch.from_numpy(above[:3, :3] / s)
+        q_above = matrix_to_quat(rot).to(torch.float64)
+        trans = tr.translations.to(torch.float64)
+        root = s * trans[:, 0] @ rot.T + torch.from_numpy(above[:3, 3])
+        rotations = tr.rotations.to(torch.float64).clone()
+        rotations[:, 0] = quat_mul(q_above.expand_as(rotations[:, 0]), rotations[:, 0])
+        offsets = s * trans.mean(0).numpy()
+        offsets[0] = root[0].numpy()
+        skeleton = Skeleton(list(tr.names), list(tr.parents), offsets)
+        contacts = None
+        if tr.contacts is not None and tr.contacts.any():
+            contacts = {tr.names[j]: tr.contacts[:, j] for j in range(len(tr.names)) if tr.contacts[:, j].any()}
+        return cls(skeleton, rotations, root, tr.fps, "metres", contacts=contacts)
 
     def to_gltf(self, path: str | os.PathLike, *, scale: float | None = None, mesh: bool = False) -> Path:
         """Write the motion as glTF 2.0 (``.glb`` binary or ``.gltf`` JSON, by the suffix), Y up in metres, with its

@@ -312,3 +312,16 @@ def test_to_gltf_writes_metres(shared_data, tmp_path):
     names, parents, pos, fps, _ = load_positions(out)
     assert names == m.skeleton.names and fps == pytest.approx(60.0)
     np.testing.assert_allclose(pos, m.positions(unit="m").numpy(), atol=1e-4)
+
+
+def test_from_gltf_reads_back_what_to_gltf_wrote(tmp_path):
+    """``Motion.from_gltf`` beside ``to_gltf``; ``modi.api.files.motion_from_gltf`` (its earlier home) is it."""
+    from modi.api.files import motion_from_gltf
+    from modi.data.procedural import generate_clip
+
+    m = generate_clip("walk", 16, rng=0)
+    out = m.to_gltf(tmp_path / "walk.glb")
+    g = Motion.from_gltf(out)
+    assert g.unit == "metres" and g.fps == m.fps and g.skeleton.names == m.skeleton.names
+    torch.testing.assert_close(g.positions(), m.positions(unit="m"), atol=1e-4, rtol=0)
+    assert motion_from_gltf(out) == g
