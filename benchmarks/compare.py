@@ -3,6 +3,7 @@
     python benchmarks/compare.py --json benchmarks/results/cpu.json [--reps 15] [--threads N] [--only REGEX]
                                  [--clock wall|cpu] [--busy N]
     python benchmarks/compare.py --device cuda --dtype fp32,bf16 --json benchmarks/results/cuda_h100.json
+    python benchmarks/compare.py --bf16 [--threads-list 1,2] [--repeats 7] [--only REGEX] [--json FILE]
 
 Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
 the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.core.topology`` when importable, a
@@ -34,6 +35,11 @@ grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the inpu
 ``--thread-ab N`` also times the extension alone at ``--threads`` and at N threads, alternated in blocks of a few
 calls in this process (``--ab-reps`` timed calls each), for thread-scaling figures that machine drift cannot skew:
 ``ext_ms_threads`` (median ms per thread count) and ``ext_thread_ratio`` (time at ``--threads`` / time at N).
+
+``--bf16`` (CPU, issue 52) times each case in bfloat16 (the same modules and inputs cast to bf16: the ``dense`` path,
+oneDNN's bf16 GEMMs where the CPU has bf16 units) against float32 on ``auto`` (the kernels), the two interleaved,
+``--repeats`` times at each of ``--threads-list``: per case and thread count the bf16 / fp32 time ratio of each
+repeat, reported as median, min and max (default cases: the finest skeletal and modulated conv, fwd_bwd).
 
 Roofline (``benchmarks/roofline.py``): every case's FLOPs are counted once, untimed, on the extension's path with the
 sparse per-pair formulas (``flops``), and this process times sgemm (``torch.mm`` 1024^3, same threads) at the start
@@ -250,7 +256,10 @@ def ganimator_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, d
     return cases, info
 
 
-def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, dict], str]:
+def skeletal_cases(dtype: torch.dtype = torch.float32, impls: tuple[str, ...] = ("ref", "ext", "dense")
+                   ) -> tuple[dict[str, tuple[Callable, Callable]], dict[str, dict], str]:
+    """The MoDi cases, one function per path of ``impls`` (default: ref, ext and dense), modules and inputs in
+    ``dtype`` (the same values for every dtype: one seed, then a cast)."""
     torch.manual_seed(0)
     neigh, pools, source = bandai_hierarchy()
     names = level_names(len(neigh))
@@ -274,12 +283,14 @@ def skeletal_cases() -> tuple[dict[str, tuple[Callable, Callable]], dict[str, di
                 ("modulated_up", ModulatedSkeletalConv(c2, c, STYLE_DIM, pools[lv], 3, mode="up"), (xc, w)),
             ]
         for op, module, inputs in defs:
+            if dtype != torch.float32:
+                module = module.to(dtype)
+                inputs = tuple(t.to(dtype) for t in inputs)
             kinds = ("fwd", "fwd_bwd")
             if lv == 0:
                 kinds += ("double",) + (("bwd",) if op in ("skeletal_conv", "modulated_conv") else ())
             for kind in kinds:
-                key = f"{op}.{name}.{kind}"
-                impls = ("ref", "ext", "dense")  # dense: modi_ext.skeletal.dense (one shared conv, style/demod scales)
+                key = f"{op}.{name}.{kind}"  # dense: modi_ext.skeletal.dense (one shared conv, style/demod scales)
                 if kind == "double":
                     cases[key] = _double_case(module, inputs, impls)
                 elif kind == "bwd":
@@ -380,12 +391,18 @@ def main(argv: list[str] | None = None) -> int:
                     help="cuda: the GPU cases of benchmarks/bench_cuda.py (batch 16 and 256, FK at B=4096)")
     ap.add_argument("--dtype", default="fp32,bf16",
                     help="with --device cuda: comma-separated dtypes among fp32, bf16, fp16 (default: fp32,bf16)")
+    ap.add_argument("--bf16", action="store_true",
+                    help="CPU: bf16 (dense path) / fp32 (auto) time ratio per case, --repeats at each --threads-list")
+    ap.add_argument("--threads-list", default="1,2", help="with --bf16: thread counts (default 1,2)")
+    ap.add_argument("--repeats", type=int, default=7, help="with --bf16: interleaved timings per thread count")
     args = ap.parse_args(argv)
     if not HAS_EXT:
         print("compare: the modi_ext C++ extension is not built; nothing to compare", file=sys.stderr)
         return 2
     if args.device == "cuda":
         return _main_cuda(args)
+    if args.bf16:
+        return _main_bf16(args)
     if args.threads:
         torch.set_num_threads(args.threads)
     cases, info, source = skeletal_cases()
@@ -514,6 +531,51 @@ def write_json(path: Path | None, results: dict) -> None:
     tmp.write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
     tmp.replace(path)  # atomic: an interrupted run never leaves half a file
     print(f"wrote {path}")
+
+
+BF16_CASES = r"^(skeletal_conv|modulated_conv)\.finest\.fwd_bwd$"
+
+
+def _main_bf16(args: argparse.Namespace) -> int:
+    """Issue 52's CPU row: each case in bf16 (dense, oneDNN) against fp32 on ``auto`` (the kernels), interleaved."""
+    pattern = re.compile(args.only or BF16_CASES)
+    fp32, info, source = skeletal_cases(torch.float32, ("auto",))
+    bf16, _, _ = skeletal_cases(torch.bfloat16, ("auto",))
+    names = [n for n in fp32 if pattern.search(n)]
+    from modi_ext.runtime.dispatch import cpu_bf16_path
+
+    path = cpu_bf16_path()["summary"]
+    print(f"# {machine()}; skeletal hierarchy from {source}; batch {BATCH}; {path}; fp32 on auto; "
+          f"{args.repeats} repeats of >= {args.reps} interleaved runs (>= {args.min_time} s) per thread count")
+    print(f"{'case':34s} {'thr':>3s} {'fp32 ms':>9s} {'bf16 ms':>9s} {'bf16/fp32 median [min, max]':>30s}")
+    results: dict[str, dict] = {}
+    before = torch.get_num_threads()
+    try:
+        for threads in (int(t) for t in args.threads_list.split(",")):
+            torch.set_num_threads(threads)
+            for name in names:
+                t32, t16, ratios = [], [], []
+                for _ in range(args.repeats):
+                    (a, b), _n = time_all((fp32[name][0], bf16[name][0]), args.reps, args.min_time)
+                    t32.append(a)
+                    t16.append(b)
+                    ratios.append(b / a)
+                row = {"fp32_ms": _spread(t32), "bf16_ms": _spread(t16), "bf16_over_fp32": _spread(ratios),
+                       "threads": threads, "repeats": args.repeats, "bf16_path": path, "machine": machine(),
+                       **info.get(name, {})}
+                results[f"{name}.{threads}t"] = row
+                r = row["bf16_over_fp32"]
+                print(f"{name:34s} {threads:3d} {row['fp32_ms']['median']:9.3f} {row['bf16_ms']['median']:9.3f} "
+                      f"{r['median']:12.3f} [{r['min']:.3f}, {r['max']:.3f}]", flush=True)
+    finally:
+        torch.set_num_threads(before)
+    write_json(args.json, results)
+    return 0
+
+
+def _spread(values: list[float]) -> dict:
+    return {"median": round(statistics.median(values), 4), "min": round(min(values), 4),
+            "max": round(max(values), 4), "n": len(values)}
 
 
 def _main_cuda(args: argparse.Namespace) -> int:

@@ -12,9 +12,15 @@
 
 ``ext`` forces the kernels (no self-check: it is how the kernels themselves are tested); a device without kernels is
 then an error naming the build.  ``dispatch_report()`` lists every decision taken so far.
+
+bfloat16 on the CPU (no CPU kernel takes it: ``CPU_KERNEL_DTYPES``) always runs on ``dense`` -- under ``auto`` and
+``ext`` alike, without a self-check, never on the fp32 kernels: its GEMMs are torch's, which run on oneDNN's bf16
+units (AVX-512-BF16, AMX) where the CPU has them and emulate bf16 elsewhere, with fp32 accumulation either way, so
+results depend on the CPU only through rounding.  ``cpu_bf16_path()`` names what this CPU does (a row of the report).
 """
 from __future__ import annotations
 
+import functools
 import os
 import statistics
 import threading
@@ -28,10 +34,11 @@ from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
 from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
 
 __all__ = ["route", "record_path", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS",
-           "device_key"]
+           "device_key", "CPU_KERNEL_DTYPES", "cpu_bf16_path"]
 
 # ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
 # (then ``reset()``) to inject a wrong kernel.
+CPU_KERNEL_DTYPES = (torch.float32, torch.float64)  # the CPU kernels' dtypes; bfloat16 on the CPU runs on ``dense``
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
 
@@ -120,6 +127,33 @@ def _failure_message(device: str, dtype_name: str, res: dict) -> str:
             f"{device} {dtype_name.replace('torch.', '')} now uses the dense path")
 
 
+@functools.lru_cache(maxsize=None)
+def cpu_bf16_path() -> dict:
+    """How bfloat16 skeletal ops run on this CPU, decided once per process from what torch detected (CPUID):
+    always the ``dense`` path; its GEMMs on oneDNN's AMX or AVX-512-BF16 units where the CPU has them, oneDNN's
+    AVX-512 conversion to fp32 where it has AVX-512 without bf16 instructions, torch's own emulation elsewhere."""
+    def has(name: str) -> bool:
+        probe = getattr(torch.cpu, name, None)
+        try:
+            return bool(probe()) if probe is not None else False
+        except RuntimeError:  # pragma: no cover - a torch without the probe's backend
+            return False
+    try:
+        onednn = torch.backends.mkldnn.is_available() and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):  # pragma: no cover - a torch built without oneDNN
+        onednn = False
+    if onednn and has("_is_amx_tile_supported"):
+        gemm = "oneDNN avx512_core_amx"
+    elif onednn and has("_is_avx512_bf16_supported"):
+        gemm = "oneDNN avx512_core_bf16"
+    elif onednn:
+        gemm = "oneDNN avx512_core, no bf16 units: converted to fp32"
+    else:
+        gemm = "torch's bf16 emulation, no bf16 units"
+    return {"path": "dense", "gemm": gemm, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "summary": f"bf16: dense ({gemm})"}
+
+
 def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callable[[], str] | None = None,
           bench: Callable[[str], Callable[[], object]] | None = None) -> str:
     """'ext', 'dense' or 'ref' for one call of ``op`` on ``x``'s device and dtype (see the module docstring).
@@ -131,6 +165,8 @@ def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callabl
     if want in ("ref", "dense"):
         return want
     dev_type = x.device.type
+    if dev_type == "cpu" and x.dtype not in CPU_KERNEL_DTYPES:
+        return "dense"  # bfloat16: no CPU kernel takes it -- never the fp32 kernels, never their self-check
     if not kernels_built(dev_type, family):
         if want == "ext":
             raise RuntimeError(f"MODI_EXT_IMPL=ext but this modi_ext build has no {dev_type.upper()} kernels for "
@@ -191,6 +227,7 @@ def dispatch_report() -> list[dict]:
         rows: list[dict] = [{"kind": "config", "impl": os.environ.get("MODI_EXT_IMPL", "auto"),
                              "selfcheck": os.environ.get("MODI_EXT_SELFCHECK", "1"), "extension_built": HAS_EXT}]
         rows += [{"kind": "build", "device_type": d, "family": f, "kernels": v} for (d, f), v in _built.items()]
+        rows += [{"kind": "bf16", "device": "cpu", **cpu_bf16_path()}]
         rows += [{"kind": "selfcheck", "device": d, "dtype": t.replace("torch.", ""), "ok": r["ok"],
                   "errors": dict(r["errors"]), "max_error": dict(r["max_error"])} for (d, t), r in _checked.items()]
         rows += [{"kind": "auto", "device": d, "op": op, "signature": sig, **r} for (d, op, sig), r in _auto.items()]

@@ -17,10 +17,16 @@ __all__ = ["KIND_CONV", "KIND_DOWN", "KIND_UP", "check_args", "validate_csr"]
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2  # the ``kind`` argument of the C++ backward op
 _FLOATS = (torch.float32, torch.float64)
 _CUDA_FLOATS = _FLOATS + (torch.float16, torch.bfloat16)  # the CUDA kernels accumulate half types in fp32
+_CPU_FLOATS = _FLOATS + (torch.bfloat16,)  # bf16 on the CPU runs on the dense path (``dispatch.route``)
 
 
 def _allowed_floats(t: torch.Tensor) -> tuple:
-    return _CUDA_FLOATS if t.is_cuda else _FLOATS
+    return _CUDA_FLOATS if t.is_cuda else _CPU_FLOATS
+
+
+def _mixed(name: str, t: torch.Tensor, x: torch.Tensor) -> str:
+    return (f"{name} dtype {t.dtype} differs from x dtype {x.dtype}: the skeletal ops take one floating dtype "
+            f"(cast the inputs, or run under torch.autocast, which casts them)")
 
 
 def _is_tracing() -> bool:
@@ -38,11 +44,11 @@ def check_args(kind: int, x, weight, bias, index, offsets, n_out: int | None, st
     if x.dim() != 4:
         raise ValueError(f"x must be 4-D (B, C, E, T), got shape {tuple(x.shape)}")
     if x.dtype not in _allowed_floats(x):
-        raise TypeError(f"x must be float32 or float64 (or float16/bfloat16 on CUDA), got {x.dtype} on {x.device}")
+        raise TypeError(f"x must be float32, float64 or bfloat16 (or float16 on CUDA), got {x.dtype} on {x.device}")
     if weight.dim() != 4:
         raise ValueError(f"weight must be 4-D compact (C0, nnz, C1, U), got shape {tuple(weight.shape)}")
     if weight.dtype != x.dtype:
-        raise TypeError(f"weight dtype {weight.dtype} differs from x dtype {x.dtype}")
+        raise TypeError(_mixed("weight", weight, x))
     if weight.device != x.device:
         raise ValueError(f"weight is on {weight.device} but x is on {x.device}")
     for name, t in (("x", x), ("weight", weight)):
@@ -97,13 +103,17 @@ def check_args(kind: int, x, weight, bias, index, offsets, n_out: int | None, st
         if not isinstance(bias, torch.Tensor) or bias.dim() != 1 or bias.shape[0] != c_out:
             raise ValueError(f"bias must be a 1-D tensor of {c_out} output channels, "
                              f"got {tuple(bias.shape) if isinstance(bias, torch.Tensor) else type(bias).__name__}")
-        if bias.dtype != x.dtype or bias.device != x.device:
+        if bias.dtype != x.dtype and bias.device == x.device:
+            raise TypeError(_mixed("bias", bias, x))
+        if bias.device != x.device:
             raise TypeError(f"bias must be {x.dtype} on {x.device}, got {bias.dtype} on {bias.device}")
     if style is not None:
         if not isinstance(style, torch.Tensor) or style.dim() != 2 or tuple(style.shape) != (b, cin):
             raise ValueError(f"style must be (B, Cin) = {(b, cin)}, "
                              f"got {tuple(style.shape) if isinstance(style, torch.Tensor) else type(style).__name__}")
-        if style.dtype != x.dtype or style.device != x.device:
+        if style.dtype != x.dtype and style.device == x.device:
+            raise TypeError(_mixed("style", style, x))
+        if style.device != x.device:
             raise TypeError(f"style must be {x.dtype} on {x.device}, got {style.dtype} on {style.device}")
     if not isinstance(demodulate, bool):
         raise TypeError(f"demodulate must be a bool, got {type(demodulate).__name__}")

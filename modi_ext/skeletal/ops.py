@@ -6,8 +6,11 @@ On the kernel path the demodulation coefficients ``d[b,o,j]`` are computed first
 product of squared weights, never a per-sample weight tensor; ``modi_ext.demod.ops``: one C++ call on the CPU, the
 torch form elsewhere) and handed to the kernel, which applies the style on the input rows and ``d`` on the output rows.
 
-Under ``torch.autocast`` the inputs are cast to one dtype (the autocast dtype on CUDA, where the kernels take half
-types; the widest input dtype elsewhere) and the op runs with autocast off, so standard AMP works.
+Under ``torch.autocast`` the inputs are cast to one dtype and the op runs with autocast off, so standard AMP works:
+the autocast dtype, as torch's own convolutions (on CUDA, and on the CPU for bfloat16, which runs on the dense path:
+oneDNN's bf16 GEMMs with fp32 accumulation where the CPU has bf16 units, torch's emulation elsewhere); the widest
+input dtype, at least float32, when an input is float64 (autocast leaves float64 alone) or the CPU autocast dtype is
+float16 (no CPU path takes it).
 
 The checks are ``modi_ext.skeletal.checks``; the kernel call with its autograd (eager fast path, first-order fused
 backward, differentiable backward of any order, ``MODI_EXT_DOUBLE=ref``) is ``modi_ext.skeletal.autograd``.
@@ -50,10 +53,10 @@ def _autocast_device(x: torch.Tensor) -> str | None:
 def _amp_cast(dev: str, x, weight, bias, style):
     """One dtype for every floating input under autocast (the kernels and the checks want one)."""
     floats = [t for t in (x, weight, bias, style) if isinstance(t, torch.Tensor) and t.is_floating_point()]
-    if dev == "cuda":
-        target = torch.get_autocast_dtype(dev)
-    else:  # the CPU kernels take float32/float64 only: the widest input dtype, at least float32
-        target = torch.float32
+    target = torch.get_autocast_dtype(dev)
+    cpu_bf16 = dev == "cpu" and target == torch.bfloat16 and all(t.dtype != torch.float64 for t in floats)
+    if dev != "cuda" and not cpu_bf16:
+        target = torch.float32  # the widest input dtype, at least float32
         for t in floats:
             target = torch.promote_types(target, t.dtype)
     cast = lambda t: t.to(target) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731

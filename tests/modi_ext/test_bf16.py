@@ -1,0 +1,251 @@
+"""bfloat16 skeletal ops on the CPU (issue 52, first step): the dense path against the float64 reference.
+
+bf16 on the CPU runs on ``modi_ext.skeletal.dense`` (torch's GEMMs: oneDNN's bf16 units where the CPU has them, fp32
+accumulation everywhere), never on the fp32 kernels; under CPU autocast a skeletal op returns bf16, as torch's convs.
+
+Tolerance, derived rather than tuned.  The inputs are rounded to bf16 first and the float64 reference runs on exactly
+those values, so only the op's own roundings count.  bf16's unit roundoff is ``u = 2^-8`` (8 significant bits;
+``torch.finfo(torch.bfloat16).eps / 2``).  Every value on a path is either a product/scale of rounded values or a
+reduction of ``K`` products accumulated in fp32 (error <= ``K 2^-24`` of the sum of magnitudes) and then rounded to
+bf16 (error <= ``u`` of the value).  The stages that round to bf16, counted from the code (``dense.py``,
+``demod/dense.py``, ``reference.skeletal_up``):
+
+* forward, conv/down: the style scale, the GEMM output, the demodulation coefficients, the demodulation scale, the
+  bias add: 5; up adds the reflect fold (2 adds) and the blur: 8;
+* backward: the demodulation scale of the incoming gradient, the GEMM output, the unfold/fold adjoint (<= 2 adds for
+  U = 3), the style scale, the sum of the direct and demodulation terms, their fp32 -> bf16 conversions: <= 8.
+
+Each stage moves a value of at most the size of the result by at most ``u`` of it, so with ``N = 8`` stages
+
+    |z_bf16 - z_ref| <= (N u + K 2^-24) * scale,        scale = max |z_ref|
+
+where ``max |z_ref|`` stands for ``c sqrt(K) S`` (K zero-mean terms of rms S, c the tail of the largest of the
+outputs): it is measured on the reference rather than modelled, which keeps it valid through the demodulation (a
+positive per-row scale).  Only the style gradient of a demodulated op is a near-cancelling difference of two terms;
+its scale is the larger of them (the direct term, taken with the demodulation coefficients held constant).
+"""
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+import torch
+
+import modi_ext
+from modi_ext.demod import dense as demod_dense
+from modi_ext.demod import ops as demod_ops
+from modi_ext.runtime import dispatch
+from modi_ext.skeletal import dense, ops
+from modi_ext.skeletal import reference as R
+from test_skeletal_ops import KINDS, call, make_case
+
+U_BF16 = 2.0 ** -8
+U_FP32 = 2.0 ** -24
+STAGES = 8
+
+
+def bound(k: int, scale: float, stages: int = STAGES) -> float:
+    return (stages * U_BF16 + k * U_FP32) * scale
+
+
+def _bf16_case(kind: str, seed: int, style: bool, demod: bool, padding: str = None):
+    args, kw = make_case(kind, random.Random(seed), dtype=torch.float64, n_joints=random.Random(seed).randint(6, 30),
+                         U=3, B=3, cin=8, cout=6, T=16, style=style, demod=demod, padding=padding)
+    r = lambda t: t.to(torch.bfloat16) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
+    a16, kw16 = tuple(r(a) for a in args), dict(kw, style=r(kw["style"]))
+    up = lambda t: t.double() if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
+    a64, kw64 = tuple(up(a) for a in a16), dict(kw16, style=up(kw16["style"]))  # exactly the bf16 values
+    return a16, kw16, a64, kw64
+
+
+def _k_forward(kind: str, args) -> int:
+    """The longest forward reduction: Cin x U x (most pairs of one output entity; up: of one fine entity)."""
+    x, w, index, offsets = args[0], args[1], args[3], args[4]
+    if kind == "up":
+        return x.shape[1] * w.shape[3] * int(torch.bincount(index).max()) * 2  # transposed conv + blur taps
+    return x.shape[1] * w.shape[3] * int((offsets[1:] - offsets[:-1]).max())
+
+
+def _leaves(args, kw):
+    out = [args[0], args[1], args[2]] + ([kw["style"]] if kw["style"] is not None else [])
+    return [t.detach().requires_grad_(True) for t in out]
+
+
+def _with(args, kw, leaves):
+    a = (leaves[0], leaves[1], leaves[2]) + tuple(args[3:])
+    return a, dict(kw, style=leaves[3] if len(leaves) > 3 else None)
+
+
+def _direct_style_grad(kind, args, kw, g):
+    """The style gradient's direct term, the demodulation coefficients held constant (the scale of a cancelling
+    difference): float64 dense form without demodulation, times the detached coefficients."""
+    x, w, b, index, offsets = args[:5]
+    n_out = args[5] if kind == "up" else offsets.numel() - 1
+    s = kw["style"].detach().requires_grad_(True)
+    d = demod_dense.demod_scale(w, index, offsets, s.detach(), kind == "up", n_out, x.shape[0])
+    if kind == "up":
+        y = dense.skeletal_up(x, w, None, index, offsets, n_out, s, False, kw["padding_mode"])
+    else:
+        fn = dense.skeletal_conv if kind == "conv" else dense.skeletal_down
+        y = fn(x, w, None, index, offsets, s, False, kw["padding_mode"])
+    (gs,) = torch.autograd.grad(y * d.unsqueeze(-1), s, g)
+    return gs
+
+
+@pytest.mark.parametrize("padding", ["zeros", "reflect"])
+@pytest.mark.parametrize("style,demod", [(False, False), (True, False), (True, True), (False, True)])
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_against_float64_reference(kind, style, demod, padding):
+    a16, kw16, a64, kw64 = _bf16_case(kind, 100 + 7 * KINDS.index(kind) + 2 * style + demod, style, demod, padding)
+    l16, l64 = _leaves(a16, kw16), _leaves(a64, kw64)
+    y16 = call(kind, ops, *_with(a16, kw16, l16))
+    y64 = call(kind, R, *_with(a64, kw64, l64))
+    assert y16.dtype == torch.bfloat16 and y16.shape == y64.shape
+    k = _k_forward(kind, a64)
+    err, tol = float((y16.detach().double() - y64.detach()).abs().max()), bound(k, float(y64.detach().abs().max()))
+    assert err <= tol, f"forward error {err:.3g} > {tol:.3g} (K={k})"
+    assert err > 0  # it really ran in bf16 (a float32 path would be ~2^-16 off, within the bound but not exact)
+
+    g64 = torch.randn(y64.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    g16 = g64.to(torch.bfloat16)
+    g64 = g16.double()
+    got = torch.autograd.grad(y16, l16, g16)
+    want = torch.autograd.grad(y64, l64, g64)
+    b, t = a64[0].shape[0], a64[0].shape[-1]
+    # reduction lengths, upper bounds (they enter only through the fp32 accumulation term, K 2^-24)
+    ks = {"x": y64.shape[1] * 3 * a64[3].numel(), "weight": 2 * b * t, "bias": y64[:, 0].numel(),
+          "style": a64[0][0].numel() * 3}
+    for name, gg, gw in zip(("x", "weight", "bias", "style"), got, want):
+        assert gg.dtype == torch.bfloat16, name
+        scale = float(gw.abs().max())
+        if name == "style" and demod:
+            scale = max(scale, float(_direct_style_grad(kind, a64, kw64, g64).abs().max()))
+        err, tol = float((gg.double() - gw).abs().max()), bound(ks[name], scale)
+        assert err <= tol, f"{name} gradient error {err:.3g} > {tol:.3g}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_double_backward(kind):
+    """R1: the input gradient with create_graph, its squared norm differentiated again, in bf16 (the dense path's
+    plain torch ops); against float64 with twice the stages (the second pass rounds as the first)."""
+    a16, kw16, a64, kw64 = _bf16_case(kind, 40 + KINDS.index(kind), True, True, "zeros")
+    res = []
+    for a, kw in ((a16, kw16), (a64, kw64)):
+        leaves = _leaves(a, kw)
+        y = call(kind, ops if a is a16 else R, *_with(a, kw, leaves))
+        (gx,) = torch.autograd.grad(y.sum(), leaves[0], create_graph=True)
+        res.append(torch.autograd.grad(gx.pow(2).sum(), leaves[1]))
+    (w16,), (w64,) = res
+    assert w16.dtype == torch.bfloat16 and torch.isfinite(w16).all()
+    err, tol = float((w16.double() - w64).abs().max()), bound(4096, float(w64.abs().max()), 2 * STAGES)
+    assert err <= tol, f"double-backward weight gradient error {err:.3g} > {tol:.3g}"
+
+
+@pytest.mark.parametrize("up", [False, True])
+def test_bf16_demod_scale(up):
+    """The demodulation op in bf16: reductions in fp32, one final rounding (<= u relative, plus the fp32 sums)."""
+    kind = "up" if up else "conv"
+    a16, kw16, a64, kw64 = _bf16_case(kind, 9, True, True)
+    x, w, _, index, offsets = a16[:5]
+    n_out = a16[5] if up else offsets.numel() - 1
+    d16 = demod_ops.demod_scale(w, index, offsets, kw16["style"], up, n_out, x.shape[0])
+    d64 = demod_dense.demod_scale(a64[1], index, offsets, kw64["style"], up, n_out, x.shape[0])
+    assert d16.dtype == torch.bfloat16
+    k = w.numel()
+    rel = float(((d16.double() - d64) / d64).abs().max())
+    assert rel <= U_BF16 + 4 * k * U_FP32, rel
+
+
+@pytest.mark.parametrize("impl", ["auto", "ext"])
+def test_bf16_never_reaches_the_fp32_kernels(monkeypatch, impl):
+    """bf16 routes to dense under auto and ext alike: no fp32 kernel call, no self-check (which would fail)."""
+    monkeypatch.setenv("MODI_EXT_IMPL", impl)
+
+    def boom(*_a):
+        raise AssertionError("a bf16 call reached the fp32 kernels")
+
+    monkeypatch.setattr(dispatch, "KERNELS", {k: boom for k in dispatch.KERNELS})
+    monkeypatch.setattr(dispatch, "SELFCHECK", lambda *a: pytest.fail("bf16 triggered the kernels' self-check"))
+    dispatch.reset()
+    try:
+        for kind in KINDS:
+            a16, kw16, _, _ = _bf16_case(kind, 3, True, True)
+            leaves = _leaves(a16, kw16)
+            y = call(kind, ops, *_with(a16, kw16, leaves))
+            torch.autograd.grad(y.sum(), leaves)
+        rows = modi_ext.dispatch_report()
+        paths = {(r["op"], r["path"]) for r in rows if r["kind"] == "path" and r["dtype"] == "bfloat16"}
+        assert paths == {(f"skeletal_{k}", "dense") for k in KINDS}
+        (bf16,) = [r for r in rows if r["kind"] == "bf16"]
+        assert bf16["path"] == "dense" and bf16["summary"].startswith("bf16: dense (")
+        assert not [r for r in rows if r["kind"] == "selfcheck"]
+    finally:
+        dispatch.reset()
+
+
+def test_bf16_report_names_the_cpu_units():
+    row = dispatch.cpu_bf16_path()
+    caps = torch.backends.cpu.get_cpu_capability()
+    assert row["cpu_capability"] == caps
+    avx512_bf16 = getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)()
+    amx = getattr(torch.cpu, "_is_amx_tile_supported", lambda: False)()
+    onednn = torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    if onednn and amx:
+        assert row["gemm"] == "oneDNN avx512_core_amx"
+    elif onednn and avx512_bf16:
+        assert row["gemm"] == "oneDNN avx512_core_bf16"
+    else:
+        assert "no bf16 units" in row["gemm"]
+
+
+@pytest.mark.parametrize("impl", ["auto", "dense", "ref"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_autocast_output_is_bf16(monkeypatch, impl, kind):
+    """Under CPU autocast (bf16) a skeletal op returns bf16, as torch's convolutions, on every path; float32 outside
+    autocast is unchanged."""
+    monkeypatch.setenv("MODI_EXT_IMPL", impl)
+    args, kw = make_case(kind, random.Random(11), dtype=torch.float32, n_joints=9, U=3, T=8, style=True, demod=True)
+    want = call(kind, ops, args, kw)
+    assert want.dtype == torch.float32
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = call(kind, ops, args, kw)
+        y64 = call(kind, ops, tuple(a.double() if isinstance(a, torch.Tensor) and a.is_floating_point() else a
+                                    for a in args), dict(kw, style=kw["style"].double()))
+    assert y.dtype == torch.bfloat16
+    assert y64.dtype == torch.float64  # autocast leaves float64 alone (and so does the op)
+    # the inputs were rounded to bf16 by the cast: relative error up to ~K u on the output's scale
+    k = _k_forward(kind, args)
+    assert float((y.float() - want).abs().max()) <= (STAGES + 2 * math.sqrt(k)) * U_BF16 * float(want.abs().max())
+
+
+def test_autocast_float32_outside_is_bitwise_unchanged():
+    args, kw = make_case("conv", random.Random(12), dtype=torch.float32, n_joints=9, U=3, T=8, style=True,
+                         demod=True)
+    a = call("conv", ops, args, kw)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=False):
+        b = call("conv", ops, args, kw)
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("what,match", [
+    ("weight", "weight dtype torch.float32 differs from x dtype torch.bfloat16"),
+    ("bias", "bias dtype torch.float32 differs from x dtype torch.bfloat16"),
+    ("style", "style dtype torch.float32 differs from x dtype torch.bfloat16"),
+    ("x16", "x must be float32, float64 or bfloat16"),
+])
+def test_mixed_dtypes_error_clearly(what, match):
+    args, kw = make_case("conv", random.Random(13), dtype=torch.float32, n_joints=6, U=3, T=8, style=True)
+    args = list(args)
+    if what == "x16":
+        args[0], args[1], args[2] = args[0].half(), args[1].half(), args[2].half()
+        kw["style"] = kw["style"].half()
+    else:
+        args[0] = args[0].to(torch.bfloat16)
+        for i, name in ((1, "weight"), (2, "bias")):
+            if name != what:
+                args[i] = args[i].to(torch.bfloat16)
+        if what != "style":
+            kw["style"] = kw["style"].to(torch.bfloat16)
+    with pytest.raises(TypeError, match=match):
+        call("conv", ops, tuple(args), kw)
