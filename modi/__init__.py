@@ -17,9 +17,9 @@ Importing ``modi`` is cheap (no torch): the names below are resolved on first us
 """
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from modi._lazy import lazy_exports
 from modi._version import __version__
 
 # public name -> the module that defines it (imported on first use: `import modi` must not import torch, so that
@@ -65,15 +65,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolve
     from modi.data.motion import Motion
     from modi.errors import BvhError, CheckpointError, UserError
 
-
-def __getattr__(name: str) -> Any:
-    module = _PUBLIC.get(name)
-    if module is None:
-        raise AttributeError(f"module 'modi' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # resolved once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)

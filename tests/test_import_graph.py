@@ -4,7 +4,8 @@ The graph is read from the sources (ast), with imports at any depth -- an import
 cycle is still the edge it is. Layers, lowest first (a module may import its own layer or any lower one):
 
     modi_ext                       the extension; never imports modi
-    modi._version, modi.errors     leaves
+    modi._version, modi.errors,    leaves
+    modi._lazy
     modi.faults                    signals, atomic writes, locks
     modi.core                      rotations, kinematics, skeleton, topology, body, contacts, ik
     modi.io                        file formats
@@ -28,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("modi", "modi_ext")
 LAYERS = [
     ("modi_ext",),
-    ("modi._version", "modi.errors"),
+    ("modi._version", "modi.errors", "modi._lazy"),
     ("modi.faults",),
     ("modi.core",),
     ("modi.io",),

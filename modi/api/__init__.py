@@ -10,16 +10,17 @@ CLI's parsers read) does not import every model.
 """
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from modi._lazy import lazy_exports
 
 # public name -> the submodule that defines it
 _PUBLIC = {
-    "Encoder": "encoder", "evaluate": "evaluation", "evaluate_real": "evaluation", "evaluate_single": "evaluation",
-    "load": "files", "GanimatorRun": "ganimator", "Boundary": "generator", "Inversion": "generator",
-    "ModiGenerator": "generator", "FileInfo": "info", "inspect": "info", "Topology": "topology",
-    "Progress": "training", "TrainingInterrupted": "training", "train_ganimator": "training",
-    "train_modi": "training", "show": "viewing",
+    "Encoder": ".encoder", "evaluate": ".evaluation", "evaluate_real": ".evaluation",
+    "evaluate_single": ".evaluation", "load": ".files", "GanimatorRun": ".ganimator", "Boundary": ".generator",
+    "Inversion": ".generator", "ModiGenerator": ".generator", "FileInfo": ".info", "inspect": ".info",
+    "Topology": ".topology", "Progress": ".training", "TrainingInterrupted": ".training",
+    "train_ganimator": ".training", "train_modi": ".training", "show": ".viewing",
 }
 
 __all__ = ["load", "inspect", "FileInfo", "ModiGenerator", "Inversion", "Boundary", "Encoder", "GanimatorRun",
@@ -37,15 +38,4 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolve
     from modi.api.training import Progress, TrainingInterrupted, train_ganimator, train_modi
     from modi.api.viewing import show
 
-
-def __getattr__(name: str) -> Any:
-    module = _PUBLIC.get(name)
-    if module is None:
-        raise AttributeError(f"module 'modi.api' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"modi.api.{module}"), name)
-    globals()[name] = value  # resolved once
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _PUBLIC)
