@@ -42,7 +42,7 @@ if str(ROOT) not in sys.path:
 
 from modi_ext.skeletal import dense, ops, reference  # noqa: E402
 from modi_ext.fk import fk_reference  # noqa: E402
-from modi_ext.topology import csr_from_lists  # noqa: E402
+from modi_ext.csr import csr_from_lists  # noqa: E402
 
 BATCHES = (16, 256)
 FK_B, FK_T = 4096, 64

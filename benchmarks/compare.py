@@ -6,7 +6,7 @@
     python benchmarks/compare.py --bf16 [--threads-list 1,2] [--repeats 7] [--only REGEX] [--json FILE]
 
 Cases follow MoDi's generator hierarchy (paper Table 3 channels/frames: 32x64 at the finest level up to 256x4 at
-the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.core.topology`` when importable, a
+the coarsest) on the Bandai-Namco 22-joint skeleton's pooling hierarchy (``modi.core.skeleton_graph`` when importable, a
 built-in fallback otherwise), batch 16, fp32:
 
   skeletal_conv.<level>.{fwd,fwd_bwd}     in-place SkeletalConv (kernel 3, zero padding, bias)
@@ -92,14 +92,14 @@ STYLE_DIM = 512
 def bandai_hierarchy() -> tuple[list[list[list[int]]], list[list[list[int]]], str]:
     """(neighbors per level finest->coarsest, pooling maps, source description)."""
     try:
-        from modi.core import topology
+        from modi.core import skeleton_graph as topology
 
         class _Sk:
             parents = BANDAI_PARENTS
             names = [f"j{i}" for i in range(len(BANDAI_PARENTS))]
 
         h = topology.build_hierarchy(_Sk(), feet=BANDAI_FEET, neighbor_distance=1)
-        return [lv.neighbors for lv in h.levels], [list(map(list, p)) for p in h.pooling], "modi.core.topology"
+        return [lv.neighbors for lv in h.levels], [list(map(list, p)) for p in h.pooling], "modi.core.skeleton_graph"
     except Exception:  # noqa: BLE001 - fall back to a self-contained hierarchy
         return _fallback_hierarchy(), _fallback_pooling(), "built-in fallback"
 

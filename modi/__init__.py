@@ -42,7 +42,7 @@ _PUBLIC = {
     "evaluate": "modi.api.evaluation",
     "evaluate_real": "modi.api.evaluation",
     "evaluate_single": "modi.api.evaluation",
-    "Topology": "modi.api.topology",
+    "Topology": "modi.api.layer_topology",
     "show": "modi.api.viewing",
     "UserError": "modi.errors",
     "BvhError": "modi.errors",
@@ -58,7 +58,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolve
     from modi.api.info import FileInfo, inspect
     from modi.api.ganimator import GanimatorRun
     from modi.api.generator import Boundary, Inversion, ModiGenerator
-    from modi.api.topology import Topology
+    from modi.api.layer_topology import Topology
     from modi.api.training import Progress, TrainingInterrupted, train_ganimator, train_modi
     from modi.api.viewing import show
     from modi.core.skeleton import Skeleton

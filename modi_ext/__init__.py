@@ -7,7 +7,7 @@ is not built, and MoDi's literal math (e.g. ``modi_ext.skeletal.reference``) as 
 package never imports ``modi``.
 
 One package per op -- ``skeletal/``, ``demod/``, ``fk/``, each with its reference, dense form and public op -- and
-``runtime/``, how a call finds its path and checks it; ``topology`` turns neighbor lists into CSR maps, ``layers``
+``runtime/``, how a call finds its path and checks it; ``csr`` turns neighbor lists into CSR maps, ``layers``
 holds the ``nn.Module``s and ``validate`` the GPU validation command.  The import layers: ``tests/modi_ext/
 test_modi_ext_imports.py``.
 

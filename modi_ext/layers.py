@@ -19,7 +19,7 @@ from torch import nn
 from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import to_dense
-from modi_ext.topology import SparseTopology, csr_from_lists
+from modi_ext.csr import SparseTopology, csr_from_lists
 
 __all__ = ["SkeletalConv", "SkeletalDownsample", "SkeletalUpsample", "ModulatedSkeletalConv", "EqualLinear",
            "FusedLeakyReLU", "fused_leaky_relu", "ForwardKinematics"]

@@ -33,7 +33,7 @@ from modi.interop.modi_released import MaskViolation, check_masks
 from modi.models.modi.networks import fir_blur_time, std_entities_frames
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import from_dense, to_dense
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 SUPPORTED_TRAITS = ("SkeletonAwareFastConvTraits",)
 

@@ -19,7 +19,7 @@ _PUBLIC = {
     "Encoder": ".encoder", "evaluate": ".evaluation", "evaluate_real": ".evaluation",
     "evaluate_single": ".evaluation", "load": ".files", "GanimatorRun": ".ganimator", "Boundary": ".generator",
     "Inversion": ".generator", "ModiGenerator": ".generator", "FileInfo": ".info", "inspect": ".info",
-    "Topology": ".topology", "Progress": ".training", "TrainingInterrupted": ".training",
+    "Topology": ".layer_topology", "Progress": ".training", "TrainingInterrupted": ".training",
     "train_ganimator": ".training", "train_modi": ".training", "show": ".viewing",
 }
 
@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs; at run time __getattr__ resolve
     from modi.api.ganimator import GanimatorRun
     from modi.api.generator import Boundary, Inversion, ModiGenerator
     from modi.api.info import FileInfo, inspect
-    from modi.api.topology import Topology
+    from modi.api.layer_topology import Topology
     from modi.api.training import Progress, TrainingInterrupted, train_ganimator, train_modi
     from modi.api.viewing import show
 

@@ -1,7 +1,7 @@
 """The skeleton: joint names, parents and rest offsets — one place for the tree itself.
 
 Topology derived from it (neighbour lists, entity layouts, pooling hierarchies) lives in
-``modi.core.topology``; this module only holds the tree and operations that change the tree.
+``modi.core.skeleton_graph``; this module only holds the tree and operations that change the tree.
 """
 from __future__ import annotations
 

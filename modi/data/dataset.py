@@ -30,7 +30,7 @@ from modi.core.contacts import DEFAULT_HEIGHT_FACTOR, DEFAULT_VELOCITY_FACTOR, f
 from modi.core.kinematics import forward_kinematics
 from modi.core.rotations import euler_to_quat, quat_apply, quat_mul, quat_to_euler
 from modi.core.skeleton import Skeleton
-from modi.core.topology import EntityLayout, PoolingHierarchy, build_hierarchy
+from modi.core.skeleton_graph import EntityLayout, PoolingHierarchy, build_hierarchy
 from modi.data.motion import Motion
 from modi.data.normalization import Normalizer
 from modi.data.representation import LEAF_ROTATIONS, MotionRepresentation

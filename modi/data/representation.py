@@ -1,6 +1,6 @@
 """Motion <-> model tensors, with exact round trips.
 
-One layout serves both systems (see ``modi.core.topology``): entities are the ``J`` edges (joint ``j``'s local
+One layout serves both systems (see ``modi.core.skeleton_graph``): entities are the ``J`` edges (joint ``j``'s local
 rotation lives on the edge pointing to it; the root's on its abstract edge), then one root-motion entity, then
 one entity per contact joint. Every entity has ``K`` channels; the shorter ones are zero-padded.
 
@@ -35,7 +35,7 @@ from modi.core.contacts import DEFAULT_HEIGHT_FACTOR, DEFAULT_VELOCITY_FACTOR, f
 from modi.core.kinematics import forward_kinematics
 from modi.core.rotations import quat_normalize, quat_to_6d, sixd_to_quat
 from modi.core.skeleton import Skeleton
-from modi.core.topology import EntityLayout
+from modi.core.skeleton_graph import EntityLayout
 from modi.data.motion import Motion
 
 ROTATION_WIDTH = {"quat": 4, "6d": 6}

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from modi_ext.demod.reference import DEMOD_EPS
-from modi_ext.topology import pair_entity
+from modi_ext.csr import pair_entity
 
 __all__ = ["demod_scale", "segment_sum", "square_segment_sum"]
 

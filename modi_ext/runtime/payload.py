@@ -32,7 +32,7 @@ import torch
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk.reference import fk_reference
 from modi_ext.skeletal import reference
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 __all__ = ["SkeletalCase", "FkCase", "SKELETAL_CASES", "FK_PLANS", "fk_cases", "DTYPES", "TOL", "run_case",
            "run", "fk_plan"]

@@ -8,7 +8,7 @@
 * ``ops``: the public ops ``skeletal_conv``, ``skeletal_down``, ``skeletal_up`` (checks, then the path
   ``modi_ext.runtime.dispatch`` picks: kernels, dense form or reference).
 
-The CSR maps come from ``modi_ext.topology``, the demodulation coefficients from ``modi_ext.demod``.
+The CSR maps come from ``modi_ext.csr``, the demodulation coefficients from ``modi_ext.demod``.
 """
 from modi_ext.skeletal.ops import from_dense, skeletal_conv, skeletal_down, skeletal_up, to_dense
 

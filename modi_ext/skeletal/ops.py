@@ -104,7 +104,7 @@ def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | No
                   padding_mode: str = "zeros") -> torch.Tensor:
     """In-place skeletal conv ``(B, Cin, E, T) -> (B, Cout, E, T)``; weight ``(Cout, nnz, Cin, U)``.
 
-    ``(index, offsets)`` is the CSR neighbor map (``modi_ext.topology.csr_from_lists``).  Exact semantics in
+    ``(index, offsets)`` is the CSR neighbor map (``modi_ext.csr.csr_from_lists``).  Exact semantics in
     ``modi_ext.skeletal.reference``.
     """
     return _op(KIND_CONV, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fir import FIR_TAPS, UP_GAIN
-from modi_ext.topology import pair_entity
+from modi_ext.csr import pair_entity
 PADDING_MODES = ("zeros", "reflect")
 
 

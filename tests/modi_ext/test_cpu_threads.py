@@ -16,7 +16,7 @@ from modi_ext import HAS_EXT
 from modi_ext.fk import fk, fk_reference
 from modi_ext.skeletal import ops
 from modi_ext.skeletal import reference as R
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 KINDS = ("conv", "down", "up")

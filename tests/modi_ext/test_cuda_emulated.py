@@ -34,7 +34,7 @@ import torch
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk import fk_reference
 from modi_ext.skeletal import reference
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 try:
     from modi_ext import _C_emu as EMU

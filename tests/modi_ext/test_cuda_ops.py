@@ -23,7 +23,7 @@ from modi_ext import HAS_EXT
 from modi_ext.fk import fk, fk_reference
 from modi_ext.runtime import kernels, payload
 from modi_ext.skeletal import ops, reference
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 
 def _has_cuda_kernels() -> bool:
@@ -278,8 +278,8 @@ def test_random_skeletons(kind):
 
 
 def test_modi_hierarchy_levels():
-    # The Bandai 22-joint skeleton's real pooling hierarchy (modi.core.topology): every level's conv and both scalers.
-    topology = pytest.importorskip("modi.core.topology")
+    # The Bandai 22-joint skeleton's real pooling hierarchy (modi.core.skeleton_graph): every level's conv and both scalers.
+    topology = pytest.importorskip("modi.core.skeleton_graph")
 
     class _Skeleton:
         parents = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1, 18, 19, 20]

@@ -16,7 +16,7 @@ from modi_ext.fk import fk, fk_reference
 from modi_ext.layers import ModulatedSkeletalConv
 from modi_ext.runtime import dispatch, selfcheck
 from modi_ext.skeletal import checks, dense, ops, reference
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")

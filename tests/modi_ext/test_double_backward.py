@@ -13,7 +13,7 @@ from test_skeletal_ops import KINDS, call, make_case
 from modi_ext import HAS_EXT
 from modi_ext.skeletal import ops
 from modi_ext.skeletal import reference as R
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 pytestmark = [needs_ext, pytest.mark.usefixtures("one_torch_thread")]
@@ -159,7 +159,7 @@ def _modi_pair():
     from modi.models.modi.config import ModelConfig
     from modi.models.modi.networks import Discriminator, Generator, build_levels
     from modi.data.procedural import builtin_skeleton
-    from modi.core.topology import build_hierarchy
+    from modi.core.skeleton_graph import build_hierarchy
 
     sk = builtin_skeleton()
     h = build_hierarchy(sk, sk.detect_feet())

@@ -146,7 +146,7 @@ def test_bad_forward_arguments():
 
 def test_real_hierarchy_generator_stack(shared_data, monkeypatch):
     """A MoDi-like coarse-to-fine stack on the real skeleton's hierarchy runs and gives finite gradients."""
-    topology = pytest.importorskip("modi.core.topology")
+    topology = pytest.importorskip("modi.core.skeleton_graph")
     bvh = pytest.importorskip("modi.io.bvh")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))
     if not files:

@@ -11,7 +11,7 @@ from modi_ext import HAS_EXT
 from modi_ext.demod.reference import demod_coefficients
 from modi_ext.skeletal import ops
 from modi_ext.skeletal import reference as R
-from modi_ext.topology import csr_from_lists
+from modi_ext.csr import csr_from_lists
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 KINDS = ("conv", "down", "up")
@@ -23,7 +23,7 @@ def random_parents(n: int, rng: random.Random) -> list[int]:
 
 
 def tree_neighbors(parents: list[int], distance: int) -> list[list[int]]:
-    """Entities within `distance` tree hops (self included), sorted: built here, independent of modi.core.topology."""
+    """Entities within `distance` tree hops (self included), sorted: built here, independent of modi.core.skeleton_graph."""
     adj = [set() for _ in parents]
     for j, p in enumerate(parents):
         if p >= 0:
@@ -400,7 +400,7 @@ def test_opcheck(kind):
 
 @needs_ext
 def test_real_bandai_hierarchy(shared_data):
-    topology = pytest.importorskip("modi.core.topology")
+    topology = pytest.importorskip("modi.core.skeleton_graph")
     bvh = pytest.importorskip("modi.io.bvh")
     files = sorted((shared_data / "bvh").rglob("*.bvh"))
     if not files:

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from modi.core.topology import neighbors as tree_neighbors
+from modi.core.skeleton_graph import neighbors as tree_neighbors
 from modi.models.ganimator.data import K, real_pyramid, resample
 from modi_ext.layers import SkeletalConv
 

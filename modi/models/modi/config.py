@@ -40,7 +40,7 @@ class ModelConfig:
     scaler: str = "conv"  # "conv" (convolutional scaler, MoDi) | "pool" (skeletal pooling/unpooling ablation)
     skeleton_aware: bool = True  # False = the non-skeleton-aware pseudo-image ablation (dense 2D convs)
     noise_injection: bool = False  # released MoDi: none; True = StyleGAN2 per-frame noise in every styled conv
-    # skeleton topology (modi.core.topology.build_hierarchy): "siblings" = edges sharing a joint are neighbours (ours),
+    # skeleton topology (modi.core.skeleton_graph.build_hierarchy): "siblings" = edges sharing a joint are neighbours (ours),
     # "tree" = self + parent + children (the released code); "merge" pooling goes down to one entity (ours),
     # "released" keeps the root edge unpooled and the root-motion/contact entities to the coarsest level (<= 2 edges)
     neighbors: str = "siblings"

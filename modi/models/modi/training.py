@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from modi import faults
 from modi.core.skeleton import Skeleton
-from modi.core.topology import build_hierarchy
+from modi.core.skeleton_graph import build_hierarchy
 from modi.data.dataset import DatasetConfig, build_dataset
 from modi.data.normalization import Normalizer
 from modi.data.procedural import write_dataset
@@ -65,7 +65,7 @@ class TrainingData:
 
     codec: MotionCodec
     windows: Tensor  # (N, K, E, T) normalised, float32
-    hierarchy: Any  # modi.core.topology.PoolingHierarchy
+    hierarchy: Any  # modi.core.skeleton_graph.PoolingHierarchy
     source: str
     summary: dict[str, Any] = field(default_factory=dict)
 

@@ -37,7 +37,7 @@ def _tiny_generator_checkpoint(path: Path) -> None:
     from modi.data.normalization import Normalizer
     from modi.data.procedural import KINDS, builtin_skeleton, generate_clip
     from modi.data.representation import modi_representation
-    from modi.core.topology import build_hierarchy
+    from modi.core.skeleton_graph import build_hierarchy
 
     torch.manual_seed(0)
     sk = builtin_skeleton()

@@ -46,7 +46,7 @@ def decoder_generator(steps: int = 250):
     from modi.models.modi.config import ModelConfig
     from modi.models.modi.networks import Generator, build_levels
     from modi.models.modi.training import MotionCodec
-    from modi.core.topology import build_hierarchy
+    from modi.core.skeleton_graph import build_hierarchy
 
     torch.manual_seed(0)
     rep, norm, raw = procedural_windows()

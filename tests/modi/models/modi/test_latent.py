@@ -26,7 +26,7 @@ def build_tiny(seed: int = 0, latent: int = 16):
     from modi.data.normalization import Normalizer
     from modi.data.procedural import KINDS, builtin_skeleton, generate_clip
     from modi.data.representation import modi_representation
-    from modi.core.topology import build_hierarchy
+    from modi.core.skeleton_graph import build_hierarchy
 
     torch.manual_seed(seed)
     sk = builtin_skeleton()

@@ -18,7 +18,7 @@ from modi.models.modi.networks import (Discriminator, Generator, StyledConv, bui
                                       inv_std_entities_frames, std_entities_frames,
                                       std_normalised_leaky_relu_)
 from modi.core.skeleton import Skeleton
-from modi.core.topology import build_hierarchy
+from modi.core.skeleton_graph import build_hierarchy
 
 K = 4
 

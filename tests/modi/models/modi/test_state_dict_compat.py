@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from modi.core.skeleton import Skeleton
-from modi.core.topology import build_hierarchy
+from modi.core.skeleton_graph import build_hierarchy
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
 from modi.models.modi.networks import Discriminator, Generator, build_levels

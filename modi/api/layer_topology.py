@@ -14,7 +14,7 @@ import os
 from typing import Any, Sequence
 
 from modi.core.skeleton import Skeleton
-from modi.core.topology import PoolingHierarchy, build_hierarchy, neighbors_from_adjacency
+from modi.core.skeleton_graph import PoolingHierarchy, build_hierarchy, neighbors_from_adjacency
 from modi.data.motion import Motion
 from modi.errors import UserError
 

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from modi.core.skeleton import Skeleton
-from modi.core.topology import (
+from modi.core.skeleton_graph import (
     EntityLayout,
     PoolingHierarchy,
     build_hierarchy,
