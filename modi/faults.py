@@ -1,6 +1,6 @@
 """Faults a long run meets: preemption, a full disk, a second process in the same folder.
 
-One place for the things that belong together (issue 22), shared by ``modi train``, ``modi ganimator train`` and
+One place for what every long run needs, shared by ``modi train``, ``modi ganimator train`` and
 ``modi encoder train``:
 
 * ``atomic_output`` / ``atomic_write`` / ``atomic_torch_save``: every file a command writes goes to a temp file in

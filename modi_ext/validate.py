@@ -122,11 +122,11 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
     for tool in SANITIZER_TOOLS:
         # No --leak-check: torch owns every device allocation, and the tensors still alive when the interpreter
         # exits (module caches of CSR maps, say) are never freed, so a leak report is about Python object
-        # lifetimes, not about a kernel's memory safety (the first GPU run, 2026-12-04, reported 496 such "leaks").
+        # lifetimes, not about a kernel's memory safety.
         # initcheck watches every kernel: a write by a kernel left out by --kernel-name is not tracked, so torch's own
         # kernels (e.g. the bias gradient's sum) would leave "uninitialized" memory behind them that
-        # our kernels then read and a copy to the host then reports (the first GPU run, 2026-12-04: 75 such errors,
-        # every oracle comparison of the same run passing).
+        # our kernels then read and a copy to the host then reports: false errors, where the oracle comparisons of
+        # the same run pass.
         extra = [] if tool == "initcheck" else ["--kernel-name", KERNEL_FILTER]
         steps.append(Step(f"sanitizer_{tool}", [SANITIZER, "--tool", tool, *extra,
                                                 "--error-exitcode", "1", py, "-m", "modi_ext.validate", "--payload",

@@ -39,11 +39,9 @@ inline bool wanted() {
 
 // The fewest frames (the product's columns per batch element: output frames of conv / down, input frames of up) at
 // which a pass takes the indirect kernels rather than cpu.cpp's gather + BLAS path.  Below 16 the padded columns
-// (2h per element) usually cost more than the kernels gain, with two measured exceptions (MoDi's coarse levels,
-// in-process A/B on AVX-512 and on the AVX2 kernels, 2026-12-05): the up forward wins at every size (batch 64 at 5
-// and 9 input frames: 1.4x and 1.6x faster; batch 16: 4% and 16%), since the BLAS path there gathers a panel and
-// folds each row apart; and the conv backward wins from 8 frames (batch 16, 128 channels: 5%; at 4 frames 20%
-// slower).
+// (2h per element) usually cost more than the kernels gain, with two exceptions at MoDi's coarse levels (measured
+// on AVX-512 and AVX2: docs/results.md): the up forward wins at every size, since the BLAS path there gathers a
+// panel and folds each row apart; and the conv backward wins from 8 frames (at 4 it loses).
 inline int64_t min_frames(SkeletalKind kind, bool backward) {
   if (kind == kUp && !backward) return 1;
   if (kind == kConv && backward) return 8;

@@ -2,8 +2,8 @@
 
 Files describe more than a body: Bandai clips hang the skeleton under a static ``joint_Root`` on the floor (its
 "bone" to the hips is the walk's translation, not a limb), Mixamo rigs carry 30 finger joints, End Sites mark the
-tips of leaves. Each output used to decide on its own what to draw, how tall the figure is and which side a limb is
-on, and they disagreed. :class:`Body` decides once, from joint names and positions:
+tips of leaves. Outputs that each decided on their own what to draw, how tall the figure is and which side a limb
+is on would disagree, so :class:`Body` decides once, from joint names and positions:
 
 * ``ground`` -- a root that is not part of the body: a static root whose distance to one of its children changes
   by more than 10 % of the figure's size over the clip (the child is translated, not attached), or a root that

@@ -1,7 +1,7 @@
 """One place that writes a motion in the formats a command was asked for (``--format bvh,glb``).
 
 Every writer of motion in the package (``modi generate``, ``ganimator generate``, ``latent …``, ``apply …``,
-``synth``) calls :func:`save_motion` where it used to call ``bvh.save``. The formats and the glTF scale are set once
+``synth``) calls :func:`save_motion`, not ``bvh.save``, so each writes every format asked for. The formats and the glTF scale are set once
 per command by the CLI (:func:`requested`, from ``--format`` / ``--gltf-scale``) rather than passed down through every
 library function: the writers stay as they were, and code that calls the library directly gets BVH as before (or
 passes ``formats=`` itself). The glTF unit guess is printed once per command, not once per file.

@@ -28,10 +28,9 @@ def frozen_heap() -> Iterator[None]:
     """Leave the objects that exist when a training loop starts out of Python's cyclic-GC passes until it ends.
 
     By then ~300k long-lived objects exist (torch's and modi's modules, the data, the models); every full collection,
-    which the autograd graphs of a few hundred steps trigger, re-walks them all. Frozen, they are skipped, and given
-    back to the collector afterwards: GANimator's coarse levels 1.7% faster an iteration (in-process A/B;
-    ``gc_collect_main`` was 1.9% of a ``modi ganimator train`` run in ``perf``). A freeze the caller already holds
-    is left in place."""
+    which the autograd graphs of a few hundred steps trigger, re-walks them all, a cost a GANimator iteration
+    shows (docs/results.md). Frozen, they are skipped, and given back to the collector afterwards. A freeze the
+    caller already holds is left in place."""
     mine = gc.get_freeze_count() == 0
     if mine:
         gc.freeze()
@@ -53,11 +52,10 @@ def retain_freed_memory() -> bool:
 
     A CPU step allocates and frees activations of megabytes many times over. By default glibc maps the larger of
     them fresh (``mmap``) or trims its heap back once 2x the last such size lies free at its top, so the next
-    allocation of that size page-faults its memory in again, zeroed by the kernel: sampling 64 MoDi motions spent
-    12-16% of its time so (0.26 -> 0.23 s, 1 thread, ``GLIBC_TUNABLES`` A/B over repeated runs, 2026-12-05). With
-    both thresholds set, such blocks stay in the heap; the process keeps its peak footprint instead of returning to
-    it. Setting only the trim threshold would be far worse: it switches off glibc's adaptive mmap threshold, and
-    every block over 128 KB would be mapped anew (0.43 s). Process-wide, once; the ``modi`` command calls it at
+    allocation of that size page-faults its memory in again, zeroed by the kernel, a sizeable part of sampling's
+    time (docs/results.md). With both thresholds set, such blocks stay in the heap; the process keeps its peak
+    footprint instead of returning to it. Setting only the trim threshold would be far worse: it switches off
+    glibc's adaptive mmap threshold, and every block over 128 KB would be mapped anew. Process-wide, once; the ``modi`` command calls it at
     start. Returns whether it applied (glibc on Linux only: elsewhere, a no-op)."""
     if _retained:
         return _retained[0]

@@ -172,7 +172,7 @@ def _use_kernel(device: torch.device, impl: str | None = None, dtype: torch.dtyp
         return False
     # Devices without a kernel (e.g. CUDA when only the CPU part is built) use the reference; decided once per type.
     if not dispatch.kernels_built(device.type, "fk"):
-        if impl == "ext":  # an A/B must never label the reference as the kernel (issue 33)
+        if impl == "ext":  # refused, not run on the reference: a benchmark would report its time as the kernel's
             raise RuntimeError(f"fk: MODI_EXT_IMPL=ext but this modi_ext build has no {device.type.upper()} FK "
                                "kernels (built without them: MODI_EXT_CUDA=0, no nvcc, or a CPU-only wheel)")
         return False

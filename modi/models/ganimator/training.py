@@ -110,7 +110,7 @@ class TrainingInterrupted(KeyboardInterrupt):
         self.exit_code = faults.exit_code(signum)
 
 
-# what to do with a checkpoint modi cannot read as data (the authors' runs convert through issue 30's importer)
+# what to do with a checkpoint modi cannot read as data (the authors' runs convert through 'modi import')
 _INSTEAD = ("re-train it with 'modi ganimator train', or convert a run of the authors' released code with "
             "'modi import ganimator-released'")
 

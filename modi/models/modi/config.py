@@ -215,7 +215,8 @@ ABLATIONS = {
     "pseudo-image": {"model.skeleton_aware": False},
     "positions": {"data.rotation": "positions"},
     "root-position": {"data.root": "position"},
-    # this package's choices before the released code's became the defaults (issue 13), one at a time or together
+    # this package's own choices, kept as ablations beside the released code's (the defaults), one at a time or
+    # together
     "noise": {"model.noise_injection": True},
     "squared-contact": {"train.contact_loss": "squared"},
     "pre-release": {"model.noise_injection": True, "train.contact_loss": "squared"},

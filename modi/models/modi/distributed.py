@@ -1,5 +1,5 @@
-"""MoDi training across processes and machines (issue 43): the process group, what a lost peer means, and each
-rank's shard of the data.
+"""MoDi training across processes and machines: the process group, what a lost peer means, and each rank's shard
+of the data.
 
 * :func:`init_distributed_from_env` sets the process group up from torchrun's environment (gloo on the CPU, NCCL
   on GPUs) with a bounded timeout (:data:`DEFAULT_TIMEOUT_S`, ``--dist-timeout``), so a collective waiting on a

@@ -287,8 +287,8 @@ class _NoStyle(nn.Module):
 # --------------------------------------------------------------------------------------------- generator
 def std_entities_frames(x: torch.Tensor) -> torch.Tensor:
     """``x.std((2, 3), keepdim=True)`` (unbiased) as a centred two-pass sum over the flattened (entity, frame)
-    axis: the same value to rounding, but torch's CPU ``std`` over two dims took 17.7 ms at [64, 32, 24, 64] on one
-    thread where this takes 3.5 ms -- 27% of sampling the released generator (2026-12-04, AMD EPYC)."""
+    axis: the same value to rounding, and several times faster than torch's CPU ``std`` over two dims, which
+    dominated sampling the released generator (docs/results.md)."""
     f = x.flatten(2)
     d = f - f.mean(-1, keepdim=True)
     return (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).sqrt()[..., None, None]
@@ -297,8 +297,8 @@ def std_entities_frames(x: torch.Tensor) -> torch.Tensor:
 def inv_std_entities_frames(x: torch.Tensor) -> torch.Tensor:
     """``1 / std_entities_frames(x)`` without a graph, from ATen's layer-norm row moments: one vectorised pass per
     (sample, channel) row, where the centred two-pass sum makes four passes over a tensor (11 MB at the finest
-    level of a 64-motion batch) that no longer fits in L2.  Sampling 64 motions 3.6% faster (2026-12-05, Intel
-    Xeon, in-process A/B).  layer_norm's rstd is of the biased variance, hence the factor sqrt((n - 1) / n)."""
+    level of a 64-motion batch) that no longer fits in L2 (what sampling gains: docs/results.md).  layer_norm's
+    rstd is of the biased variance, hence the factor sqrt((n - 1) / n)."""
     n = x.shape[2] * x.shape[3]
     if n < 2:  # the unbiased std of one value is undefined (nan), as torch.std has it
         return std_entities_frames(x).reciprocal_()

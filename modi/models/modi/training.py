@@ -1,4 +1,4 @@
-"""Training MoDi: data preparation, the normalised-tensor <-> motion codec, and the StyleGAN2-style ``Trainer``.
+"""Training MoDi: data preparation and the StyleGAN2-style ``Trainer`` (the codec is ``modi.models.modi.codec``).
 
 One iteration (after rosinality/stylegan2-pytorch and the MoDi authors' ``train.py``): a discriminator step on
 the non-saturating loss, lazy R1 every ``d_reg_every`` steps, a generator step on the non-saturating loss plus
@@ -613,7 +613,7 @@ class Trainer:
         rngs = st.get("rng") or []
         if len(rngs) == self.world:
             rng = rngs[self.rank]
-            torch.set_rng_state(rng["torch"])  # (checkpoints before issue 43 also hold a "data" generator: unused)
+            torch.set_rng_state(rng["torch"])  # (older checkpoints also hold a "data" generator: unused)
             if "cuda" in rng and torch.cuda.is_available():
                 torch.cuda.set_rng_state_all(rng["cuda"])
         else:
