@@ -40,8 +40,8 @@ class ModelConfig:
     scaler: str = "conv"  # "conv" (convolutional scaler, MoDi) | "pool" (skeletal pooling/unpooling ablation)
     skeleton_aware: bool = True  # False = the non-skeleton-aware pseudo-image ablation (dense 2D convs)
     noise_injection: bool = False  # released MoDi: none; True = StyleGAN2 per-frame noise in every styled conv
-    # skeleton topology (modi.core.skeleton_graph.build_hierarchy): "siblings" = edges sharing a joint are neighbours (ours),
-    # "tree" = self + parent + children (the released code); "merge" pooling goes down to one entity (ours),
+    # skeleton topology (modi.core.skeleton_graph.build_hierarchy): "siblings" = edges sharing a joint are
+    # neighbours (ours), "tree" = self + parent + children (the released code); "merge" pooling goes down to one entity (ours),
     # "released" keeps the root edge unpooled and the root-motion/contact entities to the coarsest level (<= 2 edges)
     neighbors: str = "siblings"
     pooling: str = "merge"
@@ -53,6 +53,13 @@ class ModelConfig:
     # adjoint, read zeros there); "stylegan2" (StyleGAN2's upfirdn padding, the released code's: the generator's
     # upsampler keeps the transposed conv's first tap and the discriminator's downsampler one more blurred frame)
     time_padding: str = "adjoint"
+
+    @property
+    def inplace_convs_per_level(self) -> int:
+        """The in-place convs of each level's generator block and discriminator residual block: ``n_inplace_convs``,
+        one fewer with the skeletal pooling scaler, whose scaling conv is itself an in-place conv at the level
+        (unpool, then conv), so both scalers build as many convs per level."""
+        return self.n_inplace_convs - (1 if self.scaler == "pool" and self.skeleton_aware else 0)
 
     def validate(self) -> None:
         if self.scaler not in ("conv", "pool"):

@@ -397,7 +397,7 @@ class Generator(nn.Module):
 
         self.blocks = nn.ModuleList()
         self.to_motions = nn.ModuleList()
-        n_inplace = cfg.n_inplace_convs - (1 if cfg.scaler == "pool" and cfg.skeleton_aware else 0)
+        n_inplace = cfg.inplace_convs_per_level
         self.n_inplace = n_inplace
         for i in range(1, len(self.levels)):
             prev, lv = self.levels[i - 1], self.levels[i]
@@ -544,7 +544,7 @@ class ResBlock(nn.Module):
     def __init__(self, cfg: ModelConfig, fine: LevelSpec, coarse: LevelSpec):
         super().__init__()
         cin, cout = fine.channels, coarse.channels
-        n_inplace = cfg.n_inplace_convs - (1 if cfg.scaler == "pool" and cfg.skeleton_aware else 0)
+        n_inplace = cfg.inplace_convs_per_level
         convs: list[nn.Module] = [ConvAct(_conv(cfg, cin, cin, fine), cin) for _ in range(n_inplace)]
         convs.append(ConvAct(_down(cfg, cin, cout, fine, coarse, cfg.kernel_size), cout))
         self.convs = nn.Sequential(*convs)
