@@ -1,5 +1,6 @@
 """The add-on's operators: Learn / Resume / Cancel (GANimator training), Generate (variations as actions on the
-same armature), Sample MoDi (armatures from a MoDi checkpoint), all through the user's ``modi`` command.
+same armature), the applications Loop / In-between / Expand / Edit Body Part / Harmonise (new actions made from
+the scene's actions), Sample MoDi (armatures from a MoDi checkpoint), all through the user's ``modi`` command.
 
 Each operator starts one background ``modi`` process and is modal on a window timer, so Blender's UI keeps
 running; under ``blender -b`` (no event loop) it waits for the process instead, so scripts work the same way. A
@@ -24,8 +25,7 @@ STATE = {"job": None, "last": "", "result": None}
 
 
 # ------------------------------------------------------------------------------------------------- helpers
-class Refused(Exception):
-    """An operator cannot start; the message is its one report line."""
+Refused = jobs.Refused  # an operator cannot start; the message is its one report line
 
 
 def modi_command(context) -> str:
@@ -50,8 +50,13 @@ def active_armature(context, need_action: bool = True):
 
 
 def frame_span(action) -> tuple[int, int]:
+    """The frames of ``action`` to export: its frame range, less the closing frame of a cyclic one (that frame
+    *is* the first again)."""
     lo, hi = action.frame_range
-    return int(round(lo)), int(round(hi))
+    lo, hi = int(round(lo)), int(round(hi))
+    if getattr(action, "use_cyclic", False) and getattr(action, "use_frame_range", False) and hi > lo:
+        hi -= 1
+    return lo, hi
 
 
 def scene_fps(scene) -> float:
@@ -272,36 +277,156 @@ class MODI_OT_generate(_ModiJob, bpy.types.Operator):
         if not _has_checkpoint(run):
             raise Refused(f"{run or '(no run folder)'}: no trained run here (Learn an action first)")
         out = new_folder(os.path.join(run, "variations"), f"seed{s.seed}")
-        argv = [exe, "ganimator", "generate", run, "--out", out, "--n", str(s.n), "--seed", str(s.seed),
-                "--no-gif", "--no-view", "--crowd-spacing", "0"]
-        if s.frames > 0:
-            argv += ["--frames", str(s.frames)]
-        if s.contact_cleanup:
-            argv.append("--ik")
+        extra = ["--frames", str(s.frames)] if s.frames > 0 else []
         if s.mode != "random":
             action = bpy.data.actions.get(s.condition_action)
             if action is None:
                 raise Refused(f"choose the action that holds the {s.mode} (not found: {s.condition_action!r})")
             cond = os.path.join(out, f"{s.mode}.bvh")
             export_action(obj, context.scene, action, cond)
-            argv += [f"--{s.mode}", cond]
+            extra += [f"--{s.mode}", cond]
+        argv = jobs.generate_argv(exe, run, out, n=s.n, seed=s.seed, ik=s.contact_cleanup, extra=extra)
         base = obj.animation_data.action.name if obj.animation_data and obj.animation_data.action else obj.name
         seed, start = s.seed, context.scene.frame_start
         job = jobs.Job("generating", argv, os.path.join(out, "modi_generate.log"), env=jobs.modi_env())
+        return self.start(context, job, lambda ctx: _import_results(obj, out, f"{base}.modi", seed, start))
 
-        def finish(ctx):
-            files = sorted(glob.glob(os.path.join(out, "sample*.bvh")))
-            if not files:
-                raise Refused(f"{out}: modi wrote no BVH")
-            made = []
-            for i, path in enumerate(files):
-                act = rig_io.action_from_bvh(obj, rig_io.read_bvh(path), f"{base}.modi.s{seed:04d}.{i:03d}", start)
-                act["modi_bvh"] = path  # the file it came from
-                made.append(act.name)
-            rig_io.assign_action(obj, bpy.data.actions[made[0]])
-            return f"{len(made)} new action(s) on {obj.name}: {made[0]}" + (f" .. {made[-1]}" if len(made) > 1 else "")
 
-        return self.start(context, job, finish)
+def _import_results(obj, out: str, stem: str, seed: int, start: int, cyclic: bool = False) -> str:
+    """Every ``sample*.bvh`` modi wrote to ``out`` as a new action ``<stem>.s<seed>.<i>`` on ``obj`` (the stem
+    shortened to fit Blender's name length), keyed from
+    scene frame ``start``; the armature plays the first. Returns the report line."""
+    files = sorted(glob.glob(os.path.join(out, "sample*.bvh")))
+    if not files:
+        raise Refused(f"{out}: modi wrote no BVH")
+    made = []
+    for i, path in enumerate(files):
+        bvh = rig_io.read_bvh(path)
+        act = rig_io.action_from_bvh(obj, bvh, jobs.action_name(stem, seed, i), start)
+        act["modi_bvh"] = path  # the file it came from
+        if cyclic:
+            rig_io.set_cycle(act, start, bvh.n_frames)
+        made.append(act.name)
+    rig_io.assign_action(obj, bpy.data.actions[made[0]])
+    return f"{len(made)} new action(s) on {obj.name}: {made[0]}" + (f" .. {made[-1]}" if len(made) > 1 else "")
+
+
+# ------------------------------------------------------------------------------------------------- applications
+def _selected_bones(obj) -> list:
+    """The armature's selected bones (Pose Mode's selection: on the pose bone in 5.0, on the bone before)."""
+    out = []
+    for pb in obj.pose.bones:
+        sel = pb.select if hasattr(pb, "select") else pb.bone.select
+        if sel:
+            out.append(pb.name)
+    return out
+
+
+def _action_for(obj, name: str, role: str):
+    """The action ``name`` (empty: the armature's own), refused unless it animates this armature's bones."""
+    if name:
+        action = bpy.data.actions.get(name)
+        if action is None:
+            raise Refused(f"{role}: there is no action named {name!r}")
+    else:
+        action = obj.animation_data.action if obj.animation_data else None
+        if action is None:
+            raise Refused(f"armature {obj.name!r} has no action; give it one, or choose the {role.lower()} action")
+    jobs.check_action_on_rig(action.name, [fc.data_path for fc in rig_io.action_fcurves(action)],
+                             [b.name for b in obj.data.bones], obj.name)
+    return action
+
+
+class _Application(_ModiJob):
+    """An application of the trained run in *Run* to the scene's actions (``app``: one of ``jobs.APPLICATIONS``):
+    the actions ``jobs.plan`` names are exported next to modi's output, ``modi ganimator generate`` runs with the
+    plan's flags, and each motion it writes comes back as a new action on the armature."""
+    app = ""
+
+    def run(self, context):
+        s = context.scene.modi
+        exe = modi_command(context)
+        obj = active_armature(context, need_action=False)
+        run = bpy.path.abspath(s.run_dir)
+        if not _has_checkpoint(run):
+            raise Refused(f"{run or '(no run folder)'}: no trained run here (Learn an action first)")
+        rig_io.bone_order(obj)  # one root bone, BVH-safe names
+        jobs.check_run_rig(jobs.bvh_joint_names(os.path.join(run, "source.bvh")), [b.name for b in obj.data.bones],
+                           obj.name, run)
+        if self.app == "loop":  # from the run alone: named after the action it learned
+            own = obj.animation_data.action if obj.animation_data and obj.animation_data.action else None
+            info = (_learned_action(run) or (own.name if own else obj.name), 0, 0)
+            to = None
+        else:
+            info = _action_info(_action_for(obj, s.app_action, "From" if self.app == "inbetween" else "Action"))
+            to = (_action_info(_action_for(obj, s.app_to_action, "To"))
+                  if self.app == "inbetween" and s.app_to_action else None)
+        plan = jobs.plan(self.app, info, to_action=to, frames=s.app_frames, span=s.app_span, loop_root=s.loop_root,
+                         at=s.expand_at, keep=s.keep, selected=_selected_bones(obj) if s.keep == "selected" else (),
+                         level=s.content_level)
+        out = new_folder(os.path.join(run, "variations"), f"{self.app}_seed{s.seed}")
+        for fname, aname in plan.exports.items():
+            export_action(obj, context.scene, bpy.data.actions[aname], os.path.join(out, fname))
+        argv = jobs.generate_argv(exe, run, out, n=s.n, seed=s.seed, ik=s.contact_cleanup, extra=plan.flags(out))
+        seed = s.seed
+        start = context.scene.frame_start if plan.frame_start is None else plan.frame_start
+        job = jobs.Job("generating", argv, os.path.join(out, "modi_generate.log"), env=jobs.modi_env())
+        return self.start(context, job, lambda ctx: _import_results(obj, out, plan.stem, seed, start, plan.cyclic))
+
+
+def _learned_action(run: str) -> str | None:
+    """The action a run the add-on started learned (``RUN/modi_addon.json``), else None."""
+    try:
+        with open(os.path.join(run, SETTINGS_NAME)) as fh:
+            name = json.load(fh).get("action")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return name if isinstance(name, str) and name else None
+
+
+def _action_info(action) -> tuple:
+    return (action.name, *frame_span(action))
+
+
+class MODI_OT_loop(_Application, bpy.types.Operator):
+    """A loop from the trained run: Frames frames whose last flows into the first (the new action is marked
+    cyclic)"""
+    bl_idname = "modi.loop"
+    bl_label = "Loop"
+    app = "loop"
+
+
+class MODI_OT_inbetween(_Application, bpy.types.Operator):
+    """Frames between the end of one action and the start of another (or of the same: a cycle), both kept
+    exactly"""
+    bl_idname = "modi.inbetween"
+    bl_label = "In-between"
+    app = "inbetween"
+
+
+class MODI_OT_expand(_Application, bpy.types.Operator):
+    """A longer motion that holds the action unchanged at its place"""
+    bl_idname = "modi.expand"
+    bl_label = "Expand"
+    app = "expand"
+
+
+class MODI_OT_edit_part(_Application, bpy.types.Operator):
+    """Keep the action's upper or lower body (or the selected bones) and generate the rest to go with it"""
+    bl_idname = "modi.edit_part"
+    bl_label = "Edit Body Part"
+    app = "edit"
+
+
+class MODI_OT_harmonise(_Application, bpy.types.Operator):
+    """Blend an action (e.g. pasted together by hand) into the run's style from a pyramid level"""
+    bl_idname = "modi.harmonise"
+    bl_label = "Harmonise"
+    app = "harmonise"
+
+
+APPLICATION_OPERATORS = {"loop": "modi.loop", "inbetween": "modi.inbetween", "expand": "modi.expand",
+                         "edit": "modi.edit_part", "harmonise": "modi.harmonise"}
 
 
 class MODI_OT_sample_modi(_ModiJob, bpy.types.Operator):
@@ -363,5 +488,6 @@ def stop_running_job(wait: float = 20.0) -> None:
     STATE["job"] = None
 
 
-CLASSES = (MODI_OT_learn, MODI_OT_resume, MODI_OT_cancel, MODI_OT_generate, MODI_OT_sample_modi)
-__all__ = ["STATE", "CLASSES", "status_line", "stop_running_job", "Refused"]
+CLASSES = (MODI_OT_learn, MODI_OT_resume, MODI_OT_cancel, MODI_OT_generate, MODI_OT_loop, MODI_OT_inbetween,
+           MODI_OT_expand, MODI_OT_edit_part, MODI_OT_harmonise, MODI_OT_sample_modi)
+__all__ = ["STATE", "CLASSES", "APPLICATION_OPERATORS", "status_line", "stop_running_job", "Refused"]

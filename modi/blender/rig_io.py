@@ -137,7 +137,7 @@ class Bvh:
 
     def pose(self, frame: int) -> tuple[list, list]:
         """Global rotations (3x3, BVH axes, relative to the rest pose) and positions of every joint at ``frame``;
-        position channels replace the OFFSET's components, as ``modi export-positions`` reads them."""
+        position channels replace the OFFSET's components, as ``modi export positions`` reads them."""
         row, col = self.motion[frame], 0
         rots, pos = [], []
         for j, chans in enumerate(self.channels):
@@ -336,6 +336,29 @@ def action_from_bvh(obj, bvh: Bvh, name: str, frame_start: int = 1):
     return action
 
 
+def action_fcurves(action) -> list:
+    """Every F-curve of ``action``: its layers' channel bags where Blender has slotted actions (4.4+; 5.0 has
+    nothing else), else the action's own list (3.x to 4.3)."""
+    out = []
+    for layer in getattr(action, "layers", ()):
+        for strip in layer.strips:
+            for bag in getattr(strip, "channelbags", ()):
+                out.extend(bag.fcurves)
+    if not out and hasattr(action, "fcurves"):
+        out.extend(action.fcurves)
+    return out
+
+
+def set_cycle(action, first: int, n_frames: int) -> None:
+    """Mark ``action`` (keys on ``first .. first + n_frames - 1``) as a cycle: its manual frame range ends on
+    ``first + n_frames``, the frame that *is* ``first`` again (Blender's convention for cyclic actions), so an NLA
+    strip repeating it, or a scene range of ``first .. first + n_frames - 1``, plays the loop with no frame twice."""
+    if hasattr(action, "use_cyclic"):  # 3.1+
+        action.use_frame_range = True
+        action.frame_start, action.frame_end = first, first + n_frames
+        action.use_cyclic = True
+
+
 def bpy_actions():
     import bpy
 
@@ -343,5 +366,5 @@ def bpy_actions():
 
 
 __all__ = ["RigError", "Bvh", "read_bvh", "export_action_bvh", "action_from_bvh", "assign_action", "joint_name",
-           "bone_order",
+           "bone_order", "action_fcurves", "set_cycle",
            "TO_BVH", "FROM_BVH"]

@@ -13,6 +13,13 @@ Steps (a step named twice is recorded the second time as "name#2"; each records 
   generate_import_crash  Generate with an injected bug in importing the result
   bad_rig, one_frame  Learn on a copy with two root bones / with a one-frame action
   broken_path         Learn with the modi path pointing nowhere
+  loop, inbetween_cycle, inbetween_two, expand, edit_lower, harmonise
+                      the applications on the run in Run (a loop that returns; the source action's end back to
+                      its start; the source action, a transition, then a variation; the action expanded; its
+                      lower body kept; harmonised from level 1): the new actions' positions dumped
+  loop_too_short, app_no_action, app_other_rig, app_nothing_selected
+                      a loop modi refuses; an armature without an action; another rig's action; Edit Body Part
+                      with no bone selected
   sample_modi         Sample a MoDi checkpoint (CONFIG["modi_ckpt"]); sample_modi_interpolate: between two seeds
   gui_cancel_resume   (needs a window) modal Learn, a counter timer ticking meanwhile, Cancel mid-training,
                       Resume to the end, then Learn again and quit Blender while it trains
@@ -70,7 +77,7 @@ def dump_positions(obj, action, tag):
     """Every frame of ``action`` on ``obj``: the world head of each pose bone (Blender's own evaluation)."""
     scene = bpy.context.scene
     operators().rig_io.assign_action(obj, action)
-    lo, hi = (int(round(v)) for v in action.frame_range)
+    lo, hi = (int(round(v)) for v in getattr(action, "curve_frame_range", action.frame_range))  # the keyed frames
     names = [b.name for b in obj.pose.bones]
     pos = np.zeros((hi - lo + 1, len(names), 3))
     for f in range(lo, hi + 1):
@@ -78,7 +85,7 @@ def dump_positions(obj, action, tag):
         for j, pb in enumerate(obj.pose.bones):
             pos[f - lo, j] = tuple(obj.matrix_world @ pb.head)
     np.save(os.path.join(OUT, f"{tag}.npy"), pos)
-    return {"names": names, "frames": hi - lo + 1, "npy": f"{tag}.npy"}
+    return {"names": names, "frames": hi - lo + 1, "npy": f"{tag}.npy", "first": lo}
 
 
 def setup():
@@ -269,11 +276,111 @@ def step_learn_conditional(arm):
     return r
 
 
+# ---------------------------------------------------------------------------------------------- applications
+def step_app(arm, app, **settings):
+    """Run application ``app`` (loop, inbetween, expand, edit, harmonise) with ``settings`` on the scene's modi
+    settings; record the new actions (positions, the BVH modi wrote, frame ranges, cyclic flags) and the source
+    action's positions once."""
+    s = bpy.context.scene.modi
+    s.n, s.seed, s.contact_cleanup = CFG.get("app_n", 2), CFG["seed"], False
+    s.app_action, s.app_to_action = REC["source_action"], ""
+    for k, v in settings.items():
+        setattr(s, k, v)
+    if "source_dump" not in REC:
+        keep = arm.animation_data.action if arm.animation_data else None
+        REC["source_dump"] = dump_positions(arm, bpy.data.actions[REC["source_action"]], "source")
+        operators().rig_io.assign_action(arm, keep)
+    before = set(a.name for a in bpy.data.actions)
+    r = call(getattr(bpy.ops.modi, operators().APPLICATION_OPERATORS[app].split(".")[1]))
+    new = sorted(a.name for a in bpy.data.actions if a.name not in before)
+    r["new_actions"], r["dumps"] = new, {}
+    r["active_action"] = arm.animation_data.action.name if arm.animation_data and arm.animation_data.action else None
+    for i, name in enumerate(new):
+        act = bpy.data.actions[name]
+        d = dump_positions(arm, act, f"{app}{len(REC['steps'])}_{i}")
+        d["bvh"] = act.get("modi_bvh")
+        d["cyclic"] = bool(getattr(act, "use_cyclic", False))
+        d["frame_range"] = [round(v) for v in act.frame_range]
+        r["dumps"][name] = d
+    return r
+
+
+def step_inbetween_two(arm):
+    """In-between from the source action to a second action on the rig (a copy of the source named "second",
+    its first 30 frames), keeping both whole."""
+    to = bpy.data.actions[REC["source_action"]].copy()
+    to.name = "second"
+    lo = int(round(to.frame_range[0]))
+    for fc in operators().rig_io.action_fcurves(to):  # keep frames lo .. lo + 29
+        for kp in reversed(list(fc.keyframe_points)):
+            if kp.co[0] > lo + 29:
+                fc.keyframe_points.remove(kp)
+    r = step_app(arm, "inbetween", app_to_action=to.name, app_span="actions", app_frames=CFG.get("between", 12))
+    r["to_action"], r["to_dump"] = to.name, dump_positions(arm, to, "to_action")
+    return r
+
+
+def step_app_no_action(arm):
+    """In-between on a copy of the armature without an action: refused before anything starts."""
+    obj = _copy(arm, "no_action")
+    obj.animation_data_clear()
+    bpy.context.view_layer.objects.active = obj
+    s = bpy.context.scene.modi
+    s.app_action, s.app_to_action = "", ""
+    try:
+        return call(bpy.ops.modi.inbetween)
+    finally:
+        bpy.context.view_layer.objects.active = arm
+
+
+def step_app_other_rig(arm):
+    """In-between from an action that keys bones this armature does not have (another rig's action)."""
+    act = bpy.data.actions.new("crab_walk")
+    path = 'pose.bones["Claw.L"].location'
+    if hasattr(act, "fcurve_ensure_for_datablock"):  # 4.4+ (5.0: the only way)
+        other = bpy.data.objects.new("crab", bpy.data.armatures.new("crab"))
+        bpy.context.scene.collection.objects.link(other)
+        operators().rig_io.assign_action(other, act)
+        fc = act.fcurve_ensure_for_datablock(other, path, index=0)
+    else:
+        fc = act.fcurves.new(path, index=0)
+    fc.keyframe_points.insert(1, 0.0)
+    fc.keyframe_points.insert(20, 1.0)
+    s = bpy.context.scene.modi
+    s.app_action = act.name
+    return call(bpy.ops.modi.inbetween)
+
+
+def step_app_nothing_selected(arm):
+    """Edit Body Part keeping the selected bones, with none selected."""
+    for pb in arm.pose.bones:
+        if hasattr(pb, "select"):
+            pb.select = False
+        else:
+            pb.bone.select = False
+    s = bpy.context.scene.modi
+    s.app_action, s.keep = REC["source_action"], "selected"
+    try:
+        return call(bpy.ops.modi.edit_part)
+    finally:
+        s.keep = "upper"
+
+
 STEPS = {"fbx": step_fbx, "generate_import_crash": step_generate_import_crash, "learn_conditional": step_learn_conditional,
          "generate_trajectory": lambda arm: step_generate(arm, "trajectory"), "bad_rig": step_bad_rig, "one_frame": step_one_frame, "learn": step_learn, "generate": step_generate, "generate_bad_ckpt": step_generate_bad_ckpt,
          "generate_keyframes": lambda arm: step_generate(arm, "keyframes"),
          "broken_path": step_broken_path, "sample_modi": step_sample_modi,
-         "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True)}
+         "sample_modi_interpolate": lambda arm: step_sample_modi(arm, True),
+         "loop": lambda arm: step_app(arm, "loop", app_frames=CFG.get("loop_frames", 40), loop_root="return"),
+         "inbetween_cycle": lambda arm: step_app(arm, "inbetween", app_span="poses",
+                                                 app_frames=CFG.get("between", 12)),
+         "inbetween_two": step_inbetween_two,
+         "expand": lambda arm: step_app(arm, "expand", app_frames=CFG.get("expand_frames", 80), expand_at=-1),
+         "edit_lower": lambda arm: step_app(arm, "edit", keep="lower"),
+         "harmonise": lambda arm: step_app(arm, "harmonise", content_level=1),
+         "loop_too_short": lambda arm: step_app(arm, "loop", app_frames=3),
+         "app_no_action": step_app_no_action, "app_other_rig": step_app_other_rig,
+         "app_nothing_selected": step_app_nothing_selected}
 
 
 # ---------------------------------------------------------------------------------------------- the GUI run

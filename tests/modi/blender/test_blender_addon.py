@@ -181,6 +181,104 @@ def test_learn_generate_keyframes_and_failures(tmp_path, addon_zip, runner):
     assert msg.startswith("modi failed:") and "frame" in msg, msg
 
 
+def _blender_positions(rec: dict, dump: dict, names: list) -> np.ndarray:
+    """A dumped action's joint positions (T, J, 3) for the joints ``names`` (modi's, without a namespace)."""
+    got = np.load(rec["_out"] / dump["npy"])
+    bare = [n.rsplit(":", 1)[-1] for n in dump["names"]]
+    return got[:, [bare.index(n) for n in names]]
+
+
+def _bvh_names(bvh: str, tmp: Path) -> list:
+    return _positions(bvh, tmp)[1]
+
+
+def test_loop_inbetween_expand_edit_harmonise_and_their_refusals(tmp_path, addon_zip, runner):
+    """The applications from the panel, on the scene's actions: every new action lands joint for joint on what
+    modi wrote, and keeps what the application promises (the loop's seam, the in-between's ends, the expanded
+    action in place, the kept lower body); bad input is one line and CANCELLED."""
+    rec = _blender(tmp_path, addon_zip, ["learn", "generate", "loop", "inbetween_cycle", "inbetween_two", "expand",
+                                         "edit_lower", "harmonise", "loop_too_short", "app_no_action",
+                                         "app_other_rig", "app_nothing_selected"],
+                   runner=runner, n=1, frames=30, app_n=2, loop_frames=40, between=12, expand_frames=80)
+    st, base = rec["steps"], rec["source_action"]
+    src_dump = rec["source_dump"]
+    S = src_dump["frames"]
+    assert st["learn"]["ret"] == ["FINISHED"], st["learn"]
+
+    def landed(step: str, stem: str, frames: int) -> dict:
+        r = st[step]
+        assert r["ret"] == ["FINISHED"], r
+        want = [f"{stem}.s0005.{i:03d}" for i in range(2)]
+        if len(want[0].encode()) > 63:  # Blender's longest name: the stem is cut, the seed and index kept
+            want = [stem[:63 - len(".s0005.000")] + w[-len(".s0005.000"):] for w in want]
+        assert r["new_actions"] == want, r["new_actions"]
+        assert r["active_action"] == r["new_actions"][0]
+        for name, dump in r["dumps"].items():
+            assert dump["frames"] == frames, (step, name, dump["frames"])
+            err = _rel_error(rec, dump, dump["bvh"], tmp_path)
+            assert err <= TOL, f"{step} {name}: joint positions differ from modi's by {err:.2e} of the body height"
+        return r
+
+    # the joints modi keeps, less Bandai's static floor root: modi gives that root the pelvis's track, so only
+    # there do modi's motions and the source differ in kind (every other joint holds its world position)
+    names = _bvh_names(next(iter(st["loop"]["dumps"].values()))["bvh"], tmp_path)
+    assert names[0] == "joint_Root", names
+    names = names[1:]
+    src = _blender_positions(rec, src_dump, names)
+    height = src[0, :, 2].max() - src[0, :, 2].min()
+    src_step = np.linalg.norm(np.diff(src, axis=0), axis=-1).max()
+
+    loop = landed("loop", f"{base}.modi.loop", 40)
+    for dump in loop["dumps"].values():
+        lo, hi = dump["frame_range"]
+        assert dump["cyclic"] and (lo, hi) == (dump["first"], dump["first"] + 40)  # frame hi is frame lo again
+        # the seam is a step of the source's own size (loosely: a 2-iteration model; modi's tests hold it exactly)
+        p = _blender_positions(rec, dump, names)
+        seam = np.linalg.norm(p[0] - p[-1], axis=-1).max()
+        assert seam <= 2 * src_step, (seam, src_step)
+
+    cyc = landed("inbetween_cycle", f"{base}.modi.cycle", 12 + 2)
+    for dump in cyc["dumps"].values():  # the action's last pose, 12 frames, its first pose
+        p = _blender_positions(rec, dump, names)
+        assert dump["first"] == src_dump["first"] + S - 1  # starts on the action's last frame
+        assert np.abs(p[0] - src[-1]).max() <= TOL * height and np.abs(p[-1] - src[0]).max() <= TOL * height
+
+    two = st["inbetween_two"]
+    to_dump = two["to_dump"]
+    T2 = to_dump["frames"]
+    two = landed("inbetween_two", f"{base}.modi.to.{two['to_action']}", S + 12 + T2)
+    to = _blender_positions(rec, to_dump, names)
+    for dump in two["dumps"].values():  # the source action whole, 12 frames, then the other action whole
+        p = _blender_positions(rec, dump, names)
+        assert np.abs(p[:S] - src).max() <= TOL * height and np.abs(p[-T2:] - to).max() <= TOL * height
+
+    at = (80 - S) // 2
+    exp = landed("expand", f"{base}.modi.expand", 80)
+    for dump in exp["dumps"].values():  # the action at its own scene frames inside the longer motion
+        assert dump["first"] == src_dump["first"] - at
+        p = _blender_positions(rec, dump, names)
+        assert np.abs(p[at:at + S] - src).max() <= TOL * height
+        assert np.abs(p[:at] - src[:1]).max() > 1e-3 * height  # the rest is generated, not a held pose
+
+    low = landed("edit_lower", f"{base}.modi.lower", S)
+    legs = [j for j, n in enumerate(names) if any(k in n for k in ("Leg", "Foot", "Toe"))]
+    assert len(legs) >= 4, names
+    for dump in low["dumps"].values():  # the kept legs where they were; the upper body generated
+        p = _blender_positions(rec, dump, names)
+        assert np.abs(p[:, legs] - src[:, legs]).max() <= TOL * height
+        assert np.abs(p - src).max() > 1e-3 * height
+
+    landed("harmonise", f"{base}.modi.harmonised", S)
+
+    msg = _one_line_cancel(st["loop_too_short"])
+    assert msg.startswith("modi failed: --loop with --frames 3: a loop needs at least"), msg
+    msg = _one_line_cancel(st["app_no_action"])
+    assert "no_action" in msg and "has no action" in msg, msg
+    msg = _one_line_cancel(st["app_other_rig"])
+    assert "crab_walk" in msg and "another rig" in msg, msg
+    assert "select the bones" in _one_line_cancel(st["app_nothing_selected"])
+
+
 @needs_blender
 def test_trajectory_conditioned_run_follows_an_actions_root_path(tmp_path, addon_zip):
     rec = _blender(tmp_path, addon_zip, ["learn_conditional", "learn", "learn_conditional", "generate_trajectory"],
