@@ -25,6 +25,14 @@ modi_ext with the CUDA kernels for this GPU into a temporary folder -- never the
 every step then imports that build (``step_env``).
 
 Writes ``benchmarks/results/cuda_<gpu>.json`` (or ``--json FILE``).  Without a visible GPU it says so and exits 2.
+
+``--out DIR`` runs issue 51's measurements instead (``benchmarks/gpu_measure.py``, one process per stage, default
+budget 330 s): ``build`` (``setup.py build_ext --inplace`` for this GPU's arch, the authors' JIT ops beside it),
+``cuda_tests`` (``pytest -m cuda``), ``modi_step`` (MoDi's paper step, batch 16 and 64), ``peer_modi_step`` (the
+authors' ``train.py`` on the same data, config and batch, on their CUDA ops), ``sampling`` (batch 256), ``ganimator``
+(ours vs the authors' iteration) and ``profile`` (kernels and GPU-busy fraction per step kind); each writes
+``DIR/<stage>.json`` as it ends, with the precision settings, and ``--tf32 both`` (default) reruns the timed stages
+with TF32 off.  ``--out DIR --dry-run`` runs every stage on the CPU at tiny sizes (CI).
 """
 from __future__ import annotations
 
@@ -52,6 +60,17 @@ from modi_ext.runtime import dispatch, kernels, payload
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_BUDGET_S = 600.0  # the whole command: ten minutes on one H100/H200
 SUBSET = "finest|level1|fk"  # benchmark cases: the levels that dominate a training step, and FK
+
+
+# ``--out DIR``: issue 51's measurements, one JSON per stage (benchmarks/gpu_measure.py runs each stage)
+MEASURE_SCRIPT = ROOT / "benchmarks" / "gpu_measure.py"
+MEASURE_BUDGET_S = 330.0  # a 6-minute device call: the budget plus start-up, with time left for a rerun
+MEASURE_STAGES = ("build", "cuda_tests", "modi_step", "peer_modi_step", "sampling", "ganimator", "profile")
+MEASURE_TIMED = ("modi_step", "peer_modi_step", "ganimator")  # again with TF32 off on both sides, time allowing
+# seconds per stage on one H100/H200; each gets min(this, what is left of --budget)
+MEASURE_TIMEOUTS = {"build": 170, "cuda_tests": 75, "modi_step": 50, "peer_modi_step": 60, "sampling": 20,
+                    "ganimator": 50, "profile": 30}
+MEASURE_TIMEOUTS_TF32OFF = {"modi_step": 30, "peer_modi_step": 40, "ganimator": 35}
 
 
 @dataclass
@@ -400,10 +419,142 @@ def verdict(steps: dict, allow_skip: bool = False) -> tuple[str, list[str]]:
     return "ok", skipped
 
 
+def measure_plan(tf32: str = "both") -> list[tuple[str, str, float]]:
+    """(stage, TF32 mode, timeout) in order: every stage at torch's defaults, then (``both``) the timed stages again
+    with TF32 off on both sides."""
+    plan_ = [(s, "default", float(MEASURE_TIMEOUTS[s])) for s in MEASURE_STAGES] if tf32 != "off" else []
+    if tf32 != "default":
+        first = MEASURE_STAGES if tf32 == "off" else ()
+        plan_ += [(s, "off", float(MEASURE_TIMEOUTS[s] if s in first else MEASURE_TIMEOUTS_TF32OFF.get(s, 0)))
+                  for s in (MEASURE_STAGES if tf32 == "off" else MEASURE_TIMED)]
+    return plan_
+
+
+def measure_file(out: Path, stage: str, tf32: str = "default") -> Path:
+    """Where a stage writes its JSON: ``<stage>.json``, or ``<stage>_tf32off.json`` for the TF32-off pass."""
+    return Path(out) / (f"{stage}.json" if tf32 == "default" else f"{stage}_tf32{tf32}.json")
+
+
+def _precision_for(tf32: str) -> dict:
+    """The precision settings a stage runs under (``benchmarks/gpu_measure.py`` records its own; this is what the
+    orchestrator writes for a stage that died before it could)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = {"matmul_allow_tf32": bool(torch.backends.cuda.matmul.allow_tf32),
+               "cudnn_allow_tf32": bool(torch.backends.cudnn.allow_tf32),
+               "cudnn_benchmark": bool(torch.backends.cudnn.benchmark),
+               "float32_matmul_precision": torch.get_float32_matmul_precision()}
+    if tf32 == "off":
+        res.update(matmul_allow_tf32=False, cudnn_allow_tf32=False)
+    return res
+
+
+def _stage_result(out: Path, stage: str, tf32: str, rc: int | None, text: str, timed_out: bool, seconds: float,
+                  device: str) -> dict:
+    """The stage's own JSON, or -- when it was killed or crashed before writing a final one -- a JSON saying so,
+    with whatever partial figures it had written (``status: running``) kept under ``partial``."""
+    path = measure_file(out, stage, tf32)
+    rec = None
+    if path.is_file():
+        try:
+            rec = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            rec = None
+    if rec is not None and rec.get("status") != "running":
+        return rec
+    why = "timeout" if timed_out else "fail"
+    new = {"stage": stage, "device": device, "tf32": tf32, "status": why, "rc": rc, "seconds": round(seconds, 2),
+           "precision": (rec or {}).get("precision", _precision_for(tf32)), "tail": text[-3000:],
+           "reason": ("killed at its time limit" if timed_out else f"the stage's process ended with {rc} before "
+                      "writing its result")}
+    if rec is not None:
+        new["partial"] = {k: v for k, v in rec.items() if k not in new}
+    _write_atomic(path, json.dumps(new, indent=1, default=str) + "\n")
+    return new
+
+
+def measure(out: Path, budget: float = MEASURE_BUDGET_S, dry_run: bool = False, tf32: str = "both") -> int:
+    """Issue 51's measurements into ``out``: one JSON per stage (written as the stage ends, so a run stopped early
+    keeps what it did) and ``summary.json`` (rewritten after every stage), inside ``budget`` seconds.
+
+    On a GPU every stage is a process of its own (``benchmarks/gpu_measure.py STAGE``) with its own timeout.
+    ``dry_run``: every stage in one process on the CPU at tiny sizes -- the plumbing, for CI."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    deadline = t0 + budget
+    device = "cpu" if dry_run else "cuda"
+    summary: dict = {"command": "python -m modi_ext.validate --out " + str(out) + f" --budget {budget:g}"
+                     + (" --dry-run" if dry_run else "") + ("" if tf32 == "both" else f" --tf32 {tf32}"),
+                     "device": device, "budget_s": budget, "tf32": tf32, "torch": torch.__version__,
+                     "cuda": torch.version.cuda, "date": datetime.date.today().isoformat(),
+                     "precision_defaults": _precision_for("default"), "stages": {}}
+    spath = out / "summary.json"
+    if not MEASURE_SCRIPT.is_file():
+        print(f"validate: {MEASURE_SCRIPT} not found (run from a source checkout)", file=sys.stderr)
+        return 2
+    if not dry_run:
+        why = no_gpu_message()
+        if why is not None:
+            summary["error"] = why
+            _write_atomic(spath, json.dumps(summary, indent=1) + "\n")
+            print(why + " (--dry-run runs the stages on the CPU)", file=sys.stderr)
+            return 2
+        p = torch.cuda.get_device_properties(0)
+        summary.update(gpu=p.name, sms=p.multi_processor_count)
+    log = out / "stages.log"
+    log.write_text("", encoding="utf-8")
+    py = sys.executable
+    env, cwd = step_env(None, ROOT)
+    with tempfile.TemporaryDirectory(prefix="modi_measure_") as tmp:
+        if dry_run:
+            runs = [("all", "default", budget)]
+        else:
+            runs = measure_plan(tf32)
+        for stage, mode, timeout in runs:
+            left = deadline - time.perf_counter()
+            names = MEASURE_STAGES if stage == "all" else (stage,)
+            if left < 5 or timeout <= 0:
+                for n in names:
+                    rec = {"stage": n, "device": device, "tf32": mode, "status": "skipped",
+                           "reason": "time budget spent", "precision": _precision_for(mode)}
+                    _write_atomic(measure_file(out, n, mode), json.dumps(rec, indent=1) + "\n")
+                    summary["stages"][measure_file(out, n, mode).stem] = {"status": "skipped",
+                                                                          "reason": rec["reason"]}
+                continue
+            limit = min(timeout, left)
+            cmd = [py, str(MEASURE_SCRIPT), stage, "--out", str(out), "--work", tmp, "--device", device,
+                   "--tf32", mode, "--limit", f"{limit:.0f}"] + (["--tiny"] if dry_run else [])
+            t = time.perf_counter()
+            rc, text, timed_out = run_group(cmd, limit, env, cwd)
+            secs = time.perf_counter() - t
+            with log.open("a", encoding="utf-8") as f:
+                f.write(f"===== {stage} (tf32 {mode}): rc {rc}{' timeout' if timed_out else ''}\n{text}\n")
+            for n in names:
+                rec = _stage_result(out, n, mode, rc, text, timed_out, secs, device)
+                summary["stages"][measure_file(out, n, mode).stem] = {
+                    k: rec.get(k) for k in ("status", "seconds", "reason", "error") if rec.get(k) is not None}
+                print(f"{measure_file(out, n, mode).stem:24s} {rec['status']:8s} {rec.get('seconds', 0):7.1f} s  "
+                      f"{rec.get('reason', rec.get('error', ''))}"[:200], flush=True)
+            summary["total_s"] = round(time.perf_counter() - t0, 1)
+            _write_atomic(spath, json.dumps(summary, indent=1, default=str) + "\n")
+    bad = [n for n, r in summary["stages"].items() if r["status"] in ("fail", "timeout")]
+    summary["verdict"] = "fail" if bad else "ok"
+    summary["total_s"] = round(time.perf_counter() - t0, 1)
+    _write_atomic(spath, json.dumps(summary, indent=1, default=str) + "\n")
+    print(f"wrote {out}/*.json; {summary['verdict']} in {summary['total_s']:.0f} s"
+          + (f": {', '.join(bad)}" if bad else ""))
+    return 1 if bad else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m modi_ext.validate", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, default=None, help="results file (default benchmarks/results/cuda_<gpu>.json)")
-    ap.add_argument("--budget", type=float, default=DEFAULT_BUDGET_S, help="seconds for all steps together")
+    ap.add_argument("--budget", type=float, default=None,
+                    help=f"seconds for all steps together (default {DEFAULT_BUDGET_S:.0f}; with --out "
+                         f"{MEASURE_BUDGET_S:.0f})")
     ap.add_argument("--emulated", action="store_true", help="also run the cuda_emulated suite (CPU-bound)")
     ap.add_argument("--dry-run", action="store_true", help="list the steps and their timeouts, run nothing")
     ap.add_argument("--allow-skip", action="store_true", help="report ok even when a step could not run")
@@ -411,14 +562,24 @@ def main(argv: list[str] | None = None) -> int:
                     help="first build the extension with its CUDA kernels into a temporary folder, inside the budget "
                          "(the default when the installed build has no CUDA kernels and nvcc is found)")
     ap.add_argument("--payload", choices=("kernels", "dispatch"), help=argparse.SUPPRESS)
-    ap.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="issue 51's measurements: one JSON per stage in this folder (build, CUDA tests, MoDi step "
+                         "vs the authors' train.py, sampling, GANimator, profile); with --dry-run on the CPU at tiny "
+                         f"sizes; --budget defaults to {MEASURE_BUDGET_S:.0f} s")
+    ap.add_argument("--tf32", choices=("default", "off", "both"), default="both",
+                    help="with --out: torch's defaults, TF32 off on both sides, or both (the default; the TF32-off "
+                         "pass runs the timed stages again when time is left)")
     ap.add_argument("--device", default="cuda", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.budget is None:
+        args.budget = MEASURE_BUDGET_S if args.out is not None and not args.payload else DEFAULT_BUDGET_S
     if args.budget <= 0:
         print(f"validate: --budget must be positive, got {args.budget}", file=sys.stderr)
         return 2
     if args.payload:
         return _run_payload(args.payload, args.out, args.device)
+    if args.out is not None:
+        return measure(args.out, args.budget, args.dry_run, args.tf32)
     with tempfile.TemporaryDirectory(prefix="modi_validate_") as tmp:
         work = Path(tmp)
         steps = plan(work, args.emulated)

@@ -160,21 +160,26 @@ def _cpu(v: Any) -> Any:
 
 
 @contextlib.contextmanager
-def peer_runtime() -> Iterator[types.SimpleNamespace]:
+def peer_runtime(device: str = "cpu") -> Iterator[types.SimpleNamespace]:
     """Make the released modules importable and CPU-safe for the duration of the block; yields them.
-    Re-entrant: a nested block reuses the outer one's state and leaves it in place."""
+    Re-entrant: a nested block reuses the outer one's state and leaves it in place.
+
+    ``device="cuda"`` (``python -m modi_ext.validate --out``, on a GPU) runs their code as released instead: their
+    own ``op`` package (JIT-compiled CUDA ops), ``.cuda()`` / ``.to('cuda')`` / ``synchronize`` untouched."""
     if _ACTIVE:
         yield _ACTIVE[-1]
         return
+    cpu = not str(device).startswith("cuda")
     root = require_peer()
     saved = {n: m for n, m in sys.modules.items() if _is_peer_module(n) and n not in _PEER_MODULES}
     for n in saved:
         del sys.modules[n]
     sys.modules.update(_PEER_MODULES)
-    op = _op_module()
-    sys.modules.setdefault("op", op)
-    sys.modules.setdefault("op.fused_act", op.fused_act_module)
-    sys.modules.setdefault("op.upfirdn2d", op.upfirdn2d_module)
+    if cpu:
+        op = _op_module()
+        sys.modules.setdefault("op", op)
+        sys.modules.setdefault("op.fused_act", op.fused_act_module)
+        sys.modules.setdefault("op.upfirdn2d", op.upfirdn2d_module)
     stubbed = []  # removed again at the end: sklearn, for one, takes any 'pandas' in sys.modules for the real one
     for name in ("cv2", "pandas"):  # imported at module level for drawing / bone-length tables we never call
         if name not in sys.modules:
@@ -198,9 +203,10 @@ def peer_runtime() -> Iterator[types.SimpleNamespace]:
     had_user = "USER" in os.environ
     os.environ.setdefault("USER", "modi")  # their evaluation config formats a path with $USER at import
     old_cuda, old_sync, old_to = torch.Tensor.cuda, torch.cuda.synchronize, torch.Tensor.to
-    torch.Tensor.cuda = lambda self, *a, **k: self  # type: ignore[method-assign]
-    torch.Tensor.to = lambda self, *a, **k: old_to(self, *map(_cpu, a), **{n: _cpu(v) for n, v in k.items()})
-    torch.cuda.synchronize = lambda *a, **k: None  # type: ignore[assignment]
+    if cpu:
+        torch.Tensor.cuda = lambda self, *a, **k: self  # type: ignore[method-assign]
+        torch.Tensor.to = lambda self, *a, **k: old_to(self, *map(_cpu, a), **{n: _cpu(v) for n, v in k.items()})
+        torch.cuda.synchronize = lambda *a, **k: None  # type: ignore[assignment]
     try:
         import models.gan as gan
         import motion_class
@@ -490,8 +496,10 @@ def trained_encoder_checkpoint(generator_ckpt: Path | str, workdir: Path | str, 
 
 
 def _argv_from_args(args: argparse.Namespace) -> list[str]:
-    """Re-express a parsed Namespace as their command line (the flags this harness sets)."""
-    argv = ["--path", str(args.path), "--device", "cpu", "--latent", str(args.latent), "--n_mlp", str(args.n_mlp),
+    """Re-express a parsed Namespace as their command line (the flags this harness sets); the device is the CPU
+    unless ``args.peer_device`` says otherwise (``modi_ext.validate``'s GPU stage sets it to ``cuda``)."""
+    argv = ["--path", str(args.path), "--device", str(getattr(args, "peer_device", "cpu")),
+            "--latent", str(args.latent), "--n_mlp", str(args.n_mlp),
             "--batch", str(args.batch), "--n_inplace_conv", str(args.n_inplace_conv), "--character", args.character]
     for flag in ("skeleton", "conv3", "conv3fast", "joints_pool", "glob_pos", "normalize", "use_velocity", "foot",
                  "v2_contact_loss"):
