@@ -1,4 +1,4 @@
-"""Files in, files out: what ``modi export-positions``, ``modi export gltf|onnx`` and ``modi import`` do, from
+"""Files in, files out: what ``modi export positions``, ``modi export gltf|onnx`` and ``modi import`` do, from
 Python. Each call checks its paths (one-line ``UserError``: missing input, missing output folder, an output that
 is one of the inputs) before any work."""
 from __future__ import annotations
@@ -32,7 +32,7 @@ def _output_folder(output: str | os.PathLike) -> Path:
 
 def export_positions(bvh: str | os.PathLike, output: str | os.PathLike, *,
                      names: str | os.PathLike | None = None) -> tuple[np.ndarray, Bvh]:
-    """``modi export-positions``: forward kinematics of a BVH as the file means it, saved as a float32 ``.npy``
+    """``modi export positions``: forward kinematics of a BVH as the file means it, saved as a float32 ``.npy``
     ``(T, J, 3)`` in the file's units and joint order (and the joint names, one a line, to ``names``). Returns the
     array and the BVH read. Cost: one pass of FK (milliseconds)."""
     if os.path.isdir(bvh):

@@ -12,7 +12,7 @@ is on would disagree, so :class:`Body` decides once, from joint names and positi
 * ``sides`` -- 0 centre, 1 left, 2 right, by name (:func:`side_of`).
 * ``small`` -- finger joints (drawn small: a hand is not 15 full-size dots).
 * ``standing_height`` -- the largest head-top height above the floor over the clip, the number an animator would
-  measure (``modi export-positions`` gives the same), not a chain length.
+  measure (``modi export positions`` gives the same), not a chain length.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""``modi export-positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks);
-``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers;
+"""``modi export positions``: global joint positions of a BVH as a NumPy array (for other tools, FK cross-checks;
+``modi export-positions`` is its old spelling); ``modi export gltf``: a BVH as glTF 2.0 (``.glb``/``.gltf``) for Blender, game engines and web viewers;
 ``modi export onnx``: a GANimator run or a MoDi generator as an ONNX graph and its JSON sidecar
 (``modi.export.onnx``)."""
 from __future__ import annotations
@@ -10,25 +10,15 @@ from modi.cli import types as ct
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "export-positions",
-        help="write a BVH's global joint positions to a .npy array (T, J, 3)",
-        description="Run forward kinematics on a BVH exactly as the file means it (every position channel "
-                    "honoured) and save the global joint positions as a float32 array of shape (frames, joints, 3), "
-                    "in the file's units and joint order (the order of ROOT/JOINT in the file; End Sites excluded).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    p.add_argument("input", metavar="IN.bvh", help="input BVH file")
-    p.add_argument("output", metavar="OUT.npy", type=ct.output_file, help="output .npy file (written as named)")
-    p.add_argument("--names", metavar="FILE", default=None, type=ct.output_file,
-                   help="also write the joint names, one per line, to this text file")
-    p.set_defaults(func=run)
-
-    e = subparsers.add_parser("export", help="convert a BVH (gltf) or a model (onnx) for other tools",
+    e = subparsers.add_parser("export", help="convert a BVH (gltf, positions) or a model (onnx) for other tools",
                               description="Convert motion files and trained models for other tools.",
                               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     esub = e.add_subparsers(dest="export_format", metavar="FORMAT")
     e.set_defaults(func=lambda args: (e.print_help(), 2)[1])
+    _positions_options(esub.add_parser("positions", help=POSITIONS_HELP, description=POSITIONS_DESCRIPTION,
+                                       formatter_class=argparse.ArgumentDefaultsHelpFormatter))
+    ct.renamed_command(subparsers, "export-positions", "export positions", _positions_options,
+                       description=POSITIONS_DESCRIPTION, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     g = esub.add_parser(
         "gltf", help="write a BVH as glTF 2.0 (.glb or .gltf)", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Write IN.bvh as glTF 2.0: one node per joint (names kept), a skin (Blender: an armature), "
@@ -72,6 +62,22 @@ def register(subparsers) -> None:
     o.add_argument("--raw-weights", action="store_true", help="MoDi: the raw generator instead of its EMA")
     o.add_argument("--opset", type=ct.int_range(18, None), default=18, help="ONNX opset of the graph")
     o.set_defaults(func=run_onnx)
+
+
+POSITIONS_HELP = "write a BVH's global joint positions to a .npy array (T, J, 3)"
+POSITIONS_DESCRIPTION = ("Run forward kinematics on a BVH exactly as the file means it (every position channel "
+                         "honoured) and save the global joint positions as a float32 array of shape (frames, joints, "
+                         "3), in the file's units and joint order (the order of ROOT/JOINT in the file; End Sites "
+                         "excluded).")
+
+
+def _positions_options(p: argparse.ArgumentParser) -> None:
+    """``modi export positions``'s arguments (also on its old spelling, ``modi export-positions``)."""
+    p.add_argument("input", metavar="IN.bvh", help="input BVH file")
+    p.add_argument("output", metavar="OUT.npy", type=ct.output_file, help="output .npy file (written as named)")
+    p.add_argument("--names", metavar="FILE", default=None, type=ct.output_file,
+                   help="also write the joint names, one per line, to this text file")
+    p.set_defaults(func=run)
 
 
 def _contact_rule() -> str:

@@ -184,10 +184,10 @@ CASES: list[tuple[str, str]] = [
     # --- output paths: a file, under a file, an input
     ("synth {file}", "is a file, expected a folder"),
     ("synth {file}/sub", "which is a file, not a folder"),
-    ("export-positions {clip} {clip}", "refusing to write over an input"),
-    ("export-positions {clip} {file}/x.npy", "which is a file, not a folder"),
-    ("export-positions {clip} {d}", "is a folder, expected a file"),
-    ("export-positions {clip} {out}.npy --names {clip}", "refusing to write over an input"),
+    ("export positions {clip} {clip}", "refusing to write over an input"),
+    ("export positions {clip} {file}/x.npy", "which is a file, not a folder"),
+    ("export positions {clip} {d}", "is a folder, expected a file"),
+    ("export positions {clip} {out}.npy --names {clip}", "refusing to write over an input"),
     ("render {clip} {file}/o.gif", "which is a file, not a folder"),
     ("train {d} --out {file}", "is a file, expected a folder"),
     ("generate {tiny} --out {file}", "is a file, expected a folder"),
@@ -255,7 +255,7 @@ CASES: list[tuple[str, str]] = [
     ("render {d} {out}.gif", "is a folder, expected a BVH file"),
     ("eval plausibility {d}", "is a folder, expected a BVH file"),
     ("ganimator train {d} --out {out}", "is a folder, expected a BVH file"),
-    ("export-positions {d} {out}.npy", "is a folder, expected a .bvh file"),
+    ("export positions {d} {out}.npy", "is a folder, expected a .bvh file"),
     ("latent invert {tiny} {d} --out {out}", "is a folder, expected a BVH file"),
     ("generate {gan} --out {out}", "is a folder, expected a MoDi checkpoint file"),
     ("encoder eval {gan}", "is a folder, expected an encoder checkpoint file"),
@@ -293,8 +293,9 @@ def test_bad_input_is_one_line_exit_2(line, expected, work, tmp_path, capsys, mo
 
 def test_table_covers_every_command():
     commands = {" ".join(c[0].split()[:2]) if c[0].split()[0] in ("data", "latent", "encoder", "apply", "ganimator",
-                                                                   "eval") else c[0].split()[0] for c in CASES}
-    for cmd in ("synth", "data info", "render", "export-positions", "train", "generate", "demo", "latent mean",
+                                                                   "eval", "export") else c[0].split()[0]
+                for c in CASES}
+    for cmd in ("synth", "data info", "render", "export positions", "train", "generate", "demo", "latent mean",
                 "latent interpolate", "latent edit", "latent crowd", "latent cluster", "latent invert",
                 "encoder train", "encoder eval", "apply invert", "ganimator train", "ganimator generate",
                 "eval plausibility", "eval single", "eval train-features"):
@@ -326,7 +327,7 @@ def test_rerunning_a_finished_ganimator_run_says_so(work, tmp_path, capsys):
 
 def test_last_resort_handler(monkeypatch, capsys):
     """A genuine bug: one line naming the exception and how to get the traceback; MODI_TRACEBACK=1 re-raises."""
-    import modi.cli.commands.procedural as proc
+    import modi.cli.commands.synth as proc
 
     def boom(args):
         raise RuntimeError("something inside broke\nsecond line")
@@ -473,7 +474,7 @@ def test_argument_types():
 def test_a_reader_that_leaves_early_is_not_an_error(tmp_path):
     """`modi info RUN | head -1`: the reader closes the pipe; modi says nothing on stderr and exits as a shell tool
     killed by SIGPIPE would (141), instead of 'modi: error: Broken pipe'."""
-    child = ("import sys; import modi.cli.commands.procedural as p\n"
+    child = ("import sys; import modi.cli.commands.synth as p\n"
              "p.run = lambda args: [print('x' * 1000, flush=True) for _ in range(10000)]\n"
              "from modi.cli import main; sys.exit(main(['synth', sys.argv[1]]))\n")
     proc = subprocess.Popen([sys.executable, "-c", child, str(tmp_path / "out")], stdout=subprocess.PIPE,

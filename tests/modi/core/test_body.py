@@ -1,5 +1,5 @@
 """One notion of a body (modi.core.body, issue 31), checked against oracles outside it: joint names mirrored by string
-substitution, ``modi export-positions`` for heights, GIF pixels for what is drawn and how big, Pillow's reading of
+substitution, ``modi export positions`` for heights, GIF pixels for what is drawn and how big, Pillow's reading of
 the GIF for its delays, and the page / glTF / GIF contact labels against each other."""
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ def test_sides_of_every_rig_in_shared_data_pair_up(shared_data):
 
 
 def _head_top_y(npy: Path, names: list[str]) -> float:
-    """The issue's standing height: the largest head-top y of ``modi export-positions``."""
+    """The issue's standing height: the largest head-top y of ``modi export positions``."""
     pos = np.load(npy)
     heads = [j for j, n in enumerate(names) if "head" in n.lower()]
     return float(pos[:, heads, 1].max())
@@ -73,7 +73,7 @@ def test_printed_height_is_the_standing_height(shared_data, tmp_path, capsys, re
     src = shared_data / "bvh" / rel
     if not src.is_file():
         pytest.skip(f"{src} absent")
-    assert main(["export-positions", str(src), str(tmp_path / "p.npy"), "--names", str(tmp_path / "n.txt")]) == 0
+    assert main(["export", "positions", str(src), str(tmp_path / "p.npy"), "--names", str(tmp_path / "n.txt")]) == 0
     names = (tmp_path / "n.txt").read_text().split()
     truth = _head_top_y(tmp_path / "p.npy", names) * 0.01        # both rigs are centimetres
     capsys.readouterr()

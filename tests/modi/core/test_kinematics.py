@@ -139,7 +139,7 @@ def test_bad_arguments():
         forward_kinematics(q, off, [-1, 0, 1], torch.zeros(2, 2))
 
 
-# ------------------------------------------------------------------------------------------- modi export-positions
+# ------------------------------------------------------------------------------------------- modi export positions
 
 _TWO_JOINTS = ("HIERARCHY\nROOT r\n{\nOFFSET 0 0 0\nCHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation "
                "Yrotation\nJOINT c\n{\nOFFSET 0 2 0\nCHANNELS 3 Zrotation Xrotation Yrotation\nEnd Site\n{\n"
@@ -153,7 +153,7 @@ def test_export_positions_cli(tmp_path, capsys):
     src.write_text(_TWO_JOINTS)
     out = tmp_path / "pos.npy"
     names = tmp_path / "names.txt"
-    assert main(["export-positions", str(src), str(out), "--names", str(names)]) == 0
+    assert main(["export", "positions", str(src), str(out), "--names", str(names)]) == 0
     pos = np.load(out)
     assert pos.dtype == np.float32 and pos.shape == (2, 2, 3)
     # frame 0: root at (1,2,3), child 2 above; frame 1: root turned 90 deg about Z, child at Rz90 (0,2,0) = (-2,0,0)
@@ -167,7 +167,7 @@ def test_export_positions_real_file(shared_data, tmp_path):
 
     src = shared_data / "bvh" / "ganimator" / "Xia" / "proud.bvh"
     out = tmp_path / "proud"  # no .npy suffix: written exactly as named
-    assert main(["export-positions", str(src), str(out)]) == 0
+    assert main(["export", "positions", str(src), str(out)]) == 0
     pos = np.load(out)
     ref, _ = _scipy_fk(B.load(src))
     assert pos.shape == ref.shape and pos.dtype == np.float32
@@ -189,7 +189,7 @@ def test_export_positions_user_errors(tmp_path, capsys, case):
     else:
         src.write_text(_TWO_JOINTS)
         out = tmp_path / "no" / "such" / "out.npy"
-    assert main(["export-positions", str(src), str(out)]) == 2
+    assert main(["export", "positions", str(src), str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("modi: error:") and "\n" not in err
     assert "Traceback" not in err
@@ -202,6 +202,6 @@ def test_export_positions_help(capsys):
     from modi.cli import main
 
     with pytest.raises(SystemExit) as info:
-        main(["export-positions", "--help"])
+        main(["export", "positions", "--help"])
     assert info.value.code == 0
     assert "float32" in capsys.readouterr().out

@@ -87,9 +87,9 @@ def run_without_torch(*args: str) -> subprocess.CompletedProcess:
 
 
 def positions(path: Path, tmp: Path) -> np.ndarray:
-    """What ``modi export-positions`` reads back from a BVH."""
+    """What ``modi export positions`` reads back from a BVH."""
     out = tmp / (path.stem + "_pos.npy")
-    assert modi_main(["export-positions", str(path), str(out)]) == 0
+    assert modi_main(["export", "positions", str(path), str(out)]) == 0
     return np.load(out)
 
 
