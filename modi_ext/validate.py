@@ -54,6 +54,7 @@ from pathlib import Path
 import torch
 
 import modi_ext
+import warnings
 from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
 from modi_ext.runtime import dispatch, kernels, payload
 
@@ -438,8 +439,6 @@ def measure_file(out: Path, stage: str, tf32: str = "default") -> Path:
 def _precision_for(tf32: str) -> dict:
     """The precision settings a stage runs under (``benchmarks/gpu_measure.py`` records its own; this is what the
     orchestrator writes for a stage that died before it could)."""
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = {"matmul_allow_tf32": bool(torch.backends.cuda.matmul.allow_tf32),
