@@ -48,13 +48,13 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 import modi_ext
-import warnings
 from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv
 from modi_ext.runtime import dispatch, kernels, payload
 
