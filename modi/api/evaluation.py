@@ -80,7 +80,7 @@ def evaluate(samples: ModiGenerator | str | os.PathLike | Sequence[Motion], *,
     if isinstance(samples, (str, os.PathLike)):
         what["ckpt"] = str(samples)
         samples = ModiGenerator.from_checkpoint(samples)
-    if isinstance(samples, ModiGenerator):
+    if hasattr(samples, "generate"):  # a ModiGenerator (or anything that generates like one)
         what.setdefault("ckpt", getattr(samples, "path", None))
         motions = samples.generate(n, seed=seed, psi=psi, ik=ik)
     else:

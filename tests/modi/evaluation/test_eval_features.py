@@ -201,7 +201,7 @@ def test_cli_train_features_then_real_floor(tmp_path: Path, capsys, one_torch_th
         def __init__(self, ckpt):
             self.path = ckpt
 
-        def sample(self, n, seed=0, psi=1.0, ik=False):
+        def generate(self, n, seed=0, psi=1.0, ik=False):
             calls.append((self.path, n, seed, psi, ik))
             return [generate_clip(("walk", "wave")[i % 2], 40, 30.0, np.random.default_rng([seed, i]))
                     for i in range(n)]
