@@ -195,7 +195,7 @@ def extension_modules():
 # libtorch's, and the first TORCH_CHECK message that formatted an integer segfaulted in ostream::_M_insert<long>.
 # "-l:libstdc++.so.6" names the shared library's file, which the linker finds in the system's library folders
 # (checked there: the library then needs libstdc++.so.6; the same sources built by the system g++ passed all 326 CUDA
-# tests).  tests/modi_ext/test_build.py checks the built module for it.
+# tests).  tests/modi_ext/runtime/test_build.py checks the built module for it.
 SHARED_LIBSTDCXX = ["-l:libstdc++.so.6"] if sys.platform.startswith("linux") else []
 
 ext_modules, cmdclass = extension_modules()

@@ -38,7 +38,7 @@ import torch  # noqa: E402
 
 from modi_ext.validate import (MEASURE_STAGES as STAGES, MEASURE_TIMEOUTS as TIMEOUTS,  # noqa: E402
                                _kill_group, _write_atomic, measure_file, run_group)
-CUDA_TESTS = ROOT / "tests" / "modi_ext" / "test_cuda_ops.py"
+CUDA_TESTS = ROOT / "tests" / "modi_ext" / "runtime" / "test_cuda_ops.py"
 N_BVH = 8  # the first N Bandai-Namco files, as benchmarks/peers/speed_released.py
 CYCLE = 16  # one lazy-regularisation cycle: R1 at i % 16 == 0, path length at i % 4 == 0 (theirs and modi's)
 # modi's config for the authors' data layout (as speed_released runs ``modi train``: released representation, tree

@@ -10,7 +10,7 @@ ran and passed; a skipped step makes it ``incomplete`` (exit 1) unless ``--allow
 
 1. ``dispatch``   first-use self-check of the kernels in fp32/bf16/fp16 and ``auto``'s ext-vs-dense choice on MoDi's
                   finest-level shapes (``modi_ext.dispatch_report()``);
-2. ``cuda_tests`` ``pytest tests/modi_ext/test_cuda_ops.py`` (every op against the float64 reference, gradcheck,
+2. ``cuda_tests`` ``pytest tests/modi_ext/runtime/test_cuda_ops.py`` (every op against the float64 reference, gradcheck,
                   opcheck, half precision, determinism, CUDA-graph capture); ``--emulated`` adds the ``cuda_emulated``
                   suite;
 3. ``sanitizer_*`` ``compute-sanitizer`` memcheck / racecheck / synccheck / initcheck over one small call of every
@@ -126,7 +126,7 @@ def find_sanitizer(env: dict | None = None, site_dirs: list[Path] | None = None)
 def plan(work: Path, emulated: bool = False) -> list[Step]:
     """The steps in order, with their timeouts (seconds) -- together within the default budget."""
     py = sys.executable
-    tests = ROOT / "tests" / "modi_ext" / "test_cuda_ops.py"
+    tests = ROOT / "tests" / "modi_ext" / "runtime" / "test_cuda_ops.py"
     bench = ROOT / "benchmarks"
     steps = [
         Step("dispatch", [py, "-m", "modi_ext.validate", "--payload", "dispatch", "--out", str(work / "dispatch.json")],
@@ -137,7 +137,7 @@ def plan(work: Path, emulated: bool = False) -> list[Step]:
     if emulated:  # the AddressSanitizer rebuild of the emulated module is CPU CI's (minutes of compiling)
         ext_tests = ROOT / "tests" / "modi_ext"
         steps.append(Step("emulated_tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-m",
-                                             "cuda_emulated", "--ignore", str(ext_tests / "test_cuda_emulated_asan.py"),
+                                             "cuda_emulated", "--ignore", str(ext_tests / "runtime" / "test_cuda_emulated_asan.py"),
                                              str(ext_tests)], 120, needs=[ext_tests]))
     for tool in SANITIZER_TOOLS:
         # No --leak-check: torch owns every device allocation, and the tensors still alive when the interpreter

@@ -1,8 +1,8 @@
 """One shape list that launches every CUDA kernel instantiation, with its float64 oracle.
 
-Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/test_cuda_ops.py``),
+Shared by ``validate``'s sanitizer steps (``--payload kernels``), the GPU tests (``tests/modi_ext/runtime/test_cuda_ops.py``),
 the first-use self-check (``modi_ext.runtime.selfcheck``) and the CPU proof of coverage
-(``tests/modi_ext/test_cuda_emulated.py`` runs it on the emulated kernels and compares the instantiations launched with
+(``tests/modi_ext/runtime/test_cuda_emulated.py`` runs it on the emulated kernels and compares the instantiations launched with
 all the emulator registered).
 
 What each case reaches, per dtype (the kernels' template arguments are the dtype, the tile height BM and the

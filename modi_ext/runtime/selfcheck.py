@@ -10,7 +10,7 @@ MoDi trains with included: the narrow cases (32-row tiles), the wide ones (cin 3
 and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
 plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
 ops hand to the kernels (``modi_ext.demod.ops``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
-on the CPU emulator (``tests/modi_ext/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
+on the CPU emulator (``tests/modi_ext/runtime/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
 
 It calls the raw kernels of a table (``modi_ext.runtime.kernels``), not the autograd ops; what it imports above the
 runtime is the demod op and the references (so ``dispatch`` is handed ``run`` by ``modi_ext/__init__.py``).

@@ -8,7 +8,7 @@ import random
 
 import pytest
 import torch
-from test_skeletal_ops import KINDS, call, make_case
+from skeletal_cases import KINDS, call, make_case
 
 from modi_ext import HAS_EXT
 from modi_ext.skeletal import ops

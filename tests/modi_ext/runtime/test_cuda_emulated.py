@@ -10,7 +10,7 @@ What this proves without a GPU: the kernels' index math, padding/blur adjoints, 
 barrier placement and the host code's launch geometry; that the shared payload (modi_ext.runtime.payload: validate's
 sanitizer steps, the GPU tests and the self-check) launches every instantiation the emulator registered; and that
 injected defects are caught -- through NaN poison (a dropped barrier, an off-by-one) and through the tolerance alone
-(a finite wrong scale).  Global memory bounds: tests/modi_ext/test_cuda_emulated_asan.py.  What it does not: real
+(a finite wrong scale).  Global memory bounds: tests/modi_ext/runtime/test_cuda_emulated_asan.py.  What it does not: real
 concurrency (memory-model races between warps that happen to be ordered here), speed, register/occupancy limits.
 
 Tolerances, relative to the largest reference magnitude: fp64 1e-9, fp32 5e-5, fp16 5e-3, bf16 3e-2 (inputs are
@@ -45,7 +45,7 @@ except ImportError as exc:  # a build problem must fail the suite, not skip it
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 SEEDS = (0, 0x5EED)  # schedule seeds: index order, then a permutation of threads within phases and of blocks
 TOL = {torch.float64: 1e-9, torch.float32: 5e-5, torch.float16: 5e-3, torch.bfloat16: 3e-2}
 DTYPES = (torch.float64, torch.float32, torch.float16, torch.bfloat16)

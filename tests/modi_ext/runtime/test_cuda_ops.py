@@ -5,8 +5,8 @@ The oracle is always the pure-torch reference evaluated in float64 on the CPU fr
 so nothing here compares the kernels with themselves.  The whole module is skipped, with the reason, on machines
 without a CUDA device or without the CUDA part of the extension.
 
-    pytest tests/modi_ext/test_cuda_ops.py -q                                   # on a GPU machine
-    compute-sanitizer --tool memcheck python -m pytest tests/modi_ext/test_cuda_ops.py -q -k "not subprocess"
+    pytest tests/modi_ext/runtime/test_cuda_ops.py -q                                   # on a GPU machine
+    compute-sanitizer --tool memcheck python -m pytest tests/modi_ext/runtime/test_cuda_ops.py -q -k "not subprocess"
 """
 from __future__ import annotations
 
@@ -416,7 +416,7 @@ def _run_subprocess(code: str) -> subprocess.CompletedProcess:
 @pytest.mark.parametrize("dtype", payload.DTYPES, ids=str)
 def test_shared_payload_matches_the_reference(dtype):
     """modi_ext.runtime.payload -- the list that launches every kernel instantiation (proven on the CPU emulator by
-    tests/modi_ext/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
+    tests/modi_ext/runtime/test_cuda_emulated.py) and that validate's sanitizer steps run -- on the CUDA kernels vs float64."""
     res = payload.run(kernels.KERNELS, DEV, (dtype,))
     assert res["ran"] and not res["errors"], res["errors"]
 

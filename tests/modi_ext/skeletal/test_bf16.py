@@ -38,7 +38,7 @@ from modi_ext.demod import ops as demod_ops
 from modi_ext.runtime import dispatch
 from modi_ext.skeletal import dense, ops
 from modi_ext.skeletal import reference as R
-from test_skeletal_ops import KINDS, call, make_case
+from skeletal_cases import KINDS, call, make_case
 
 U_BF16 = 2.0 ** -8
 U_FP32 = 2.0 ** -24

@@ -26,7 +26,7 @@ import pytest
 
 pytestmark = pytest.mark.cuda_emulated
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 CSRC = REPO / "csrc"
 SOURCES = ("skeletal_emu.cpp", "fk_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")
 NAME, LIB = "_C_emu_asan", "modi_ext_emu_asan"
