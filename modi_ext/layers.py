@@ -1,4 +1,5 @@
-"""Drop-in skeleton-aware ``nn.Module``s built on ``modi_ext.skeletal.ops``, and the StyleGAN2 pieces they are used
+"""Every ``nn.Module`` of the package: the skeleton-aware layers built on ``modi_ext.skeletal.ops``, forward
+kinematics for one skeleton on ``modi_ext.fk.ops`` (``ForwardKinematics``), and the StyleGAN2 pieces they are used
 with: the equalised-lr linear layer (``EqualLinear``) and the fused bias + leaky ReLU.
 
 Topology comes in as plain lists and is turned into CSR buffers (not saved in ``state_dict``: the topology is a
@@ -16,7 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from modi_ext.fk import ForwardKinematics  # noqa: F401  (re-exported)
+from modi_ext.fk import checks as fk_checks
+from modi_ext.fk import ops as fk_ops
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import to_dense
 from modi_ext.csr import SparseTopology, csr_from_lists
@@ -261,3 +263,39 @@ class ModulatedSkeletalConv(nn.Module):
 
     def extra_repr(self) -> str:
         return f"mode={self.mode!r}, demodulate={self.demodulate}, style_dim={self.style_dim}"
+
+
+class ForwardKinematics(nn.Module):
+    """FK for one fixed skeleton: ``forward(local_quats (B,T,J,4), root_positions (B,T,3)) -> (B,T,J,3)``.
+
+    The offsets are a buffer (they follow ``.to()`` and are saved in the state dict, but are not trained);
+    they are cast to the input's dtype. Non-contiguous inputs (e.g. permuted network outputs) are made
+    contiguous here, so the module is a drop-in for any layout.
+    """
+
+    def __init__(self, parents: Sequence[int], offsets: torch.Tensor | Sequence[Sequence[float]]) -> None:
+        super().__init__()
+        off = torch.as_tensor(offsets, dtype=torch.get_default_dtype())
+        if off.dim() != 2 or off.shape[1] != 3:
+            raise ValueError(f"ForwardKinematics: offsets must have shape (J, 3), got {tuple(off.shape)}")
+        self.parents = fk_checks.check_parents(parents, off.shape[0])
+        self.register_buffer("offsets", off.detach().clone().contiguous())
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.parents)
+
+    def forward(
+        self, local_quats: torch.Tensor, root_positions: torch.Tensor, return_rotations: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        offsets = self.offsets.to(dtype=local_quats.dtype)
+        local_quats, root_positions = local_quats.contiguous(), root_positions.contiguous()
+        fk_checks.check_tensors(local_quats, offsets, root_positions)
+        if local_quats.shape[-2] != self.n_joints:
+            raise ValueError(
+                f"ForwardKinematics: local_quats has {local_quats.shape[-2]} joints, the skeleton has {self.n_joints}"
+            )
+        return fk_ops.fk(local_quats, offsets, self.parents, root_positions, return_rotations=return_rotations)
+
+    def extra_repr(self) -> str:
+        return f"n_joints={self.n_joints}"

@@ -31,7 +31,7 @@ from typing import Callable
 import torch
 
 from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
-from modi_ext.runtime.loader import HAS_EXT, requested_impl, warn_not_built
+from modi_ext.runtime.loader import HAS_EXT, IMPLS, requested_impl, warn_not_built
 
 __all__ = ["route", "record_path", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS",
            "device_key", "CPU_KERNEL_DTYPES", "cpu_bf16_path"]
@@ -155,13 +155,28 @@ def cpu_bf16_path() -> dict:
 
 
 def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callable[[], str] | None = None,
-          bench: Callable[[str], Callable[[], object]] | None = None) -> str:
+          bench: Callable[[str], Callable[[], object]] | None = None, *, impl: str | None = None,
+          record: bool = False) -> str:
     """'ext', 'dense' or 'ref' for one call of ``op`` on ``x``'s device and dtype (see the module docstring).
 
     ``signature()`` names the call's shapes and options; ``bench(impl)`` returns a zero-argument function running the
-    call on ``impl`` -- both only used where ``auto`` measures (CUDA).
+    call on ``impl`` -- both only used where ``auto`` measures (CUDA).  ``impl`` overrides ``MODI_EXT_IMPL`` for this
+    call (an op's ``impl=`` argument); ``record`` counts the call under the path chosen (``dispatch_report()``): the
+    ops pass it, so that the bookkeeping stays here.
     """
-    want = requested_impl()
+    path = _route(op, x, family, signature, bench, impl)
+    if record:
+        record_path(op, x, path)
+    return path
+
+
+def _route(op, x, family, signature, bench, impl) -> str:
+    if impl is None:
+        want = requested_impl()
+    elif impl in IMPLS:
+        want = impl
+    else:
+        raise ValueError(f"{op}: impl must be 'auto', 'ext', 'dense' or 'ref' (None: MODI_EXT_IMPL), got {impl!r}")
     if want in ("ref", "dense"):
         return want
     dev_type = x.device.type
@@ -169,7 +184,8 @@ def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callabl
         return "dense"  # bfloat16: no CPU kernel takes it -- never the fp32 kernels, never their self-check
     if not kernels_built(dev_type, family):
         if want == "ext":
-            raise RuntimeError(f"MODI_EXT_IMPL=ext but this modi_ext build has no {dev_type.upper()} kernels for "
+            kinds = "FK kernels" if family == "fk" else "kernels"  # "no CPU FK kernels for fk"
+            raise RuntimeError(f"MODI_EXT_IMPL=ext but this modi_ext build has no {dev_type.upper()} {kinds} for "
                                f"{op} (built without them: MODI_EXT_CUDA=0, no nvcc, or a CPU-only wheel)")
         if not HAS_EXT and not torch.compiler.is_compiling():
             warn_not_built()

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from modi_ext import HAS_EXT
-from modi_ext.fk import ForwardKinematics, check_parents, fk, fk_reference
+from modi_ext.fk import check_parents, fk, fk_reference
+from modi_ext.layers import ForwardKinematics
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")
 

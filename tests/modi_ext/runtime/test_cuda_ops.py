@@ -547,7 +547,7 @@ def test_cuda_graph_capture_of_a_training_step():
     # A generator-like fwd + bwd step (modulated up-scaler, reflect-padded conv, down-scaler, FK) captured once and
     # replayed on new inputs must equal eager execution: no op may synchronise with the host or read a device
     # tensor on the host.
-    from modi_ext.fk import ForwardKinematics
+    from modi_ext.layers import ForwardKinematics
     from modi_ext.layers import ModulatedSkeletalConv, SkeletalConv, SkeletalDownsample
 
     torch.manual_seed(0)
