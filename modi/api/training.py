@@ -47,7 +47,9 @@ from modi.data.normalization import Normalizer
 @dataclass(frozen=True)
 class Progress:
     """One finished training iteration: ``step`` of ``total`` (GANimator: within block ``block`` of
-    ``n_blocks``), the iteration's ``losses`` and the ``seconds`` since the call started."""
+    ``n_blocks``), the iteration's ``losses`` and the ``seconds`` since the call started. MoDi's ``losses`` are
+    given at its log steps (every ``train.log_every`` and the last) and are empty between them, so that a step asks
+    nothing of the device."""
 
     model: str
     step: int
@@ -75,12 +77,10 @@ class _ModiTrainer(Trainer):
         self._progress_fn = progress_fn
         self._t0 = time.time()
 
-    def train_step(self) -> dict[str, float]:
-        out = super().train_step()
-        if self._progress_fn is not None:
-            self._progress_fn(Progress("modi", self.step, int(self.cfg.train.iters), dict(out),
+    def _after_step(self, losses: dict[str, float] | None) -> None:
+        if self._progress_fn is not None:  # the losses of log steps only: reading them is a device->host sync
+            self._progress_fn(Progress("modi", self.step, int(self.cfg.train.iters), dict(losses or {}),
                                        time.time() - self._t0))
-        return out
 
 
 _MODI_SHORTCUTS = {"iters": "train.iters", "batch": "train.batch", "seed": "train.seed", "lr": "train.lr",

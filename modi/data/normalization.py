@@ -9,7 +9,7 @@ sigmoid losses) keep mean 0 and std 1. Stats are plain tensors; ``state_dict`` i
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
@@ -26,6 +26,9 @@ class Normalizer:
 
     mean: Tensor
     std: Tensor
+    # (device, dtype) -> the statistics there, as (K, E, 1), with the tensors and versions they were made from:
+    # made once per device (on CUDA a copy from the host, which would otherwise come with every decode)
+    _placed: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.mean = torch.as_tensor(self.mean)
@@ -61,7 +64,18 @@ class Normalizer:
     def _stats(self, x: Tensor) -> tuple[Tensor, Tensor]:
         if x.ndim < 3 or tuple(x.shape[-3:-1]) != tuple(self.mean.shape):
             raise ValueError(f"normalizer: tensor {tuple(x.shape)} does not match stats (K, E) = {tuple(self.mean.shape)}")
-        return (self.mean.to(x.device, x.dtype)[..., None], self.std.to(x.device, x.dtype)[..., None])
+        key = (x.device, x.dtype)
+        placed = self.__dict__.setdefault("_placed", {})  # (an object unpickled from before the cache has none)
+        made = placed.get(key)
+        source = (self.mean, self.std, self.mean._version, self.std._version)
+        if made is None or made[0] is not source[0] or made[1] is not source[1] or made[2:4] != source[2:]:
+            stats = (self.mean.to(x.device, x.dtype)[..., None], self.std.to(x.device, x.dtype)[..., None])
+            made = (*source, stats)
+            placed[key] = made
+        return made[4]
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_placed"}
 
     def normalize(self, x: Tensor) -> Tensor:
         mean, std = self._stats(x)

@@ -181,7 +181,7 @@ class MotionRepresentation:
         quats = self._identity_at_dropped(quat_normalize(rot) if self.rotation == "quat" else sixd_to_quat(rot))
         rm = t[..., J, :3]
         if self.root == "velocity":
-            xz = torch.cumsum(rm[..., [0, 2]], dim=-2)
+            xz = torch.cumsum(rm[..., 0::2], dim=-2)  # x and z: a view (a list index is a host tensor)
             root = torch.stack([xz[..., 0], rm[..., 1], xz[..., 1]], dim=-1)
         elif self.root == "velocity3":
             root = torch.cumsum(rm, dim=-2)

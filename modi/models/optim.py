@@ -11,8 +11,13 @@ from typing import Iterable, Iterator
 import torch
 
 
-def fused_adam(params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[float, float]) -> torch.optim.Adam:
+def fused_adam(params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[float, float], *,
+               capturable: bool = False) -> torch.optim.Adam:
     """Adam with torch's fused kernel where it has one (CPU, CUDA), else the per-tensor loop.
+
+    ``capturable`` (CUDA only) keeps every step's arithmetic on the device, so a CUDA graph may hold the step; a
+    checkpoint's saved flag is replaced on load by :func:`set_capturable`. The fused kernel skips a step whose
+    ``found_inf`` (a 0-d float tensor set as ``optimizer.found_inf``, 1.0 = skip) is set, on the device.
 
     The loop over a model's tensors is small work in many launches: ~5% of a MoDi CPU step over G's and D's ~120
     tensors (``benchmarks/profile_step.py``), and 3x the fused step for GANimator's small discriminators, stepped
@@ -20,7 +25,27 @@ def fused_adam(params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[flo
     it was saved with (``fused`` is part of the saved param groups)."""
     params = list(params)
     fused = bool(params) and all(p.device.type in ("cpu", "cuda") and p.is_floating_point() for p in params)
-    return torch.optim.Adam(params, lr=lr, betas=betas, fused=fused or None)
+    return torch.optim.Adam(params, lr=lr, betas=betas, fused=fused or None, capturable=bool(capturable))
+
+
+def set_capturable(opt: torch.optim.Optimizer, flag: bool) -> None:
+    """Set every param group's ``capturable`` to ``flag`` (after ``load_state_dict``: a checkpoint's saved flag,
+    written on another device, must not decide this run's), with the step counters where it then needs them (on
+    the parameters' device, float32)."""
+    for group in opt.param_groups:
+        group["capturable"] = bool(flag)
+        if not (flag or group.get("fused")):
+            continue
+        for p in group["params"]:
+            st = opt.state.get(p)
+            step = st.get("step") if st else None
+            if isinstance(step, torch.Tensor) and (step.device != p.device or step.dtype != torch.float32):
+                st["step"] = step.to(device=p.device, dtype=torch.float32)
+
+
+def fused_groups(opt: torch.optim.Optimizer) -> bool:
+    """Whether every param group runs the fused kernel (the one that honours ``found_inf``)."""
+    return bool(opt.param_groups) and all(g.get("fused") for g in opt.param_groups)
 
 
 @contextlib.contextmanager

@@ -361,7 +361,7 @@ def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -
     try:
         tr = Trainer(MoDiConfig.from_dict(cfg_dict), data, out_dir, progress=False, tensorboard=False,
                      write_samples=False)
-        step = tr.train_step
+        step = tr.run_step
 
         def step_then_signal():
             out = step()
@@ -369,7 +369,7 @@ def _ddp_worker(rank: int, init_file: str, data, cfg_dict: dict, out_dir: str) -
                 os.kill(os.getpid(), signal.SIGTERM)
             return out
 
-        tr.train_step = step_then_signal
+        tr.run_step = step_then_signal
         res = tr.train(50)
         out = {"sigterm": {"step": res.step, "interrupted": res.interrupted, "exit_code": res.exit_code}}
         log = tr._log_scalars

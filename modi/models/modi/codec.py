@@ -36,6 +36,7 @@ class MotionCodec:
         self.feet = list(representation.feet)
         self.height = float(sk.height())
         self._fk = None
+        self._joint_index: dict = {}  # (device, joints) -> index tensor made once (a list index is a host tensor)
 
     # -- shape facts
     @property
@@ -86,7 +87,11 @@ class MotionCodec:
         joints = self.feet if joints is None else list(joints)
         if len(joints) != len(self.feet):
             raise ValueError(f"need one joint per contact label ({len(self.feet)}), got {len(joints)}")
-        return d["positions"][..., joints, :], d["contacts"].transpose(-1, -2)
+        pos = d["positions"]
+        key = (pos.device, tuple(joints))
+        if key not in self._joint_index:
+            self._joint_index[key] = torch.as_tensor(joints, dtype=torch.long, device=pos.device)
+        return pos[..., self._joint_index[key], :], d["contacts"].transpose(-1, -2)
 
     def to_motions(self, x: Tensor) -> list[Any]:
         """Normalised ``(B, K, E, T)`` -> list of :class:`modi.data.motion.Motion` (rotation models only)."""

@@ -439,8 +439,12 @@ class Generator(nn.Module):
         return (self.out_channels, lv.n_entities, lv.n_frames)
 
     # -- latent handling
-    def make_wplus(self, ws: torch.Tensor | Sequence[torch.Tensor], inject_index: int | None = None) -> torch.Tensor:
-        """W (B, D), W+ (B, n_latent, D) or two Ws to mix at ``inject_index`` (random when None) -> W+."""
+    def make_wplus(self, ws: torch.Tensor | Sequence[torch.Tensor],
+                   inject_index: int | torch.Tensor | None = None) -> torch.Tensor:
+        """W (B, D), W+ (B, n_latent, D) or two Ws to mix at ``inject_index`` (random when None) -> W+.
+
+        ``inject_index`` may be a 0-d integer tensor: styles ``>= inject_index`` from the second W (``n_latent``:
+        none, no mixing), chosen on the tensor's device with no host read."""
         if isinstance(ws, torch.Tensor):
             if ws.ndim == 3:
                 if ws.shape[1] != self.n_latent:
@@ -454,6 +458,9 @@ class Generator(nn.Module):
             return self.make_wplus(ws[0])
         if len(ws) != 2:
             raise ValueError("style mixing takes exactly two latents")
+        if isinstance(inject_index, torch.Tensor):  # on the device: the same ops for every index (training)
+            later = torch.arange(self.n_latent, device=inject_index.device) >= inject_index
+            return torch.where(later[None, :, None], ws[1].unsqueeze(1), ws[0].unsqueeze(1))
         if inject_index is None:
             inject_index = int(torch.randint(1, self.n_latent, ()).item())
         a = ws[0].unsqueeze(1).expand(-1, inject_index, -1)

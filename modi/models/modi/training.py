@@ -9,6 +9,13 @@ Exact resume: every source of randomness is a torch RNG whose state goes into th
 generators for latents and noise), the real windows of a step follow from the step alone (one permutation per
 epoch, cut into the ranks' shards: ``distributed.shard_indices``), the optimisers' states are saved, and the loop
 only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
+
+A step asks nothing of the host (issue 51): its random choices (style mixing, the inject index) are drawn on the
+device and applied as masks, so every step of a kind (plain, path length, R1, both) runs the same ops at the same
+shapes; the real windows' indices reach the device once per epoch; the losses stay on the device and are read at
+``log_every`` steps (and at saves). A step with a NaN/inf loss is skipped on the device (fused Adam's ``found_inf``),
+reported at the next log step, and ``NONFINITE_STEPS`` such steps in a row stop the run as a non-finite loss always
+did: ``NonFiniteLossError``, no checkpoint written.
 Ctrl-C and SIGTERM (``modi.faults.stop_on_signals``) stop at the next boundary on every rank and save; the run
 folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
 """
@@ -42,6 +49,7 @@ from modi.errors import CheckpointError, NonFiniteLossError, UserError
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict, load_checkpoint
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
+from modi.models.modi.distributed import epoch_order as _epoch_order
 from modi.models.modi.distributed import init_distributed_from_env, shard_indices, under_torchrun
 from modi.models.modi.losses import (
     d_logistic_loss,
@@ -55,7 +63,10 @@ from modi.models.modi.losses import (
 )
 from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
 from modi.models.modi.sampling import write_outputs
-from modi.models.optim import frozen_heap, fused_adam
+from modi.models.optim import frozen_heap, fused_adam, fused_groups, set_capturable
+
+NONFINITE_STEPS = 8  # steps in a row skipped for a NaN/inf loss that stop the run (read at log steps and saves)
+GUARDED = ("d", "r1", "g", "touch", "contact", "path")  # the losses the non-finite guard watches, in its order
 
 
 # =============================================================================================== data
@@ -161,11 +172,23 @@ def _requires_grad(model: nn.Module, flag: bool) -> None:
 
 
 @torch.no_grad()
-def _accumulate(ema: nn.Module, model: nn.Module, decay: float) -> None:
-    """EMA of parameters; buffers (w_avg, constant noise) are copied."""
-    torch._foreach_lerp_(list(ema.parameters()), [p.detach() for p in model.parameters()], 1.0 - decay)
-    for be, bm in zip(ema.buffers(), model.buffers()):
-        be.copy_(bm)
+def _accumulate(ema: nn.Module, model: nn.Module, decay: float | None = None, *, weight: Tensor | None = None
+                ) -> None:
+    """EMA of the parameters, ``ema += (1 - decay) * (model - ema)``, or with ``weight`` (``1 - decay`` as a 0-d
+    tensor on their device: the trainer's, filled each step) instead of ``decay``; and the tracked mean of W copied.
+    The other buffers (constant noise, the layers' index maps) never change in training: they are left alone (a
+    copy would bump their versions)."""
+    mine, theirs = list(ema.parameters()), [p.detach() for p in model.parameters()]
+    if weight is None:
+        torch._foreach_lerp_(mine, theirs, 1.0 - float(decay))
+    elif weight.device.type == "cpu":  # lerp per tensor with the 0-d weight: bit-equal to the float form
+        torch._foreach_lerp_(mine, theirs, [weight] * len(mine))
+    else:  # three multi-tensor launches (a per-tensor weight list would take the per-tensor path)
+        diff = torch._foreach_sub(theirs, mine)
+        torch._foreach_mul_(diff, weight)
+        torch._foreach_add_(mine, diff)
+    if isinstance(getattr(model, "w_avg", None), Tensor):
+        ema.w_avg.copy_(model.w_avg)
 
 
 
@@ -238,18 +261,28 @@ class Trainer:
 
         g_lr, g_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.g_reg_every)
         d_lr, d_betas = lazy_regularization_adam_params(tc.lr, (tc.beta1, tc.beta2), tc.d_reg_every)
-        self.g_optim = fused_adam(self.G.parameters(), g_lr, g_betas)
-        self.d_optim = fused_adam(self.D.parameters(), d_lr, d_betas)
+        self._capturable = self.device.type == "cuda"  # a CUDA graph may hold the optimiser steps
+        self.g_optim = fused_adam(self.G.parameters(), g_lr, g_betas, capturable=self._capturable)
+        self.d_optim = fused_adam(self.D.parameters(), d_lr, d_betas, capturable=self._capturable)
 
         self.step = 0
-        self.mean_path_length = torch.zeros((), device=self.device)
+        self.mean_path_length = torch.zeros((), device=self.device)  # updated in place
         self._orders: dict[int, Tensor] = {}  # the newest epochs' window orders (see _batch_indices)
+        self._stream: tuple[int, Tensor] | None = None  # (first epoch, its order ++ the next ones') on the device
+        dev = self.device
+        self._ema_weight = torch.zeros((), device=dev)  # 1 - the EMA decay of this step (filled, not rebound)
+        self._skip_run = torch.zeros((), device=dev)  # steps in a row skipped for a non-finite loss
+        self._skip_count = torch.zeros((), device=dev)  # steps skipped since the last report
+        self._skip_first = torch.zeros(len(GUARDED), device=dev)  # which losses were non-finite when the run began
+        self._no_flag = torch.zeros(1, device=dev)
+        self._flags: dict[str, Tensor] = {}  # this step's non-finite flags (1-element float tensors)
+        self._pending: dict[str, Tensor] | None = None  # the losses of the last step, unread (device tensors)
         if self.distributed:
             self._check_same_data()
         self.sample_z = torch.randn(tc.n_samples, cfg.model.latent_dim,
                                     generator=torch.Generator().manual_seed(tc.seed + 12345))
-        self.last_losses: dict[str, float] = {}
-        self._latest_reg: dict[str, float] = {}
+        self.last_losses = {}
+        self._latest_reg: dict[str, Tensor | float] = {}
         self.stop = faults.StopRequest()
         self._saved_step: int | None = None  # step of the checkpoint on disk (named by a disk-full error)
         torch.manual_seed(tc.seed * 1000 + 1 + self.rank)  # per-rank latents and noise
@@ -283,12 +316,22 @@ class Trainer:
                 warnings.warn(f"TensorBoard logging disabled: {exc}", stacklevel=2)
 
     # ------------------------------------------------------------------------------------------- randomness
-    def _z(self, n: int) -> list[Tensor]:
-        """One latent, or two for style mixing with probability ``mixing`` (drawn from the global torch RNG)."""
+    def _z(self, n: int) -> tuple[list[Tensor], Tensor | None]:
+        """The latents of ``n`` motions and where they mix, drawn on the device from the global torch RNG.
+
+        With ``mixing > 0`` every call draws a uniform (mix with probability ``mixing``), two latents and an inject
+        index in ``[1, n_latent)``, in that order, whether it mixes or not, and returns the index as a 0-d tensor
+        (``n_latent`` when it does not mix: every style from the first latent) for ``Generator.make_wplus``: the
+        same ops every step. (Before issue 51 a step that did not mix drew one latent and no index, so the stream
+        of draws differed after the first such step.) With ``mixing == 0``: one latent, no index."""
         dim = self.cfg.model.latent_dim
-        if self.cfg.train.mixing > 0 and torch.rand(()).item() < self.cfg.train.mixing:
-            return list(torch.randn(2, n, dim, device=self.device).unbind(0))
-        return [torch.randn(n, dim, device=self.device)]
+        if self.cfg.train.mixing <= 0:
+            return [torch.randn(n, dim, device=self.device)], None
+        n_latent = self.G.n_latent
+        u = torch.rand((), device=self.device)
+        zs = list(torch.randn(2, n, dim, device=self.device).unbind(0))
+        index = torch.randint(1, n_latent, (), device=self.device)
+        return zs, torch.where(u < self.cfg.train.mixing, index, n_latent)
 
     def _batch_indices(self, step: int | None = None) -> Tensor:
         """This rank's windows at ``step`` (default the current one): its shard of the step's global batch, from a
@@ -297,8 +340,26 @@ class Trainer:
         return shard_indices(self.windows.shape[0], self.cfg.train.batch, self.world, self.rank,
                              self.cfg.train.seed, self.step if step is None else step, self._orders)
 
+    def _device_indices(self, step: int | None = None) -> Tensor:
+        """``_batch_indices(step)`` as a slice of the epochs' orders held on the device: they are sent there once
+        per epoch (when the step's first window opens a new one), not once per step."""
+        step = self.step if step is None else step
+        n, local = self.windows.shape[0], self.local_batch
+        pos = step * self.cfg.train.batch + self.rank * local
+        epoch, within = divmod(pos, n)
+        if self._stream is None or self._stream[0] != epoch:
+            span = (local - 1) // n + 1  # the epochs after this one that a shard starting in it may reach
+            for e in range(epoch, epoch + span + 1):
+                if e not in self._orders:
+                    self._orders[e] = _epoch_order(n, self.cfg.train.seed, e)
+            stream = torch.cat([self._orders[e] for e in range(epoch, epoch + span + 1)])
+            for old in [e for e in self._orders if e < epoch]:
+                del self._orders[old]
+            self._stream = (epoch, stream.to(self.windows.device))
+        return self._stream[1][within:within + local]
+
     def _real_batch(self) -> Tensor:
-        return self.windows[self._batch_indices().to(self.windows.device)]
+        return self.windows[self._device_indices()]
 
     def _check_same_data(self) -> None:
         """Every rank must hold the same windows in the same order (the shards are cut from one permutation):
@@ -317,19 +378,69 @@ class Trainer:
                                 f"on every machine)")
 
     # ------------------------------------------------------------------------------------------- checks
-    def _check_finite(self, losses: dict[str, Tensor]) -> None:
-        """Stop (on every rank) before any optimiser step if a loss is NaN/inf."""
+    def _nonfinite(self, losses: dict[str, Tensor]) -> Tensor:
+        """1.0 where a loss is NaN/inf, else 0.0 (float, one per loss, the maximum over the ranks), recorded as
+        this step's flags for the guard; no host read."""
         vals = torch.stack([v.detach().float().reshape(()) for v in losses.values()])
-        bad = (~torch.isfinite(vals)).float()
+        bad = torch.isfinite(vals).logical_not_().float()
         if self.distributed:
-            dist.all_reduce(bad)
-        if bad.sum() > 0:
-            names = [k for k, b in zip(losses, bad.tolist()) if b > 0]
-            last = self.run_dir / "checkpoint.pt"
-            where = f"; the last good checkpoint is {last}" if last.is_file() else ""
-            raise NonFiniteLossError(
-                f"non-finite loss ({', '.join(names)}) at step {self.step}: training stopped without writing a "
-                f"checkpoint{where}. Try a lower learning rate or check the data for NaN/huge values.")
+            dist.all_reduce(bad, op=dist.ReduceOp.MAX)
+        for i, k in enumerate(losses):
+            self._flags[k] = bad[i:i + 1]
+        return bad
+
+    def _guarded_step(self, opt: torch.optim.Optimizer, losses: dict[str, Tensor]) -> Tensor:
+        """The optimiser step, skipped on the device when a loss is non-finite (fused Adam's ``found_inf``).
+        An optimiser off the fused kernel (a checkpoint saved without it) checks on the host and stops at once,
+        as before issue 51. Returns the flags (see ``_nonfinite``)."""
+        bad = self._nonfinite(losses)
+        if not fused_groups(opt):
+            if bool(bad.any()):
+                raise self._nonfinite_error([k for k, b in zip(losses, bad.tolist()) if b > 0], self.step)
+            opt.step()
+            return bad
+        opt.found_inf = bad.amax()
+        try:
+            opt.step()
+        finally:
+            del opt.found_inf
+        return bad
+
+    def _count_skips(self) -> None:
+        """After a step: count it as skipped when a loss was non-finite (in a row, and since the last report)."""
+        flags = torch.cat([self._flags.get(k, self._no_flag) for k in GUARDED])
+        self._flags = {}
+        bad = flags.amax()
+        self._skip_run.mul_(bad).add_(bad)
+        self._skip_count.add_(bad)
+        self._skip_first.copy_(torch.where(self._skip_run == 1, flags, self._skip_first))
+
+    def _nonfinite_error(self, names: list[str], step: int) -> NonFiniteLossError:
+        last = self.run_dir / "checkpoint.pt"
+        where = f"; the last good checkpoint is {last}" if last.is_file() else ""
+        return NonFiniteLossError(
+            f"non-finite loss ({', '.join(names)}) at step {step}: training stopped without writing a "
+            f"checkpoint{where}. Try a lower learning rate or check the data for NaN/huge values.")
+
+    def _check_skips(self, saving: bool = False) -> int:
+        """Read the guard (a host read: at log steps and saves). Raises ``NonFiniteLossError`` after
+        ``NONFINITE_STEPS`` skipped steps in a row, or before a save while steps are being skipped and a weight is
+        not finite (no checkpoint from non-finite weights). Returns the steps skipped since the last report (and,
+        but for a save, resets that count: the next log step reports them)."""
+        run, count, *first = torch.cat([self._skip_run.reshape(1), self._skip_count.reshape(1),
+                                        self._skip_first]).tolist()
+        run, count = int(run), int(count)
+        if run and (run >= NONFINITE_STEPS or (saving and not self._weights_finite())):
+            names = [k for k, b in zip(GUARDED, first) if b > 0]
+            raise self._nonfinite_error(names, self.step - run)
+        if count and not saving:
+            self._skip_count.zero_()
+        return count
+
+    def _weights_finite(self) -> bool:
+        tensors = [t for m in (self.G, self.D, self.G_ema) for t in (*m.parameters(), *m.buffers())
+                   if t.is_floating_point()]
+        return bool(torch.stack([torch.isfinite(t).all() for t in tensors]).all())
 
     def _all_mean(self, t: Tensor) -> Tensor:
         if self.distributed:
@@ -339,47 +450,60 @@ class Trainer:
         return t
 
     # ------------------------------------------------------------------------------------------- one iteration
-    def train_step(self) -> dict[str, float]:
-        """One D step (+ lazy R1), one G step (+ lazy path length), EMA and mean-W updates."""
-        out = self.d_step()
-        out.update(self.g_step())
+    def run_step(self) -> dict[str, Tensor]:
+        """One D step (+ lazy R1), one G step (+ lazy path length), EMA and mean-W updates; the losses as 0-d
+        device tensors, not read (no host sync: read them with ``read_losses``, or use ``train_step``)."""
+        out = self._d_step()
+        out.update(self._g_step())
+        self._count_skips()
         self.step += 1
+        # lazy regularisers run on other steps than the logged ones: their latest values are reported with each
+        self._latest_reg.update({k: v for k, v in out.items() if k in ("r1", "path", "path_length")})
+        self._pending = out
         return out
+
+    def train_step(self) -> dict[str, float]:
+        """``run_step`` with its losses read (one host read)."""
+        return read_losses(self.run_step())
 
     def d_step(self) -> dict[str, float]:
         """Discriminator update on the non-saturating loss, plus lazy R1 every ``d_reg_every`` steps."""
+        return read_losses(self._d_step())
+
+    def g_step(self) -> dict[str, float]:
+        """Generator update (adversarial + foot terms), lazy path length, mean-W tracking and the EMA copy."""
+        return read_losses(self._g_step())
+
+    def _d_step(self) -> dict[str, Tensor]:
         tc = self.cfg.train
         _requires_grad(self.G, False)
         _requires_grad(self.D, True)
         real = self._real_batch()
+        zs, inject = self._z(self.local_batch)
         with torch.no_grad():
-            fake = self.G(self._z(self.local_batch))
+            fake = self.G(zs, inject_index=inject)
         fake_pred, real_pred = self.d_train(fake, real)
         d_loss = d_logistic_loss(real_pred, fake_pred)
-        self._check_finite({"d": d_loss})
         self.d_optim.zero_grad(set_to_none=True)
         d_loss.backward()
-        self.d_optim.step()
-        out = {"d": float(d_loss.detach()), "real_score": float(real_pred.detach().mean()),
-               "fake_score": float(fake_pred.detach().mean())}
+        self._guarded_step(self.d_optim, {"d": d_loss})
+        out = {"d": d_loss.detach(), "real_score": real_pred.detach().mean(), "fake_score": fake_pred.detach().mean()}
         if self.step % tc.d_reg_every == 0 and tc.r1_gamma > 0:
             real_r = real.detach().requires_grad_(True)
             pred = self.d_train(real_r)
             r1 = d_r1_penalty(pred, real_r)
-            self._check_finite({"r1": r1})
             self.d_optim.zero_grad(set_to_none=True)
             (tc.r1_gamma / 2 * r1 * tc.d_reg_every + 0 * pred[0, 0]).backward()
-            self.d_optim.step()
-            out["r1"] = float(r1.detach())
+            self._guarded_step(self.d_optim, {"r1": r1})
+            out["r1"] = r1.detach()
         return out
 
-    def g_step(self) -> dict[str, float]:
-        """Generator update (adversarial + foot terms), lazy path length, mean-W tracking and the EMA copy."""
+    def _g_step(self) -> dict[str, Tensor]:
         tc = self.cfg.train
         _requires_grad(self.G, True)
         _requires_grad(self.D, False)
-        zs = self._z(self.local_batch)
-        fake = self.g_train(zs)
+        zs, inject = self._z(self.local_batch)
+        fake = self.g_train(zs, inject_index=inject)
         g_loss = g_nonsaturating_loss(self.D(fake))
         total = g_loss
         losses = {"g": g_loss}
@@ -393,27 +517,29 @@ class Trainer:
             touch = foot_touch_loss(contact)
             total = total + tc.touch_weight * touch + tc.contact_weight * fcon
             losses.update(touch=touch, contact=fcon)
-        self._check_finite(losses)
         self.g_optim.zero_grad(set_to_none=True)
         total.backward()
-        self.g_optim.step()
-        out = {k: float(v.detach()) for k, v in losses.items()}
+        self._guarded_step(self.g_optim, losses)
+        out = {k: v.detach() for k, v in losses.items()}
 
         if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:
             n = max(1, self.local_batch // tc.path_batch_shrink)
-            fake_p, wplus = self.g_train(self._z(n), return_latents=True)
+            zp, inject_p = self._z(n)
+            fake_p, wplus = self.g_train(zp, inject_index=inject_p, return_latents=True)
             path, mean_path, lengths = path_length_penalty(fake_p, wplus, self.mean_path_length, tc.path_decay)
-            self._check_finite({"path": path})
             self.g_optim.zero_grad(set_to_none=True)
             (tc.path_weight * tc.g_reg_every * path + 0 * fake_p[0, 0, 0, 0]).backward()
-            self.g_optim.step()
-            self.mean_path_length = self._all_mean(mean_path.detach())
-            out.update(path=float(path.detach()), path_length=float(lengths.mean()))
+            bad = self._guarded_step(self.g_optim, {"path": path})
+            # in place (a graph holds the tensor); a skipped step keeps the running mean
+            self.mean_path_length.copy_(torch.where(bad[0] > 0, self.mean_path_length,
+                                                    self._all_mean(mean_path.detach())))
+            out.update(path=path.detach(), path_length=lengths.mean())
 
         with torch.no_grad():  # mean of W (truncation target), averaged over processes so replicas agree
             w_mean = self._all_mean(self.G.mapping(zs[0]).mean(0))
             self.G.w_avg.lerp_(w_mean, 1.0 - tc.w_avg_beta)
-        _accumulate(self.G_ema, self.G, self._ema_decay())
+        self._ema_weight.fill_(1.0 - self._ema_decay())
+        _accumulate(self.G_ema, self.G, weight=self._ema_weight)
         return out
 
     def _ema_decay(self) -> float:
@@ -423,6 +549,19 @@ class Trainer:
         seen = (self.step + 1) * tc.batch
         half_life = min(tc.ema_kimg * 1000.0, 0.05 * seen)
         return 0.5 ** (tc.batch / max(half_life, 1e-8))
+
+    @property
+    def last_losses(self) -> dict[str, float]:
+        """The losses of the last step (and the latest lazy regularisers'), read from the device when asked."""
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            self._last_losses = read_losses({**self._latest_reg, **pending})
+        return self._last_losses
+
+    @last_losses.setter
+    def last_losses(self, value: dict[str, float]) -> None:
+        self._pending = None
+        self._last_losses = dict(value)
 
     # ------------------------------------------------------------------------------------------- loop
     def train(self, iters: int | None = None) -> TrainResult:
@@ -455,15 +594,23 @@ class Trainer:
                 if self.stop.agreed(self.device):
                     interrupted = True
                     break
-                losses = self.train_step()
-                # lazy regularisers run on other steps than the logged ones: report their latest values
-                self._latest_reg.update({k: v for k, v in losses.items() if k in ("r1", "path", "path_length")})
-                losses = {**self._latest_reg, **losses}
-                self.last_losses = losses
+                self.run_step()  # no host read: the losses are read at log steps (and by a save)
+                log_step = self.step % tc.log_every == 0 or self.step == target
+                losses = None
+                if log_step:
+                    skipped = self._check_skips()
+                    losses = dict(self.last_losses)
+                    if skipped:
+                        losses["skipped"] = float(skipped)
+                        if self.rank == 0:
+                            self.log(f"step {self.step}: skipped {skipped} step(s) with a non-finite loss since the "
+                                     f"last log (no update was applied)")
+                self._after_step(losses)
                 if bar is not None:
                     bar.update(1)
-                    bar.set_postfix({k: f"{losses[k]:.3f}" for k in ("d", "g", "contact") if k in losses})
-                if self.rank == 0 and (self.step % tc.log_every == 0 or self.step == target):
+                    if losses is not None:
+                        bar.set_postfix({k: f"{losses[k]:.3f}" for k in ("d", "g", "contact") if k in losses})
+                if self.rank == 0 and log_step:
                     now = time.time()
                     losses["sec_per_iter"] = (now - last_t) / max(1, self.step - last_step)
                     last_t, last_step = now, self.step
@@ -496,6 +643,9 @@ class Trainer:
             self.log(f"interrupted at step {self.step}: checkpoint saved to {ckpt}")
         return TrainResult(self.step, interrupted, ckpt, time.time() - t0, dict(self.last_losses),
                            self.stop.signum if interrupted else None)
+
+    def _after_step(self, losses: dict[str, float] | None) -> None:
+        """Called after every step of ``train``: ``losses`` at log steps (already read), None otherwise."""
 
     def request_stop(self) -> None:
         """Ask the loop to save and return at the next iteration boundary (what Ctrl-C does)."""
@@ -567,7 +717,9 @@ class Trainer:
         )
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
-        """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states)."""
+        """Write the checkpoint atomically (rank 0; other ranks take part in gathering RNG states). Refused
+        (``NonFiniteLossError``) while steps are being skipped for non-finite losses and a weight is not finite."""
+        self._check_skips(saving=True)
         state = self.state_dict()
         path = Path(path) if path is not None else self.run_dir / "checkpoint.pt"
         main = path == self.run_dir / "checkpoint.pt"
@@ -605,9 +757,11 @@ class Trainer:
             self.d_optim.load_state_dict(st["d_optim"])
         except (RuntimeError, KeyError, ValueError) as exc:
             raise CheckpointError(f"checkpoint does not match this model: {exc}") from None
+        for opt in (self.g_optim, self.d_optim):  # this run's device decides, not the saved flag
+            set_capturable(opt, self._capturable)
         self.step = int(st["step"])
         self._saved_step = self.step
-        self.mean_path_length = torch.tensor(float(st.get("mean_path_length", 0.0)), device=self.device)
+        self.mean_path_length.fill_(float(st.get("mean_path_length", 0.0)))
         self.last_losses = dict(st.get("last_losses", {}))
         self._latest_reg = {k: v for k, v in self.last_losses.items() if k in ("r1", "path", "path_length")}
         rngs = st.get("rng") or []
@@ -620,6 +774,14 @@ class Trainer:
             warnings.warn(f"checkpoint was written by {len(rngs)} process(es), this run has {self.world}: "
                           "random streams restart (training continues, but not bit-for-bit)", stacklevel=2)
             torch.manual_seed(self.cfg.train.seed * 1000 + self.rank + 7 * self.step)
+
+
+def read_losses(losses: dict[str, Tensor | float]) -> dict[str, float]:
+    """Losses as floats: the tensors read in one host read (the values ``float(t)`` gives)."""
+    keys = [k for k, v in losses.items() if isinstance(v, Tensor)]
+    vals = torch.stack([losses[k].detach().double().reshape(()) for k in keys]).tolist() if keys else []
+    got = dict(zip(keys, vals))
+    return {k: got[k] if k in got else float(v) for k, v in losses.items()}
 
 
 class _PairD(nn.Module):
@@ -707,14 +869,17 @@ def _skeleton_from(st: dict[str, Any]) -> Any:
 def seconds_per_iteration(trainer: Trainer, n: int = 5, warmup: int = 1) -> float:
     """Mean wall time of ``n`` full training iterations (after ``warmup``), lazy regularisers included in
     proportion (steps 0, 16, ... run R1; 0, 4, ... path length) -- a benchmark helper, not used by training."""
+    losses: dict[str, Tensor] = {}
     for _ in range(warmup):
-        trainer.train_step()
+        losses = trainer.run_step()
+    read_losses(losses)  # a read waits for the device
     t = time.perf_counter()
     for _ in range(n):
-        trainer.train_step()
+        losses = trainer.run_step()
+    read_losses(losses)
     return (time.perf_counter() - t) / n
 
 
 __all__ = ["MotionCodec", "TrainingData", "prepare_data", "write_procedural_data", "Trainer", "TrainResult",
            "NonFiniteLossError", "atomic_torch_save", "init_distributed_from_env", "build_models",
-           "seconds_per_iteration", "newest_checkpoint"]
+           "seconds_per_iteration", "newest_checkpoint", "read_losses", "NONFINITE_STEPS"]

@@ -407,10 +407,10 @@ def _shared_latents(tr: Trainer) -> None:
     then changes nothing the ranks draw (by default each rank draws its own)."""
     dim, draws = tr.cfg.model.latent_dim, [0]
 
-    def z(n: int) -> list[torch.Tensor]:
+    def z(n: int) -> tuple[list[torch.Tensor], None]:
         draws[0] += 1
         every = torch.randn(n * tr.world, dim, generator=torch.Generator().manual_seed(draws[0]))
-        return [every[tr.rank * n:(tr.rank + 1) * n]]
+        return [every[tr.rank * n:(tr.rank + 1) * n]], None  # (latents, inject index: no mixing)
 
     tr._z = z
 

@@ -122,7 +122,7 @@ def test_resume_after_interrupt_equals_uninterrupted(proc_data, tmp_path, monkey
     expect = full_state(straight)
 
     interrupted = make_trainer(proc_data, tmp_path / "b")
-    original = Trainer.train_step
+    original = Trainer.run_step  # the loop's step
 
     def step_then_ctrl_c(self):
         out = original(self)
@@ -130,9 +130,9 @@ def test_resume_after_interrupt_equals_uninterrupted(proc_data, tmp_path, monkey
             os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C does: handled, saved at the iteration boundary
         return out
 
-    monkeypatch.setattr(Trainer, "train_step", step_then_ctrl_c)
+    monkeypatch.setattr(Trainer, "run_step", step_then_ctrl_c)
     res = interrupted.train(n)
-    monkeypatch.setattr(Trainer, "train_step", original)
+    monkeypatch.setattr(Trainer, "run_step", original)
     assert res.interrupted and res.step == 2 and load_checkpoint(tmp_path / "b" / "checkpoint.pt")["step"] == 2
     del interrupted
     torch.manual_seed(999)
