@@ -26,7 +26,7 @@ every step then imports that build (``step_env``).
 
 Writes ``benchmarks/results/cuda_<gpu>.json`` (or ``--json FILE``).  Without a visible GPU it says so and exits 2.
 
-``--out DIR`` runs issue 51's measurements instead (``benchmarks/gpu_measure.py``, one process per stage, default
+``--out DIR`` runs the GPU step measurements instead (``benchmarks/gpu_measure.py``, one process per stage, default
 budget 330 s): ``build`` (``setup.py build_ext --inplace`` for this GPU's arch, the authors' JIT ops beside it),
 ``cuda_tests`` (``pytest -m cuda``), ``modi_step`` (MoDi's paper step, batch 16 and 64), ``peer_modi_step`` (the
 authors' ``train.py`` on the same data, config and batch, on their CUDA ops), ``sampling`` (batch 256), ``ganimator``
@@ -63,7 +63,7 @@ DEFAULT_BUDGET_S = 600.0  # the whole command: ten minutes on one H100/H200
 SUBSET = "finest|level1|fk"  # benchmark cases: the levels that dominate a training step, and FK
 
 
-# ``--out DIR``: issue 51's measurements, one JSON per stage (benchmarks/gpu_measure.py runs each stage)
+# ``--out DIR``: the GPU step measurements, one JSON per stage (benchmarks/gpu_measure.py runs each stage)
 MEASURE_SCRIPT = ROOT / "benchmarks" / "gpu_measure.py"
 MEASURE_BUDGET_S = 330.0  # a 6-minute device call: the budget plus start-up, with time left for a rerun
 MEASURE_STAGES = ("build", "cuda_tests", "modi_step", "peer_modi_step", "sampling", "ganimator", "profile")
@@ -562,7 +562,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(the default when the installed build has no CUDA kernels and nvcc is found)")
     ap.add_argument("--payload", choices=("kernels", "dispatch"), help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=None,
-                    help="issue 51's measurements: one JSON per stage in this folder (build, CUDA tests, MoDi step "
+                    help="the GPU step measurements: one JSON per stage in this folder (build, CUDA tests, MoDi step "
                          "vs the authors' train.py, sampling, GANimator, profile); with --dry-run on the CPU at tiny "
                          f"sizes; --budget defaults to {MEASURE_BUDGET_S:.0f} s")
     ap.add_argument("--tf32", choices=("default", "off", "both"), default="both",

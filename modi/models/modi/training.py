@@ -10,7 +10,7 @@ generators for latents and noise), the real windows of a step follow from the st
 epoch, cut into the ranks' shards: ``distributed.shard_indices``), the optimisers' states are saved, and the loop
 only stops at iteration boundaries -- so ``k`` steps, save, load, ``n - k`` steps equals ``n`` steps.
 
-A step asks nothing of the host (issue 51): its random choices (style mixing, the inject index) are drawn on the
+A step asks nothing of the host, so a GPU never waits on Python and a CUDA graph can replay it: its random choices (style mixing, the inject index) are drawn on the
 device and applied as masks, so every step of a kind (plain, path length, R1, both) runs the same ops at the same
 shapes; the real windows' indices reach the device once per epoch; the losses stay on the device and are read at
 ``log_every`` steps (and at saves). A step with a NaN/inf loss is skipped on the device (fused Adam's ``found_inf``),
@@ -322,8 +322,9 @@ class Trainer:
         With ``mixing > 0`` every call draws a uniform (mix with probability ``mixing``), two latents and an inject
         index in ``[1, n_latent)``, in that order, whether it mixes or not, and returns the index as a 0-d tensor
         (``n_latent`` when it does not mix: every style from the first latent) for ``Generator.make_wplus``: the
-        same ops every step. (Before issue 51 a step that did not mix drew one latent and no index, so the stream
-        of draws differed after the first such step.) With ``mixing == 0``: one latent, no index."""
+        same ops every step. (Runs of modi 0.1 drew one latent and no index when not mixing; their checkpoints
+        resume on this stream, whose draws differ from the first non-mixing step on.) With ``mixing == 0``: one
+        latent, no index."""
         dim = self.cfg.model.latent_dim
         if self.cfg.train.mixing <= 0:
             return [torch.randn(n, dim, device=self.device)], None
@@ -391,8 +392,8 @@ class Trainer:
 
     def _guarded_step(self, opt: torch.optim.Optimizer, losses: dict[str, Tensor]) -> Tensor:
         """The optimiser step, skipped on the device when a loss is non-finite (fused Adam's ``found_inf``).
-        An optimiser off the fused kernel (a checkpoint saved without it) checks on the host and stops at once,
-        as before issue 51. Returns the flags (see ``_nonfinite``)."""
+        An optimiser off the fused kernel (a checkpoint saved without it) has no ``found_inf``: it checks on the host
+        and stops at once. Returns the flags (see ``_nonfinite``)."""
         bad = self._nonfinite(losses)
         if not fused_groups(opt):
             if bool(bad.any()):
