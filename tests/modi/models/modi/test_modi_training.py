@@ -379,22 +379,22 @@ def test_cli_demo_runs_end_to_end(tmp_path):
 def test_cli_released_options_reach_the_config():
     import argparse
 
-    from modi.cli.commands import modi_train
+    from modi.cli.commands import train as train_command
 
     parser = argparse.ArgumentParser()
-    modi_train.register(parser.add_subparsers())
-    cfg = modi_train.build_config(parser.parse_args(["train", "procedural", "--out", "r", "--preset", "small"]))
+    train_command.register(parser.add_subparsers())
+    cfg = train_command.build_config(parser.parse_args(["train", "procedural", "--out", "r", "--preset", "small"]))
     assert cfg.model.noise_injection is False and cfg.train.contact_loss == "released"
     args = parser.parse_args(["train", "procedural", "--out", "r", "--preset", "small", "--noise-injection",
                               "--contact-loss", "squared"])
-    cfg = modi_train.build_config(args)
+    cfg = train_command.build_config(args)
     assert cfg.model.noise_injection is True and cfg.train.contact_loss == "squared"
     args = parser.parse_args(["train", "procedural", "--out", "r", "--ablation", "pre-release"])
-    cfg = modi_train.build_config(args)
+    cfg = train_command.build_config(args)
     assert cfg.model.noise_injection is True and cfg.train.contact_loss == "squared"
     assert (cfg.model.neighbors, cfg.model.pooling) == ("siblings", "merge")
     args = parser.parse_args(["train", "procedural", "--out", "r", "--neighbors", "tree", "--pooling", "released"])
-    cfg = modi_train.build_config(args)
+    cfg = train_command.build_config(args)
     assert (cfg.model.neighbors, cfg.model.pooling) == ("tree", "released")
 
 
