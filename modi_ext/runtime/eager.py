@@ -10,17 +10,36 @@ Where nothing but plain tensors is involved (no compile, no tracing, no functorc
 no tensor subclass), ``ops`` and ``gradfix`` call the same kernels through the Functions made here instead: the
 forward runs the kernel below autograd, and the backward is the very ``setup_context`` / ``backward`` pair registered
 for the op, so both paths compute the same gradients of every order.  ``MODI_EXT_EAGER=0`` turns the fast path off
-(every call through the registered ops, as before).
+(every call through the registered ops, as before).  The private torch internals this needs are looked up in one
+place, :func:`torch_internals`; a torch without them leaves the fast path off (slower, same results).
 """
 from __future__ import annotations
 
 import os
+from types import SimpleNamespace
 from typing import Callable
 
 import torch
 
 _PLAIN = (torch.Tensor, torch.nn.Parameter)
-_below_autograd = torch._C._AutoDispatchBelowAutograd
+
+
+def torch_internals() -> SimpleNamespace:
+    """The private torch internals the fast path relies on: the only place it touches them.
+
+    A torch release that renames one makes this raise ``AttributeError``: the fast path then stays off (every call
+    through the registered ops) and ``tests/modi_ext/runtime/test_eager.py`` fails, naming it."""
+    c = torch._C
+    return SimpleNamespace(below_autograd=c._AutoDispatchBelowAutograd, tracing_state=c._get_tracing_state,
+                           functorch_active=c._are_functorch_transforms_active,
+                           dispatch_stack_len=c._len_torch_dispatch_stack,
+                           will_engine_execute=c._will_engine_execute_node)
+
+
+try:
+    _TORCH: SimpleNamespace | None = torch_internals()
+except AttributeError:  # a torch without them: the registered ops only
+    _TORCH = None
 
 
 def _enabled() -> bool:
@@ -31,9 +50,9 @@ def usable(*tensors) -> bool:
     """Whether the plain-Function path may run these tensors (``None`` entries allowed)."""
     if torch.compiler.is_compiling():  # first: dynamo folds it and never traces the checks below
         return False
-    if torch._C._get_tracing_state() is not None or torch._C._are_functorch_transforms_active():
+    if _TORCH is None or _TORCH.tracing_state() is not None or _TORCH.functorch_active():
         return False
-    if torch._C._len_torch_dispatch_stack() > 0:
+    if _TORCH.dispatch_stack_len() > 0:
         return False
     for t in tensors:
         if t is not None and type(t) not in _PLAIN:
@@ -46,7 +65,7 @@ def make_function(name: str, run: Callable, setup_context: Callable, backward: C
     registered rule (``setup_context(ctx, inputs, output)``, ``backward(ctx, *grads)``)."""
 
     def forward(ctx, *inputs):
-        with _below_autograd():
+        with _TORCH.below_autograd():  # only reached when usable(): _TORCH is set
             out = run(*inputs)
         setup_context(ctx, inputs, out)
         return out
@@ -68,9 +87,9 @@ def needed(ctx, i: int) -> bool:
         return False
     try:
         node = ctx.next_functions[i][0]
-        return node is None or bool(torch._C._will_engine_execute_node(node))
+        return node is None or _TORCH is None or bool(_TORCH.will_engine_execute(node))
     except (RuntimeError, AttributeError, IndexError):
         return True
 
 
-__all__ = ["usable", "make_function", "needed"]
+__all__ = ["torch_internals", "usable", "make_function", "needed"]

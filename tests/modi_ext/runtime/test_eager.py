@@ -39,6 +39,23 @@ def _all_orders(kind, seed, style, demod, padding, dtype=torch.float64):
     return y, first, second, type(y.grad_fn).__name__
 
 
+def test_the_private_torch_internals_it_needs_still_exist(monkeypatch):
+    """The fast path's one contact with torch's private API (``eager.torch_internals``): a torch upgrade that renames
+    one of them fails here by name, instead of the fast path silently switching off."""
+    from modi_ext.runtime import eager
+
+    found = eager.torch_internals()  # AttributeError naming the missing internal
+    assert all(callable(v) for v in vars(found).values()), vars(found)
+    assert eager._TORCH is not None
+    monkeypatch.delenv("MODI_EXT_EAGER", raising=False)
+    assert eager.usable(torch.zeros(2), None)
+
+    class Sub(torch.Tensor):
+        pass
+
+    assert not eager.usable(torch.zeros(2).as_subclass(Sub))  # a subclass goes through the registered ops
+
+
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("style,demod,padding", OPTIONS)
 def test_eager_path_equals_the_registered_ops(kind, style, demod, padding, monkeypatch):
