@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_modi_training import full_state  # every weight and optimiser state of a trainer
 
 from benchmarks.step_ops import OpCounter, count_loop, step_kind
 from modi.data.normalization import Normalizer
@@ -53,16 +54,6 @@ def make_trainer(data, run_dir, cfg=None, **kw) -> Trainer:
     kw = {"progress": False, "tensorboard": False, "write_samples": False, "log": lambda m: None, **kw}
     return Trainer(cfg or tiny_cfg(), data, run_dir, **kw)
 
-
-def full_state(tr: Trainer) -> dict[str, torch.Tensor]:
-    out = {}
-    for name, module in (("G", tr.G), ("D", tr.D), ("G_ema", tr.G_ema)):
-        out.update({f"{name}.{k}": v.detach().clone() for k, v in module.state_dict().items()})
-    for name, opt in (("g_opt", tr.g_optim), ("d_opt", tr.d_optim)):
-        for pid, st in opt.state_dict()["state"].items():
-            out.update({f"{name}.{pid}.{k}": torch.as_tensor(v).clone() for k, v in st.items()})
-    out["mean_path_length"] = tr.mean_path_length.clone()
-    return out
 
 
 # --------------------------------------------------------------------------------------------- the counter
