@@ -13,7 +13,7 @@ Sides (``--sides``, comma separated):
                    what the package runs without the extension);
 * ``ext_refgrad``  the C++ kernels for forward and first-order backward, but the graph of a gradient (R1, path
                    length, WGAN-GP) built through the dense reference (``MODI_EXT_DOUBLE=ref``: how the extension
-                   worked before ``modi_ext.skeletal.autograd``);
+                   worked before ``modi_ext.skeletal.gradfix``);
 * ``ext``          the kernels for every order;
 * ``ext_torchdemod`` as ``ext``, with the demodulation coefficients from torch ops (``MODI_EXT_DEMOD=torch``: how
                    the extension worked before ``modi_ext.demod``).

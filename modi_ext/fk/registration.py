@@ -2,13 +2,15 @@
 
 The schemas are C++ (``csrc/fk/schema.cpp``); this is what they need from Python, done on import when the extension
 is built.  The backward is the C++ ``fk_backward``, or ``modi_ext.fk.gradfix.graph_backward`` when a graph of the
-gradient is asked for.
+gradient is asked for.  The same rules make the op's eager ``autograd.Function`` (``kernels.EAGER``), which
+``kernels.launch`` calls where the fast path applies.
 """
 from __future__ import annotations
 
 import torch
 
 from modi_ext.fk.gradfix import graph_backward
+from modi_ext.runtime import eager, kernels
 from modi_ext.runtime.loader import HAS_EXT
 
 __all__ = ["ops_defined"]
@@ -61,3 +63,5 @@ if ops_defined():
         )
 
     torch.library.register_autograd("modi_ext::fk", _fk_backward, setup_context=_fk_setup_context)
+    kernels.EAGER["fk"] = eager.make_function("fk_eager", lambda *a: kernels.KERNELS["fk"](*a), _fk_setup_context,
+                                              _fk_backward)

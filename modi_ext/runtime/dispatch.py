@@ -154,23 +154,46 @@ def cpu_bf16_path() -> dict:
             "summary": f"bf16: dense ({gemm})"}
 
 
-def route(op: str, x: torch.Tensor, family: str = "skeletal", signature: Callable[[], str] | None = None,
-          bench: Callable[[str], Callable[[], object]] | None = None, *, impl: str | None = None,
-          record: bool = False) -> str:
+def route(op: str, x: torch.Tensor, family: str = "skeletal", *, impl: str | None = None, record: bool = False,
+          rerun: Callable[..., torch.Tensor] | None = None, inputs: tuple = (), options: tuple = ()) -> str:
     """'ext', 'dense' or 'ref' for one call of ``op`` on ``x``'s device and dtype (see the module docstring).
 
-    ``signature()`` names the call's shapes and options; ``bench(impl)`` returns a zero-argument function running the
-    call on ``impl`` -- both only used where ``auto`` measures (CUDA).  ``impl`` overrides ``MODI_EXT_IMPL`` for this
-    call (an op's ``impl=`` argument); ``record`` counts the call under the path chosen (``dispatch_report()``): the
-    ops pass it, so that the bookkeeping stays here.
+    ``impl`` overrides ``MODI_EXT_IMPL`` for this call (an op's ``impl=`` argument); ``record`` counts the call under
+    the path chosen (``dispatch_report()``).  Where ``auto`` measures (CUDA), ``rerun(path, *inputs)`` runs this very
+    call on a forced path with the differentiable ``inputs`` swapped for fresh leaves, and ``options`` holds the
+    call's other arguments that change its cost: with the inputs' shapes they are the signature a choice is cached
+    under.
     """
-    path = _route(op, x, family, signature, bench, impl)
-    if record:
+    path = _route(op, x, family, impl, rerun, inputs, options)
+    if record and not getattr(_measuring, "active", False):
         record_path(op, x, path)
     return path
 
 
-def _route(op, x, family, signature, bench, impl) -> str:
+_measuring = threading.local()  # ``active`` while ``auto`` times the paths: those calls are not the op's own
+
+
+def _signature(x: torch.Tensor, inputs: tuple, options: tuple, train: bool) -> str:
+    shapes = " ".join(str(tuple(t.shape)) if isinstance(t, torch.Tensor) else "-" for t in inputs)
+    opts = " ".join(str(o) for o in options)
+    return f"{str(x.dtype).replace('torch.', '')} {shapes} {opts} {'fwd_bwd' if train else 'fwd'}"
+
+
+def _bench(rerun: Callable[..., torch.Tensor], inputs: tuple, train: bool) -> Callable[[str], Callable[[], object]]:
+    """``bench(path)``: a zero-argument run of the call on ``path`` (forward, and backward for a training call)."""
+    leaves = [t.detach().requires_grad_(train) if isinstance(t, torch.Tensor) else t for t in inputs]
+
+    def bench(path: str):
+        def call():
+            with torch.set_grad_enabled(train):
+                y = rerun(path, *leaves)
+                if train:
+                    torch.autograd.grad(y, [t for t in leaves if t is not None], torch.ones_like(y))
+        return call
+    return bench
+
+
+def _route(op, x, family, impl, rerun, inputs, options) -> str:
     if impl is None:
         want = requested_impl()
     elif impl in IMPLS:
@@ -194,11 +217,12 @@ def _route(op, x, family, signature, bench, impl) -> str:
         return "ext"
     if not kernels_trusted(device_key(x.device), str(x.dtype)):
         return "dense"
-    if dev_type in MEASURE_DEVICES and signature is not None and bench is not None:
-        sig = signature()
+    if dev_type in MEASURE_DEVICES and rerun is not None:
+        train = torch.is_grad_enabled() and any(isinstance(t, torch.Tensor) and t.requires_grad for t in inputs)
+        sig = _signature(x, inputs, options, train)
         if torch.compiler.is_compiling():
             return _cached_choice(op, device_key(x.device), sig)
-        return _measured(op, device_key(x.device), sig, bench)
+        return _measured(op, device_key(x.device), sig, _bench(rerun, inputs, train))
     return "ext"
 
 
@@ -216,6 +240,7 @@ def _measured(op: str, device: str, sig: str, bench: Callable[[str], Callable[[]
             return rec["choice"]
         times: dict[str, list[float]] = {"ext": [], "dense": []}
         error = None
+        _measuring.active = True
         try:
             fns = {impl: bench(impl) for impl in times}
             for impl, fn in fns.items():  # warm-up (allocator, cuDNN plans)
@@ -225,6 +250,8 @@ def _measured(op: str, device: str, sig: str, bench: Callable[[str], Callable[[]
                     times[impl].append(TIMER(impl, fn, device))
         except Exception as exc:  # noqa: BLE001 - a kernel that cannot run this shape loses
             error = f"{type(exc).__name__}: {exc}"
+        finally:
+            _measuring.active = False
         if error is not None or len(times["ext"]) < AUTO_REPS:
             rec = {"choice": "dense", "error": error}
         else:

@@ -47,7 +47,7 @@ def _enabled() -> bool:
 
 
 def usable(*tensors) -> bool:
-    """Whether the plain-Function path may run these tensors (``None`` entries allowed)."""
+    """Whether the plain-Function path may run these tensors (entries that are not tensors are ignored)."""
     if torch.compiler.is_compiling():  # first: dynamo folds it and never traces the checks below
         return False
     if _TORCH is None or _TORCH.tracing_state() is not None or _TORCH.functorch_active():
@@ -55,7 +55,7 @@ def usable(*tensors) -> bool:
     if _TORCH.dispatch_stack_len() > 0:
         return False
     for t in tensors:
-        if t is not None and type(t) not in _PLAIN:
+        if isinstance(t, torch.Tensor) and type(t) not in _PLAIN:
             return False
     return _enabled()
 

@@ -10,6 +10,8 @@ everything that runs or asks about the raw ``torch.ops`` kernels goes through he
   once and cached (a per-call probe would be traced by ``torch.compile``).
 * ``device_key(device)``: ``"cuda"`` and ``"cuda:0"`` (the current device) are one key, for the self-check cache of
   ``dispatch`` and for ``validate`` alike.
+* ``launch(name, *args)``: one kernel call with its autograd -- the op's eager ``autograd.Function`` (``EAGER``, filled
+  by each op's registration; ``modi_ext.runtime.eager``) where the fast path applies, else the registered op.
 """
 from __future__ import annotations
 
@@ -18,9 +20,11 @@ from typing import Callable
 
 import torch
 
+from modi_ext.runtime import eager
 from modi_ext.runtime.loader import HAS_EXT
 
-__all__ = ["LIB", "FAMILY_OPS", "KERNELS", "kernel_table", "registered", "kernels_built", "device_key"]
+__all__ = ["LIB", "FAMILY_OPS", "KERNELS", "EAGER", "launch", "kernel_table", "registered", "kernels_built",
+           "device_key"]
 
 LIB = "modi_ext"
 FAMILY_OPS = {"skeletal": ("skeletal_conv", "skeletal_down", "skeletal_up", "skeletal_backward"),
@@ -34,6 +38,16 @@ def kernel_table(lib: str = LIB) -> dict[str, Callable]:
 
 
 KERNELS: dict[str, Callable] = kernel_table(LIB)
+EAGER: dict[str, type] = {}  # op name -> its plain autograd.Function (eager.make_function), set by its registration
+
+
+def launch(name: str, *args):
+    """``KERNELS[name](*args)`` with the op's autograd: through its eager Function where ``eager.usable`` allows
+    (plain tensors, no compile, tracing or transform), else through the registered op (the dispatcher)."""
+    fn = EAGER.get(name)
+    if fn is not None and eager.usable(*args):
+        return fn.apply(*args)
+    return KERNELS[name](*args)
 
 
 def registered(lib: str, family: str, device_type: str) -> bool:

@@ -2,9 +2,10 @@
 
 * ``reference``: MoDi's math spelled out on the masked dense weight (per-sample weights, grouped convs): the oracle;
 * ``dense``: the same result as one shared conv with style and demodulation as scales: the fallback path;
-* ``checks``: every argument checked on the host, and the CSR maps' values once per map;
-* ``autograd``: the kernel call with its autograd, the differentiable backward (gradients of any order on the
-  kernels, "gradfix"), and the registration of fake kernels and autograd with ``torch.library``;
+* ``checks``: every argument checked on the host, the CSR maps' values once per map (and the C++ ops' names and
+  argument order);
+* ``registration``: fake kernels and autograd of the C++ ops with ``torch.library`` (and their eager Functions);
+  ``gradfix``: gradients of any order on the kernels (the two partial backwards as ops of their own);
 * ``ops``: the public ops ``skeletal_conv``, ``skeletal_down``, ``skeletal_up`` (checks, then the path
   ``modi_ext.runtime.dispatch`` picks: kernels, dense form or reference).
 

@@ -12,9 +12,18 @@ import torch
 
 from modi_ext.skeletal.reference import PADDING_MODES
 
-__all__ = ["KIND_CONV", "KIND_DOWN", "KIND_UP", "check_args", "validate_csr"]
+__all__ = ["KIND_CONV", "KIND_DOWN", "KIND_UP", "NAMES", "kernel_args", "check_args", "validate_csr"]
 
 KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2  # the ``kind`` argument of the C++ backward op
+NAMES = {KIND_CONV: "skeletal_conv", KIND_DOWN: "skeletal_down", KIND_UP: "skeletal_up"}  # the C++ ops
+
+
+def kernel_args(kind: int, x, weight, bias, index, offsets, n_out: int, style, scale, padding_mode: str) -> tuple:
+    """The arguments of the C++ op ``NAMES[kind]`` in its schema's order (``csrc/skeletal/schema.cpp``): only the
+    up op takes ``n_out`` (conv and down read their output entities off ``offsets``)."""
+    if kind == KIND_UP:
+        return x, weight, bias, index, offsets, n_out, style, scale, padding_mode
+    return x, weight, bias, index, offsets, style, scale, padding_mode
 _FLOATS = (torch.float32, torch.float64)
 _CUDA_FLOATS = _FLOATS + (torch.float16, torch.bfloat16)  # the CUDA kernels accumulate half types in fp32
 _CPU_FLOATS = _FLOATS + (torch.bfloat16,)  # bf16 on the CPU runs on the dense path (``dispatch.route``)

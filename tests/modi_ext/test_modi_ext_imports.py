@@ -12,9 +12,10 @@ The layers, lowest first; a module imports only from its own layer or below (``L
    time filter's taps and its fast forms);
 2. the references, the oracles: ``fk.reference`` (the one Python FK), ``demod.reference``, ``skeletal.reference``;
 3. the dense forms: ``demod.dense``, ``skeletal.dense``, ``fk.dense``;
-4. the runtime that finds a call's path: ``runtime.loader``, ``kernels``, ``eager``, ``dispatch``;
-5. the ops: ``demod.ops``, ``skeletal.checks`` / ``autograd`` / ``ops``, ``fk.checks`` / ``gradfix`` / ``registration`` /
-   ``ops``, and the ``skeletal`` and ``fk`` packages (their ``__init__`` re-exports the ops);
+4. the runtime that finds a call's path: ``runtime.loader``, ``eager``, ``kernels``, ``amp``, ``dispatch``;
+5. the ops: ``demod.ops``, ``skeletal.checks`` / ``gradfix`` / ``registration`` / ``ops``, ``fk.checks`` /
+   ``gradfix`` / ``registration`` / ``ops``, and the ``skeletal`` and ``fk`` packages (their ``__init__`` re-exports
+   the ops);
 6. the runtime that checks the kernels: ``runtime.payload``, ``runtime.selfcheck`` (they run the references and the
    demod op; ``dispatch`` is handed the self-check by the root instead of importing it);
 7. ``layers`` (the ``nn.Module``s);
@@ -35,8 +36,8 @@ LAYERS: list[set[str]] = [
     {"runtime", "demod", "csr", "fir"},
     {"fk.reference", "demod.reference", "skeletal.reference"},
     {"demod.dense", "skeletal.dense", "fk.dense"},
-    {"runtime.loader", "runtime.kernels", "runtime.eager", "runtime.dispatch"},
-    {"demod.ops", "skeletal.checks", "skeletal.autograd", "skeletal.ops", "skeletal",
+    {"runtime.loader", "runtime.eager", "runtime.kernels", "runtime.amp", "runtime.dispatch"},
+    {"demod.ops", "skeletal.checks", "skeletal.gradfix", "skeletal.registration", "skeletal.ops", "skeletal",
      "fk.checks", "fk.gradfix", "fk.registration", "fk.ops", "fk"},
     {"runtime.payload", "runtime.selfcheck"},
     {"layers"},

@@ -217,7 +217,9 @@ def test_impl_argument_selects_the_path(monkeypatch):
     q, off, root = random_inputs(BANDAI_PARENTS, seed=6, requires_grad=True)
     ext = fk(q, off, BANDAI_PARENTS, root, impl="ext")
     ref = fk(q, off, BANDAI_PARENTS, root, impl="ref")
-    assert "modi_ext_fk" in ext.grad_fn.name() and "modi_ext_fk" not in ref.grad_fn.name()
+    kernel_nodes = ("modi_ext_fk", "fk_eager")  # the registered op, or its eager Function (kernels.launch)
+    assert any(n in ext.grad_fn.name() for n in kernel_nodes)
+    assert not any(n in ref.grad_fn.name() for n in kernel_nodes)
     torch.testing.assert_close(ext, ref, rtol=1e-5, atol=2e-4)
     with pytest.raises(ValueError, match="impl must be"):
         fk(q, off, BANDAI_PARENTS, root, impl="cuda")
@@ -286,3 +288,21 @@ def test_real_skeletons_match_modi_kinematics(shared_data):
         pos32 = fk(q.float().contiguous(), off.float(), b.parents, root.float())
         scale = float(expected.abs().max())
         torch.testing.assert_close(pos32.double(), expected, rtol=0, atol=2e-6 * scale, msg=f"{path.name} fp32")
+
+
+@needs_ext
+def test_eager_function_and_registered_op_agree(monkeypatch):
+    """``kernels.launch`` takes FK's eager Function; ``MODI_EXT_EAGER=0`` the registered op: the same values and
+    gradients, first order and with a graph."""
+    def run():
+        q, off, root = random_inputs(BANDAI_PARENTS, seed=8, requires_grad=True)
+        pos, rot = fk(q, off, BANDAI_PARENTS, root, return_rotations=True, impl="ext")
+        (gq,) = torch.autograd.grad(pos.pow(2).sum() + rot.sum(), q, create_graph=True)
+        gq.pow(2).sum().backward()
+        return pos.grad_fn.name(), pos, gq, q.grad, root.grad
+    eager_run = run()
+    monkeypatch.setenv("MODI_EXT_EAGER", "0")
+    op_run = run()
+    assert "fk_eager" in eager_run[0] and "modi_ext_fk" in op_run[0]
+    for a, b in zip(eager_run[1:], op_run[1:]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -318,7 +318,7 @@ def test_unread_fine_entities_get_bias_and_no_gradient():
 @pytest.mark.parametrize("dtype", (torch.float64, torch.float32, torch.bfloat16), ids=str)
 @pytest.mark.parametrize("kind", KINDS)
 def test_gradfix_partial_backwards(kind, dtype):
-    """The two partial backwards modi_ext.skeletal.autograd builds second-order gradients from: the input gradient
+    """The two partial backwards modi_ext.skeletal.gradfix builds second-order gradients from: the input gradient
     with no x values (gradfix passes a shape-only tensor: NaN here, so a read of it shows) and the weight gradient with
     no weight values, each against the reference's gradient of the unmodulated op."""
     p = Problem(kind, "none", "reflect", U=3, bias=False, dtype=dtype, seed=21, B=2, cin=6, cout=9, T=70)

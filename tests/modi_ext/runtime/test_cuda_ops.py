@@ -330,7 +330,7 @@ def test_gradcheck_float64(kind, padding, mod):
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 @pytest.mark.parametrize("mod", ["plain", "style_demod"])
 def test_gradgradcheck_float64(kind, padding, mod):
-    """Second order (R1, path length, WGAN-GP) through modi_ext.skeletal.autograd on the CUDA kernels."""
+    """Second order (R1, path length, WGAN-GP) through modi_ext.skeletal.gradfix on the CUDA kernels."""
     c = Case(kind, seed=5, U=3, padding=padding, mod=mod, B=2, T=6, cin=2, cout=2, n_ent=5)
     x, w, b, s = c.leaves(DEV, torch.float64, requires_grad=True)
     if s is None:

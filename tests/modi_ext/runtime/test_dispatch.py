@@ -401,7 +401,7 @@ def test_auto_keeps_the_faster_path_once_per_signature(monkeypatch, ext_ms, dens
 def test_auto_on_cpu_is_the_kernels_without_timing(monkeypatch):
     timer = FakeTimer({"ext": 9.0, "dense": 1.0})
     monkeypatch.setattr(dispatch, "TIMER", timer)
-    assert dispatch.route("skeletal_conv", torch.zeros(1), signature=lambda: "s", bench=lambda i: lambda: None) == "ext"
+    assert dispatch.route("skeletal_conv", torch.zeros(1), rerun=lambda path, x: x, inputs=(torch.zeros(1),)) == "ext"
     assert timer.calls == []
 
 
@@ -410,15 +410,13 @@ def test_auto_prefers_dense_when_the_kernel_cannot_run_the_shape(monkeypatch):
     monkeypatch.setattr(dispatch, "MEASURE_DEVICES", {"cpu"})
     monkeypatch.setattr(dispatch, "TIMER", FakeTimer({"ext": 1.0, "dense": 2.0}))
 
-    def bench(impl):
-        if impl == "ext":
-            def fail():
-                raise RuntimeError("too many resources requested for launch")
-            return fail
-        return lambda: None
+    def rerun(path, x):
+        if path == "ext":
+            raise RuntimeError("too many resources requested for launch")
+        return x
 
     x = torch.zeros(1)
-    assert dispatch.route("skeletal_conv", x, signature=lambda: "big", bench=bench) == "dense"
+    assert dispatch.route("skeletal_conv", x, rerun=rerun, inputs=(x,)) == "dense"
     assert "too many resources" in [r for r in modi_ext.dispatch_report() if r["kind"] == "auto"][0]["error"]
 
 

@@ -10,7 +10,7 @@ import torch
 from skeletal_cases import KINDS, call, make_case
 
 from modi_ext import HAS_EXT
-from modi_ext.skeletal import autograd as gradfix
+from modi_ext.skeletal import gradfix
 from modi_ext.skeletal import ops
 
 needs_ext = pytest.mark.skipif(not HAS_EXT, reason="modi_ext C++ extension not built")

@@ -1,4 +1,4 @@
-"""Second- and higher-order gradients on the sparse kernels (``modi_ext.skeletal.autograd``): gradgradcheck in float64
+"""Second- and higher-order gradients on the sparse kernels (``modi_ext.skeletal.gradfix``): gradgradcheck in float64
 on random trees for every op and option, equality with the dense reference's second-order gradients, opcheck of the
 backward ops, the graph-building path never touching the reference, and the R1 / path-length / WGAN-GP parameter
 gradients of tiny MoDi and GANimator models equal on both paths."""
@@ -136,13 +136,13 @@ def test_graph_path_never_calls_the_reference(monkeypatch):
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 def test_opcheck_backward_ops(kind, padding):
-    from modi_ext.skeletal import autograd as gradfix
+    from modi_ext.skeletal import checks, gradfix
 
     rng = random.Random(5)
     (x, w, b), _, rest, _ = _inputs(kind, rng, False, False, padding, n_joints=6, U=3, B=2, cin=2, cout=3, T=8)
     index, offsets = rest[0], rest[1]
     n_out = rest[2] if kind == "up" else offsets.numel() - 1
-    k = {"conv": gradfix.KIND_CONV, "down": gradfix.KIND_DOWN, "up": gradfix.KIND_UP}[kind]
+    k = {"conv": checks.KIND_CONV, "down": checks.KIND_DOWN, "up": checks.KIND_UP}[kind]
     y = call(kind, ops, (x, w, None) + rest, dict(style=None, demodulate=False, padding_mode=padding))
     g = torch.randn_like(y).requires_grad_(True)
     wd, xd = w.detach().clone().requires_grad_(True), x.detach().clone().requires_grad_(True)
@@ -246,14 +246,14 @@ def test_double_backward_reference_switch(monkeypatch):
 
 def test_backward_ops_accept_non_contiguous_inputs():
     """The registered backward ops are public: strided gradients and weights are made contiguous, not refused."""
-    from modi_ext.skeletal import autograd as gradfix
+    from modi_ext.skeletal import checks, gradfix
 
     x, w, topo = _disconnected_conv_case()
     y = ops.skeletal_conv(x, w, None, topo.index, topo.offsets)
     g = torch.randn(y.shape[::-1], dtype=y.dtype).permute(3, 2, 1, 0)  # same shape, transposed strides
     assert not g.is_contiguous()
-    gx = gradfix.skeletal_grad_input(g, w, topo.index, topo.offsets, gradfix.KIND_CONV, 5, 5, 7, "zeros")
-    gw = gradfix.skeletal_grad_weight(g, x, topo.index, topo.offsets, gradfix.KIND_CONV, 5, 5, "zeros")
+    gx = gradfix.skeletal_grad_input(g, w, topo.index, topo.offsets, checks.KIND_CONV, 5, 5, 7, "zeros")
+    gw = gradfix.skeletal_grad_weight(g, x, topo.index, topo.offsets, checks.KIND_CONV, 5, 5, "zeros")
     ref_gx, ref_gw = torch.autograd.grad(
         R.skeletal_conv(x.requires_grad_(True), w.requires_grad_(True), None, topo.index, topo.offsets), [x, w],
         g.contiguous())

@@ -286,7 +286,7 @@ def test_gradcheck_fp64(kind, style, demod, padding):
 
 @needs_ext
 def test_gradgradcheck_modulated_conv():
-    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.skeletal.autograd; more in
+    """Second order (R1 / path-length regularisation) on the kernels (modi_ext.skeletal.gradfix; more in
     test_double_backward)."""
     rng = random.Random(5)
     args, kw = make_case("conv", rng, n_joints=3, distance=1, U=3, B=1, cin=2, cout=1, T=4, style=True,

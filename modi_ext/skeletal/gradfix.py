@@ -1,8 +1,8 @@
-"""The skeletal ops' autograd: the kernel call, its registration, and gradients of any order on the kernels.
+"""The skeletal ops' gradients of any order on the kernels -- the design of StyleGAN2-ADA's ``conv2d_gradfix``.
 
 R1, path length and WGAN-GP differentiate a gradient, so the backward of each op must itself be made of ops that
-have an autograd formula -- the design of StyleGAN2-ADA's ``conv2d_gradfix``.  Every skeletal op is bilinear in
-(input, weight): ``y = A_W x``.  Its two partial backwards are registered here as ops of their own:
+have an autograd formula.  Every skeletal op is bilinear in (input, weight): ``y = A_W x``.  Its two partial
+backwards are ops of their own, registered here:
 
 * ``skeletal_grad_input(g, W) = A_W^T g``  (the C++ input-gradient pass: a skeletal op over the transposed CSR);
 * ``skeletal_grad_weight(g, x) = d<g, A_W x>/dW``  (the C++ weight-gradient pass: a per-pair correlation).
@@ -14,14 +14,8 @@ Both are again bilinear, and their gradients are the three ops themselves::
 
 so ``create_graph=True`` stays on the kernels to any order, on every device the C++ ops are registered for.
 Modulation and demodulation are elementwise scales around the unmodulated op (``graph_backward``), and the bias
-gradient is a sum.  The dense reference is not involved; it remains the oracle in the tests (``MODI_EXT_DOUBLE=ref``
-builds that graph through it instead, the behaviour before, for comparison).
-
-Here too: ``launch``, the kernel call with its autograd -- through the plain ``autograd.Function`` of the eager fast
-path (``modi_ext.runtime.eager``) where it applies, else the registered op -- and the registration with
-``torch.library`` of what the C++ schemas need from Python (fake kernels for compile and meta, autograd rules: the
-fused first-order backward for the inputs whose gradient the engine will use, ``needed``), done on import when the
-extension is built.
+gradient is a sum.  ``MODI_EXT_DOUBLE=ref`` builds that graph through the dense reference instead (a debugging and
+benchmarking switch; the reference stays the oracle of the tests).
 """
 from __future__ import annotations
 
@@ -29,46 +23,25 @@ import os
 
 import torch
 
-from modi_ext.runtime import dispatch, eager
+from modi_ext.runtime import eager, kernels
 from modi_ext.runtime.eager import needed
 from modi_ext.runtime.loader import HAS_EXT
 from modi_ext.skeletal import reference
-from modi_ext.skeletal.checks import KIND_CONV, KIND_DOWN, KIND_UP
+from modi_ext.skeletal.checks import KIND_DOWN, KIND_UP, NAMES, kernel_args
 
-__all__ = ["NAMES", "launch", "plain_op", "needed", "skeletal_grad_input", "skeletal_grad_weight", "grad_input",
-           "grad_weight", "graph_backward"]
+__all__ = ["graph_backward", "grad_input", "grad_weight", "plain_op", "skeletal_grad_input", "skeletal_grad_weight"]
 
-NAMES = {KIND_CONV: "skeletal_conv", KIND_DOWN: "skeletal_down", KIND_UP: "skeletal_up"}
-_EAGER: dict[int, type] = {}  # kind -> the op's plain autograd.Function (runtime.eager), filled at registration
-
-
-# the partial backwards as registered ops (``_register_ops``, when the C++ schemas are loaded)
+# the partial backwards as registered ops (``_register``, when the C++ schemas are loaded)
 skeletal_grad_input = skeletal_grad_weight = None
 
 
-def ops_defined() -> bool:
-    """Whether the C++ library defined the skeletal ops' schemas (the extension is built)."""
-    return HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_conv")
-
-
-# ------------------------------------------------------------------------------------------------ the kernel call
 def plain_op(kind: int, x: torch.Tensor, weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor,
              n_out: int, padding_mode: str) -> torch.Tensor:
     """``A_W x`` (no bias, style or scale) on the kernels, differentiable to any order; no argument checks."""
-    return launch(kind, x, weight, None, index, offsets, n_out, None, None, padding_mode)
+    return kernels.launch(NAMES[kind], *kernel_args(kind, x, weight, None, index, offsets, n_out, None, None,
+                                                    padding_mode))
 
 
-def launch(kind: int, x, weight, bias, index, offsets, n_out: int, style, scale, padding_mode: str) -> torch.Tensor:
-    """The kernel call with autograd: the eager Function where it applies, else the registered op."""
-    if kind == KIND_UP:
-        args = (x, weight, bias, index, offsets, n_out, style, scale, padding_mode)
-    else:
-        args = (x, weight, bias, index, offsets, style, scale, padding_mode)
-    if kind in _EAGER and eager.usable(x, weight, bias, style, scale, index, offsets):
-        return _EAGER[kind].apply(*args)
-    return dispatch.KERNELS[NAMES[kind]](*args)
-
-# ------------------------------------------------------------------------------------------------ gradfix
 def _weight_shape(kind: int, grad: torch.Tensor, x: torch.Tensor, nnz: int, taps: int) -> list[int]:
     c_out, c_in = grad.shape[1], x.shape[1]
     return [c_in, nnz, c_out, taps] if kind == KIND_UP else [c_out, nnz, c_in, taps]
@@ -149,8 +122,12 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
     """Gradients of ``y = scale * A_W (x * style) + bias`` as a differentiable graph (``create_graph=True``).
 
     ``out`` is the saved ``y``: the scale gradient reads ``A_W (x * style) = (y - bias) / scale`` from it instead of
-    recomputing the op (``scale`` is a demodulation factor, ``rsqrt(...) > 0``).
+    recomputing the op (``scale`` is a demodulation factor, ``rsqrt(...) > 0``).  ``MODI_EXT_DOUBLE=ref``: through
+    the dense reference instead.
     """
+    if os.environ.get("MODI_EXT_DOUBLE", "ext").strip().lower() == "ref":
+        return _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode,
+                                         n_out, need)
     res: dict[str, torch.Tensor | None] = dict.fromkeys(need)
     if need["bias"] and bias is not None:
         res["bias"] = grad.sum((0, 2, 3))
@@ -176,14 +153,6 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
     return res
 
 
-
-# ------------------------------------------------------------------------------------------------ registration
-def _double_backward_on_reference() -> bool:
-    """``MODI_EXT_DOUBLE=ref``: build the graph of a gradient through the dense reference instead of
-    ``graph_backward`` (the behaviour before it existed; a debugging and benchmarking switch)."""
-    return os.environ.get("MODI_EXT_DOUBLE", "ext").strip().lower() == "ref"
-
-
 def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode, n_out, need):
     """Gradients as a differentiable graph by re-running the op on the dense reference (slow, exact)."""
     args = dict(x=x, weight=weight, bias=bias, style=style, scale=scale)
@@ -206,63 +175,9 @@ def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style
     return res
 
 
-def _out_shape(kind, x, weight, offsets, n_out):
-    b, _, _, t = x.shape
-    if kind == KIND_UP:
-        return (b, weight.shape[2], n_out, 2 * t)
-    e_out = offsets.shape[0] - 1
-    return (b, weight.shape[0], e_out, t if kind == KIND_CONV else t // 2)
-
-
-def _autograd_rules(kind: int):
-    """``(setup_context, backward)`` of one op: registered with torch.library and reused by its eager Function."""
-    up = kind == KIND_UP
-
-    def setup_context(ctx, inputs, output):
-        if up:
-            x, weight, bias, index, offsets, n_out, style, scale, padding_mode = inputs
-        else:
-            x, weight, bias, index, offsets, style, scale, padding_mode = inputs
-            n_out = offsets.shape[0] - 1
-        ctx.save_for_backward(x, weight, bias, index, offsets, style, scale, output)
-        ctx.meta = (padding_mode, n_out)
-
-    def backward(ctx, grad):
-        x, weight, bias, index, offsets, style, scale, out = ctx.saved_tensors
-        padding_mode, n_out = ctx.meta
-        want = lambda i: needed(ctx, i)  # noqa: E731  (not just requires_grad: what the engine will use)
-        if up:
-            need = dict(x=want(0), weight=want(1), bias=want(2), style=want(6), scale=want(7))
-        else:
-            need = dict(x=want(0), weight=want(1), bias=want(2), style=want(5), scale=want(6))
-        if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
-            if _double_backward_on_reference():
-                res = _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale,
-                                                padding_mode, n_out, need)
-            else:
-                res = graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale,
-                                             padding_mode, n_out, need)
-            gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
-        else:
-            mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]
-            gx, gw, gb, gs, gd = torch.ops.modi_ext.skeletal_backward(
-                grad.contiguous(), out, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
-                n_out, mask)
-            gx = gx if need["x"] else None
-            gw = gw if need["weight"] else None
-            gb = gb if (need["bias"] and bias is not None) else None
-            gs = gs if (need["style"] and style is not None) else None
-            gd = gd if (need["scale"] and scale is not None) else None
-        if up:
-            return gx, gw, gb, None, None, None, gs, gd, None
-        return gx, gw, gb, None, None, gs, gd, None
-
-    return setup_context, backward
-
-
-def _register_ops() -> None:
-    """The Python side of the ops whose schemas the C++ library defined: fake kernels and autograd of the three
-    skeletal ops and their backward, their eager Functions, and the two partial backwards as ops of their own."""
+def _register() -> None:
+    """The two partial backwards as ``torch.library`` ops (for compile, functorch and ``opcheck``), with their fake
+    kernels and autograd."""
     global skeletal_grad_input, skeletal_grad_weight
     lib = torch.library
     skeletal_grad_input = lib.custom_op("modi_ext::skeletal_grad_input", mutates_args=())(_grad_input_impl)
@@ -280,34 +195,6 @@ def _register_ops() -> None:
     skeletal_grad_input.register_autograd(_grad_input_backward, setup_context=_partial_setup)
     skeletal_grad_weight.register_autograd(_grad_weight_backward, setup_context=_partial_setup)
 
-    def make_fake(kind):
-        if kind == KIND_UP:
-            def fake(x, weight, bias, index, offsets, n_out, style, scale, padding_mode):
-                return x.new_empty(_out_shape(kind, x, weight, offsets, n_out))
-        else:
-            def fake(x, weight, bias, index, offsets, style, scale, padding_mode):
-                return x.new_empty(_out_shape(kind, x, weight, offsets, None))
-        return fake
 
-    lib.register_fake("modi_ext::skeletal_conv")(make_fake(KIND_CONV))
-    lib.register_fake("modi_ext::skeletal_down")(make_fake(KIND_DOWN))
-    lib.register_fake("modi_ext::skeletal_up")(make_fake(KIND_UP))
-
-    @lib.register_fake("modi_ext::skeletal_backward")
-    def _bwd_fake(grad, out, x, weight, bias, index, offsets, style, scale, padding_mode, kind, n_out, output_mask):
-        gx = torch.empty_like(x) if output_mask[0] else x.new_empty(0)
-        gw = torch.empty_like(weight) if output_mask[1] else x.new_empty(0)
-        gb = x.new_empty(bias.shape) if bias is not None else x.new_empty(0)
-        gs = torch.empty_like(style) if (style is not None and output_mask[2]) else x.new_empty(0)
-        gd = torch.empty_like(scale) if (scale is not None and output_mask[3]) else x.new_empty(0)
-        return gx, gw, gb, gs, gd
-
-    for kind, name in NAMES.items():
-        setup_context, backward = _autograd_rules(kind)
-        lib.register_autograd(f"modi_ext::{name}", backward, setup_context=setup_context)
-        _EAGER[kind] = eager.make_function(
-            f"{name}_eager", lambda *a, n=name: dispatch.KERNELS[n](*a), setup_context, backward)
-
-
-if ops_defined():
-    _register_ops()
+if HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_backward"):
+    _register()
