@@ -30,7 +30,8 @@ import torch
 import torch.nn.functional as F
 
 from modi.interop.modi_released import MaskViolation, check_masks
-from modi.models.modi.networks import fir_blur_time, std_entities_frames
+from modi.models.modi.fastpaths import std_entities_frames
+from modi_ext.fir import blur_time as fir_blur_time
 from modi_ext.skeletal import ops
 from modi_ext.skeletal.reference import from_dense, to_dense
 from modi_ext.csr import csr_from_lists
@@ -187,7 +188,7 @@ def _classes(gan: types.ModuleType) -> tuple[type, type, type]:
 
     class DropInBlur(gan.Blur):
         """Their ``Blur`` (the [1,3,3,1]/8 anti-alias filter before every stride-2 discriminator conv) as modi's own
-        discriminator computes it: ``modi.models.modi.networks.fir_blur_time``, a sum of shifted frames.
+        discriminator computes it: ``modi_ext.fir.blur_time``, a sum of shifted frames.
 
         On the CPU theirs is ``upfirdn2d_native``: a one-channel ``conv2d`` over a batch of every (sample, channel)
         row, which oneDNN runs slowly, the backward most (a third of a drop-in iteration in ``torch.profiler``:

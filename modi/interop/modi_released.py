@@ -39,7 +39,8 @@ from modi.interop.released_files import load_released_file, load_released_npy
 from modi.models.modi.checkpoint import atomic_torch_save, checkpoint_dict
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import ModelConfig, MoDiConfig
-from modi.models.modi.networks import Discriminator, Generator, LevelSpec
+from modi.models.modi.levels import LevelSpec
+from modi.models.modi.networks import Discriminator, Generator
 
 REQUIRED = ("g", "g_ema", "d", "args", "mean_joints", "std_joints")
 

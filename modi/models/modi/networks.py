@@ -3,116 +3,27 @@
 Shapes follow the project convention ``(B, K, E, T)``. The hierarchy runs coarse (level 0, learned constant) to
 fine (last level, the motion's own entities and frames); each finer level doubles the frames and un-merges entities
 along the skeleton's automatic pooling map. The layers come from ``modi_ext.layers`` (skeleton-aware convs, the
-equalised-lr linear layer, the fused bias + leaky ReLU) and the time filter from ``modi_ext.fir``; the ablation
-variants (skeletal pooling, pseudo-image convolutions) are built here from plain torch.
+equalised-lr linear layer, the fused bias + leaky ReLU) through the factories of ``ablations``, which build the
+paper's layer or an ablation's as the config asks; the levels are ``levels``, the generator's faster forms of its
+std normalisation ``fastpaths``.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
-from typing import Any, Sequence
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from modi.models.modi.ablations import conv_layer, down_layer, modconv_layer
 from modi.models.modi.config import ModelConfig
-from modi_ext import layers as ext
-from modi_ext.fir import blur_time as fir_blur_time
-from modi_ext.fir import downsample_time as fir_downsample_time
+from modi.models.modi.fastpaths import std_entities_frames, std_normalised_leaky_relu_
+from modi.models.modi.levels import LevelSpec, build_levels, unpool_matrix  # noqa: F401  (build_levels: with LevelSpec)
 from modi_ext.fir import upsample_time as fir_upsample_time
-from modi_ext.layers import EqualLinear, FusedLeakyReLU, fused_leaky_relu  # noqa: F401  (fused_leaky_relu re-exported)
+from modi_ext.layers import EqualLinear, FusedLeakyReLU
 
 SQRT2 = math.sqrt(2.0)
-
-
-# --------------------------------------------------------------------------------------------- topology per level
-@dataclass
-class LevelSpec:
-    """One hierarchy level as the model sees it (coarse -> fine order).
-
-    ``up_pooling[c]`` lists this level's entities that merge into entity ``c`` of the previous (coarser) level;
-    it is ``None`` for level 0.
-    """
-
-    n_entities: int
-    neighbors: list[list[int]]
-    up_pooling: list[list[int]] | None
-    n_frames: int
-    channels: int
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "LevelSpec":
-        return cls(
-            n_entities=int(d["n_entities"]),
-            neighbors=[[int(n) for n in ns] for ns in d["neighbors"]],
-            up_pooling=None if d["up_pooling"] is None else [[int(n) for n in ns] for ns in d["up_pooling"]],
-            n_frames=int(d["n_frames"]),
-            channels=int(d["channels"]),
-        )
-
-
-def build_levels(hierarchy: Any, cfg: ModelConfig, n_frames: int) -> list[LevelSpec]:
-    """Turn a ``PoolingHierarchy`` (finest first) into coarse -> fine ``LevelSpec``s for the given frame count.
-
-    Uses at most ``len(cfg.channels)`` of the finest hierarchy levels, and needs ``n_frames`` to halve cleanly
-    once per level, because every level doubles time.
-    """
-    h_levels = list(hierarchy.levels)
-    poolings = list(hierarchy.pooling)
-    if len(poolings) != len(h_levels) - 1:
-        raise ValueError(f"hierarchy has {len(h_levels)} levels but {len(poolings)} pooling maps (need levels-1)")
-    n_levels = min(len(h_levels), len(cfg.channels))
-    factor = 2 ** (n_levels - 1)
-    if n_frames % factor != 0:
-        raise ValueError(
-            f"n_frames={n_frames} must be divisible by 2**(levels-1)={factor} for a {n_levels}-level hierarchy; "
-            f"use a multiple of {factor} frames or fewer channel levels"
-        )
-    channels = [int(c) for c in cfg.channels][-n_levels:]
-    specs: list[LevelSpec] = []
-    for i in range(n_levels):  # i: coarse -> fine; hierarchy index = n_levels - 1 - i
-        h = n_levels - 1 - i
-        lv = h_levels[h]
-        up = None if i == 0 else [[int(e) for e in group] for group in poolings[h]]
-        specs.append(
-            LevelSpec(
-                n_entities=int(lv.n_entities),
-                neighbors=[[int(n) for n in ns] for ns in lv.neighbors],
-                up_pooling=up,
-                n_frames=n_frames // 2 ** (n_levels - 1 - i),
-                channels=channels[i],
-            )
-        )
-    for i in range(1, n_levels):
-        covered = sorted({e for group in specs[i].up_pooling for e in group})
-        if covered != list(range(specs[i].n_entities)):
-            raise ValueError(f"pooling map into level {i} does not cover each of its {specs[i].n_entities} entities")
-        if len(specs[i].up_pooling) != specs[i - 1].n_entities:
-            raise ValueError(f"pooling map into level {i} has {len(specs[i].up_pooling)} groups, "
-                             f"expected {specs[i - 1].n_entities}")
-    return specs
-
-
-def _unpool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
-    """(E_fine, E_coarse) copy matrix: each fine entity takes its coarse entity's features (averaged if shared)."""
-    m = torch.zeros(n_fine, len(pooling))
-    for c, group in enumerate(pooling):
-        for e in group:
-            m[e, c] = 1.0
-    return m / m.sum(1, keepdim=True).clamp_min(1.0)
-
-
-def _pool_matrix(pooling: list[list[int]], n_fine: int) -> torch.Tensor:
-    """(E_coarse, E_fine) averaging matrix: skeletal mean pooling (Aberman et al.) for the pooling ablation."""
-    m = torch.zeros(len(pooling), n_fine)
-    for c, group in enumerate(pooling):
-        for e in group:
-            m[c, e] = 1.0 / len(group)
-    return m
 
 
 # --------------------------------------------------------------------------------------------- small building blocks
@@ -145,177 +56,7 @@ class NoiseInjection(nn.Module):
         return x + self.weight * noise
 
 
-# --------------------------------------------------------------------------------------------- pseudo-image ablation
-class PseudoImageConv(nn.Module):
-    """Dense 2D conv over (entity index, frame), i.e. motion as a pseudo-image (the non-skeleton-aware ablation).
-
-    Optionally modulated/demodulated by a style (generator) and resized to ``out_size`` before (generator,
-    bilinear) or after (discriminator, area average) the conv: entity rows are treated like image rows.
-    """
-
-    def __init__(self, in_ch: int, out_ch: int, kernel_size: int, style_dim: int | None = None,
-                 demodulate: bool = True, out_size: tuple[int, int] | None = None, resize: str | None = None):
-        super().__init__()
-        self.weight = nn.Parameter(torch.randn(out_ch, in_ch, kernel_size, kernel_size))
-        self.scale = 1.0 / math.sqrt(in_ch * kernel_size * kernel_size)
-        self.modulation = EqualLinear(style_dim, in_ch, bias_init=1.0) if style_dim else None
-        self.demodulate = demodulate
-        self.out_size = out_size
-        self.resize = resize
-        self.pad = kernel_size // 2
-
-    def forward(self, x: torch.Tensor, w: torch.Tensor | None = None) -> torch.Tensor:
-        if self.resize == "before":
-            x = F.interpolate(x, size=self.out_size, mode="bilinear", align_corners=False)
-        b, cin, e, t = x.shape
-        if self.modulation is None:
-            out = F.conv2d(x, self.weight * self.scale, padding=self.pad)
-        else:
-            s = self.modulation(w)  # (B, Cin)
-            weight = self.scale * self.weight.unsqueeze(0) * s.view(b, 1, cin, 1, 1)
-            if self.demodulate:
-                weight = weight * torch.rsqrt(weight.pow(2).sum([2, 3, 4], keepdim=True) + 1e-8)
-            out = F.conv2d(x.reshape(1, b * cin, e, t), weight.reshape(-1, cin, *weight.shape[-2:]),
-                           padding=self.pad, groups=b)
-            out = out.view(b, -1, e, t)
-        if self.resize == "after":
-            out = F.adaptive_avg_pool2d(out, self.out_size)
-        return out
-
-
-# --------------------------------------------------------------------------------------------- layer factories
-class _PooledUp(nn.Module):
-    """Pooling ablation, generator side: skeletal unpool (copy) + FIR time upsample, then an in-place modulated conv."""
-
-    def __init__(self, conv: nn.Module, pooling: list[list[int]], n_fine: int):
-        super().__init__()
-        self.conv = conv
-        self.register_buffer("unpool", _unpool_matrix(pooling, n_fine), persistent=False)
-
-    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        x = fir_upsample_time(torch.einsum("bcet,fe->bcft", x, self.unpool))
-        return self.conv(x.contiguous(), w)
-
-
-class _SkeletalPoolDown(nn.Module):
-    """Pooling ablation, discriminator side: skeletal mean pooling + anti-aliased time downsampling."""
-
-    def __init__(self, pooling: list[list[int]], n_fine: int):
-        super().__init__()
-        self.register_buffer("pool", _pool_matrix(pooling, n_fine), persistent=False)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return fir_downsample_time(torch.einsum("bcft,ef->bcet", x, self.pool)).contiguous()
-
-
-def _modconv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, mode: str, kernel_size: int | None = None,
-             demodulate: bool = True, per_entity: bool = False) -> nn.Module:
-    """A modulated conv ``forward(x, w)`` for the generator: in place ('same') or coarse->fine ('up').
-
-    ``per_entity`` gives every entity its own weights with no neighbours (the to-motion 1x1 projection)."""
-    k = cfg.kernel_size if kernel_size is None else kernel_size
-    demodulate = demodulate and cfg.demodulation == "weight"  # "activations": StyledConv normalises instead
-    if not cfg.skeleton_aware:
-        size = (level.n_entities, level.n_frames)
-        return PseudoImageConv(cin, cout, k, style_dim=cfg.latent_dim, demodulate=demodulate,
-                               out_size=size, resize="before" if mode == "up" else None)
-    if mode == "up":
-        if cfg.scaler == "pool":
-            conv = ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.neighbors, kernel_size=k,
-                                                mode="same", demodulate=demodulate)
-            return _PooledUp(conv, level.up_pooling, level.n_entities)
-        return ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, level.up_pooling, kernel_size=k,
-                                            mode="up", demodulate=demodulate)
-    topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
-    return ext.ModulatedSkeletalConv(cin, cout, cfg.latent_dim, topo, kernel_size=k, mode="same",
-                                        demodulate=demodulate)
-
-
-def _conv(cfg: ModelConfig, cin: int, cout: int, level: LevelSpec, kernel_size: int | None = None,
-          per_entity: bool = False) -> nn.Module:
-    """An unmodulated, bias-free in-place conv for the discriminator."""
-    k = cfg.kernel_size if kernel_size is None else kernel_size
-    if not cfg.skeleton_aware:
-        return _NoStyle(PseudoImageConv(cin, cout, k))
-    topo = [[j] for j in range(level.n_entities)] if per_entity else level.neighbors
-    return ext.SkeletalConv(cin, cout, topo, kernel_size=k, bias=False)
-
-
-def _down(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: LevelSpec, kernel_size: int) -> nn.Module:
-    """A bias-free fine->coarse conv for the discriminator (conv scaler, or conv + skeletal pooling)."""
-    if not cfg.skeleton_aware:
-        return _NoStyle(PseudoImageConv(cin, cout, kernel_size, out_size=(coarse.n_entities, coarse.n_frames),
-                                        resize="after"))
-    if cfg.scaler == "pool":
-        topo = fine.neighbors if kernel_size > 1 else [[j] for j in range(fine.n_entities)]
-        return nn.Sequential(ext.SkeletalConv(cin, cout, topo, kernel_size=kernel_size, bias=False),
-                             _SkeletalPoolDown(fine.up_pooling, fine.n_entities))
-    if cfg.time_padding == "stylegan2":  # 2 more zero frames before the blur, the extra coarse frame cropped
-        return nn.Sequential(_Blur(2), ext.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
-                                                                 bias=False), _CropStart(1))
-    return nn.Sequential(_Blur(), ext.SkeletalDownsample(cin, cout, fine.up_pooling, kernel_size=kernel_size,
-                                                            bias=False))
-
-
-class _Blur(nn.Module):
-    def __init__(self, pad_start: int = 0):
-        super().__init__()
-        self.pad_start = pad_start
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return fir_blur_time(F.pad(x, (self.pad_start, 0)) if self.pad_start else x)
-
-
-class _CropStart(nn.Module):
-    def __init__(self, n: int):
-        super().__init__()
-        self.n = n
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x[..., self.n:]
-
-
-class _NoStyle(nn.Module):
-    def __init__(self, conv: nn.Module):
-        super().__init__()
-        self.conv = conv
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.conv(x)
-
-
 # --------------------------------------------------------------------------------------------- generator
-def std_entities_frames(x: torch.Tensor) -> torch.Tensor:
-    """``x.std((2, 3), keepdim=True)`` (unbiased) as a centred two-pass sum over the flattened (entity, frame)
-    axis: the same value to rounding, and several times faster than torch's CPU ``std`` over two dims, which
-    dominated sampling the released generator (docs/results.md)."""
-    f = x.flatten(2)
-    d = f - f.mean(-1, keepdim=True)
-    return (torch.linalg.vecdot(d, d) / (f.shape[-1] - 1)).sqrt()[..., None, None]
-
-
-def inv_std_entities_frames(x: torch.Tensor) -> torch.Tensor:
-    """``1 / std_entities_frames(x)`` without a graph, from ATen's layer-norm row moments: one vectorised pass per
-    (sample, channel) row, where the centred two-pass sum makes four passes over a tensor (11 MB at the finest
-    level of a 64-motion batch) that no longer fits in L2 (what sampling gains: docs/results.md).  layer_norm's
-    rstd is of the biased variance, hence the factor sqrt((n - 1) / n)."""
-    n = x.shape[2] * x.shape[3]
-    if n < 2:  # the unbiased std of one value is undefined (nan), as torch.std has it
-        return std_entities_frames(x).reciprocal_()
-    _, _, rstd = torch.native_layer_norm(x.flatten(2), [n], None, None, 0.0)
-    return rstd.view(x.shape[0], x.shape[1], 1, 1).mul_(math.sqrt((n - 1) / n))
-
-
-def std_normalised_leaky_relu_(x: torch.Tensor, bias: torch.Tensor, slope: float = 0.2) -> torch.Tensor:
-    """``fused_leaky_relu(x / std_entities_frames(x), bias)`` for inference, in ``x``'s memory (a copy first only if
-    ``x`` is not contiguous): sqrt(2) / std folds into one per-(sample, channel) factor, and the scale, the bias and
-    the activation run in place, where the autograd form allocates a tensor at each of its six elementwise steps.
-    Same values to float rounding; no graph (call it under ``torch.no_grad()``)."""
-    x = x.contiguous()
-    x.mul_(inv_std_entities_frames(x).mul_(SQRT2)).add_((bias * SQRT2).view(1, -1, 1, 1))
-    return F.leaky_relu_(x, slope)
-
-
 class StyledConv(nn.Module):
     """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
 
@@ -351,12 +92,12 @@ class ToMotion(nn.Module):
 
     def __init__(self, cfg: ModelConfig, in_ch: int, out_ch: int, level: LevelSpec):
         super().__init__()
-        self.conv = _modconv(cfg, in_ch, out_ch, level, "same", kernel_size=1, demodulate=False, per_entity=True)
+        self.conv = modconv_layer(cfg, in_ch, out_ch, level, "same", kernel_size=1, demodulate=False, per_entity=True)
         self.bias = nn.Parameter(torch.zeros(1, out_ch, 1, 1))
         self.skeleton_aware = cfg.skeleton_aware
         self.size = (level.n_entities, level.n_frames)
         if level.up_pooling is not None and cfg.skeleton_aware:
-            self.register_buffer("unpool", _unpool_matrix(level.up_pooling, level.n_entities), persistent=False)
+            self.register_buffer("unpool", unpool_matrix(level.up_pooling, level.n_entities), persistent=False)
         else:
             self.unpool = None
 
@@ -391,7 +132,7 @@ class Generator(nn.Module):
         lv0 = self.levels[0]
         self.const = nn.Parameter(torch.randn(1, lv0.channels, lv0.n_entities, lv0.n_frames))
         noise, act_demod = cfg.noise_injection, cfg.demodulation == "activations"
-        self.conv1 = StyledConv(_modconv(cfg, lv0.channels, lv0.channels, lv0, "same"),
+        self.conv1 = StyledConv(modconv_layer(cfg, lv0.channels, lv0.channels, lv0, "same"),
                                 lv0.channels, lv0.n_entities, lv0.n_frames, noise, act_demod)
         self.to_motion1 = ToMotion(cfg, lv0.channels, out_channels, lv0)
 
@@ -402,10 +143,10 @@ class Generator(nn.Module):
         for i in range(1, len(self.levels)):
             prev, lv = self.levels[i - 1], self.levels[i]
             sg2_up = cfg.time_padding == "stylegan2" and cfg.skeleton_aware and cfg.scaler == "conv"
-            convs = [StyledConv(_modconv(cfg, prev.channels, lv.channels, lv, "up"),
+            convs = [StyledConv(modconv_layer(cfg, prev.channels, lv.channels, lv, "up"),
                                 lv.channels, lv.n_entities, lv.n_frames, noise, act_demod, sg2_up)]
             for _ in range(n_inplace):
-                convs.append(StyledConv(_modconv(cfg, lv.channels, lv.channels, lv, "same"),
+                convs.append(StyledConv(modconv_layer(cfg, lv.channels, lv.channels, lv, "same"),
                                         lv.channels, lv.n_entities, lv.n_frames, noise, act_demod))
             self.blocks.append(nn.ModuleList(convs))
             self.to_motions.append(ToMotion(cfg, lv.channels, out_channels, lv))
@@ -552,10 +293,10 @@ class ResBlock(nn.Module):
         super().__init__()
         cin, cout = fine.channels, coarse.channels
         n_inplace = cfg.inplace_convs_per_level
-        convs: list[nn.Module] = [ConvAct(_conv(cfg, cin, cin, fine), cin) for _ in range(n_inplace)]
-        convs.append(ConvAct(_down(cfg, cin, cout, fine, coarse, cfg.kernel_size), cout))
+        convs: list[nn.Module] = [ConvAct(conv_layer(cfg, cin, cin, fine), cin) for _ in range(n_inplace)]
+        convs.append(ConvAct(down_layer(cfg, cin, cout, fine, coarse, cfg.kernel_size), cout))
         self.convs = nn.Sequential(*convs)
-        self.skip = _down(cfg, cin, cout, fine, coarse, 1)
+        self.skip = down_layer(cfg, cin, cout, fine, coarse, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (self.convs(x) + self.skip(x)) / SQRT2
@@ -580,12 +321,12 @@ class Discriminator(nn.Module):
         self.cfg = cfg
         self.levels = list(levels)
         fine = self.levels[-1]
-        self.from_motion = ConvAct(_conv(cfg, in_channels, fine.channels, fine, kernel_size=1, per_entity=True),
+        self.from_motion = ConvAct(conv_layer(cfg, in_channels, fine.channels, fine, kernel_size=1, per_entity=True),
                                    fine.channels)
         self.blocks = nn.Sequential(*[ResBlock(cfg, self.levels[i], self.levels[i - 1])
                                       for i in range(len(self.levels) - 1, 0, -1)])
         lv0 = self.levels[0]
-        self.final_conv = ConvAct(_conv(cfg, lv0.channels + 1, lv0.channels, lv0), lv0.channels)
+        self.final_conv = ConvAct(conv_layer(cfg, lv0.channels + 1, lv0.channels, lv0), lv0.channels)
         self.final_linear = nn.Sequential(
             EqualLinear(lv0.channels * lv0.n_entities * lv0.n_frames, lv0.channels, activate=True),
             EqualLinear(lv0.channels, 1),

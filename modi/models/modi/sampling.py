@@ -23,7 +23,8 @@ from modi.io.formats import save_motion
 from modi.models.modi.checkpoint import REQUIRED_KEYS, load_checkpoint  # noqa: F401 - re-exported
 from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
-from modi.models.modi.networks import Generator, LevelSpec
+from modi.models.modi.levels import LevelSpec
+from modi.models.modi.networks import Generator
 from modi.viz.render import render_positions
 
 

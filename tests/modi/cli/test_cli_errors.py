@@ -32,7 +32,8 @@ def _tiny_generator_checkpoint(path: Path) -> None:
     """A tiny untrained MoDi generator on the built-in humanoid (what ``modi train`` would save, minus training)."""
     from modi.models.modi.encoder.training import generator_bundle
     from modi.models.modi.config import ModelConfig
-    from modi.models.modi.networks import Generator, build_levels
+    from modi.models.modi.levels import build_levels
+    from modi.models.modi.networks import Generator
     from modi.models.modi.training import MotionCodec
     from modi.data.normalization import Normalizer
     from modi.data.procedural import KINDS, builtin_skeleton, generate_clip

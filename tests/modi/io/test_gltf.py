@@ -140,7 +140,8 @@ def _tiny_generator_checkpoint(path: Path, frames: int = 16, nan: bool = False) 
     """An untrained tiny MoDi generator on the built-in humanoid: enough for every MoDi writing command."""
     from modi.models.modi.encoder.training import generator_bundle
     from modi.models.modi.config import ModelConfig
-    from modi.models.modi.networks import Generator, build_levels
+    from modi.models.modi.levels import build_levels
+    from modi.models.modi.networks import Generator
     from modi.models.modi.training import MotionCodec
     from modi.data.normalization import Normalizer
     from modi.data.procedural import KINDS, builtin_skeleton, generate_clip

@@ -157,7 +157,8 @@ def test_opcheck_backward_ops(kind, padding):
 
 def _modi_pair():
     from modi.models.modi.config import ModelConfig
-    from modi.models.modi.networks import Discriminator, Generator, build_levels
+    from modi.models.modi.levels import build_levels
+    from modi.models.modi.networks import Discriminator, Generator
     from modi.data.procedural import builtin_skeleton
     from modi.core.skeleton_graph import build_hierarchy
 

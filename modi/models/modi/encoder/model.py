@@ -22,7 +22,9 @@ from torch import Tensor, nn
 
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.latent.space import mean_w
-from modi.models.modi.networks import ConvAct, LevelSpec, PseudoImageConv, ResBlock
+from modi.models.modi.ablations import NoStyle, PseudoImageConv
+from modi.models.modi.levels import LevelSpec
+from modi.models.modi.networks import ConvAct, ResBlock
 from modi_ext.layers import EqualLinear, SkeletalConv
 
 ENCODER_HEADS = ("released", "bottleneck")
@@ -89,20 +91,11 @@ class _EntityProjection(nn.Module):
             conv: nn.Module = SkeletalConv(in_ch, out_ch, [[j] for j in range(level.n_entities)], kernel_size=1,
                                            bias=False)
         else:
-            conv = _NoStyle(PseudoImageConv(in_ch, out_ch, 1))
+            conv = NoStyle(PseudoImageConv(in_ch, out_ch, 1))
         self.net = ConvAct(conv, out_ch)
 
     def forward(self, x: Tensor) -> Tensor:
         return self.net(x)
-
-
-class _NoStyle(nn.Module):
-    def __init__(self, conv: nn.Module):
-        super().__init__()
-        self.conv = conv
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self.conv(x)
 
 
 class MotionEncoder(nn.Module):
@@ -138,7 +131,7 @@ class MotionEncoder(nn.Module):
             final: nn.Module = SkeletalConv(lv0.channels, lv0.channels, lv0.neighbors,
                                             kernel_size=model_cfg.kernel_size, bias=False)
         else:
-            final = _NoStyle(PseudoImageConv(lv0.channels, lv0.channels, model_cfg.kernel_size))
+            final = NoStyle(PseudoImageConv(lv0.channels, lv0.channels, model_cfg.kernel_size))
         self.final_conv = ConvAct(final, lv0.channels)
         hidden = cfg.hidden if cfg.hidden else max(cfg.latent_dim, lv0.channels)
         self.fc = EqualLinear(lv0.channels * lv0.n_entities * lv0.n_frames, hidden, activate=True)

@@ -44,7 +44,8 @@ def procedural_windows():
 def decoder_generator(steps: int = 250):
     """(g, codec, normalised windows): a tiny generator fitted as the decoder of an autoencoder, then frozen."""
     from modi.models.modi.config import ModelConfig
-    from modi.models.modi.networks import Generator, build_levels
+    from modi.models.modi.levels import build_levels
+    from modi.models.modi.networks import Generator
     from modi.models.modi.training import MotionCodec
     from modi.core.skeleton_graph import build_hierarchy
 

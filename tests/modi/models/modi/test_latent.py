@@ -21,7 +21,8 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def build_tiny(seed: int = 0, latent: int = 16):
     """A tiny generator on the built-in humanoid (16 frames) with a codec normalised on procedural clips."""
     from modi.models.modi.config import ModelConfig
-    from modi.models.modi.networks import Generator, build_levels
+    from modi.models.modi.levels import build_levels
+    from modi.models.modi.networks import Generator
     from modi.models.modi.training import MotionCodec
     from modi.data.normalization import Normalizer
     from modi.data.procedural import KINDS, builtin_skeleton, generate_clip

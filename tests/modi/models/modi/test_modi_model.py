@@ -13,10 +13,13 @@ from modi.models.modi.config import ABLATIONS, MoDiConfig, ModelConfig, make_con
 from modi.models.modi.losses import (contact_probability, d_logistic_loss, d_r1_penalty,
                                     foot_contact_consistency_loss, foot_touch_loss, g_nonsaturating_loss,
                                     lazy_regularization_adam_params, path_length_penalty)
-from modi.models.modi.networks import (Discriminator, Generator, StyledConv, build_levels, fir_blur_time,
-                                      fir_downsample_time, fir_upsample_time, fused_leaky_relu, minibatch_stddev,
-                                      inv_std_entities_frames, std_entities_frames,
-                                      std_normalised_leaky_relu_)
+from modi.models.modi.fastpaths import inv_std_entities_frames, std_entities_frames, std_normalised_leaky_relu_
+from modi.models.modi.levels import build_levels
+from modi.models.modi.networks import Discriminator, Generator, StyledConv, minibatch_stddev
+from modi_ext.fir import blur_time as fir_blur_time
+from modi_ext.fir import downsample_time as fir_downsample_time
+from modi_ext.fir import upsample_time as fir_upsample_time
+from modi_ext.layers import fused_leaky_relu
 from modi.core.skeleton import Skeleton
 from modi.core.skeleton_graph import build_hierarchy
 

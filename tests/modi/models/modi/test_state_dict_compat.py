@@ -17,7 +17,8 @@ from modi.core.skeleton import Skeleton
 from modi.core.skeleton_graph import build_hierarchy
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.encoder.model import EncoderConfig, MotionEncoder
-from modi.models.modi.networks import Discriminator, Generator, build_levels
+from modi.models.modi.levels import build_levels
+from modi.models.modi.networks import Discriminator, Generator
 
 FIXTURE = Path(__file__).parent / "data" / "state_dicts_before_issue50.pt"
 VARIANTS = ("conv", "pseudo", "pool")
