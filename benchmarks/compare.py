@@ -29,14 +29,14 @@ Like the ``modi`` command, it imports modi_ext before torch, which picks the Ope
 Reference and extension runs are interleaved (ref, ext, ref, ext, ...) so machine load affects both alike; the
 medians are reported.  The MoDi skeletal cases also time ``dense`` (``MODI_EXT_IMPL=dense``: one shared conv with
 style and demodulation as scales) as a third interleaved side: ``dense_ms``, ``speedup_dense_vs_ref`` and
-``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against issue 20's targets (dense >= 5x the
+``speedup_ext_vs_dense``; ``modulated_conv.finest.fwd_bwd`` is checked against its targets (dense >= 5x the
 grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the input and every parameter.
 
 ``--thread-ab N`` also times the extension alone at ``--threads`` and at N threads, alternated in blocks of a few
 calls in this process (``--ab-reps`` timed calls each), for thread-scaling figures that machine drift cannot skew:
 ``ext_ms_threads`` (median ms per thread count) and ``ext_thread_ratio`` (time at ``--threads`` / time at N).
 
-``--bf16`` (CPU, issue 52) times each case in bfloat16 (the same modules and inputs cast to bf16: the ``dense`` path,
+``--bf16`` (CPU) times each case in bfloat16 (the same modules and inputs cast to bf16: the ``dense`` path,
 oneDNN's bf16 GEMMs where the CPU has bf16 units) against float32 on ``auto`` (the kernels), the two interleaved,
 ``--repeats`` times at each of ``--threads-list``: per case and thread count the bf16 / fp32 time ratio of each
 repeat, reported as median, min and max (default cases: the finest skeletal and modulated conv, fwd_bwd).
@@ -510,7 +510,7 @@ def _backward_over_forward(results: dict) -> None:
             print(f"{name}: backward / forward  ref {r['ref_bwd_over_fwd']:.2f}  ext {r['ext_bwd_over_fwd']:.2f}")
 
 
-TARGET_CASE = "modulated_conv.finest.fwd_bwd"  # issue 20: dense >= 5x the grouped reference, ext >= 3x dense
+TARGET_CASE = "modulated_conv.finest.fwd_bwd"  # the targets: dense >= 5x the grouped reference, ext >= 3x dense
 
 
 def _targets(results: dict) -> None:

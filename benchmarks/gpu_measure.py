@@ -1,4 +1,4 @@
-"""The stages of ``python -m modi_ext.validate --out DIR`` (issue 51: measure first, in one command).
+"""The stages of ``python -m modi_ext.validate --out DIR`` (measure first, in one command).
 
 They live here, not in ``modi_ext``, because they drive ``modi``'s trainers and the authors' code (``modi_ext``
 never imports ``modi``); ``modi_ext.validate`` runs this script as it runs compare.py and train_step.py.
@@ -320,8 +320,7 @@ def stage_modi_step(ctx: Ctx, partial: Callable) -> dict:
         partial(res)
     kw = graphed_support(Trainer)
     if kw is None:
-        res["graphed"] = {"status": "not available", "reason": "modi has no CUDA-graph training path yet "
-                                                               "(issue 51 item 4)"}
+        res["graphed"] = {"status": "not available", "reason": "modi has no CUDA-graph training path yet"}
     elif not ctx.cuda:
         res["graphed"] = {"status": "skipped", "reason": "no CUDA"}
     else:

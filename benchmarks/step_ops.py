@@ -102,7 +102,7 @@ class OpCounter(TorchDispatchMode):
 
 
 def _step_method(tr: Any) -> str:
-    """The method the training loop calls once per step (``run_step`` since issue 51, ``train_step`` before)."""
+    """The method the training loop calls once per step (``run_step``; ``train_step`` in modi before 0.2)."""
     return "run_step" if hasattr(tr, "run_step") else "train_step"
 
 
