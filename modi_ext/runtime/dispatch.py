@@ -7,8 +7,12 @@
 2. the kernels passed their self-check for this (device, dtype): on first use a tiny random problem runs through each
    kernel and the float64 reference (``modi_ext.runtime.selfcheck``); a mismatch gives one warning naming the op and the
    error and routes that (device, dtype) to ``dense`` (``MODI_EXT_SELFCHECK=0`` skips the check, ``strict`` raises);
-3. on devices in ``MEASURE_DEVICES`` (CUDA): the kernel measured faster than ``dense`` for this (device, op, shape
-   signature) -- both timed once, a few repetitions, like ``cudnn.benchmark``.  On the CPU the kernels always win.
+3. on devices in ``MEASURE_DEVICES`` (CUDA): the kernel measured fastest of every correct path -- ``ext``, ``dense``
+   and ``ref`` (the reference is one cuDNN conv on the masked dense weight: at large batches its TF32 tensor cores
+   can beat both) -- for this (device, op, shape signature, precision settings), each timed once, a few repetitions,
+   like ``cudnn.benchmark``; a path that cannot run the shape loses.  The signature holds the TF32 switches
+   (``torch.backends.cudnn.allow_tf32``, ``torch.backends.cuda.matmul.allow_tf32``), since they change which path
+   is fastest.  On the CPU the kernels always win.
 
 ``ext`` forces the kernels (no self-check: it is how the kernels themselves are tested); a device without kernels is
 then an error naming the build.  ``dispatch_report()`` lists every decision taken so far.
@@ -41,6 +45,7 @@ __all__ = ["route", "record_path", "kernels_built", "kernels_trusted", "dispatch
 CPU_KERNEL_DTYPES = (torch.float32, torch.float64)  # the CPU kernels' dtypes; bfloat16 on the CPU runs on ``dense``
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
+AUTO_PATHS = ("ext", "dense", "ref")  # the paths ``auto`` times against each other where it measures
 
 
 def _default_timer(name: str, fn: Callable[[], object], device: str) -> float:
@@ -176,7 +181,8 @@ _measuring = threading.local()  # ``active`` while ``auto`` times the paths: tho
 def _signature(x: torch.Tensor, inputs: tuple, options: tuple, train: bool) -> str:
     shapes = " ".join(str(tuple(t.shape)) if isinstance(t, torch.Tensor) else "-" for t in inputs)
     opts = " ".join(str(o) for o in options)
-    return f"{str(x.dtype).replace('torch.', '')} {shapes} {opts} {'fwd_bwd' if train else 'fwd'}"
+    tf32 = f"tf32={int(torch.backends.cudnn.allow_tf32)}{int(torch.backends.cuda.matmul.allow_tf32)}"
+    return f"{str(x.dtype).replace('torch.', '')} {shapes} {opts} {tf32} {'fwd_bwd' if train else 'fwd'}"
 
 
 def _bench(rerun: Callable[..., torch.Tensor], inputs: tuple, train: bool) -> Callable[[str], Callable[[], object]]:
@@ -233,32 +239,38 @@ def _cached_choice(op: str, device: str, sig: str) -> str:
 
 
 def _measured(op: str, device: str, sig: str, bench: Callable[[str], Callable[[], object]]) -> str:
+    """The fastest of ``AUTO_PATHS`` for this call signature, timed once and cached (``dispatch_report``'s "auto"
+    rows: each path's median ms, or the error that made it lose)."""
     key = (device, op, sig)
     with _lock:
         rec = _auto.get(key)
         if rec is not None:
             return rec["choice"]
-        times: dict[str, list[float]] = {"ext": [], "dense": []}
-        error = None
+        fns: dict[str, Callable[[], object]] = {}
+        times: dict[str, list[float]] = {}
+        errors: dict[str, str] = {}
+
+        def attempt(path: str, run: Callable[[], object]) -> None:
+            try:
+                run()
+            except Exception as exc:  # noqa: BLE001 - a path that cannot run this shape loses
+                errors[path] = f"{type(exc).__name__}: {exc}"
+                fns.pop(path, None)
+                times.pop(path, None)
+
         _measuring.active = True
         try:
-            fns = {impl: bench(impl) for impl in times}
-            for impl, fn in fns.items():  # warm-up (allocator, cuDNN plans)
-                fn()
-            for _ in range(AUTO_REPS):
-                for impl, fn in fns.items():
-                    times[impl].append(TIMER(impl, fn, device))
-        except Exception as exc:  # noqa: BLE001 - a kernel that cannot run this shape loses
-            error = f"{type(exc).__name__}: {exc}"
+            for path in AUTO_PATHS:  # build and warm up each (allocator, cuDNN plans)
+                attempt(path, lambda path=path: fns.__setitem__(path, bench(path)) or fns[path]())
+            for _ in range(AUTO_REPS):  # the paths interleaved, so that a drifting clock skews none
+                for path, fn in list(fns.items()):
+                    attempt(path, lambda path=path, fn=fn: times.setdefault(path, []).append(TIMER(path, fn, device)))
         finally:
             _measuring.active = False
-        if error is not None or len(times["ext"]) < AUTO_REPS:
-            rec = {"choice": "dense", "error": error}
-        else:
-            ext_ms = statistics.median(times["ext"]) * 1e3
-            dense_ms = statistics.median(times["dense"]) * 1e3
-            rec = {"choice": "ext" if ext_ms <= dense_ms else "dense", "ext_ms": round(ext_ms, 4),
-                   "dense_ms": round(dense_ms, 4)}
+        ms = {path: round(statistics.median(t) * 1e3, 4) for path, t in times.items()}
+        rec = {"choice": min(ms, key=ms.get) if ms else "dense", **{f"{p}_ms": v for p, v in ms.items()}}
+        if errors:
+            rec["error"] = "; ".join(f"{p}: {e}" for p, e in errors.items())
         _auto[key] = rec
         return rec["choice"]
 

@@ -360,7 +360,7 @@ def test_forced_ext_skips_the_selfcheck(monkeypatch):
 # ------------------------------------------------------------------------------------------------ auto timing
 class FakeTimer:
     def __init__(self, ms: dict[str, float]):
-        self.ms, self.calls = ms, []
+        self.ms, self.calls = {"ref": 99.0, **ms}, []  # the reference slowest unless a test says otherwise
 
     def __call__(self, name, fn, device):
         fn()
@@ -395,6 +395,34 @@ def test_auto_keeps_the_faster_path_once_per_signature(monkeypatch, ext_ms, dens
     assert len(rows) == 3 and {r["choice"] for r in rows} == {want}
     assert rows[0]["ext_ms"] == pytest.approx(ext_ms) and rows[0]["dense_ms"] == pytest.approx(dense_ms)
     assert "fwd_bwd" in rows[2]["signature"] and "fwd_bwd" not in rows[0]["signature"]
+    assert rows[0]["ref_ms"] == pytest.approx(99.0) and "error" not in rows[0]
+
+
+@needs_ext
+@pytest.mark.parametrize("grad", [False, True])
+def test_auto_takes_the_reference_where_it_is_fastest(monkeypatch, grad):
+    """The reference (one cuDNN conv on CUDA) is a candidate too: it runs, and its result is the op's."""
+    monkeypatch.setattr(dispatch, "MEASURE_DEVICES", {"cuda", "cpu"})
+    monkeypatch.setattr(dispatch, "TIMER", FakeTimer({"ext": 3.0, "dense": 2.0, "ref": 1.0}))
+    p = problem("conv", dtype=torch.float32)
+    x = p["x"].clone().requires_grad_(grad)
+    y = call(ops, p, x=x)
+    torch.testing.assert_close(y, call(reference, p), rtol=1e-5, atol=1e-5)
+    if grad:
+        y.sum().backward()
+        assert x.grad is not None
+    (row,) = [r for r in modi_ext.dispatch_report() if r["kind"] == "auto"]
+    assert row["choice"] == "ref" and row["ref_ms"] == pytest.approx(1.0)
+    paths = [r for r in modi_ext.dispatch_report() if r["kind"] == "path" and r["op"] == "skeletal_conv"]
+    assert [(r["path"], r["calls"]) for r in paths] == [("ref", 1)]  # the timing runs are not counted
+
+
+def test_auto_signature_holds_the_tf32_switches(monkeypatch):
+    x = torch.zeros(2, 3)
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    on = dispatch._signature(x, (x,), (1,), False)
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    assert dispatch._signature(x, (x,), (1,), False) != on
 
 
 @needs_ext
