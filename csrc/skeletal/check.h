@@ -56,7 +56,10 @@ inline Geo check_inputs(const Backend& be, int64_t kind, const at::Tensor& x, co
                         const std::optional<at::Tensor>& scale, c10::string_view padding_mode) {
   TORCH_CHECK(be.on_device(x), "x must be a ", be.name, " tensor for the ", be.name, " kernel, got ", x.device());
   TORCH_CHECK(x.dim() == 4, "x must be 4-D (B, C, E, T), got ", x.dim(), " dims");
-  TORCH_CHECK(takes_float(be, x.scalar_type()), "x must be ", float_names(be), ", got ", x.scalar_type());
+  // The CPU kernels take bfloat16 as well (bf16k.h), which the other CPU ops do not.
+  const bool cpu_bf16 = !be.cuda && x.scalar_type() == at::kBFloat16;
+  TORCH_CHECK(takes_float(be, x.scalar_type()) || cpu_bf16, "x must be ",
+              be.cuda ? float_names(be) : "float32, float64 or bfloat16", ", got ", x.scalar_type());
   TORCH_CHECK(x.is_contiguous(), "x must be contiguous");
   TORCH_CHECK(weight.dim() == 4, "weight must be 4-D compact (C0, nnz, C1, U), got ", weight.dim(), " dims");
   check_like_x(weight, "weight", x);

@@ -27,6 +27,7 @@
 #include <torch/library.h>
 
 #include "common/tasks.h"
+#include "skeletal/bf16k.h"
 #include "skeletal/check.h"
 #include "skeletal/cpu_common.h"
 #include "skeletal/fastk.h"
@@ -359,6 +360,14 @@ at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weig
   const Geo g = check_inputs(kCpuBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
   const Csr csr = make_csr(index, offsets, kind == kUp ? g.Eout : g.Ein);
   at::Tensor y = at::empty({g.B, g.Cout, g.Eout, g.Tout}, x.options());
+  if (x.scalar_type() == at::kBFloat16) {
+    using bf = bf16k::bf16;
+    auto p = [](const at::Tensor& t) { return reinterpret_cast<const bf*>(t.data_ptr<at::BFloat16>()); };
+    auto opt = [&](const std::optional<at::Tensor>& t) { return t.has_value() ? p(*t) : nullptr; };
+    bf16k::forward(g, csr, p(x), p(weight), opt(bias), opt(style), opt(scale),
+                   reinterpret_cast<bf*>(y.data_ptr<at::BFloat16>()));
+    return y;
+  }
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "skeletal_forward", [&] {
     using T = scalar_t;
     const T* bp = bias.has_value() ? bias->data_ptr<T>() : nullptr;
@@ -603,6 +612,15 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
   at::Tensor gb = bias.has_value() ? at::empty_like(*bias) : empty();
   at::Tensor gs = (output_mask[2] && style.has_value()) ? at::empty_like(*style) : empty();
   at::Tensor gd = (output_mask[3] && scale.has_value()) ? at::empty_like(*scale) : empty();
+  if (x.scalar_type() == at::kBFloat16) {
+    using bf = skeletal::bf16k::bf16;
+    auto p = [](const at::Tensor& t) { return reinterpret_cast<const bf*>(t.data_ptr<at::BFloat16>()); };
+    auto opt = [&](const std::optional<at::Tensor>& t) { return t.has_value() ? p(*t) : nullptr; };
+    auto o = [](at::Tensor& t) { return t.numel() ? reinterpret_cast<bf*>(t.data_ptr<at::BFloat16>()) : nullptr; };
+    skeletal::bf16k::backward(g, csr, p(grad), p(out), p(x), p(weight), opt(bias), opt(style), opt(scale), o(gx),
+                              o(gw), o(gb), o(gs), o(gd));
+    return {gx, gw, gb, gs, gd};
+  }
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "skeletal_backward", [&] {
     using T = scalar_t;
     auto ptr = [](at::Tensor& t) -> T* { return t.numel() ? t.data_ptr<T>() : nullptr; };
@@ -613,6 +631,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
                                ptr(gd));
   });
   return {gx, gw, gb, gs, gd};
+}
+
+// Which micro-kernels the bf16 CPU path runs in this process ("avx512_bf16" or "emulated"), for dispatch_report.
+TORCH_LIBRARY_FRAGMENT(modi_ext, m) {
+  m.def("skeletal_cpu_bf16_kernel() -> str", +[]() { return std::string(skeletal::bf16k::kernel_name()); });
 }
 
 TORCH_LIBRARY_IMPL(modi_ext, CPU, m) {

@@ -1,0 +1,202 @@
+// The micro-kernels of the bf16 path (bf16k.h): AVX-512-BF16 (vdpbf16ps) and a plain-C++ emulation that reads the
+// same layouts, so the indexing is tested on any CPU.
+#include <algorithm>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
+
+#include "skeletal/bf16k.h"
+
+namespace modi_ext {
+namespace skeletal {
+namespace bf16k {
+namespace {
+
+inline float lo(uint32_t p) { return to_f32(bf16(p & 0xffffu)); }
+inline float hi(uint32_t p) { return to_f32(bf16(p >> 16)); }
+
+// Emulated vdpbf16ps lane: acc += a.hi * b.hi, then += a.lo * b.lo (the instruction's order); the products of
+// two bf16 are exact in fp32.
+inline float dp_lane(float acc, uint32_t a, float b0, float b1) {
+  acc += hi(a) * b1;
+  acc += lo(a) * b0;
+  return acc;
+}
+
+template <int R>
+void nn_emu(int64_t Kp, const uint32_t* a, int64_t lda, const bf16* const* ptr, int64_t col, float* c, int64_t ldc) {
+  float acc[R][kColTile];
+  for (int r = 0; r < R; ++r) std::fill(acc[r], acc[r] + kColTile, 0.f);
+  for (int64_t kp = 0; kp < Kp; ++kp) {
+    const bf16* p = ptr[kp] + 2 * col;
+    float b0[kColTile], b1[kColTile];
+    for (int j = 0; j < kColTile; ++j) b0[j] = to_f32(p[2 * j]), b1[j] = to_f32(p[2 * j + 1]);
+    for (int r = 0; r < R; ++r) {
+      const uint32_t av = a[kp * lda + r];
+      for (int j = 0; j < kColTile; ++j) acc[r][j] = dp_lane(acc[r][j], av, b0[j], b1[j]);
+    }
+  }
+  for (int r = 0; r < R; ++r) std::copy(acc[r], acc[r] + kColTile, c + r * ldc);
+}
+
+template <int R>
+void wg_emu(int64_t Np, const bf16* const* a, const uint32_t* lt, float* out) {
+  float acc[R][32];
+  for (int r = 0; r < R; ++r) std::fill(acc[r], acc[r] + 32, 0.f);
+  for (int64_t np = 0; np < Np; ++np) {
+    const uint32_t* g = lt + np * 32;
+    for (int r = 0; r < R; ++r) {
+      uint32_t av;
+      std::memcpy(&av, a[r] + 2 * np, 4);
+      for (int j = 0; j < 32; ++j) acc[r][j] = dp_lane(acc[r][j], av, lo(g[j]), hi(g[j]));
+    }
+  }
+  for (int r = 0; r < R; ++r) std::copy(acc[r], acc[r] + 32, out + r * 32);
+}
+
+#if defined(__x86_64__)
+#define MODI_BF16_TARGET __attribute__((target("avx512f,avx512bw,avx512bf16")))
+// As the fp32 kernels: every step reads a strip of a different pointer row, more streams than the hardware
+// prefetchers follow, so each step asks for the strip kPrefetchSteps ahead.
+constexpr int64_t kPrefetchSteps = 16;
+
+// R rows (up to 9: 27 accumulators) x 48 columns (3 vectors of 16 column pairs).
+template <int R>
+MODI_BF16_TARGET void nn_avx(int64_t Kp, const uint32_t* a, int64_t lda, const bf16* const* ptr, int64_t col,
+                             float* c, int64_t ldc) {
+  __m512 acc[R][3];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = acc[r][2] = _mm512_setzero_ps();
+  for (int64_t kp = 0; kp < Kp; ++kp) {
+    const bf16* p = ptr[kp] + 2 * col;
+    if (kp + kPrefetchSteps < Kp) {
+      const char* q = reinterpret_cast<const char*>(ptr[kp + kPrefetchSteps] + 2 * col);
+      _mm_prefetch(q, _MM_HINT_T0);
+      _mm_prefetch(q + 64, _MM_HINT_T0);
+      _mm_prefetch(q + 128, _MM_HINT_T0);
+      _mm_prefetch(q + 191, _MM_HINT_T0);
+    }
+    const __m512bh b0 = (__m512bh)_mm512_loadu_si512(p), b1 = (__m512bh)_mm512_loadu_si512(p + 32),
+                   b2 = (__m512bh)_mm512_loadu_si512(p + 64);
+    const uint32_t* ak = a + kp * lda;
+    for (int r = 0; r < R; ++r) {
+      const __m512bh av = (__m512bh)_mm512_set1_epi32(static_cast<int>(ak[r]));
+      acc[r][0] = _mm512_dpbf16_ps(acc[r][0], av, b0);
+      acc[r][1] = _mm512_dpbf16_ps(acc[r][1], av, b1);
+      acc[r][2] = _mm512_dpbf16_ps(acc[r][2], av, b2);
+    }
+  }
+  for (int r = 0; r < R; ++r) {
+    _mm512_storeu_ps(c + r * ldc, acc[r][0]);
+    _mm512_storeu_ps(c + r * ldc + 16, acc[r][1]);
+    _mm512_storeu_ps(c + r * ldc + 32, acc[r][2]);
+  }
+}
+
+// out[r][0:32] = sum_np pair(a_r, np) . lt[np][0:32]: R broadcast rows (up to 12: 24 accumulators).
+template <int R>
+MODI_BF16_TARGET void wg_avx(int64_t Np, const bf16* const* a, const uint32_t* lt, float* out) {
+  __m512 acc[R][2];
+  for (int r = 0; r < R; ++r) acc[r][0] = acc[r][1] = _mm512_setzero_ps();
+  const bf16* ar[R];
+  for (int r = 0; r < R; ++r) ar[r] = a[r];
+  for (int64_t np = 0; np < Np; ++np) {
+    const __m512bh g0 = (__m512bh)_mm512_loadu_si512(lt + np * 32),
+                   g1 = (__m512bh)_mm512_loadu_si512(lt + np * 32 + 16);
+    for (int r = 0; r < R; ++r) {
+      int v;
+      std::memcpy(&v, ar[r] + 2 * np, 4);
+      const __m512bh av = (__m512bh)_mm512_set1_epi32(v);
+      acc[r][0] = _mm512_dpbf16_ps(acc[r][0], av, g0);
+      acc[r][1] = _mm512_dpbf16_ps(acc[r][1], av, g1);
+    }
+  }
+  for (int r = 0; r < R; ++r) {
+    _mm512_storeu_ps(out + r * 32, acc[r][0]);
+    _mm512_storeu_ps(out + r * 32 + 16, acc[r][1]);
+  }
+}
+#else
+template <int R>
+void nn_avx(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t) {}
+template <int R>
+void wg_avx(int64_t, const bf16* const*, const uint32_t*, float*) {}
+#endif
+
+using NnFn = void (*)(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t);
+using WgFn = void (*)(int64_t, const bf16* const*, const uint32_t*, float*);
+
+}  // namespace
+
+bool use_avx512bf16() {
+#if defined(__x86_64__)
+  static const bool cpu = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+                          __builtin_cpu_supports("avx512bf16");
+  const char* env = std::getenv("MODI_EXT_CPU_KERNEL");
+  return cpu && !(env != nullptr && std::strcmp(env, "bf16emu") == 0);
+#else
+  return false;
+#endif
+}
+
+const char* kernel_name() { return use_avx512bf16() ? "avx512_bf16" : "emulated"; }
+
+void nn_gemm(const uint32_t* a, int64_t M, int64_t Kp, const bf16* const* ptr, int64_t N, float* acc,
+             int64_t ldacc) {
+  const int64_t cols = (N + kColTile - 1) / kColTile * kColTile;
+  if (Kp == 0) {
+    for (int64_t m = 0; m < M; ++m) std::fill(acc + m * ldacc, acc + m * ldacc + cols, 0.f);
+    return;
+  }
+  static constexpr NnFn avx[9] = {nn_avx<1>, nn_avx<2>, nn_avx<3>, nn_avx<4>, nn_avx<5>,
+                                  nn_avx<6>, nn_avx<7>, nn_avx<8>, nn_avx<9>};
+  static constexpr NnFn emu[9] = {nn_emu<1>, nn_emu<2>, nn_emu<3>, nn_emu<4>, nn_emu<5>,
+                                  nn_emu<6>, nn_emu<7>, nn_emu<8>, nn_emu<9>};
+  const NnFn* fns = use_avx512bf16() ? avx : emu;
+  for (int64_t col = 0; col < cols; col += kColTile)
+    for (int64_t m0 = 0; m0 < M;) {  // rows 8 at a time while more than 9 remain, then the rest in one call
+      const int64_t R = M - m0 > 9 ? 8 : M - m0;
+      fns[R - 1](Kp, a + m0, M, ptr, col, acc + m0 * ldacc + col, ldacc);
+      m0 += R;
+    }
+}
+
+void wgrad(const bf16* const* a, int64_t Ma, const bf16* const* b, int64_t bs, int64_t Mb, int64_t N, bf16* C,
+           int64_t ci, int64_t cj, uint32_t* lt) {
+  static constexpr WgFn avx[12] = {wg_avx<1>, wg_avx<2>, wg_avx<3>, wg_avx<4>,  wg_avx<5>,  wg_avx<6>,
+                                   wg_avx<7>, wg_avx<8>, wg_avx<9>, wg_avx<10>, wg_avx<11>, wg_avx<12>};
+  static constexpr WgFn emu[12] = {wg_emu<1>, wg_emu<2>, wg_emu<3>, wg_emu<4>,  wg_emu<5>,  wg_emu<6>,
+                                   wg_emu<7>, wg_emu<8>, wg_emu<9>, wg_emu<10>, wg_emu<11>, wg_emu<12>};
+  const WgFn* fns = use_avx512bf16() ? avx : emu;
+  const int64_t Np = (N + 1) / 2;
+  float out[12 * 32];
+  for (int64_t j0 = 0; j0 < Mb; j0 += 32) {
+    const int64_t live = std::min<int64_t>(32, Mb - j0);
+    for (int64_t n0 = 0; n0 < Np; n0 += 16) {  // transpose in strips of 16 column pairs (stays in L1)
+      const int64_t n1 = std::min(Np, n0 + 16);
+      for (int64_t jj = 0; jj < live; ++jj) {
+        const bf16* src = b[j0 + jj];
+        for (int64_t np = n0; np < n1; ++np) {
+          const uint32_t l = src[2 * np * bs];
+          const uint32_t h = 2 * np + 1 < N ? src[(2 * np + 1) * bs] : 0u;
+          lt[np * 32 + jj] = l | (h << 16);
+        }
+      }
+      for (int64_t jj = live; jj < 32; ++jj)
+        for (int64_t np = n0; np < n1; ++np) lt[np * 32 + jj] = 0u;
+    }
+    for (int64_t i0 = 0; i0 < Ma; i0 += 12) {
+      const int64_t R = std::min<int64_t>(12, Ma - i0);
+      fns[R - 1](Np, a + i0, lt, out);
+      for (int64_t r = 0; r < R; ++r)
+        for (int64_t jj = 0; jj < live; ++jj) C[(i0 + r) * ci + (j0 + jj) * cj] = to_bf16(out[r * 32 + jj]);
+    }
+  }
+}
+
+}  // namespace bf16k
+}  // namespace skeletal
+}  // namespace modi_ext
