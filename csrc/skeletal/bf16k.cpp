@@ -42,6 +42,7 @@ struct LayoutBuild {
   Layout l;
   Src s;
   int64_t S = 1, chunk = 1;
+  Cvt cvt = cvt_fns();
   mutable SlotScratch<float> tmp;
   LayoutBuild(const Src& src, int64_t C, int64_t E, int64_t S_, int64_t Tq, int64_t max_shift, bool paired)
       : s(src), S(S_) {
@@ -67,7 +68,7 @@ struct LayoutBuild {
     const bool reflect = s.reflect;
     const float fv = s.at(b, c, e);
     const bf16* r = s.src + ((b * l.C + c) * l.E + e) * Ts;
-    for (int64_t t = 0; t < Ts; ++t) srow[t] = to_f32(r[t]);
+    for (int64_t t = 0; t < Ts; ++t) srow[t] = to_f32(r[t]);  // (vectorised: a shift)
     const float* v = srow;
     if (s.blur_adjoint) {
       blur_adjoint_row<float>(srow, blurred, Ts);
@@ -98,19 +99,18 @@ struct LayoutBuild {
     const int64_t Cs = l.Cs, E = l.E, Tq = l.Tq, W = l.width;
     const int64_t ph = r / (Cs * E), cs = (r / E) % Cs, e = r % E;
     bf16* dst = l.buf.data() + r * l.row_len * W;
-    float* t = tmp.get(slot, static_cast<size_t>(Tq + 2 * s.Ts));
-    float *srow = t + Tq, *blurred = srow + s.Ts;
-    for (int64_t j = 0; j < W; ++j) {
-      const int64_t c = cs * W + j;
-      if (c >= l.C) {  // the zero channel of an odd count
-        for (int64_t n = 0; n < s.B * Tq; ++n) dst[n * W + j] = 0;
+    float* t = tmp.get(slot, static_cast<size_t>(2 * Tq + 2 * s.Ts));
+    float *t1 = t + Tq, *srow = t1 + Tq, *blurred = srow + s.Ts;
+    const int64_t c0 = cs * W;
+    const bool two = W == 2 && c0 + 1 < l.C;  // else the zero channel of an odd count
+    for (int64_t b = 0; b < s.B; ++b) {
+      row_values(ph, b, c0, e, t, srow, blurred);
+      if (W == 1) {
+        cvt.affine(t, dst + b * Tq, Tq, 1.f, 0.f);
         continue;
       }
-      for (int64_t b = 0; b < s.B; ++b) {
-        row_values(ph, b, c, e, t, srow, blurred);
-        bf16* d = dst + b * Tq * W + j;
-        for (int64_t m = 0; m < Tq; ++m) d[m * W] = to_bf16(t[m]);
-      }
+      if (two) row_values(ph, b, c0 + 1, e, t1, srow, blurred);
+      cvt.pairs(t, two ? t1 : nullptr, dst + b * Tq * 2, Tq);
     }
     std::fill(dst + s.B * Tq * W, dst + l.row_len * W, bf16(0));
   }
@@ -155,10 +155,6 @@ struct PackBuild {
   Phase phase() const { return cpu_tasks::phase(static_cast<int64_t>(ks.size()), *this); }
 };
 
-inline void store_row(const float* v, bf16* dst, int64_t L, float f, float bb) {
-  for (int64_t t = 0; t < L; ++t) dst[t] = to_bf16(v[t] * f + bb);
-}
-
 inline void interleave_row(const float* a0, const float* a1, float* out, int64_t Lp) {
   const int64_t pairs = Lp / 2;
   for (int64_t i = 0; i < pairs; ++i) {
@@ -192,6 +188,7 @@ void forward(const Geo& g, const Csr& csr, const bf16* x, const bf16* w, const b
   src.fc = 1;
   auto bias_at = [&](int64_t o) { return bias ? to_f32(bias[o]) : 0.f; };
   auto scale_at = [&](int64_t b, int64_t o, int64_t e) { return scale ? to_f32(scale[(b * Co + o) * g.Eout + e]) : 1.f; };
+  const Cvt cvt = cvt_fns();
   SlotScratch<float> accs;
   SlotScratch<const bf16*> ptrs;
   if (g.kind != kUp) {
@@ -226,8 +223,8 @@ void forward(const Geo& g, const Csr& csr, const bf16* x, const bf16* w, const b
       nn_gemm(pk.at(j), Co, k * Cp * U, ptr, N, acc, ldacc);
       for (int64_t bl = 0; bl < nbl; ++bl)
         for (int64_t o = 0; o < Co; ++o)
-          store_row(acc + o * ldacc + bl * Tq, y + (((b0 + bl) * Co + o) * g.Eout + j) * g.Tout, g.Tout,
-                    scale_at(b0 + bl, o, j), bias_at(o));
+          cvt.affine(acc + o * ldacc + bl * Tq, y + (((b0 + bl) * Co + o) * g.Eout + j) * g.Tout, g.Tout,
+                     scale_at(b0 + bl, o, j), bias_at(o));
     };
     const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
     run_stages({{prep, 2}, {compute, 1}}, par);
@@ -279,8 +276,7 @@ void forward(const Geo& g, const Csr& csr, const bf16* x, const bf16* w, const b
       for (int64_t o = 0; o < Co; ++o) {
         up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, tmp, g.Tout, h, g.reflect,
                scale_at(b, o, f), bias_at(o));
-        bf16* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
-        for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = to_bf16(tmp[t2]);
+        cvt.affine(tmp, y + ((b * Co + o) * g.Eout + f) * g.Tout, g.Tout, 1.f, 0.f);
       }
     }
   };
@@ -323,6 +319,7 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
     return;
   }
   std::vector<float> gs_part(gs ? static_cast<size_t>(Ei * B * Ci) : 0, 0.f);
+  const Cvt cvt = cvt_fns();
   auto finish = [&](const float* row, int64_t b, int64_t i, int64_t n, int64_t L) {
     const int64_t xo = ((b * Ci + i) * Ei + n) * L;
     if (gs) {
@@ -330,10 +327,7 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
       for (int64_t t = 0; t < L; ++t) dot += row[t] * to_f32(x[xo + t]);
       gs_part[(n * B + b) * Ci + i] += dot;
     }
-    if (gx) {
-      const float s = style ? to_f32(style[b * Ci + i]) : 1.f;
-      for (int64_t t = 0; t < L; ++t) gx[xo + t] = to_bf16(row[t] * s);
-    }
+    if (gx) cvt.affine(row, gx + xo, L, style ? to_f32(style[b * Ci + i]) : 1.f, 0.f);
   };
   Src sty;  // x * style
   sty.src = x;

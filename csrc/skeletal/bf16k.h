@@ -68,6 +68,14 @@ constexpr int64_t kColTile = 48;
 void wgrad(const bf16* const* a, int64_t Ma, const bf16* const* b, int64_t bs, int64_t Mb, int64_t N, bf16* C,
            int64_t ci, int64_t cj, uint32_t* scratch);
 
+// Row conversions to bf16 (AVX-512-BF16 vcvtneps2bf16 with the kernels, else to_bf16), chosen once per pass:
+// affine: dst[i] = bf16(src[i] * f + bb); pairs: dst[2i] = bf16(a[i]), dst[2i + 1] = bf16(b[i]) (b null: 0).
+struct Cvt {
+  void (*affine)(const float* src, bf16* dst, int64_t n, float f, float bb);
+  void (*pairs)(const float* a, const float* b, bf16* dst, int64_t n);
+};
+Cvt cvt_fns();
+
 }  // namespace bf16k
 }  // namespace skeletal
 }  // namespace modi_ext

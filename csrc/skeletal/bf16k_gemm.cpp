@@ -119,12 +119,51 @@ MODI_BF16_TARGET void wg_avx(int64_t Np, const bf16* const* a, const uint32_t* l
     _mm512_storeu_ps(out + r * 32 + 16, acc[r][1]);
   }
 }
+#define MODI_BF16_ROW_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,avx512bf16")))
+MODI_BF16_ROW_TARGET void affine_avx(const float* src, bf16* dst, int64_t n, float f, float bb) {
+  const __m512 vf = _mm512_set1_ps(f), vb = _mm512_set1_ps(bb);
+  int64_t i = 0;
+  for (; i + 16 <= n; i += 16) {
+    const __m256bh r = _mm512_cvtneps_pbh(_mm512_fmadd_ps(_mm512_loadu_ps(src + i), vf, vb));
+    _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst + i), (__m256i)r);
+  }
+  if (i < n) {
+    const __mmask16 m = static_cast<__mmask16>((1u << (n - i)) - 1u);
+    const __m256bh r = _mm512_cvtneps_pbh(_mm512_fmadd_ps(_mm512_maskz_loadu_ps(m, src + i), vf, vb));
+    _mm256_mask_storeu_epi16(dst + i, m, (__m256i)r);
+  }
+}
+MODI_BF16_ROW_TARGET void pairs_avx(const float* a, const float* b, bf16* dst, int64_t n) {
+  int64_t i = 0;
+  for (; i + 16 <= n; i += 16) {
+    const __m512i lo = _mm512_cvtepu16_epi32((__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(a + i)));
+    const __m512i hi = b ? _mm512_slli_epi32(_mm512_cvtepu16_epi32((__m256i)_mm512_cvtneps_pbh(_mm512_loadu_ps(b + i))), 16)
+                         : _mm512_setzero_si512();
+    _mm512_storeu_si512(dst + 2 * i, _mm512_or_si512(lo, hi));
+  }
+  for (; i < n; ++i) {
+    dst[2 * i] = to_bf16(a[i]);
+    dst[2 * i + 1] = b ? to_bf16(b[i]) : bf16(0);
+  }
+}
 #else
+void affine_avx(const float*, bf16*, int64_t, float, float) {}
+void pairs_avx(const float*, const float*, bf16*, int64_t) {}
 template <int R>
 void nn_avx(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t) {}
 template <int R>
 void wg_avx(int64_t, const bf16* const*, const uint32_t*, float*) {}
 #endif
+
+void affine_plain(const float* src, bf16* dst, int64_t n, float f, float bb) {
+  for (int64_t i = 0; i < n; ++i) dst[i] = to_bf16(src[i] * f + bb);
+}
+void pairs_plain(const float* a, const float* b, bf16* dst, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) {
+    dst[2 * i] = to_bf16(a[i]);
+    dst[2 * i + 1] = b ? to_bf16(b[i]) : bf16(0);
+  }
+}
 
 using NnFn = void (*)(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t);
 using WgFn = void (*)(int64_t, const bf16* const*, const uint32_t*, float*);
@@ -141,6 +180,8 @@ bool use_avx512bf16() {
   return false;
 #endif
 }
+
+Cvt cvt_fns() { return use_avx512bf16() ? Cvt{affine_avx, pairs_avx} : Cvt{affine_plain, pairs_plain}; }
 
 const char* kernel_name() { return use_avx512bf16() ? "avx512_bf16" : "emulated"; }
 

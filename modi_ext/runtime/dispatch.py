@@ -17,10 +17,13 @@
 ``ext`` forces the kernels (no self-check: it is how the kernels themselves are tested); a device without kernels is
 then an error naming the build.  ``dispatch_report()`` lists every decision taken so far.
 
-bfloat16 on the CPU (no CPU kernel takes it: ``CPU_KERNEL_DTYPES``) always runs on ``dense`` -- under ``auto`` and
-``ext`` alike, without a self-check, never on the fp32 kernels: its GEMMs are torch's, which run on oneDNN's bf16
-units (AVX-512-BF16, AMX) where the CPU has them and emulate bf16 elsewhere, with fp32 accumulation either way, so
-results depend on the CPU only through rounding.  ``cpu_bf16_path()`` names what this CPU does (a row of the report).
+bfloat16 on the CPU runs on the bf16 kernels (``csrc/skeletal/bf16k.h``: vdpbf16ps micro-kernels, fp32 accumulation)
+where the CPU has AVX-512-BF16, under ``auto`` (after their own self-check) and ``ext`` alike; with
+``MODI_EXT_CPU_KERNEL=bf16emu`` on the same kernels' plain-C++ emulation (slow: it exists so that the layout and
+indexing are tested on any CPU).  Elsewhere -- no bf16 units and no emulation asked for, a build without the bf16
+kernels, or the FK op, which has no bf16 CPU kernel -- it runs on ``dense``, never on the fp32 kernels: its GEMMs are
+torch's, on oneDNN's bf16 units where the CPU has them and emulated elsewhere, fp32 accumulation either way.
+``cpu_bf16_path()`` names what this CPU does (a row of the report).
 """
 from __future__ import annotations
 
@@ -38,11 +41,11 @@ from modi_ext.runtime.kernels import KERNELS, _built, device_key, kernels_built
 from modi_ext.runtime.loader import HAS_EXT, IMPLS, requested_impl, warn_not_built
 
 __all__ = ["route", "record_path", "kernels_built", "kernels_trusted", "dispatch_report", "reset", "KERNELS",
-           "device_key", "CPU_KERNEL_DTYPES", "cpu_bf16_path"]
+           "device_key", "CPU_KERNEL_DTYPES", "cpu_bf16_path", "cpu_bf16_kernels"]
 
 # ``KERNELS`` (modi_ext.runtime.kernels): the raw kernels every path calls, by name.  A test hook: replace an entry
 # (then ``reset()``) to inject a wrong kernel.
-CPU_KERNEL_DTYPES = (torch.float32, torch.float64)  # the CPU kernels' dtypes; bfloat16 on the CPU runs on ``dense``
+CPU_KERNEL_DTYPES = (torch.float32, torch.float64)  # every CPU kernel's dtypes; bf16: ``cpu_bf16_path()``
 MEASURE_DEVICES = {"cuda"}  # device types where ``auto`` times ext against dense (a test hook adds "cpu")
 AUTO_REPS = 3
 AUTO_PATHS = ("ext", "dense", "ref")  # the paths ``auto`` times against each other where it measures
@@ -132,11 +135,26 @@ def _failure_message(device: str, dtype_name: str, res: dict) -> str:
             f"{device} {dtype_name.replace('torch.', '')} now uses the dense path")
 
 
-@functools.lru_cache(maxsize=None)
 def cpu_bf16_path() -> dict:
-    """How bfloat16 skeletal ops run on this CPU, decided once per process from what torch detected (CPUID):
-    always the ``dense`` path; its GEMMs on oneDNN's AMX or AVX-512-BF16 units where the CPU has them, oneDNN's
-    AVX-512 conversion to fp32 where it has AVX-512 without bf16 instructions, torch's own emulation elsewhere."""
+    """How bfloat16 skeletal ops run on this CPU: ``path`` "ext" on the bf16 kernels (``kernel`` "avx512_bf16", or
+    "emulated" under ``MODI_EXT_CPU_KERNEL=bf16emu``), else "dense", with ``gemm`` naming what torch's GEMMs use
+    there.  The kernels' choice is the extension's (CPUID, once per process; the environment is read per call)."""
+    return _cpu_bf16_path(os.environ.get("MODI_EXT_CPU_KERNEL", ""))
+
+
+def _bf16_kernel() -> str | None:
+    """"avx512_bf16", "emulated", or None for a build without the bf16 CPU kernels."""
+    if not HAS_EXT or not kernels_built("cpu", "skeletal"):
+        return None
+    probe = getattr(torch.ops.modi_ext, "skeletal_cpu_bf16_kernel", None)
+    try:
+        return str(probe()) if probe is not None else None
+    except (AttributeError, RuntimeError):  # pragma: no cover - a build that predates the probe
+        return None
+
+
+@functools.lru_cache(maxsize=None)
+def _cpu_bf16_path(env: str) -> dict:
     def has(name: str) -> bool:
         probe = getattr(torch.cpu, name, None)
         try:
@@ -155,8 +173,23 @@ def cpu_bf16_path() -> dict:
         gemm = "oneDNN avx512_core, no bf16 units: converted to fp32"
     else:
         gemm = "torch's bf16 emulation, no bf16 units"
-    return {"path": "dense", "gemm": gemm, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
-            "summary": f"bf16: dense ({gemm})"}
+    kernel = _bf16_kernel()
+    row = {"path": "dense", "kernel": kernel, "gemm": gemm, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+           "summary": f"bf16: dense ({gemm})"}
+    if kernel == "avx512_bf16":
+        row.update(path="ext", summary="bf16: ext (avx512_bf16 kernels)")
+    elif kernel == "emulated" and env == "bf16emu":
+        row.update(path="ext", summary="bf16: ext (emulated bf16 kernels, MODI_EXT_CPU_KERNEL=bf16emu)")
+    elif kernel == "emulated":
+        row["summary"] += " -- no avx512_bf16: the bf16 kernels would run emulated (MODI_EXT_CPU_KERNEL=bf16emu)"
+    return row
+
+
+def cpu_bf16_kernels(impl: str | None = None) -> bool:
+    """Whether a bfloat16 skeletal call on the CPU with this ``impl`` (None: ``MODI_EXT_IMPL``) is meant for the
+    bf16 kernels -- what autocast casts for (``modi_ext.runtime.amp``); ``route`` still decides the path."""
+    want = requested_impl() if impl is None else impl
+    return want in ("auto", "ext") and cpu_bf16_path()["path"] == "ext"
 
 
 def route(op: str, x: torch.Tensor, family: str = "skeletal", *, impl: str | None = None, record: bool = False,
@@ -210,7 +243,8 @@ def _route(op, x, family, impl, rerun, inputs, options) -> str:
         return want
     dev_type = x.device.type
     if dev_type == "cpu" and x.dtype not in CPU_KERNEL_DTYPES:
-        return "dense"  # bfloat16: no CPU kernel takes it -- never the fp32 kernels, never their self-check
+        if not (family == "skeletal" and x.dtype == torch.bfloat16 and cpu_bf16_path()["path"] == "ext"):
+            return "dense"  # no CPU kernel for this dtype -- never the fp32 kernels, never their self-check
     if not kernels_built(dev_type, family):
         if want == "ext":
             kinds = "FK kernels" if family == "fk" else "kernels"  # "no CPU FK kernels for fk"

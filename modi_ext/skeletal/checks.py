@@ -26,7 +26,7 @@ def kernel_args(kind: int, x, weight, bias, index, offsets, n_out: int, style, s
     return x, weight, bias, index, offsets, style, scale, padding_mode
 _FLOATS = (torch.float32, torch.float64)
 _CUDA_FLOATS = _FLOATS + (torch.float16, torch.bfloat16)  # the CUDA kernels accumulate half types in fp32
-_CPU_FLOATS = _FLOATS + (torch.bfloat16,)  # bf16 on the CPU runs on the dense path (``dispatch.route``)
+_CPU_FLOATS = _FLOATS + (torch.bfloat16,)  # bf16 on the CPU: the bf16 kernels or dense (``dispatch.route``)
 
 
 def _allowed_floats(t: torch.Tensor) -> tuple:

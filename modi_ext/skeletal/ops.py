@@ -3,8 +3,8 @@
 ``_call`` is the whole path of a call, in four steps a reader follows on one screen:
 
 1. under ``torch.autocast``, the inputs go to one dtype and the op runs with autocast off (``modi_ext.runtime.amp``:
-   the autocast dtype on CUDA, as torch's own convolutions; on the CPU the fp32 kernels, output rounded to bf16
-   under bf16 autocast);
+   the autocast dtype on CUDA, as torch's own convolutions; on the CPU under bf16 autocast the bf16 kernels where
+   they run, else the fp32 kernels with the output rounded to bf16);
 2. ``check_args`` validates every argument (``modi_ext.skeletal.checks``);
 3. ``dispatch.route`` picks the path: ``impl=`` for this call, else ``MODI_EXT_IMPL=auto|ext|dense|ref`` (kernels
    only where this build has them for the device, after their first-use self-check, on CUDA only where measured
@@ -33,7 +33,8 @@ def _call(kind: int, impl: str | None, x, weight, bias, index, offsets, n_out, s
     """One call of ``NAMES[kind]``: autocast, checks, path, kernel (see the module docstring)."""
     device = amp.autocast_device(x)
     if device is not None:
-        (x, weight, bias, style), out_dtype = amp.cast(device, x, weight, bias, style)
+        (x, weight, bias, style), out_dtype = amp.cast(device, x, weight, bias, style,
+                                                       bf16_kernels=dispatch.cpu_bf16_kernels(impl))
         with torch.autocast(device, enabled=False):
             y = _call(kind, impl, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
         return y if out_dtype is None else y.to(out_dtype)
