@@ -1,7 +1,12 @@
-"""bfloat16 skeletal ops on the CPU (issue 52, first step): the dense path against the float64 reference.
+"""bfloat16 skeletal ops on the CPU: the bf16 kernels (AVX-512-BF16 and their plain-C++ emulation) and the dense path,
+against the float64 reference.
 
-bf16 on the CPU runs on ``modi_ext.skeletal.dense`` (torch's GEMMs: oneDNN's bf16 units where the CPU has them, fp32
-accumulation everywhere), never on the fp32 kernels; under CPU autocast a skeletal op returns bf16, as torch's convs.
+bf16 on the CPU runs on the bf16 kernels (``csrc/skeletal/bf16k.h``) where the CPU has AVX-512-BF16 (or with
+``MODI_EXT_CPU_KERNEL=bf16emu``, on their emulation), else on ``modi_ext.skeletal.dense`` (torch's GEMMs: oneDNN's
+bf16 units where the CPU has them, fp32 accumulation everywhere), never on the fp32 kernels; under CPU autocast a
+skeletal op returns bf16, as torch's convs.  The kernel tests run both micro-kernel sets: the AVX-512-BF16 one where
+the CPU has it (else skipped, naming the missing feature) and the emulated one always, so the layout and indexing
+are covered on any CPU.
 
 Tolerance, derived rather than tuned.  The inputs are rounded to bf16 first and the float64 reference runs on exactly
 those values, so only the op's own roundings count.  bf16's unit roundoff is ``u = 2^-8`` (8 significant bits;
@@ -15,14 +20,23 @@ bf16 (error <= ``u`` of the value).  The stages that round to bf16, counted from
 * backward: the demodulation scale of the incoming gradient, the GEMM output, the unfold/fold adjoint (<= 2 adds for
   U = 3), the style scale, the sum of the direct and demodulation terms, their fp32 -> bf16 conversions: <= 8.
 
-Each stage moves a value of at most the size of the result by at most ``u`` of it, so with ``N = 8`` stages
+The bf16 kernels round fewer times (``bf16k.cpp``; their epilogues -- scale, bias, fold, blur -- run in fp32):
+
+* forward: x * style laid out in bf16, the demodulation coefficients (``demod/dense.py``), the output: 3;
+* backward: gy * d and x * style laid out in bf16, the kernel's output, the demodulation coefficients, the
+  demodulation branch of the weight / style gradient (torch ops, rounded to bf16) and its sum with the kernel's
+  term: 6.
+
+Each stage moves a value of at most the size of the result by at most ``u`` of it, so with ``N`` stages
 
     |z_bf16 - z_ref| <= (N u + K 2^-24) * scale,        scale = max |z_ref|
 
 where ``max |z_ref|`` stands for ``c sqrt(K) S`` (K zero-mean terms of rms S, c the tail of the largest of the
 outputs): it is measured on the reference rather than modelled, which keeps it valid through the demodulation (a
-positive per-row scale).  Only the style gradient of a demodulated op is a near-cancelling difference of two terms;
-its scale is the larger of them (the direct term, taken with the demodulation coefficients held constant).
+positive per-row scale).  The K products' own roundings (each term rounded once, as x * style is) add up like the
+terms, to ``u`` of ``sqrt(K) S``: inside one stage.  Only the style gradient of a demodulated op is a near-cancelling
+difference of two terms; its scale is the larger of them (the direct term, taken with the demodulation coefficients
+held constant).
 """
 from __future__ import annotations
 
@@ -159,12 +173,15 @@ def test_bf16_demod_scale(up):
 
 @pytest.mark.parametrize("impl", ["auto", "ext"])
 def test_bf16_never_reaches_the_fp32_kernels(monkeypatch, impl):
-    """bf16 routes to dense under auto and ext alike: no fp32 kernel call, no self-check (which would fail)."""
+    """Where the bf16 kernels are not chosen (a CPU without AVX-512-BF16, no emulation asked for), bf16 routes to
+    dense under auto and ext alike: no kernel call, no self-check."""
     monkeypatch.setenv("MODI_EXT_IMPL", impl)
 
     def boom(*_a):
         raise AssertionError("a bf16 call reached the fp32 kernels")
 
+    dense_row = dict(dispatch.cpu_bf16_path(), path="dense", summary="bf16: dense (as on a CPU without bf16 units)")
+    monkeypatch.setattr(dispatch, "cpu_bf16_path", lambda: dense_row)
     monkeypatch.setattr(dispatch, "KERNELS", {k: boom for k in dispatch.KERNELS})
     monkeypatch.setattr(dispatch, "SELFCHECK", lambda *a: pytest.fail("bf16 triggered the kernels' self-check"))
     dispatch.reset()
@@ -175,7 +192,8 @@ def test_bf16_never_reaches_the_fp32_kernels(monkeypatch, impl):
             y = call(kind, ops, *_with(a16, kw16, leaves))
             torch.autograd.grad(y.sum(), leaves)
         rows = modi_ext.dispatch_report()
-        paths = {(r["op"], r["path"]) for r in rows if r["kind"] == "path" and r["dtype"] == "bfloat16"}
+        paths = {(r["op"], r["path"]) for r in rows
+                 if r["kind"] == "path" and r["dtype"] == "bfloat16" and r["op"].startswith("skeletal")}
         assert paths == {(f"skeletal_{k}", "dense") for k in KINDS}
         (bf16,) = [r for r in rows if r["kind"] == "bf16"]
         assert bf16["path"] == "dense" and bf16["summary"].startswith("bf16: dense (")
@@ -249,3 +267,209 @@ def test_mixed_dtypes_error_clearly(what, match):
             kw["style"] = kw["style"].to(torch.bfloat16)
     with pytest.raises(TypeError, match=match):
         call("conv", ops, tuple(args), kw)
+
+
+# ------------------------------------------------------------------------------------------------ the bf16 kernels
+
+KERNEL_STAGES_FWD = 3  # module docstring: the bf16 kernels' roundings
+KERNEL_STAGES_BWD = 6
+HAS_BF16_KERNELS = modi_ext.HAS_EXT and hasattr(torch.ops.modi_ext, "skeletal_cpu_bf16_kernel")
+needs_bf16_kernels = pytest.mark.skipif(not HAS_BF16_KERNELS, reason="this modi_ext build has no bf16 CPU kernels")
+
+
+def _cpu_has_avx512_bf16() -> bool:
+    return bool(getattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False)())
+
+
+@pytest.fixture(params=["avx512_bf16", "emulated"])
+def bf16_kernel(request, monkeypatch):
+    """Runs a test on one micro-kernel set of the bf16 kernels: AVX-512-BF16 (skipped where the CPU lacks it) or the
+    plain-C++ emulation (MODI_EXT_CPU_KERNEL=bf16emu, any CPU)."""
+    if not HAS_BF16_KERNELS:
+        pytest.skip("this modi_ext build has no bf16 CPU kernels")
+    if request.param == "avx512_bf16":
+        if not _cpu_has_avx512_bf16():
+            pytest.skip("the CPU lacks the avx512_bf16 instructions (vdpbf16ps): the emulated kernels run instead")
+        monkeypatch.delenv("MODI_EXT_CPU_KERNEL", raising=False)
+    else:
+        monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "bf16emu")
+    dispatch.reset()
+    assert torch.ops.modi_ext.skeletal_cpu_bf16_kernel() == request.param
+    assert dispatch.cpu_bf16_path()["path"] == "ext"
+    yield request.param
+    dispatch.reset()
+
+
+def _kernel_case(kind: str, seed: int, style: bool, demod: bool, padding: str, size: str):
+    """Random skeleton; "small" (one column tile, fewer than 9 rows) or "wide" (odd channel counts -- a zero channel
+    in the pairs -- more than 9 output rows, several 48-column tiles and batch tiles, U = 5)."""
+    rng = random.Random(seed)
+    if size == "small":
+        dims = dict(U=3, B=3, cin=8, cout=6, T=16)
+    else:
+        dims = dict(U=5, B=5, cin=13, cout=19, T=37)
+    args, kw = make_case(kind, rng, dtype=torch.float64, n_joints=rng.randint(6, 30), style=style, demod=demod,
+                         padding=padding, **dims)
+    r = lambda t: t.to(torch.bfloat16) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
+    a16, kw16 = tuple(r(a) for a in args), dict(kw, style=r(kw["style"]))
+    up = lambda t: t.double() if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
+    return a16, kw16, tuple(up(a) for a in a16), dict(kw16, style=up(kw16["style"]))
+
+
+@pytest.mark.parametrize("size", ["small", "wide"])
+@pytest.mark.parametrize("padding", ["zeros", "reflect"])
+@pytest.mark.parametrize("style,demod", [(False, False), (True, False), (True, True), (False, True)])
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_against_float64_reference(bf16_kernel, kind, style, demod, padding, size):
+    """The bf16 kernels (forced: impl="ext"), forward and every gradient, against the float64 reference."""
+    seed = 300 + 7 * KINDS.index(kind) + 2 * style + demod + (50 if size == "wide" else 0)
+    a16, kw16, a64, kw64 = _kernel_case(kind, seed, style, demod, padding, size)
+    l16, l64 = _leaves(a16, kw16), _leaves(a64, kw64)
+    y16 = call(kind, ops, *_with(a16, dict(kw16, impl="ext"), l16))
+    y64 = call(kind, R, *_with(a64, kw64, l64))
+    assert y16.dtype == torch.bfloat16 and y16.shape == y64.shape
+    k = _k_forward(kind, a64)
+    err = float((y16.detach().double() - y64.detach()).abs().max())
+    tol = bound(k, float(y64.detach().abs().max()), KERNEL_STAGES_FWD)
+    assert err <= tol, f"forward error {err:.3g} > {tol:.3g} (K={k})"
+    assert err > 0  # it really ran in bf16
+
+    g64 = torch.randn(y64.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    g16 = g64.to(torch.bfloat16)
+    g64 = g16.double()
+    got = torch.autograd.grad(y16, l16, g16)
+    want = torch.autograd.grad(y64, l64, g64)
+    b, t, u = a64[0].shape[0], a64[0].shape[-1], a64[1].shape[-1]
+    ks = {"x": y64.shape[1] * u * a64[3].numel(), "weight": 2 * b * t, "bias": y64[:, 0].numel(),
+          "style": a64[0][0].numel() * u}
+    for name, gg, gw in zip(("x", "weight", "bias", "style"), got, want):
+        assert gg.dtype == torch.bfloat16, name
+        scale = float(gw.abs().max())
+        if name == "style" and demod:
+            scale = max(scale, float(_direct_style_grad(kind, a64, kw64, g64).abs().max()))
+        err, tol = float((gg.double() - gw).abs().max()), bound(ks[name], scale, KERNEL_STAGES_BWD)
+        assert err <= tol, f"{name} gradient error {err:.3g} > {tol:.3g}"
+    paths = {(r["op"], r["path"]) for r in modi_ext.dispatch_report()
+             if r["kind"] == "path" and r["dtype"] == "bfloat16" and r["op"].startswith("skeletal")}
+    assert paths == {(f"skeletal_{kind}", "ext")}
+
+
+KIND_ID = {"conv": 0, "down": 1, "up": 2}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_scale_gradient_and_masks(bf16_kernel, kind):
+    """The C++ backward op itself, every output-mask combination and the demodulation-scale gradient, against the
+    float64 kernels on the same bf16 values (the float64 kernels are checked against the reference elsewhere)."""
+    a16, kw16, a64, kw64 = _kernel_case(kind, 77 + KINDS.index(kind), True, False, "reflect", "wide")
+    x, w, b, index, offsets = a16[:5]
+    n_out = a16[5] if kind == "up" else 0
+    e_out = n_out if kind == "up" else offsets.numel() - 1
+    d = (torch.rand(x.shape[0], w.shape[2] if kind == "up" else w.shape[0], e_out,
+                    generator=torch.Generator().manual_seed(3), dtype=torch.float64) + 0.5).to(torch.bfloat16)
+    s = kw16["style"]
+    op = getattr(torch.ops.modi_ext, f"skeletal_{kind}")
+    extra = (n_out,) if kind == "up" else ()
+    y16 = op(x, w, b, index, offsets, *extra, s, d, "reflect")
+    g16 = torch.randn(y16.shape, generator=torch.Generator().manual_seed(4)).to(torch.bfloat16)
+    dd = lambda t: t.double()  # noqa: E731
+    for mask in ([True, True, True, True], [True, False, False, False], [False, True, False, False],
+                 [False, False, True, False], [False, False, False, True]):
+        got = torch.ops.modi_ext.skeletal_backward(g16, y16, x, w, b, index, offsets, s, d, "reflect", KIND_ID[kind],
+                                                   n_out, mask)
+        want = torch.ops.modi_ext.skeletal_backward(dd(g16), dd(y16), dd(x), dd(w), dd(b), index, offsets, dd(s), dd(d),
+                                                    "reflect", KIND_ID[kind], n_out, mask)
+        for name, gg, gw in zip(("x", "weight", "bias", "style", "scale"), got, want):
+            assert gg.shape == gw.shape, (name, mask)
+            if gw.numel():
+                # one stage each for gy * d, x * style and the output (the scale's: the output y, an input here)
+                err, tol = float((gg.double() - gw).abs().max()), bound(4096, float(gw.abs().max()), 3)
+                assert err <= tol, f"{name} gradient (mask {mask}) error {err:.3g} > {tol:.3g}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_double_backward(bf16_kernel, kind):
+    """R1 on the bf16 kernels: gradfix's partial backward ops in bf16 (create_graph), against float64."""
+    a16, kw16, a64, kw64 = _bf16_case(kind, 40 + KINDS.index(kind), True, True, "zeros")
+    res = []
+    for a, kw, mod in ((a16, dict(kw16, impl="ext"), ops), (a64, kw64, R)):
+        leaves = _leaves(a, kw)
+        y = call(kind, mod, *_with(a, kw, leaves))
+        (gx,) = torch.autograd.grad(y.sum(), leaves[0], create_graph=True)
+        res.append(torch.autograd.grad(gx.pow(2).sum(), leaves[1]))
+    (w16,), (w64,) = res
+    assert w16.dtype == torch.bfloat16 and torch.isfinite(w16).all()
+    err, tol = float((w16.double() - w64).abs().max()), bound(4096, float(w64.abs().max()), 2 * KERNEL_STAGES_BWD)
+    assert err <= tol, f"double-backward weight gradient error {err:.3g} > {tol:.3g}"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_opcheck(bf16_kernel, kind):
+    for style, demod in [(False, False), (True, True)]:
+        args, kw = make_case(kind, random.Random(21), dtype=torch.float32, n_joints=5, U=3, B=2, cin=3, cout=4, T=6,
+                             style=style, demod=demod, padding="zeros")
+        args = tuple(a.to(torch.bfloat16) if isinstance(a, torch.Tensor) and a.is_floating_point() else a
+                     for a in args)
+        x, w, b, index, offsets = args[:5]
+        sty = kw["style"].to(torch.bfloat16).requires_grad_(True) if style else None
+        scale = None
+        if demod:
+            n_out = args[5] if kind == "up" else offsets.numel() - 1
+            scale = ops.demod_scale(w, index, offsets, sty.detach(), kind == "up", n_out, x.shape[0])
+            scale = scale.detach().requires_grad_(True)
+        for t in (x, w, b):
+            t.requires_grad_(True)
+        op = getattr(torch.ops.modi_ext, f"skeletal_{kind}").default
+        torch.library.opcheck(op, (x, w, b, index, offsets) + (args[5:] if kind == "up" else ()) +
+                              (sty, scale, "zeros"))
+
+
+def test_bf16_kernels_thread_count_invariant(bf16_kernel):
+    """Every output element is written by one task in a fixed order: the same bits for 1 and 2 threads."""
+    a16, kw16, _, _ = _kernel_case("conv", 8, True, True, "reflect", "wide")
+    x = a16[0].repeat(8, 1, 1, 1)  # enough work to use the threads
+    args = (x,) + a16[1:]
+    kw = dict(kw16, style=kw16["style"].repeat(8, 1), impl="ext")
+    before = torch.get_num_threads()
+    outs = []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            leaves = _leaves(args, kw)
+            y = call("conv", ops, *_with(args, kw, leaves))
+            outs.append((y,) + torch.autograd.grad(y, leaves, torch.ones_like(y)))
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(*outs):
+        assert torch.equal(a, b)
+
+
+@needs_bf16_kernels
+def test_bf16_report_names_the_kernels(monkeypatch):
+    monkeypatch.delenv("MODI_EXT_CPU_KERNEL", raising=False)
+    row = dispatch.cpu_bf16_path()
+    if _cpu_has_avx512_bf16():
+        assert row["kernel"] == "avx512_bf16" and row["path"] == "ext"
+        assert row["summary"] == "bf16: ext (avx512_bf16 kernels)"
+    else:
+        assert row["kernel"] == "emulated" and row["path"] == "dense" and "no avx512_bf16" in row["summary"]
+    monkeypatch.setenv("MODI_EXT_CPU_KERNEL", "bf16emu")
+    row = dispatch.cpu_bf16_path()
+    assert row["kernel"] == "emulated" and row["path"] == "ext" and "emulated" in row["summary"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_autocast_runs_the_bf16_kernels(bf16_kernel, monkeypatch, kind):
+    """Under CPU bf16 autocast the inputs are cast to bf16 and the bf16 kernels run (the report's path row)."""
+    monkeypatch.setenv("MODI_EXT_IMPL", "auto")
+    dispatch.reset()
+    args, kw = make_case(kind, random.Random(11), dtype=torch.float32, n_joints=9, U=3, T=8, style=True, demod=True)
+    want = call(kind, ops, args, kw)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = call(kind, ops, args, kw)
+    assert y.dtype == torch.bfloat16
+    paths = {(r["op"], r["path"]) for r in modi_ext.dispatch_report()
+             if r["kind"] == "path" and r["dtype"] == "bfloat16" and r["op"].startswith("skeletal")}
+    assert paths == {(f"skeletal_{kind}", "ext")}
+    k = _k_forward(kind, args)
+    assert float((y.float() - want).abs().max()) <= (STAGES + 2 * math.sqrt(k)) * U_BF16 * float(want.abs().max())
