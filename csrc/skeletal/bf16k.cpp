@@ -290,14 +290,12 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
   const int64_t U = g.U, h = g.h, Ci = g.Cin, Co = g.Cout, Ei = g.Ein, Eo = g.Eout, B = g.B, nnz = g.nnz;
   const bool par = worth_threads(g.macs);
   std::vector<Phase> prep, compute;
+  const Cvt cvt = cvt_fns();
 
   // bias and scale gradients: reductions over the output in fp32, run with the preparation phases
   auto bias_task = [&](int64_t o, int) {
     float acc = 0.f;
-    for (int64_t b = 0; b < B; ++b) {
-      const bf16* r = gy + (b * Co + o) * Eo * g.Tout;
-      for (int64_t i = 0; i < Eo * g.Tout; ++i) acc += to_f32(r[i]);
-    }
+    for (int64_t b = 0; b < B; ++b) acc += cvt.sum(gy + (b * Co + o) * Eo * g.Tout, Eo * g.Tout);
     gb[o] = to_bf16(acc);
   };
   const int64_t out_rows = B * Co * Eo, row_chunk = chunk_items(g.Tout);
@@ -305,10 +303,7 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
     for (int64_t r = t * row_chunk, end = std::min(out_rows, (t + 1) * row_chunk); r < end; ++r) {
       const int64_t o = (r / Eo) % Co;
       const float bb = bias ? to_f32(bias[o]) : 0.f;
-      const bf16 *a = gy + r * g.Tout, *yv = out + r * g.Tout;
-      float acc = 0.f;
-      for (int64_t t2 = 0; t2 < g.Tout; ++t2) acc += to_f32(a[t2]) * (to_f32(yv[t2]) - bb);
-      gd[r] = to_bf16(acc / to_f32(scale[r]));
+      gd[r] = to_bf16(cvt.gy_y(gy + r * g.Tout, out + r * g.Tout, g.Tout, bb) / to_f32(scale[r]));
     }
   };
   if (gb) prep.push_back(phase(Co, bias_task));
@@ -319,14 +314,9 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
     return;
   }
   std::vector<float> gs_part(gs ? static_cast<size_t>(Ei * B * Ci) : 0, 0.f);
-  const Cvt cvt = cvt_fns();
   auto finish = [&](const float* row, int64_t b, int64_t i, int64_t n, int64_t L) {
     const int64_t xo = ((b * Ci + i) * Ei + n) * L;
-    if (gs) {
-      float dot = 0.f;
-      for (int64_t t = 0; t < L; ++t) dot += row[t] * to_f32(x[xo + t]);
-      gs_part[(n * B + b) * Ci + i] += dot;
-    }
+    if (gs) gs_part[(n * B + b) * Ci + i] += cvt.dot(row, x + xo, L);
     if (gx) cvt.affine(row, gx + xo, L, style ? to_f32(style[b * Ci + i]) : 1.f, 0.f);
   };
   Src sty;  // x * style

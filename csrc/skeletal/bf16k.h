@@ -70,9 +70,14 @@ void wgrad(const bf16* const* a, int64_t Ma, const bf16* const* b, int64_t bs, i
 
 // Row conversions to bf16 (AVX-512-BF16 vcvtneps2bf16 with the kernels, else to_bf16), chosen once per pass:
 // affine: dst[i] = bf16(src[i] * f + bb); pairs: dst[2i] = bf16(a[i]), dst[2i + 1] = bf16(b[i]) (b null: 0).
+// Reductions, in 16 fixed lanes (the same sums whatever the thread count): dot = sum a[i] * x[i];
+// gy_y = sum g[i] * (y[i] - bb); sum = sum g[i].
 struct Cvt {
   void (*affine)(const float* src, bf16* dst, int64_t n, float f, float bb);
   void (*pairs)(const float* a, const float* b, bf16* dst, int64_t n);
+  float (*dot)(const float* a, const bf16* x, int64_t n);
+  float (*gy_y)(const bf16* g, const bf16* y, int64_t n, float bb);
+  float (*sum)(const bf16* g, int64_t n);
 };
 Cvt cvt_fns();
 

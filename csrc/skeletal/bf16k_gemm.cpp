@@ -146,7 +146,38 @@ MODI_BF16_ROW_TARGET void pairs_avx(const float* a, const float* b, bf16* dst, i
     dst[2 * i + 1] = b ? to_bf16(b[i]) : bf16(0);
   }
 }
+MODI_BF16_ROW_TARGET inline __m512 load_bf(const bf16* p, __mmask16 m) {
+  return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(m, p)), 16));
+}
+MODI_BF16_ROW_TARGET float dot_avx(const float* a, const bf16* x, int64_t n) {
+  __m512 acc = _mm512_setzero_ps();
+  for (int64_t i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (n - i)) - 1u);
+    acc = _mm512_fmadd_ps(_mm512_maskz_loadu_ps(m, a + i), load_bf(x + i, m), acc);
+  }
+  return _mm512_reduce_add_ps(acc);
+}
+MODI_BF16_ROW_TARGET float gy_y_avx(const bf16* g, const bf16* y, int64_t n, float bb) {
+  __m512 acc = _mm512_setzero_ps();
+  const __m512 vb = _mm512_set1_ps(bb);
+  for (int64_t i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (n - i)) - 1u);
+    acc = _mm512_fmadd_ps(load_bf(g + i, m), _mm512_maskz_sub_ps(m, load_bf(y + i, m), vb), acc);
+  }
+  return _mm512_reduce_add_ps(acc);
+}
+MODI_BF16_ROW_TARGET float sum_avx(const bf16* g, int64_t n) {
+  __m512 acc = _mm512_setzero_ps();
+  for (int64_t i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (n - i)) - 1u);
+    acc = _mm512_add_ps(acc, load_bf(g + i, m));
+  }
+  return _mm512_reduce_add_ps(acc);
+}
 #else
+float dot_avx(const float*, const bf16*, int64_t) { return 0.f; }
+float gy_y_avx(const bf16*, const bf16*, int64_t, float) { return 0.f; }
+float sum_avx(const bf16*, int64_t) { return 0.f; }
 void affine_avx(const float*, bf16*, int64_t, float, float) {}
 void pairs_avx(const float*, const float*, bf16*, int64_t) {}
 template <int R>
@@ -165,6 +196,22 @@ void pairs_plain(const float* a, const float* b, bf16* dst, int64_t n) {
   }
 }
 
+float dot_plain(const float* a, const bf16* x, int64_t n) {
+  float acc = 0.f;
+  for (int64_t i = 0; i < n; ++i) acc += a[i] * to_f32(x[i]);
+  return acc;
+}
+float gy_y_plain(const bf16* g, const bf16* y, int64_t n, float bb) {
+  float acc = 0.f;
+  for (int64_t i = 0; i < n; ++i) acc += to_f32(g[i]) * (to_f32(y[i]) - bb);
+  return acc;
+}
+float sum_plain(const bf16* g, int64_t n) {
+  float acc = 0.f;
+  for (int64_t i = 0; i < n; ++i) acc += to_f32(g[i]);
+  return acc;
+}
+
 using NnFn = void (*)(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t);
 using WgFn = void (*)(int64_t, const bf16* const*, const uint32_t*, float*);
 
@@ -181,7 +228,10 @@ bool use_avx512bf16() {
 #endif
 }
 
-Cvt cvt_fns() { return use_avx512bf16() ? Cvt{affine_avx, pairs_avx} : Cvt{affine_plain, pairs_plain}; }
+Cvt cvt_fns() {
+  return use_avx512bf16() ? Cvt{affine_avx, pairs_avx, dot_avx, gy_y_avx, sum_avx}
+                          : Cvt{affine_plain, pairs_plain, dot_plain, gy_y_plain, sum_plain};
+}
 
 const char* kernel_name() { return use_avx512bf16() ? "avx512_bf16" : "emulated"; }
 

@@ -5,7 +5,7 @@ dozen small torch ops, and as many again in its backward.  Each is a parallel re
 modulated layer a few percent on a quiet machine, and as much as its two convolutions when another process holds a core
 (every region waits for its slowest thread).  On the CPU, for plain float32/float64 tensors in eager mode
 (``eager.usable``), the forward and the first-order backward here are one task-pool job each
-(``csrc/demod/cpu.cpp``).  A backward that must itself be differentiable (``create_graph``: path length, R1) is
+(``csrc/demod/cpu.cpp``); bfloat16 runs them on its values widened to float32 and rounds the result once.  A backward that must itself be differentiable (``create_graph``: path length, R1) is
 recomputed from the torch form, so every order of gradient stays exact.  Everywhere else (CUDA, half precision, compile,
 ``MODI_EXT_EAGER=0``) it is the torch form; ``MODI_EXT_DEMOD=torch`` asks for the torch form everywhere (for
 comparisons).
@@ -73,11 +73,17 @@ def _torch_form(weight, style, index, offsets, up: bool, n_out: int) -> torch.Te
 def demod_scale(weight: torch.Tensor, index: torch.Tensor, offsets: torch.Tensor, style: torch.Tensor | None,
                 up: bool, n_out: int, batch: int) -> torch.Tensor:
     """Demodulation coefficients ``(batch, Cout, E_out)``, as ``dense.demod_scale`` (same arguments and result)."""
-    if (weight.device.type == "cpu" and weight.dtype in _CPU_DTYPES and (style is None or style.dtype == weight.dtype)
+    bf16 = weight.dtype == torch.bfloat16 and (style is None or style.dtype == weight.dtype)
+    if (weight.device.type == "cpu" and (weight.dtype in _CPU_DTYPES or bf16)
+            and (style is None or style.dtype == weight.dtype)
             and kernel_available() and os.environ.get("MODI_EXT_DEMOD", "auto") != "torch"
             and eager.usable(weight, style, index, offsets)):
         dispatch.record_path("demod_scale", weight, "ext")
-        d = _DemodEager.apply(weight, style, index, offsets, up, n_out)
+        if bf16:  # summed in fp32, as the torch form sums half types; one rounding of the result
+            w32, s32 = weight.float(), style.float() if style is not None else None
+            d = _DemodEager.apply(w32, s32, index, offsets, up, n_out).to(torch.bfloat16)
+        else:
+            d = _DemodEager.apply(weight, style, index, offsets, up, n_out)
         return d if d.shape[0] == batch else d.expand(batch, -1, -1).contiguous()
     dispatch.record_path("demod_scale", weight, "dense")
     return dense.demod_scale(weight, index, offsets, style, up, n_out, batch)
