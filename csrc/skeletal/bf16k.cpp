@@ -103,6 +103,38 @@ struct LayoutBuild {
     float *t1 = t + Tq, *srow = t1 + Tq, *blurred = srow + s.Ts;
     const int64_t c0 = cs * W;
     const bool two = W == 2 && c0 + 1 < l.C;  // else the zero channel of an odd count
+    if (S == 1 && !s.blur_adjoint) {  // the interior straight from the bf16 rows, the padding one value at a time
+      const int64_t F = s.F, Ts = s.Ts, Lp = s.Lp;
+      const int64_t lo_m = std::min(std::max<int64_t>(F, 0), Tq), hi_m = std::max(lo_m, std::min({Tq, Lp, F + Ts}));
+      for (int64_t b = 0; b < s.B; ++b) {
+        bf16* d = dst + b * Tq * W;
+        for (int64_t j = 0; j < W; ++j) {
+          const int64_t c = c0 + j;
+          if (c >= l.C) {
+            for (int64_t m = 0; m < lo_m; ++m) d[m * W + j] = 0;
+            for (int64_t m = hi_m; m < Tq; ++m) d[m * W + j] = 0;
+            continue;
+          }
+          const float fv = s.at(b, c, e);
+          const bf16* r = s.src + ((b * l.C + c) * E + e) * Ts;
+          auto pad = [&](int64_t m, bool front) {
+            const bool mirrored = s.reflect && m < Lp && (!front || m >= s.Z);
+            return mirrored ? to_bf16(fv * to_f32(r[mirror(m - F, Ts)])) : bf16(0);
+          };
+          for (int64_t m = 0; m < lo_m; ++m) d[m * W + j] = pad(m, true);
+          for (int64_t m = hi_m; m < Tq; ++m) d[m * W + j] = pad(m, false);
+        }
+        const bf16* r0 = s.src + ((b * l.C + c0) * E + e) * Ts + (lo_m - F);
+        if (W == 1) {
+          cvt.scaled_row(r0, s.at(b, c0, e), d + lo_m, hi_m - lo_m);
+        } else {
+          cvt.scaled_pairs(r0, two ? r0 + E * Ts : nullptr, s.at(b, c0, e), two ? s.at(b, c0 + 1, e) : 0.f,
+                           d + 2 * lo_m, hi_m - lo_m);
+        }
+      }
+      std::fill(dst + s.B * Tq * W, dst + l.row_len * W, bf16(0));
+      return;
+    }
     for (int64_t b = 0; b < s.B; ++b) {
       row_values(ph, b, c0, e, t, srow, blurred);
       if (W == 1) {

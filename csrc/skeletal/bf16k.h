@@ -78,6 +78,9 @@ struct Cvt {
   float (*dot)(const float* a, const bf16* x, int64_t n);
   float (*gy_y)(const bf16* g, const bf16* y, int64_t n, float bb);
   float (*sum)(const bf16* g, int64_t n);
+  // From bf16 rows: dst[i * W + j] = bf16(f_j * src_j[i]) for channels j < W (W = 2: src1 null gives 0).
+  void (*scaled_pairs)(const bf16* a, const bf16* b, float fa, float fb, bf16* dst, int64_t n);
+  void (*scaled_row)(const bf16* a, float fa, bf16* dst, int64_t n);
 };
 Cvt cvt_fns();
 

@@ -174,7 +174,27 @@ MODI_BF16_ROW_TARGET float sum_avx(const bf16* g, int64_t n) {
   }
   return _mm512_reduce_add_ps(acc);
 }
+MODI_BF16_ROW_TARGET inline __m512i scaled_lanes(const bf16* p, float f, __mmask16 m) {
+  return _mm512_cvtepu16_epi32((__m256i)_mm512_cvtneps_pbh(_mm512_mul_ps(load_bf(p, m), _mm512_set1_ps(f))));
+}
+MODI_BF16_ROW_TARGET void scaled_pairs_avx(const bf16* a, const bf16* b, float fa, float fb, bf16* dst, int64_t n) {
+  for (int64_t i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (n - i)) - 1u);
+    __m512i v = scaled_lanes(a + i, fa, m);
+    if (b) v = _mm512_or_si512(v, _mm512_slli_epi32(scaled_lanes(b + i, fb, m), 16));
+    _mm512_mask_storeu_epi32(dst + 2 * i, m, v);
+  }
+}
+MODI_BF16_ROW_TARGET void scaled_row_avx(const bf16* a, float fa, bf16* dst, int64_t n) {
+  const __m512 vf = _mm512_set1_ps(fa);
+  for (int64_t i = 0; i < n; i += 16) {
+    const __mmask16 m = n - i >= 16 ? __mmask16(0xffff) : static_cast<__mmask16>((1u << (n - i)) - 1u);
+    _mm256_mask_storeu_epi16(dst + i, m, (__m256i)_mm512_cvtneps_pbh(_mm512_mul_ps(load_bf(a + i, m), vf)));
+  }
+}
 #else
+void scaled_pairs_avx(const bf16*, const bf16*, float, float, bf16*, int64_t) {}
+void scaled_row_avx(const bf16*, float, bf16*, int64_t) {}
 float dot_avx(const float*, const bf16*, int64_t) { return 0.f; }
 float gy_y_avx(const bf16*, const bf16*, int64_t, float) { return 0.f; }
 float sum_avx(const bf16*, int64_t) { return 0.f; }
@@ -212,6 +232,16 @@ float sum_plain(const bf16* g, int64_t n) {
   return acc;
 }
 
+void scaled_pairs_plain(const bf16* a, const bf16* b, float fa, float fb, bf16* dst, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) {
+    dst[2 * i] = to_bf16(fa * to_f32(a[i]));
+    dst[2 * i + 1] = b ? to_bf16(fb * to_f32(b[i])) : bf16(0);
+  }
+}
+void scaled_row_plain(const bf16* a, float fa, bf16* dst, int64_t n) {
+  for (int64_t i = 0; i < n; ++i) dst[i] = to_bf16(fa * to_f32(a[i]));
+}
+
 using NnFn = void (*)(int64_t, const uint32_t*, int64_t, const bf16* const*, int64_t, float*, int64_t);
 using WgFn = void (*)(int64_t, const bf16* const*, const uint32_t*, float*);
 
@@ -229,8 +259,9 @@ bool use_avx512bf16() {
 }
 
 Cvt cvt_fns() {
-  return use_avx512bf16() ? Cvt{affine_avx, pairs_avx, dot_avx, gy_y_avx, sum_avx}
-                          : Cvt{affine_plain, pairs_plain, dot_plain, gy_y_plain, sum_plain};
+  return use_avx512bf16()
+             ? Cvt{affine_avx, pairs_avx, dot_avx, gy_y_avx, sum_avx, scaled_pairs_avx, scaled_row_avx}
+             : Cvt{affine_plain, pairs_plain, dot_plain, gy_y_plain, sum_plain, scaled_pairs_plain, scaled_row_plain};
 }
 
 const char* kernel_name() { return use_avx512bf16() ? "avx512_bf16" : "emulated"; }
