@@ -348,6 +348,12 @@ void backward(const Geo& g, const Csr& csr, const bf16* gy, const bf16* out, con
   std::vector<float> gs_part(gs ? static_cast<size_t>(Ei * B * Ci) : 0, 0.f);
   auto finish = [&](const float* row, int64_t b, int64_t i, int64_t n, int64_t L) {
     const int64_t xo = ((b * Ci + i) * Ei + n) * L;
+    // the next channel's rows lie Ei * L apart, beyond what the hardware prefetchers follow
+    if (i + 1 < Ci)
+      for (int64_t off = 0; off < L; off += 32) {
+        if (gs) __builtin_prefetch(x + xo + Ei * L + off);
+        if (gx) __builtin_prefetch(gx + xo + Ei * L + off, 1);
+      }
     if (gs) gs_part[(n * B + b) * Ci + i] += cvt.dot(row, x + xo, L);
     if (gx) cvt.affine(row, gx + xo, L, style ? to_f32(style[b * Ci + i]) : 1.f, 0.f);
   };
