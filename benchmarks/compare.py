@@ -36,10 +36,12 @@ grouped reference, ext >= 3x dense).  ``fwd_bwd`` differentiates w.r.t. the inpu
 calls in this process (``--ab-reps`` timed calls each), for thread-scaling figures that machine drift cannot skew:
 ``ext_ms_threads`` (median ms per thread count) and ``ext_thread_ratio`` (time at ``--threads`` / time at N).
 
-``--bf16`` (CPU) times each case in bfloat16 (the same modules and inputs cast to bf16: the ``dense`` path,
-oneDNN's bf16 GEMMs where the CPU has bf16 units) against float32 on ``auto`` (the kernels), the two interleaved,
-``--repeats`` times at each of ``--threads-list``: per case and thread count the bf16 / fp32 time ratio of each
-repeat, reported as median, min and max (default cases: the finest skeletal and modulated conv, fwd_bwd).
+``--bf16`` (CPU) times each case in bfloat16 (the same modules and inputs cast to bf16, on ``auto``: the bf16
+kernels where the CPU has AVX-512-BF16, else the ``dense`` path on oneDNN's GEMMs; ``MODI_EXT_CPU_KERNEL=bf16emu``
+runs the kernels' emulation) against float32 on ``auto`` (the fp32 kernels), the two interleaved, ``--repeats``
+times at each of ``--threads-list``: per case and thread count the bf16 / fp32 time ratio of each repeat, reported
+as median, min and max (default cases: the finest skeletal and modulated conv, fwd_bwd), with the path each bf16
+case ran on (``dispatch_report``).
 
 Roofline (``benchmarks/roofline.py``): every case's FLOPs are counted once, untimed, on the extension's path with the
 sparse per-pair formulas (``flops``), and this process times sgemm (``torch.mm`` 1024^3, same threads) at the start
@@ -392,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dtype", default="fp32,bf16",
                     help="with --device cuda: comma-separated dtypes among fp32, bf16, fp16 (default: fp32,bf16)")
     ap.add_argument("--bf16", action="store_true",
-                    help="CPU: bf16 (dense path) / fp32 (auto) time ratio per case, --repeats at each --threads-list")
+                    help="CPU: bf16 / fp32 time ratio per case (both on auto), --repeats at each --threads-list")
     ap.add_argument("--threads-list", default="1,2", help="with --bf16: thread counts (default 1,2)")
     ap.add_argument("--repeats", type=int, default=7, help="with --bf16: interleaved timings per thread count")
     args = ap.parse_args(argv)
@@ -537,14 +539,20 @@ BF16_CASES = r"^(skeletal_conv|modulated_conv)\.finest\.fwd_bwd$"
 
 
 def _main_bf16(args: argparse.Namespace) -> int:
-    """Issue 52's CPU row: each case in bf16 (dense, oneDNN) against fp32 on ``auto`` (the kernels), interleaved."""
+    """Each case in bf16 against fp32, both on ``auto``, interleaved; the path the bf16 calls took is reported."""
     pattern = re.compile(args.only or BF16_CASES)
     fp32, info, source = skeletal_cases(torch.float32, ("auto",))
     bf16, _, _ = skeletal_cases(torch.bfloat16, ("auto",))
     names = [n for n in fp32 if pattern.search(n)]
-    from modi_ext.runtime.dispatch import cpu_bf16_path
+    from modi_ext.runtime.dispatch import cpu_bf16_path, dispatch_report
 
     path = cpu_bf16_path()["summary"]
+
+    def ran_on() -> str:
+        """The paths this process's bf16 skeletal calls took so far (every call is counted, warm-ups included)."""
+        rows = [r for r in dispatch_report() if r["kind"] == "path" and r["dtype"] == "bfloat16"
+                and r["op"].startswith("skeletal")]
+        return ", ".join(sorted({f"{r['op']}: {r['path']}" for r in rows})) or "-"
     print(f"# {machine()}; skeletal hierarchy from {source}; batch {BATCH}; {path}; fp32 on auto; "
           f"{args.repeats} repeats of >= {args.reps} interleaved runs (>= {args.min_time} s) per thread count")
     print(f"{'case':34s} {'thr':>3s} {'fp32 ms':>9s} {'bf16 ms':>9s} {'bf16/fp32 median [min, max]':>30s}")
@@ -561,12 +569,14 @@ def _main_bf16(args: argparse.Namespace) -> int:
                     t16.append(b)
                     ratios.append(b / a)
                 row = {"fp32_ms": _spread(t32), "bf16_ms": _spread(t16), "bf16_over_fp32": _spread(ratios),
-                       "threads": threads, "repeats": args.repeats, "bf16_path": path, "machine": machine(),
+                       "threads": threads, "repeats": args.repeats, "bf16_path": path, "bf16_ran_on": ran_on(),
+                       "machine": machine(),
                        **info.get(name, {})}
                 results[f"{name}.{threads}t"] = row
                 r = row["bf16_over_fp32"]
                 print(f"{name:34s} {threads:3d} {row['fp32_ms']['median']:9.3f} {row['bf16_ms']['median']:9.3f} "
-                      f"{r['median']:12.3f} [{r['min']:.3f}, {r['max']:.3f}]", flush=True)
+                      f"{r['median']:12.3f} [{r['min']:.3f}, {r['max']:.3f}]   bf16 ran on {row['bf16_ran_on']}",
+                      flush=True)
     finally:
         torch.set_num_threads(before)
     write_json(args.json, results)
