@@ -80,18 +80,24 @@ struct LayoutBuild {
       for (int64_t m = lo_m; m < hi_m; ++m) d[m] = fv * v[m - F];
       for (int64_t m = hi_m; m < Tq; ++m) d[m] = (m < Lp && reflect) ? fv * v[mirror(m - F, Ts)] : 0.f;
     } else {
-      for (int64_t m = 0; m < Tq; ++m) {
-        const int64_t p = S * m + ph;
+      auto edge = [&](int64_t m) {
+        const int64_t p = S * m + ph, q = p - F;
         float x = 0.f;
         if (p < Lp) {
-          const int64_t q = p - F;
           if (q >= 0 && q < Ts)
             x = v[q];
           else if (reflect)
             x = v[mirror(q, Ts)];
         }
-        d[m] = fv * x;
-      }
+        return fv * x;
+      };
+      // interior: 0 <= S m + ph - F < Ts and S m + ph < Lp, without the tests (the compiler vectorises it)
+      const int64_t lo_m = std::min(Tq, std::max<int64_t>(0, (F - ph + S - 1) / S));
+      const int64_t hi_m = std::max(lo_m, std::min({Tq, (Lp - ph + S - 1) / S, (Ts + F - ph + S - 1) / S}));
+      for (int64_t m = 0; m < lo_m; ++m) d[m] = edge(m);
+      const float* vs = v + ph - F;
+      for (int64_t m = lo_m; m < hi_m; ++m) d[m] = fv * vs[S * m];
+      for (int64_t m = hi_m; m < Tq; ++m) d[m] = edge(m);
     }
   }
 
