@@ -57,23 +57,24 @@ struct LayoutBuild {
     l.row_len = len;
     l.rows = S * l.Cs * E;
     l.buf.alloc(static_cast<size_t>(l.rows * len * l.width));
-    chunk = chunk_items(len * l.width);
+    chunk = chunk_items(S * len * l.width);
   }
   LayoutBuild(const LayoutBuild&) = delete;
   LayoutBuild& operator=(const LayoutBuild&) = delete;
 
-  // One padded row (b, c, e) of phase ph into d[0, Tq), fp32.
-  void row_values(int64_t ph, int64_t b, int64_t c, int64_t e, float* d, float* srow, float* blurred) const {
+  // The source row (b, c, e) in fp32 (blurred for blur_adjoint), read by every phase.
+  const float* source(int64_t b, int64_t c, int64_t e, float* srow, float* blurred) const {
+    const bf16* r = s.src + ((b * l.C + c) * l.E + e) * s.Ts;
+    for (int64_t t = 0; t < s.Ts; ++t) srow[t] = to_f32(r[t]);  // (vectorised: a shift)
+    if (!s.blur_adjoint) return srow;
+    blur_adjoint_row<float>(srow, blurred, s.Ts);
+    return blurred;
+  }
+
+  // Phase ph of a padded row, fv times the source v, into d[0, Tq), fp32.
+  void row_values(int64_t ph, const float* v, float fv, float* d) const {
     const int64_t Tq = l.Tq, Ts = s.Ts, F = s.F, Lp = s.Lp;
     const bool reflect = s.reflect;
-    const float fv = s.at(b, c, e);
-    const bf16* r = s.src + ((b * l.C + c) * l.E + e) * Ts;
-    for (int64_t t = 0; t < Ts; ++t) srow[t] = to_f32(r[t]);  // (vectorised: a shift)
-    const float* v = srow;
-    if (s.blur_adjoint) {
-      blur_adjoint_row<float>(srow, blurred, Ts);
-      v = blurred;
-    }
     if (S == 1) {
       const int64_t lo_m = std::min(std::max<int64_t>(F, 0), Tq), hi_m = std::max(lo_m, std::min({Tq, Lp, F + Ts}));
       for (int64_t m = 0; m < lo_m; ++m) d[m] = (m >= s.Z && m < Lp && reflect) ? fv * v[mirror(m - F, Ts)] : 0.f;
@@ -101,12 +102,11 @@ struct LayoutBuild {
     }
   }
 
+  // The rows (phase, cs, e) of every phase: unit r = cs * E + e.
   void fill(int64_t r, int slot) const {
     const int64_t Cs = l.Cs, E = l.E, Tq = l.Tq, W = l.width;
-    const int64_t ph = r / (Cs * E), cs = (r / E) % Cs, e = r % E;
-    bf16* dst = l.buf.data() + r * l.row_len * W;
-    float* t = tmp.get(slot, static_cast<size_t>(2 * Tq + 2 * s.Ts));
-    float *t1 = t + Tq, *srow = t1 + Tq, *blurred = srow + s.Ts;
+    const int64_t cs = r / E, e = r % E;
+    bf16* dst = l.buf.data() + r * l.row_len * W;  // phase 0; phase ph at dst + ph * Cs * E * row_len * W
     const int64_t c0 = cs * W;
     const bool two = W == 2 && c0 + 1 < l.C;  // else the zero channel of an odd count
     if (S == 1 && !s.blur_adjoint) {  // the interior straight from the bf16 rows, the padding one value at a time
@@ -141,21 +141,32 @@ struct LayoutBuild {
       std::fill(dst + s.B * Tq * W, dst + l.row_len * W, bf16(0));
       return;
     }
+    // t[ph * 2 + j]: phase ph of channel c0 + j; each source row is converted (and blurred) once for all phases
+    float* t = tmp.get(slot, static_cast<size_t>(2 * S * Tq + 2 * s.Ts));
+    float *srow = t + 2 * S * Tq, *blurred = srow + s.Ts;
+    const int64_t ph_stride = Cs * E * l.row_len * W;
     for (int64_t b = 0; b < s.B; ++b) {
-      row_values(ph, b, c0, e, t, srow, blurred);
-      if (W == 1) {
-        cvt.affine(t, dst + b * Tq, Tq, 1.f, 0.f);
-        continue;
+      for (int64_t j = 0; j < (two ? 2 : 1); ++j) {
+        const float* v = source(b, c0 + j, e, srow, blurred);
+        const float fv = s.at(b, c0 + j, e);
+        for (int64_t ph = 0; ph < S; ++ph) row_values(ph, v, fv, t + (ph * 2 + j) * Tq);
       }
-      if (two) row_values(ph, b, c0 + 1, e, t1, srow, blurred);
-      cvt.pairs(t, two ? t1 : nullptr, dst + b * Tq * 2, Tq);
+      for (int64_t ph = 0; ph < S; ++ph) {
+        const float* t0 = t + ph * 2 * Tq;
+        if (W == 1)
+          cvt.affine(t0, dst + ph * ph_stride + b * Tq, Tq, 1.f, 0.f);
+        else
+          cvt.pairs(t0, two ? t0 + Tq : nullptr, dst + ph * ph_stride + b * Tq * 2, Tq);
+      }
     }
-    std::fill(dst + s.B * Tq * W, dst + l.row_len * W, bf16(0));
+    for (int64_t ph = 0; ph < S; ++ph)
+      std::fill(dst + ph * ph_stride + s.B * Tq * W, dst + ph * ph_stride + l.row_len * W, bf16(0));
   }
   void operator()(int64_t t, int slot) const {
-    for (int64_t r = t * chunk, end = std::min(l.rows, (t + 1) * chunk); r < end; ++r) fill(r, slot);
+    const int64_t units = l.Cs * l.E;
+    for (int64_t r = t * chunk, end = std::min(units, (t + 1) * chunk); r < end; ++r) fill(r, slot);
   }
-  Phase phase() const { return cpu_tasks::phase((l.rows + chunk - 1) / chunk, *this); }
+  Phase phase() const { return cpu_tasks::phase((l.Cs * l.E + chunk - 1) / chunk, *this); }
 };
 
 // Weights packed as bf16 pairs along channels: item i (entity x phase) holds a[kp * M + m], kp = (s * Csp + cp) *
