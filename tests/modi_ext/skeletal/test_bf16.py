@@ -301,14 +301,19 @@ def bf16_kernel(request, monkeypatch):
 
 
 def _kernel_case(kind: str, seed: int, style: bool, demod: bool, padding: str, size: str):
-    """Random skeleton; "small" (one column tile, fewer than 9 rows) or "wide" (odd channel counts -- a zero channel
-    in the pairs -- more than 9 output rows, several 48-column tiles and batch tiles, U = 5)."""
+    """Random skeleton; "small" (one column tile, fewer than 9 rows), "wide" (odd channel counts -- a zero channel
+    in the pairs -- more than 9 output rows, several 48-column tiles and batch tiles, U = 5) or "split" (few entities
+    and many channels: the weight gradient split into row blocks, several 32-row transposed blocks)."""
     rng = random.Random(seed)
+    joints = rng.randint(6, 30)
     if size == "small":
         dims = dict(U=3, B=3, cin=8, cout=6, T=16)
-    else:
+    elif size == "wide":
         dims = dict(U=5, B=5, cin=13, cout=19, T=37)
-    args, kw = make_case(kind, rng, dtype=torch.float64, n_joints=rng.randint(6, 30), style=style, demod=demod,
+    else:
+        dims = dict(U=3, B=2, cin=40, cout=70, T=9)
+        joints = rng.randint(3, 6)
+    args, kw = make_case(kind, rng, dtype=torch.float64, n_joints=joints, style=style, demod=demod,
                          padding=padding, **dims)
     r = lambda t: t.to(torch.bfloat16) if isinstance(t, torch.Tensor) and t.is_floating_point() else t  # noqa: E731
     a16, kw16 = tuple(r(a) for a in args), dict(kw, style=r(kw["style"]))
@@ -316,13 +321,13 @@ def _kernel_case(kind: str, seed: int, style: bool, demod: bool, padding: str, s
     return a16, kw16, tuple(up(a) for a in a16), dict(kw16, style=up(kw16["style"]))
 
 
-@pytest.mark.parametrize("size", ["small", "wide"])
+@pytest.mark.parametrize("size", ["small", "wide", "split"])
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
 @pytest.mark.parametrize("style,demod", [(False, False), (True, False), (True, True), (False, True)])
 @pytest.mark.parametrize("kind", KINDS)
 def test_bf16_kernels_against_float64_reference(bf16_kernel, kind, style, demod, padding, size):
     """The bf16 kernels (forced: impl="ext"), forward and every gradient, against the float64 reference."""
-    seed = 300 + 7 * KINDS.index(kind) + 2 * style + demod + (50 if size == "wide" else 0)
+    seed = 300 + 7 * KINDS.index(kind) + 2 * style + demod + 50 * ["small", "wide", "split"].index(size)
     a16, kw16, a64, kw64 = _kernel_case(kind, seed, style, demod, padding, size)
     l16, l64 = _leaves(a16, kw16), _leaves(a64, kw64)
     y16 = call(kind, ops, *_with(a16, dict(kw16, impl="ext"), l16))
