@@ -429,9 +429,10 @@ def test_bf16_kernels_opcheck(bf16_kernel, kind):
                               (sty, scale, "zeros"))
 
 
-def test_bf16_kernels_thread_count_invariant(bf16_kernel):
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_thread_count_invariant(bf16_kernel, kind):
     """Every output element is written by one task in a fixed order: the same bits for 1 and 2 threads."""
-    a16, kw16, _, _ = _kernel_case("conv", 8, True, True, "reflect", "wide")
+    a16, kw16, _, _ = _kernel_case(kind, 8, True, True, "reflect", "wide")
     x = a16[0].repeat(8, 1, 1, 1)  # enough work to use the threads
     args = (x,) + a16[1:]
     kw = dict(kw16, style=kw16["style"].repeat(8, 1), impl="ext")
@@ -441,7 +442,7 @@ def test_bf16_kernels_thread_count_invariant(bf16_kernel):
         for n in (1, 2):
             torch.set_num_threads(n)
             leaves = _leaves(args, kw)
-            y = call("conv", ops, *_with(args, kw, leaves))
+            y = call(kind, ops, *_with(args, kw, leaves))
             outs.append((y,) + torch.autograd.grad(y, leaves, torch.ones_like(y)))
     finally:
         torch.set_num_threads(before)
