@@ -479,3 +479,20 @@ def test_autocast_runs_the_bf16_kernels(bf16_kernel, monkeypatch, kind):
     assert paths == {(f"skeletal_{kind}", "ext")}
     k = _k_forward(kind, args)
     assert float((y.float() - want).abs().max()) <= (STAGES + 2 * math.sqrt(k)) * U_BF16 * float(want.abs().max())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_bf16_kernels_opcheck_partial_backward_ops(bf16_kernel, kind):
+    """gradfix's partial backward ops (gradients of any order) in bf16."""
+    from modi_ext.skeletal import checks
+
+    (x, w, b, index, offsets, *rest), kw, _, _ = _bf16_case(kind, 5, False, False, "zeros")
+    n_out = rest[0] if kind == "up" else offsets.numel() - 1
+    k = {"conv": checks.KIND_CONV, "down": checks.KIND_DOWN, "up": checks.KIND_UP}[kind]
+    y = call(kind, ops, (x, w, None, index, offsets, *rest), dict(kw, impl="ext"))
+    g = torch.randn(y.shape, generator=torch.Generator().manual_seed(6)).to(torch.bfloat16).requires_grad_(True)
+    wd, xd = w.detach().clone().requires_grad_(True), x.detach().clone().requires_grad_(True)
+    torch.library.opcheck(torch.ops.modi_ext.skeletal_grad_input.default,
+                          (g, wd, index, offsets, k, n_out, x.shape[2], x.shape[3], "zeros"))
+    torch.library.opcheck(torch.ops.modi_ext.skeletal_grad_weight.default,
+                          (g, xd, index, offsets, k, n_out, w.shape[3], "zeros"))
