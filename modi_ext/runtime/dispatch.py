@@ -185,11 +185,17 @@ def _cpu_bf16_path(env: str) -> dict:
     return row
 
 
+@torch.compiler.assume_constant_result
+def _bf16_on_ext() -> bool:
+    """cpu_bf16_path()'s choice, a constant to ``torch.compile`` (the probe behind it is an op call)."""
+    return cpu_bf16_path()["path"] == "ext"
+
+
 def cpu_bf16_kernels(impl: str | None = None) -> bool:
     """Whether a bfloat16 skeletal call on the CPU with this ``impl`` (None: ``MODI_EXT_IMPL``) is meant for the
     bf16 kernels -- what autocast casts for (``modi_ext.runtime.amp``); ``route`` still decides the path."""
     want = requested_impl() if impl is None else impl
-    return want in ("auto", "ext") and cpu_bf16_path()["path"] == "ext"
+    return want in ("auto", "ext") and _bf16_on_ext()
 
 
 def route(op: str, x: torch.Tensor, family: str = "skeletal", *, impl: str | None = None, record: bool = False,
@@ -243,7 +249,7 @@ def _route(op, x, family, impl, rerun, inputs, options) -> str:
         return want
     dev_type = x.device.type
     if dev_type == "cpu" and x.dtype not in CPU_KERNEL_DTYPES:
-        if not (family == "skeletal" and x.dtype == torch.bfloat16 and cpu_bf16_path()["path"] == "ext"):
+        if not (family == "skeletal" and x.dtype == torch.bfloat16 and _bf16_on_ext()):
             return "dense"  # no CPU kernel for this dtype -- never the fp32 kernels, never their self-check
     if not kernels_built(dev_type, family):
         if want == "ext":

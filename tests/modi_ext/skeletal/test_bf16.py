@@ -496,3 +496,27 @@ def test_bf16_kernels_opcheck_partial_backward_ops(bf16_kernel, kind):
                           (g, wd, index, offsets, k, n_out, x.shape[2], x.shape[3], "zeros"))
     torch.library.opcheck(torch.ops.modi_ext.skeletal_grad_weight.default,
                           (g, xd, index, offsets, k, n_out, w.shape[3], "zeros"))
+
+
+def test_bf16_kernels_under_torch_compile(bf16_kernel):
+    """torch.compile of a modulated bf16 call on the bf16 kernels: the values are eager's but for the demodulation
+    coefficients, which compile takes from the torch form (another fp32 summation order, then the same rounding):
+    one stage of difference each way."""
+    (x, w, b, index, offsets), kw, _, _ = _bf16_case("conv", 12, True, True, "zeros")
+
+    def f(x, w, b, s):
+        return ops.skeletal_conv(x, w, b, index, offsets, style=s, demodulate=True)
+
+    leaves = [t.detach().requires_grad_(True) for t in (x, w, b, kw["style"])]
+    want = f(*leaves)
+    got = torch.compile(f)(*leaves)
+    assert got.dtype == torch.bfloat16
+    assert dispatch.route("skeletal_conv", leaves[0]) == "ext"  # the choice compile folds in as a constant
+    k = _k_forward("conv", (x, w, b, index, offsets))
+    err = float((got.double() - want.double()).abs().max())
+    assert err <= bound(k, float(want.abs().max()), 2)
+    for name, a, c in zip(("x", "weight", "bias", "style"),
+                          torch.autograd.grad(got, leaves, torch.ones_like(got)),
+                          torch.autograd.grad(want, leaves, torch.ones_like(want))):
+        err = float((a.double() - c.double()).abs().max())
+        assert err <= bound(4096, float(c.abs().max()), 2 * KERNEL_STAGES_BWD), name
