@@ -34,7 +34,7 @@ struct Layout {
   const bf16* row(int64_t ph, int64_t cs, int64_t e) const {
     return buf.data() + ((ph * Cs + cs) * E + e) * row_len * width;
   }
-  // Channel c's row: pointer and element stride.
+  // Channel c's row (its elements `width` apart).
   const bf16* chan(int64_t ph, int64_t c, int64_t e) const { return row(ph, c / width, e) + c % width; }
 };
 
