@@ -192,7 +192,51 @@ MODI_BF16_ROW_TARGET void scaled_row_avx(const bf16* a, float fa, bf16* dst, int
     _mm256_mask_storeu_epi16(dst + i, m, (__m256i)_mm512_cvtneps_pbh(_mm512_mul_ps(load_bf(a + i, m), vf)));
   }
 }
+// In place: r[i][j] <- r[j][i], 16 x 16 32-bit words.
+MODI_BF16_ROW_TARGET inline void transpose16(__m512i (&r)[16]) {
+  __m512i t[16];
+  for (int i = 0; i < 16; i += 2) {
+    t[i] = _mm512_unpacklo_epi32(r[i], r[i + 1]);
+    t[i + 1] = _mm512_unpackhi_epi32(r[i], r[i + 1]);
+  }
+  for (int i = 0; i < 16; i += 4) {
+    r[i] = _mm512_unpacklo_epi64(t[i], t[i + 2]);
+    r[i + 1] = _mm512_unpackhi_epi64(t[i], t[i + 2]);
+    r[i + 2] = _mm512_unpacklo_epi64(t[i + 1], t[i + 3]);
+    r[i + 3] = _mm512_unpackhi_epi64(t[i + 1], t[i + 3]);
+  }
+  for (int h = 0; h < 16; h += 8)
+    for (int i = 0; i < 4; ++i) {
+      t[h + i] = _mm512_shuffle_i32x4(r[h + i], r[h + i + 4], 0x88);
+      t[h + i + 4] = _mm512_shuffle_i32x4(r[h + i], r[h + i + 4], 0xdd);
+    }
+  for (int i = 0; i < 8; ++i) {
+    r[i] = _mm512_shuffle_i32x4(t[i], t[i + 8], 0x88);
+    r[i + 8] = _mm512_shuffle_i32x4(t[i], t[i + 8], 0xdd);
+  }
+}
+
+// lt[(n0 + k) * 32 + j] = (b_j[2(n0+k) bs], b_j[(2(n0+k)+1) bs]) for k < 16, j < 16 (rows past `rows`: 0); bs 1 or 2.
+MODI_BF16_ROW_TARGET void transpose_pairs_avx(const bf16* const* b, int64_t bs, int64_t rows, int64_t n0,
+                                              uint32_t* lt) {
+  __m512i r[16];
+  const __m512i even = _mm512_set_epi16(62, 60, 58, 56, 54, 52, 50, 48, 46, 44, 42, 40, 38, 36, 34, 32, 30, 28, 26,
+                                        24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
+  for (int i = 0; i < 16; ++i) {
+    if (i >= rows) {
+      r[i] = _mm512_setzero_si512();
+    } else if (bs == 1) {
+      r[i] = _mm512_loadu_si512(b[i] + 2 * n0);
+    } else {  // the row's elements are every other bf16 of a paired layout
+      const bf16* p = b[i] + 4 * n0;
+      r[i] = _mm512_permutex2var_epi16(_mm512_loadu_si512(p), even, _mm512_loadu_si512(p + 32));
+    }
+  }
+  transpose16(r);
+  for (int k = 0; k < 16; ++k) _mm512_storeu_si512(lt + (n0 + k) * 32, r[k]);
+}
 #else
+void transpose_pairs_avx(const bf16* const*, int64_t, int64_t, int64_t, uint32_t*) {}
 void scaled_pairs_avx(const bf16*, const bf16*, float, float, bf16*, int64_t) {}
 void scaled_row_avx(const bf16*, float, bf16*, int64_t) {}
 float dot_avx(const float*, const bf16*, int64_t) { return 0.f; }
@@ -294,10 +338,16 @@ void wgrad(const bf16* const* a, int64_t Ma, const bf16* const* b, int64_t bs, i
                                    wg_emu<7>, wg_emu<8>, wg_emu<9>, wg_emu<10>, wg_emu<11>, wg_emu<12>};
   const WgFn* fns = use_avx512bf16() ? avx : emu;
   const int64_t Np = (N + 1) / 2;
+  // AVX-512: whole groups of 16 column pairs in registers (16 x 16 word transposes), the rest one pair at a time
+  const int64_t Nv = use_avx512bf16() && (bs == 1 || bs == 2) ? (N / 2) / 16 * 16 : 0;
   float out[12 * 32];
   for (int64_t j0 = 0; j0 < Mb; j0 += 32) {
     const int64_t live = std::min<int64_t>(32, Mb - j0);
-    for (int64_t n0 = 0; n0 < Np; n0 += 16) {  // transpose in strips of 16 column pairs (stays in L1)
+    for (int64_t jg = 0; jg < 32; jg += 16) {
+      const int64_t rows = std::max<int64_t>(0, std::min<int64_t>(16, live - jg));
+      for (int64_t n0 = 0; n0 < Nv; n0 += 16) transpose_pairs_avx(rows ? b + j0 + jg : b, bs, rows, n0, lt + jg);
+    }
+    for (int64_t n0 = Nv; n0 < Np; n0 += 16) {  // transpose in strips of 16 column pairs (stays in L1)
       const int64_t n1 = std::min(Np, n0 + 16);
       for (int64_t jj = 0; jj < live; ++jj) {
         const bf16* src = b[j0 + jj];
