@@ -1,3 +1,3 @@
 """The package version: one place, read by setup.py and by every checkpoint writer (``modi_version``)."""
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"

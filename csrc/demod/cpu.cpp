@@ -172,7 +172,7 @@ void backward_impl(const Shape& s, const T* grad, const T* d, const T* w, const 
 
 at::Tensor demod_scale_cpu(const at::Tensor& weight, const std::optional<at::Tensor>& style, const at::Tensor& index,
                            const at::Tensor& offsets, bool up, int64_t n_out, double eps) {
-  const Shape s = demod::check_inputs(weight, style, index, offsets, up, n_out);
+  const Shape s = demod::check_inputs(kCpuBackend, weight, style, index, offsets, up, n_out);
   const at::Tensor w = weight.contiguous();
   const at::Tensor st = style.has_value() ? style->contiguous() : at::Tensor();
   at::Tensor d = at::empty({s.Bs, s.Co, s.Eo}, weight.options());
@@ -191,7 +191,7 @@ std::tuple<at::Tensor, at::Tensor> demod_scale_backward_cpu(const at::Tensor& gr
                                                             const std::optional<at::Tensor>& style,
                                                             const at::Tensor& index, const at::Tensor& offsets,
                                                             bool up, int64_t n_out, std::array<bool, 2> output_mask) {
-  const Shape s = demod::check_backward_inputs(grad, d, weight, style, index, offsets, up, n_out);
+  const Shape s = demod::check_backward_inputs(kCpuBackend, grad, d, weight, style, index, offsets, up, n_out);
   const bool want_w = output_mask[0], want_s = output_mask[1] && s.styled;
   const at::Tensor w = weight.contiguous(), g = grad.contiguous(), dc = d.contiguous();
   const at::Tensor st = s.styled ? style->contiguous() : at::Tensor();

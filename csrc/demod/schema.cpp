@@ -1,5 +1,5 @@
-// Schemas of the demodulation-coefficient ops (CPU implementation in demod/cpu.cpp; other devices use the
-// torch form in modi_ext/demod/dense.py); registered from the one TORCH_LIBRARY block in csrc/registration.cpp.
+// Schemas of the demodulation-coefficient ops (kernels: demod/cpu.cpp, demod/cuda.cu; other devices use the torch
+// form in modi_ext/demod/dense.py); registered from the one TORCH_LIBRARY block in csrc/registration.cpp.
 #include <torch/library.h>
 
 #include "common/ops.h"

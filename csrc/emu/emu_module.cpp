@@ -13,6 +13,7 @@
 MODI_EMU_TORCH_LIBRARY(MODI_EMU_LIB, m) {
   modi_ext::define_skeletal_ops(m);
   modi_ext::define_fk_ops(m);
+  modi_ext::define_demod_ops(m);
   m.def("emu_selftest(str name, int threads) -> Tensor");  // emu_selftest.cpp: the emulator's own checks
 }
 

@@ -43,6 +43,12 @@ def _written_by(st: dict) -> dict[str, Any]:
     return {"modi_version": st.get("modi_version"), "torch_version": st.get("torch_version")}
 
 
+def _precision(st: dict) -> str:
+    """The precision a checkpoint was trained in: its record, or fp32 for one written before modi recorded it (every
+    run was fp32 then). Its weights are fp32 either way."""
+    return str(st.get("precision", "fp32"))
+
+
 def _imported(prov: Any) -> dict[str, Any] | None:
     """An import's record (``modi.interop.provenance``), or the bare path earlier imports kept."""
     if prov is None:
@@ -60,7 +66,8 @@ def _modi(st: dict) -> dict[str, Any]:
     prov = _imported(st.get("imported_from"))
     return {"kind": _kind("MoDi generator checkpoint", prov), "format": st.get("format"),
             "version": st.get("version"), "step": st.get("step"), "skeleton": _skeleton(st.get("skeleton")),
-            "config": st.get("config"), "data": st.get("data_source"), **_written_by(st), "imported": prov}
+            "config": st.get("config"), "data": st.get("data_source"), **_written_by(st), "imported": prov,
+            "precision": _precision(st)}
 
 
 def _encoder(st: dict) -> dict[str, Any]:
@@ -102,7 +109,7 @@ def _ganimator(st: dict) -> dict[str, Any]:
             "format": st.get("format"), "version": int(str(st.get("format")).rsplit("/", 1)[1]),
             "step": f"{where}; {state.get('levels_done', 0)} of {n_levels} levels trained",
             "skeleton": _skeleton(first.get("skeleton")), "config": cfg, "data": ", ".join(clips),
-            **_written_by(st), "imported": prov}
+            **_written_by(st), "imported": prov, "precision": _precision(st)}
 
 
 _KINDS = {"modi-checkpoint": _modi, "modi-encoder": _encoder, "modi-features-v1": _features,
@@ -146,6 +153,8 @@ def describe_text(d: dict[str, Any]) -> str:
             ("step", d["step"]),
             ("skeleton", f"{sk['joints']} joints, root {sk['root']}: {names}" if sk else "not recorded"),
             ("data", d.get("data") or "not recorded"), ("written by", wrote)]
+    if d.get("precision") is not None:  # the checkpoints of training runs
+        rows.append(("precision", f"trained in {d['precision']} (weights stored in fp32)"))
     lines = [f"{k + ':':12s} {v}" for k, v in rows]
     lines += imported_text(d.get("imported"))
     cfg = " ".join(_flat(d["config"])) if d.get("config") is not None else "not recorded"
@@ -219,8 +228,10 @@ def imported_text(prov: dict | None) -> list[str]:
 @dataclass
 class FileInfo:
     """What ``modi info FILE`` prints, as an object: ``kind``, ``format`` and ``version``, training ``step``, the
-    ``skeleton`` (joints, root, names, parents), the ``config``, the ``data`` it was trained on and the modi and
-    torch versions that wrote it. ``str()`` is the text ``modi info`` prints; :meth:`to_dict` its ``--json``."""
+    ``skeleton`` (joints, root, names, parents), the ``config``, the ``data`` it was trained on, the modi and
+    torch versions that wrote it and, for a MoDi or GANimator checkpoint, the ``precision`` it was trained in
+    (``fp32`` or ``bf16``; None for other files). ``str()`` is the text ``modi info`` prints; :meth:`to_dict` its
+    ``--json``."""
 
     file: str
     kind: str
@@ -233,18 +244,21 @@ class FileInfo:
     modi_version: str | None = None
     torch_version: str | None = None
     imported: dict[str, Any] | None = None
+    precision: str | None = None
     text: str = field(default="", repr=False, compare=False)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], text: str = "") -> "FileInfo":
         return cls(d["file"], d["kind"], d.get("format"), d.get("version"), d.get("step"), d.get("skeleton"),
-                   d.get("config"), d.get("data"), d.get("modi_version"), d.get("torch_version"), d.get("imported"), text)
+                   d.get("config"), d.get("data"), d.get("modi_version"), d.get("torch_version"), d.get("imported"),
+                   d.get("precision"), text)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``modi info --json`` object."""
         return {"file": self.file, "kind": self.kind, "format": self.format, "version": self.version,
                 "step": self.step, "skeleton": self.skeleton, "config": self.config, "data": self.data,
-                "modi_version": self.modi_version, "torch_version": self.torch_version, "imported": self.imported}
+                "modi_version": self.modi_version, "torch_version": self.torch_version, "imported": self.imported,
+                "precision": self.precision}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, default=str)

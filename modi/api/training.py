@@ -10,6 +10,9 @@
   :class:`TrainingInterrupted` (a ``KeyboardInterrupt`` carrying ``.checkpoint`` and ``.exit_code``).
 * **One-line errors**: every mistake of the caller's is a :class:`modi.errors.UserError` whose message is the line
   the CLI prints.
+* **Precision**: ``precision="bf16"`` runs the forward passes under bf16 autocast (weights, optimiser states and
+  checkpoints stay fp32; docs/precision.md). A resumed run keeps its checkpoint's precision unless one is given,
+  which it then switches to (and logs); None means that, or fp32 for a new run.
 
 ``progress`` is called after every iteration with a :class:`Progress`.
 """
@@ -40,6 +43,7 @@ from modi.models.ganimator.training import TrainingInterrupted, blocks_of, check
 from modi.models.modi.checkpoint import load_checkpoint
 from modi.models.modi import distributed as mdist
 from modi.models.modi.config import ABLATIONS, MoDiConfig, make_config
+from modi.models.precision import PRECISIONS, check_precision
 from modi.models.modi.training import Trainer, TrainResult, newest_checkpoint, prepare_data
 from modi.data.normalization import Normalizer
 
@@ -177,7 +181,7 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
                       dist_timeout: float | None = None, tensorboard: bool = True, cache: bool = True,
                       bar: bool = True, log: Callable[[str], Any] | None = None,
                       progress: ProgressCallback | None = None, spelling: Mapping[str, str] = PYTHON_SPELLING,
-                      hold: list | None = None) -> TrainResult:
+                      hold: list | None = None, precision: str | None = None) -> TrainResult:
     """One MoDi training run into the run folder ``out``, in this process or as one rank of a torchrun launch
     (``modi train`` is this call); returns the trainer's result (``exit_code`` 130 / 143 after Ctrl-C / SIGTERM,
     with a resumable checkpoint saved).
@@ -191,7 +195,10 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
       a lost peer is one ``PeerLostError`` line (exit 75). ``hold`` gets the run's state (its trainer) appended,
       for a caller that must keep the process group alive until it exits (``modi.cli.leave_without_teardown``);
     * ``log`` gets rank 0's summary lines; ``bar`` shows progress bars on rank 0; ``progress`` is called after
-      every step; messages name the options as ``spelling`` says (the CLI's flags, or Python's arguments)."""
+      every step; messages name the options as ``spelling`` says (the CLI's flags, or Python's arguments);
+    * ``precision``: ``fp32`` or ``bf16``; None keeps a resumed checkpoint's (fp32 for a new run)."""
+    if precision is not None:
+        check_precision(precision)
     set_threads(threads)
     dev = modi_device(device)
     state: dict = {"trainer": None, "resumed": None}  # what a lost peer's line reports
@@ -203,7 +210,7 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
         rank, world = mdist.init_distributed_from_env(dev, dist_timeout)
         with _run_folder_lock(run_dir, rank, world, dev):
             return _train(data, run_dir, preset, default_preset, ablations, dict(config or {}), resume, dev, rank,
-                          world, state, tensorboard, cache, bar, log, progress, spelling)
+                          world, state, tensorboard, cache, bar, log, progress, spelling, precision)
     except (Exception, faults.Terminated) as exc:
         # a peer's failure; or torchrun's SIGTERM, sent to every worker once one has died, which can reach this
         # rank before its own next collective fails: either way the lost peer is what to report
@@ -301,7 +308,7 @@ def _resume_state(resume: bool | str | os.PathLike | None, run_dir: Path, rank: 
 
 def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: dict, resume, dev: torch.device,
            rank: int, world: int, state: dict, tensorboard: bool, cache: bool, bar: bool, log, progress,
-           spelling: Mapping[str, str]) -> TrainResult:
+           spelling: Mapping[str, str], precision: str | None) -> TrainResult:
     say = log if rank == 0 else None
     found = _resume_state(resume, run_dir, rank, world, spelling, say)
     resume_state = None
@@ -331,13 +338,13 @@ def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: di
     td = prepare_data(data, cfg, work_dir=run_dir, cache=cache, progress=bar and rank == 0, normalizer=normalizer)
     if rank == 0:
         faults.atomic_write(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=1) + "\n")
-        s = td.summary
-        _say(say, f"modi train: {td.windows.shape[0]} training windows {tuple(td.windows.shape[1:])} from "
-                  f"{s.get('train_clips', '?')} clips; hierarchy {td.hierarchy.entity_counts}; preset {cfg.preset}; "
-                  f"{world} process(es) on {dev}; {cfg.train.iters} iterations")
     trainer = _ModiTrainer(cfg, td, run_dir, device=dev, resume=resume_state, progress=bar, tensorboard=tensorboard,
-                           log=log or (lambda _m: None), progress_fn=progress)
+                           log=log or (lambda _m: None), progress_fn=progress, precision=precision)
     state["trainer"] = trainer
+    s = td.summary
+    _say(say, f"modi train: {td.windows.shape[0]} training windows {tuple(td.windows.shape[1:])} from "
+              f"{s.get('train_clips', '?')} clips; hierarchy {td.hierarchy.entity_counts}; preset {cfg.preset}; "
+              f"{world} process(es) on {dev}; {cfg.train.iters} iterations; precision {trainer.precision}")
     result = trainer.train()  # a NaN/inf loss: NonFiniteLossError, a UserError (one line, exit 2)
     losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items()
                        if k in ("d", "g", "r1", "path", "touch", "contact"))
@@ -350,21 +357,24 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str |
                batch: int | None = None, seed: int | None = None, resume: bool | str | os.PathLike = False,
                device: str | torch.device = "cpu", threads: int | None = None,
                progress: ProgressCallback | None = None, bar: bool = False, tensorboard: bool = False,
-               cache: bool = True, log: Callable[[str], Any] | None = None) -> ModiGenerator:
+               cache: bool = True, log: Callable[[str], Any] | None = None,
+               precision: str | None = None) -> ModiGenerator:
     """Train MoDi on every BVH under ``data`` (or the word ``procedural``: the built-in clips) into the run folder
     ``out`` (``checkpoint.pt``, ``log.jsonl``, ``config.json``, sample previews); returns the trained generator.
 
     The config is ``preset`` (default ``small``) + ``ablations`` + ``config`` (dotted keys) + the shortcuts
     ``iters``, ``batch``, ``seed``. ``resume=True`` continues the run's newest checkpoint (``resume="auto"``: when
     there is one, else a new run; ``resume=PATH``: that file) with its config: ``iters`` may extend it, an option
-    that differs from it is refused. ``bar`` shows tqdm's bar; ``log`` receives the summary lines (e.g. ``print``).
+    that differs from it is refused. ``precision``: ``fp32`` or ``bf16`` (bf16 autocast for the forward passes;
+    None: a resumed checkpoint's, else fp32; given on a resume, the run switches to it). ``bar`` shows tqdm's bar;
+    ``log`` receives the summary lines (e.g. ``print``).
     Cost: the data preparation (cached in ``out``), then ``iters`` steps (about 0.1 s each for the small preset on a
     CPU core). Under torchrun every rank makes this call. See the module for the guarantees (lock, no overwrite,
     signals); ``run_modi_training`` is the same run, returning the trainer's result instead."""
     overrides = _dotted(config, {"iters": iters, "batch": batch, "seed": seed})
     result = run_modi_training(data, out, preset=preset, ablations=ablations, config=overrides, resume=resume,
                                device=device, threads=threads, tensorboard=tensorboard, cache=cache, bar=bar,
-                               log=log, progress=progress)
+                               log=log, progress=progress, precision=precision)
     if result.interrupted:
         raise TrainingInterrupted(result.checkpoint, result.signum)
     return ModiGenerator.from_checkpoint(result.checkpoint, device=modi_device(device))
@@ -410,7 +420,8 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
                     preset: str = "fast", resume: bool = False, conditional_from: str | os.PathLike | None = None,
                     max_minutes: float | None = None, threads: int | None = None,
                     progress: ProgressCallback | None = None, bar: bool = False,
-                    log: Callable[[str], Any] | None = None, **config: Any) -> GanimatorRun:
+                    log: Callable[[str], Any] | None = None, precision: str | None = None,
+                    **config: Any) -> GanimatorRun:
     """Train GANimator on one BVH clip, or several of one character (motion mixing), into the run folder ``out``
     (``ganimator.ckpt``, ``log.jsonl``, ``progress.json``); returns the trained run.
 
@@ -418,8 +429,11 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
     ``max_levels``, ``coarse_ratio``, ``feet``, ``keep_joints``, ``joint_reduction``, ``contacts``, ``fps``,
     ``device``, ``seed``, ...). ``resume=True`` continues ``out``'s checkpoint when there is one (without it an
     existing checkpoint is refused); ``conditional_from`` trains a trajectory-conditioned model against a trained
-    run; ``max_minutes`` stops (checkpointed) after that long. Cost: the preset's schedule (``tiny``: seconds,
-    ``fast``: minutes per level on a CPU, ``paper``: hours)."""
+    run; ``max_minutes`` stops (checkpointed) after that long. ``precision``: ``fp32`` or ``bf16`` (bf16 autocast for
+    the forward passes; None: a resumed checkpoint's, else fp32; given on a resume, the run switches to it). Cost: the
+    preset's schedule (``tiny``: seconds, ``fast``: minutes per level on a CPU, ``paper``: hours)."""
+    if precision is not None:
+        check_precision(precision)
     set_threads(threads)
     paths = [bvh] if isinstance(bvh, (str, os.PathLike)) else list(bvh)
     if not paths:
@@ -455,7 +469,8 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
         n_blocks = len(blocks_of(len(sequence_pyramid(clips, cfg)[0][0]), cfg.group_size))
         _say(log, f"{n_blocks} blocks of {cfg.group_size} levels, iterations {cfg.block_budgets(n_blocks)} "
                   f"({cfg.d_steps} D : {cfg.g_steps} G : 1 reconstruction steps each)")
-        trainer = _GanimatorTrainer(clips, cfg, run_dir, cond_source=cond_source, progress_fn=progress)
+        trainer = _GanimatorTrainer(clips, cfg, run_dir, cond_source=cond_source, progress_fn=progress,
+                                    precision=precision)
         model = trainer.run(progress=bar, log=log, max_seconds=max_minutes * 60 if max_minutes else None)
     model.eval()
     return GanimatorRun(load_model(run_dir, device=cfg.device) if ckpt.is_file() else model, path=str(run_dir))
@@ -463,4 +478,4 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
 
 __all__ = ["Progress", "ProgressCallback", "train_modi", "run_modi_training", "train_ganimator", "modi_config",
            "ganimator_config", "config_differences", "launched_by_torchrun", "modi_device", "TrainingInterrupted",
-           "GANIMATOR_PRESETS"]
+           "GANIMATOR_PRESETS", "PRECISIONS"]

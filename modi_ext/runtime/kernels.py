@@ -28,8 +28,8 @@ __all__ = ["LIB", "FAMILY_OPS", "KERNELS", "EAGER", "launch", "kernel_table", "r
 
 LIB = "modi_ext"
 FAMILY_OPS = {"skeletal": ("skeletal_conv", "skeletal_down", "skeletal_up", "skeletal_backward"),
-              "fk": ("fk", "fk_backward")}
-OPS = FAMILY_OPS["skeletal"] + FAMILY_OPS["fk"]
+              "fk": ("fk", "fk_backward"), "demod": ("demod_scale", "demod_scale_backward")}
+OPS = FAMILY_OPS["skeletal"] + FAMILY_OPS["fk"] + FAMILY_OPS["demod"]
 
 
 def kernel_table(lib: str = LIB) -> dict[str, Callable]:

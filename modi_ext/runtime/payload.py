@@ -16,7 +16,9 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
   ``scale_grad_kernel``; conv / down and up: the plain and the blur (adjoint) variants;
 * FK, one joint count per launch plan of ``csrc/fk/cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
   else a global workspace; each at a plan boundary), 40 samples (a partial block and a partial warp), rotation
-  and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction.
+  and offsets gradients: ``fk_offsets_reduce_kernel`` and the warp-shuffle offsets reduction;
+* the demodulation coefficients (``csrc/demod/cuda.cu``), conv / down and up maps, with a style and without, both
+  gradients: its forward, style-gradient and weight-gradient kernels.
 
 Everything calls the raw ops of a kernel table (``modi_ext.runtime.kernels.kernel_table``), never autograd, so the same
 list runs on ``torch.ops.modi_ext`` (CPU or CUDA) and on the emulator's ``torch.ops.modi_ext_emu``.
@@ -29,13 +31,14 @@ from typing import Callable, Mapping
 
 import torch
 
+from modi_ext.demod import dense as demod_dense
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk.reference import fk_reference
 from modi_ext.skeletal import reference
 from modi_ext.csr import csr_from_lists
 
-__all__ = ["SkeletalCase", "FkCase", "SKELETAL_CASES", "FK_PLANS", "fk_cases", "DTYPES", "TOL", "run_case",
-           "run", "fk_plan"]
+__all__ = ["SkeletalCase", "FkCase", "DemodCase", "SKELETAL_CASES", "FK_PLANS", "DEMOD_CASES", "fk_cases", "DTYPES",
+           "TOL", "run_case", "run", "fk_plan"]
 
 DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 # error allowed relative to max(1, max |reference|); gradients get 4x (reductions over batch x time)
@@ -127,6 +130,22 @@ def fk_cases(dtype: torch.dtype) -> tuple[FkCase, ...]:
     return tuple(FkCase(f"fk.{p}", joints[p]) for p in FK_PLANS)
 
 
+@dataclass(frozen=True)
+class DemodCase:
+    name: str
+    up: bool
+    styled: bool
+    B: int = 3
+    cin: int = 4
+    cout: int = 6
+    U: int = 3
+
+
+# every grid a partial block of 128 threads (3 x 6 x 5 = 90 coefficients; 6 x 11 x 4 x 3 weight entries)
+DEMOD_CASES = tuple(DemodCase(f"demod.{'up' if up else 'conv'}.{'style' if styled else 'plain'}", up, styled)
+                    for up in (False, True) for styled in (False, True))
+
+
 # ------------------------------------------------------------------------------------------------ inputs and oracle
 def _rnd(g: torch.Generator, dtype: torch.dtype, *shape: int, scale: float = 1.0, shift: float = 0.0):
     """float64 values already rounded to ``dtype`` (so the oracle sees exactly what the kernel sees)."""
@@ -184,6 +203,27 @@ def fk_inputs(case: FkCase, dtype: torch.dtype, seed: int = 99) -> dict:
                 gp=_rnd(g, dtype, case.N, case.J, 3), gg=_rnd(g, dtype, case.N, case.J, 4))
 
 
+def demod_inputs(case: DemodCase, dtype: torch.dtype, seed: int = 7) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    topo = csr_from_lists(POOLING if case.up else NEIGHBORS, n_in=5)
+    n_out = 5 if case.up else topo.n_out
+    shape = (case.cin, topo.nnz, case.cout, case.U) if case.up else (case.cout, topo.nnz, case.cin, case.U)
+    w = _rnd(g, dtype, *shape, scale=0.5)
+    s = _rnd(g, dtype, case.B, case.cin, scale=0.3, shift=1.0) if case.styled else None
+    gd = _rnd(g, dtype, case.B if case.styled else 1, case.cout, n_out)
+    return dict(w=w, s=s, gd=gd, index=topo.index, offsets=topo.offsets, n_out=n_out)
+
+
+def demod_oracle(case: DemodCase, p: dict) -> tuple[torch.Tensor, tuple]:
+    """The torch form in float64 and the gradients of ``<gd, d>`` w.r.t. (w, s)."""
+    w = p["w"].clone().requires_grad_()
+    s = p["s"].clone().requires_grad_() if case.styled else None
+    d = demod_dense.demod_scale(w, p["index"], p["offsets"], s, case.up, p["n_out"], p["gd"].shape[0])
+    leaves = [w] + ([s] if s is not None else [])
+    grads = torch.autograd.grad(d, leaves, p["gd"])
+    return d.detach(), tuple(gr.detach() for gr in grads)
+
+
 def fk_oracle(p: dict) -> tuple[tuple, tuple]:
     q, off, root = (p[k].clone().requires_grad_() for k in ("q", "off", "root"))
     pos, rot = fk_reference(q, off, p["parents"], root, return_rotations=True)
@@ -221,10 +261,26 @@ def _fk_call(table: Mapping[str, Callable], p: dict, device: str, dtype: torch.d
     return (pos, rot), tuple(grads)
 
 
-def run_case(table: Mapping[str, Callable], case: SkeletalCase | FkCase, device: str, dtype: torch.dtype,
+def _demod_call(table: Mapping[str, Callable], case: DemodCase, p: dict, device: str, dtype: torch.dtype):
+    dev = lambda t: t.to(device=device, dtype=dtype).contiguous() if t is not None else None  # noqa: E731
+    w, s = dev(p["w"]), dev(p["s"])
+    idx, off = p["index"].to(device), p["offsets"].to(device)
+    d = table["demod_scale"](w, s, idx, off, case.up, p["n_out"], DEMOD_EPS)
+    gw, gs = table["demod_scale_backward"](dev(p["gd"]), d, w, s, idx, off, case.up, p["n_out"], [True, True])
+    return d, (gw, gs) if case.styled else (gw,)
+
+
+def run_case(table: Mapping[str, Callable], case: SkeletalCase | FkCase | DemodCase, device: str, dtype: torch.dtype,
              check: bool = True) -> tuple[float, float]:
     """Run one case on the kernels (forward, then the backward with every gradient); with ``check``, return its
     (forward error, gradient error) against the float64 oracle, else (0, 0)."""
+    if isinstance(case, DemodCase):
+        p = demod_inputs(case, dtype)
+        d, grads = _demod_call(table, case, p, device, dtype)
+        if not check:
+            return 0.0, 0.0
+        want_d, want_g = demod_oracle(case, p)
+        return rel_error(d, want_d), max(rel_error(a, r) for a, r in zip(grads, want_g))
     if isinstance(case, SkeletalCase):
         p = skeletal_inputs(case, dtype)
         y, grads = _skeletal_call(table, case, p, device, dtype)
@@ -241,9 +297,10 @@ def run_case(table: Mapping[str, Callable], case: SkeletalCase | FkCase, device:
             max(rel_error(a, r) for a, r in zip(grads, want_g)))
 
 
-def cases(dtype: torch.dtype, families: tuple[str, ...] = ("skeletal", "fk")) -> list:
-    return (list(SKELETAL_CASES) if "skeletal" in families else []) + (list(fk_cases(dtype)) if "fk" in families
-                                                                        else [])
+def cases(dtype: torch.dtype, families: tuple[str, ...] = ("skeletal", "fk", "demod")) -> list:
+    return ((list(SKELETAL_CASES) if "skeletal" in families else [])
+            + (list(fk_cases(dtype)) if "fk" in families else [])
+            + (list(DEMOD_CASES) if "demod" in families else []))
 
 
 def run(table: Mapping[str, Callable], device: str, dtypes=DTYPES, check: bool = True) -> dict:

@@ -7,40 +7,32 @@ reference.
 
 The problems are ``modi_ext.runtime.payload``'s, so the check launches every kernel instantiation of its dtype -- what
 MoDi trains with included: the narrow cases (32-row tiles), the wide ones (cin 34 / cout 36, B x T = 260: 64-row tiles
-and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, and FK on every launch
-plan with rotation and offsets gradients; on this build's own ops also the demodulation coefficients the public
-ops hand to the kernels (``modi_ext.demod.ops``, a C++ op on the CPU).  Milliseconds on a GPU; about 0.5 s per dtype
-on the CPU emulator (``tests/modi_ext/runtime/test_cuda_emulated.py`` prints it), 0.1-0.2 s on the CPU kernels.
+and the split-K weight gradient), every gradient of a modulated, demodulated, biased call, FK on every launch
+plan with rotation and offsets gradients, and the demodulation coefficients with both gradients.  Milliseconds on a
+GPU; about 0.5 s per dtype on the CPU emulator (``tests/modi_ext/runtime/test_cuda_emulated.py`` prints it),
+0.1-0.2 s on the CPU kernels.
 
-It calls the raw kernels of a table (``modi_ext.runtime.kernels``), not the autograd ops; what it imports above the
-runtime is the demod op and the references (so ``dispatch`` is handed ``run`` by ``modi_ext/__init__.py``).
+It calls the raw kernels of a table (``modi_ext.runtime.kernels``), never the public ops (which route through the
+self-check); what it imports above the runtime is the references (so ``dispatch`` is handed ``run`` by
+``modi_ext/__init__.py``).
 """
 from __future__ import annotations
 
 import torch
 
-from modi_ext.demod import ops as demod
 from modi_ext.runtime import kernels, payload
 
 TOL = payload.TOL
 
 
-def _demod_error(case: payload.SkeletalCase, device: str, dtype: torch.dtype) -> float:
-    """The demodulation coefficients the public ops hand to the kernels (``modi_ext.demod.ops``: a C++ op on the CPU)
-    against the float64 formula."""
-    p = payload.skeletal_inputs(case, dtype)
-    dev = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731
-    d = demod.demod_scale(dev(p["w"]), p["index"].to(device), p["offsets"].to(device), dev(p["s"]), case.kind == "up",
-                          p["n_out"], case.B)
-    return payload.rel_error(d, p["d"])
-
-
 def _families(lib: str, device_type: str) -> tuple[str, ...]:
     built = kernels.kernels_built if lib == kernels.LIB else (lambda d, f: kernels.registered(lib, f, d))
-    return tuple(f for f in ("skeletal", "fk") if built(device_type, f))
+    return tuple(f for f in ("skeletal", "fk", "demod") if built(device_type, f))
 
 
 def _op_of(case) -> str:
+    if isinstance(case, payload.DemodCase):
+        return "demod_scale"
     return "fk" if isinstance(case, payload.FkCase) else f"skeletal_{case.kind}"
 
 
@@ -72,15 +64,6 @@ def run(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> dict:
                 errors[op] = f"raised {type(exc).__name__}: {msg} ({case.name})"
                 continue
             worst[op] = max(worst.get(op, 0.0), fwd, bwd)
-            if lib == kernels.LIB and isinstance(case, payload.SkeletalCase) and "demod_scale" not in errors:
-                try:
-                    err = _demod_error(case, device, dtype)
-                except Exception as exc:  # noqa: BLE001
-                    errors["demod_scale"] = f"raised {type(exc).__name__}: {str(exc).splitlines()[0]} ({case.name})"
-                else:
-                    worst["demod_scale"] = max(worst.get("demod_scale", 0.0), err)
-                    if err > tol:
-                        errors["demod_scale"] = f"error {err:.3g} > {tol:.1g} ({case.name})"
             if fwd > tol:
                 errors[op] = f"forward error {fwd:.3g} > {tol:.1g} ({case.name})"
             elif bwd > payload.GRAD_FACTOR * tol:

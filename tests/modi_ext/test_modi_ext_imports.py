@@ -13,7 +13,7 @@ The layers, lowest first; a module imports only from its own layer or below (``L
 2. the references, the oracles: ``fk.reference`` (the one Python FK), ``demod.reference``, ``skeletal.reference``;
 3. the dense forms: ``demod.dense``, ``skeletal.dense``, ``fk.dense``;
 4. the runtime that finds a call's path: ``runtime.loader``, ``eager``, ``kernels``, ``amp``, ``dispatch``;
-5. the ops: ``demod.ops``, ``skeletal.checks`` / ``gradfix`` / ``registration`` / ``ops``, ``fk.checks`` /
+5. the ops: ``demod.registration`` / ``ops``, ``skeletal.checks`` / ``gradfix`` / ``registration`` / ``ops``, ``fk.checks`` /
    ``gradfix`` / ``registration`` / ``ops``, and the ``skeletal`` and ``fk`` packages (their ``__init__`` re-exports
    the ops);
 6. the runtime that checks the kernels: ``runtime.payload``, ``runtime.selfcheck`` (they run the references and the
@@ -37,8 +37,8 @@ LAYERS: list[set[str]] = [
     {"fk.reference", "demod.reference", "skeletal.reference"},
     {"demod.dense", "skeletal.dense", "fk.dense"},
     {"runtime.loader", "runtime.eager", "runtime.kernels", "runtime.amp", "runtime.dispatch"},
-    {"demod.ops", "skeletal.checks", "skeletal.gradfix", "skeletal.registration", "skeletal.ops", "skeletal",
-     "fk.checks", "fk.gradfix", "fk.registration", "fk.ops", "fk"},
+    {"demod.registration", "demod.ops", "skeletal.checks", "skeletal.gradfix", "skeletal.registration", "skeletal.ops",
+     "skeletal", "fk.checks", "fk.gradfix", "fk.registration", "fk.ops", "fk"},
     {"runtime.payload", "runtime.selfcheck"},
     {"layers"},
     {"validate"},

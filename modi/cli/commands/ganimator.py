@@ -17,6 +17,7 @@ _FMT = argparse.ArgumentDefaultsHelpFormatter
 def register(subparsers) -> None:
     # lazy: torch (read when the parser is built)
     from modi.api.options import GANIMATOR_PRESETS, ganimator_preset_help
+    from modi.api.options import PRECISIONS  # lazy: torch (read when the parser is built)
 
     p = subparsers.add_parser("ganimator", help="GANimator: learn from one (or a few) BVH clips of any skeleton",
                               description="GANimator (Li et al. 2022): a coarse-to-fine pyramid of small GANs "
@@ -62,6 +63,10 @@ def register(subparsers) -> None:
                    help="train a trajectory-conditioned model; trajectories are sampled from this trained run")
     t.add_argument("--device", default=None, type=ct.device, help="torch device (cpu, cuda)")
     t.add_argument("--seed", type=ct.seed_int, default=None, help="random seed")
+    t.add_argument("--precision", choices=PRECISIONS, default=None,
+                   help="forward passes in fp32, or under bf16 autocast (weights, optimiser states and checkpoints "
+                        "stay fp32; see docs/precision.md); omitted: a resumed run's, else fp32; given on a resume, "
+                        "the run switches to it")
     t.add_argument("--threads", type=ct.threads_int, default=None, help="torch CPU threads (default: torch's choice)")
     t.add_argument("--max-minutes", type=ct.minutes_float, default=None,
                    help="stop (checkpointed) after this many minutes; run again to continue")
@@ -170,6 +175,7 @@ def _train(args) -> int:
     try:
         train_ganimator(args.bvh, args.out, preset=args.preset, resume=True, conditional_from=args.conditional_from,
                         max_minutes=args.max_minutes, threads=args.threads, bar=not args.quiet, log=print,
+                        precision=args.precision,
                         iterations=args.iterations, d_steps=args.d_steps, base_channels=args.base_channels,
                         coarse_ratio=args.coarse_ratio, keep_joints=_csv(args.keep_joints), feet=_csv(args.feet),
                         fps=args.fps, device=args.device, seed=args.seed,

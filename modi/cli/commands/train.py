@@ -9,6 +9,7 @@ from modi.cli import types as ct
 
 def register(subparsers) -> None:
     from modi.api.options import MODI_ABLATIONS as ABLATIONS, MODI_PRESETS as PRESETS  # lazy: every command registers
+    from modi.api.options import PRECISIONS  # lazy: every command registers
 
     p = subparsers.add_parser(
         "train", help="train a MoDi generator on BVH clips",
@@ -70,6 +71,10 @@ def register(subparsers) -> None:
                         "continue the run's newest checkpoint when there is one, else start (what a torchrun "
                         "restart does by itself). The config comes from the checkpoint: an option given that "
                         "differs from it is refused, except --iters, --log-every, --sample-every, --ckpt-every")
+    p.add_argument("--precision", choices=PRECISIONS, default=argparse.SUPPRESS,
+                   help="forward passes in fp32, or under bf16 autocast (weights, optimiser states and checkpoints "
+                        "stay fp32; see docs/precision.md) (default: a resumed checkpoint's, else fp32; given on "
+                        "--resume, the run switches to it)")
     p.add_argument("--dist-timeout", type=ct.positive_finite_float, default=argparse.SUPPRESS, metavar="SECONDS",
                    help="under torchrun: seconds a process waits for the others before the run stops as a lost peer "
                         "(exit 75) (default: $MODI_DIST_TIMEOUT or 300)")
@@ -131,5 +136,5 @@ def run(args: argparse.Namespace) -> int:
         config=overrides, resume=args.resume, device=args.device, threads=getattr(args, "threads", None),
         dist_timeout=getattr(args, "dist_timeout", None), tensorboard=not args.no_tensorboard,
         cache=not args.no_cache, log=lambda line: print(line, flush=True), spelling={**SPELLING, **given},
-        hold=hold)
+        hold=hold, precision=getattr(args, "precision", None))
     return result.exit_code

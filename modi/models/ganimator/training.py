@@ -12,6 +12,11 @@ schedule, so ``train`` on the same run directory resumes exactly where it stoppe
 nothing else. Ctrl-C and SIGTERM finish the iteration and save (``modi.faults``); the run folder is locked
 meanwhile, ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations, and ``progress.json`` (rewritten
 atomically at most once a second) says where the schedule stands, for front ends such as the Blender add-on.
+
+Precision (docs/precision.md): with ``precision="bf16"`` the generators' and discriminators' forward passes run under
+bf16 autocast, the WGAN-GP's included (in bf16 it keeps as many digits as the WGAN loss itself); the losses and the
+contact consistency (FK) take their outputs cast to fp32, and the weights, optimiser states, fake pools and
+checkpoint stay fp32. The checkpoint records the precision; a resume keeps it unless another is asked for.
 """
 from __future__ import annotations
 
@@ -36,6 +41,7 @@ from modi.models.ganimator.data import K, check_compatible, real_pyramid, resamp
 from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, synthesize
 from modi.models.optim import frozen_heap, fused_adam
+from modi.models.precision import DEFAULT_PRECISION, PRECISIONS, check_precision, precision_autocast, widened
 from modi_ext.layers import ForwardKinematics
 
 FORMAT = "modi.ganimator/1"
@@ -233,8 +239,12 @@ class Trainer:
     """Holds the model, data pyramids, optimisers and schedule position; ``run()`` trains to the end."""
 
     def __init__(self, clips: Sequence[Clip], cfg: GanimatorConfig, run_dir: str | Path,
-                 cond_source: GanimatorModel | None = None) -> None:
+                 cond_source: GanimatorModel | None = None, precision: str | None = None) -> None:
         check_compatible(clips)
+        # None: a new run's default, or a resumed run's checkpoint's; given: this precision (a resume switches)
+        self._precision_asked = check_precision(precision) if precision is not None else None
+        self.precision = self._precision_asked or DEFAULT_PRECISION
+        self._precision_before: str | None = None  # a resumed checkpoint's, when this run switched from it
         if cfg.conditional and cond_source is None:
             raise UserError("a conditional (trajectory) model needs a trained unconditional run to sample "
                             "trajectories from (--conditional-from RUN)")
@@ -284,6 +294,7 @@ class Trainer:
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
             "cond_source": model_payload(self.cond_source) if self.cond_source is not None else None,
             "modi_version": modi_version,
+            "precision": self.precision,
         }
 
     def save(self) -> None:
@@ -355,7 +366,19 @@ class Trainer:
         torch.set_rng_state(ck["rng"])
         if ck.get("cuda_rng") is not None and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(ck["cuda_rng"])
+        saved = ck.get("precision", DEFAULT_PRECISION)
+        if saved not in PRECISIONS:
+            raise CheckpointError(f"{self.ckpt} was trained in precision {saved!r}, which this modi does not know "
+                                  f"({', '.join(PRECISIONS)}); upgrade modi")
+        if self._precision_asked is None:
+            self.precision = saved
+        elif self._precision_asked != saved:
+            self._precision_before = saved
         self._saved = self._position()
+
+    def _autocast(self):
+        """The context of the forward passes (see the module docstring: bf16 autocast, or nothing for fp32)."""
+        return precision_autocast(self.precision, self.device)
 
     def _make_opts(self, l: int) -> None:
         if l not in self.opt_g:
@@ -382,6 +405,14 @@ class Trainer:
         model = self.model
         lengths, rates = model.lengths[m], model.rates[m]
         lo, hi = levels[0], levels[-1] + 1
+        with self._autocast():
+            outs = self._synthesize(m, lo, hi, lengths, rates, mode, grad, cached_prev)
+        return [widened(o) for o in outs]  # the losses, the contact terms and the fake pools in fp32 (or float64)
+
+    def _synthesize(self, m: int, lo: int, hi: int, lengths: Sequence[int], rates: Sequence[float], mode: str,
+                    grad: bool, cached_prev: dict) -> list[Tensor]:
+        """``_forward``'s outputs in the precision the caller set (bf16 under bf16 autocast)."""
+        model = self.model
         conds = self._conds(m, lengths, mode)
         if mode == "rec":
             noises = model.rec_noises(m)
@@ -420,7 +451,10 @@ class Trainer:
                     "(choose another --out to train anew)")
             elif log:
                 log(f"resuming {self.ckpt}: block {self.state['block'] + 1}/{len(self.blocks)}, "
-                    f"iteration {self.state['iteration']}")
+                    f"iteration {self.state['iteration']}, in {self.precision}")
+            if log and self._precision_before is not None:
+                log(f"{self.ckpt} was trained in {self._precision_before}; continuing in {self.precision} as asked "
+                    "(weights and optimiser states carry over unchanged)")
         # Ctrl-C / SIGTERM: finish the iteration, save, raise TrainingInterrupted (a second Ctrl-C aborts)
         with faults.stop_on_signals("iteration") as stop, frozen_heap():
             return self._run_blocks(progress, log, max_seconds, stop)
@@ -579,11 +613,12 @@ class Trainer:
                     for l, fake in zip(levels, fakes):
                         d = model.discs[l]
                         pooled = self.pools[l].query(fake)
-                        # fake and real through D as one batch (D couples no samples): half the calls
-                        scores = d(torch.cat([pooled, reals[l]]))
+                        with self._autocast():
+                            # fake and real through D as one batch (D couples no samples): half the calls
+                            scores = widened(d(torch.cat([pooled, reals[l]])))
+                            gp = gradient_penalty(d, reals[l], fake)
                         n_fake = pooled.shape[0]
                         loss_d = 0.5 * (scores[:n_fake].mean() - scores[n_fake:].mean())
-                        gp = gradient_penalty(d, reals[l], fake)
                         loss = loss + loss_d + cfg.lambda_gp * gp
                         total += float(loss_d.detach())
                         out["gp"] = float(gp.detach())
@@ -600,7 +635,9 @@ class Trainer:
                         d = model.discs[l]
                         for p in d.parameters():
                             p.requires_grad_(False)
-                        adv = -d(fake).mean()
+                        with self._autocast():
+                            score = d(fake)
+                        adv = -widened(score).mean()
                         for p in d.parameters():
                             p.requires_grad_(True)
                         rate = model.rates[m][l] if cfg.contact_rescale else 1.0
@@ -626,9 +663,10 @@ class Trainer:
 
 def train(clips: Sequence[Clip], cfg: GanimatorConfig, run_dir: str | Path, progress: bool = True,
           cond_source: GanimatorModel | None = None, log: Callable[[str], None] | None = print,
-          max_seconds: float | None = None) -> GanimatorModel:
-    """Train (or resume) a GANimator run in ``run_dir``; returns the model (generators in eval mode)."""
-    trainer = Trainer(clips, cfg, run_dir, cond_source=cond_source)
+          max_seconds: float | None = None, precision: str | None = None) -> GanimatorModel:
+    """Train (or resume) a GANimator run in ``run_dir``; returns the model (generators in eval mode). ``precision``:
+    ``fp32`` or ``bf16`` (None: a resumed checkpoint's, else fp32)."""
+    trainer = Trainer(clips, cfg, run_dir, cond_source=cond_source, precision=precision)
     model = trainer.run(progress=progress, log=log, max_seconds=max_seconds)
     model.eval()
     return model

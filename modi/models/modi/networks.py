@@ -19,7 +19,7 @@ from torch import nn
 from modi.models.modi.ablations import conv_layer, down_layer, modconv_layer
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.fastpaths import std_entities_frames, std_normalised_leaky_relu_
-from modi.models.modi.levels import LevelSpec, build_levels, unpool_matrix  # noqa: F401  (build_levels: with LevelSpec)
+from modi.models.modi.levels import LevelSpec, unpool_matrix
 from modi_ext.fir import upsample_time as fir_upsample_time
 from modi_ext.layers import EqualLinear, FusedLeakyReLU
 

@@ -16,6 +16,13 @@ shapes; the real windows' indices reach the device once per epoch; the losses st
 ``log_every`` steps (and at saves). A step with a NaN/inf loss is skipped on the device (fused Adam's ``found_inf``),
 reported at the next log step, and ``NONFINITE_STEPS`` such steps in a row stop the run as a non-finite loss always
 did: ``NonFiniteLossError``, no checkpoint written.
+
+Precision (docs/precision.md): with ``precision="bf16"`` the networks' forward passes run under bf16 autocast, R1's
+included; the losses and the foot terms (FK) take the networks' outputs cast to fp32; the path-length regulariser runs
+wholly in fp32 (its penalty, a small spread of large lengths, came out up to a fifth off float64's in bf16, where R1
+stays as close as the adversarial losses: measured in docs/precision.md). Weights, gradients, optimiser states and
+checkpoints stay fp32, and bf16 has fp32's exponent range, so no loss is scaled.
+
 Ctrl-C and SIGTERM (``modi.faults.stop_on_signals``) stop at the next boundary on every rank and save; the run
 folder is locked while ``train`` runs (``modi.faults.hold_run_folder``).
 """
@@ -51,6 +58,7 @@ from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
 from modi.models.modi.distributed import epoch_order as _epoch_order
 from modi.models.modi.distributed import init_distributed_from_env, shard_indices, under_torchrun
+from modi.models.modi.levels import LevelSpec, build_levels
 from modi.models.modi.losses import (
     d_logistic_loss,
     d_r1_penalty,
@@ -61,9 +69,10 @@ from modi.models.modi.losses import (
     lazy_regularization_adam_params,
     path_length_penalty,
 )
-from modi.models.modi.networks import Discriminator, Generator, LevelSpec, build_levels
+from modi.models.modi.networks import Discriminator, Generator
 from modi.models.modi.sampling import write_outputs
 from modi.models.optim import frozen_heap, fused_adam, fused_groups, set_capturable
+from modi.models.precision import DEFAULT_PRECISION, PRECISIONS, check_precision, precision_autocast, widened
 
 NONFINITE_STEPS = 8  # steps in a row skipped for a NaN/inf loss that stop the run (read at log steps and saves)
 GUARDED = ("d", "r1", "g", "touch", "contact", "path")  # the losses the non-finite guard watches, in its order
@@ -225,8 +234,11 @@ class Trainer:
     def __init__(self, cfg: MoDiConfig, data: TrainingData, run_dir: str | os.PathLike, *,
                  device: str | torch.device | None = None, resume: str | os.PathLike | dict | None = None,
                  progress: bool = True, tensorboard: bool = True, write_samples: bool = True,
-                 log: Callable[[str], None] | None = None):
+                 log: Callable[[str], None] | None = None, precision: str | None = None):
         self.cfg = cfg.validate()
+        # None: a new run's default, or a resumed run's checkpoint's; given: this precision (a resume switches)
+        self._precision_asked = check_precision(precision) if precision is not None else None
+        self.precision = self._precision_asked or DEFAULT_PRECISION
         self.data = data
         self.codec = data.codec
         self.run_dir = Path(run_dir)
@@ -481,9 +493,11 @@ class Trainer:
         _requires_grad(self.D, True)
         real = self._real_batch()
         zs, inject = self._z(self.local_batch)
-        with torch.no_grad():
-            fake = self.G(zs, inject_index=inject)
-        fake_pred, real_pred = self.d_train(fake, real)
+        with self._autocast():
+            with torch.no_grad():
+                fake = self.G(zs, inject_index=inject)
+            fake_pred, real_pred = self.d_train(fake, real)
+        fake_pred, real_pred = widened(fake_pred), widened(real_pred)  # the losses in fp32 (or float64)
         d_loss = d_logistic_loss(real_pred, fake_pred)
         self.d_optim.zero_grad(set_to_none=True)
         d_loss.backward()
@@ -491,8 +505,9 @@ class Trainer:
         out = {"d": d_loss.detach(), "real_score": real_pred.detach().mean(), "fake_score": fake_pred.detach().mean()}
         if self.step % tc.d_reg_every == 0 and tc.r1_gamma > 0:
             real_r = real.detach().requires_grad_(True)
-            pred = self.d_train(real_r)
-            r1 = d_r1_penalty(pred, real_r)
+            with self._autocast():
+                pred = self.d_train(real_r)
+            r1 = d_r1_penalty(widened(pred), real_r)
             self.d_optim.zero_grad(set_to_none=True)
             (tc.r1_gamma / 2 * r1 * tc.d_reg_every + 0 * pred[0, 0]).backward()
             self._guarded_step(self.d_optim, {"r1": r1})
@@ -504,8 +519,11 @@ class Trainer:
         _requires_grad(self.G, True)
         _requires_grad(self.D, False)
         zs, inject = self._z(self.local_batch)
-        fake = self.g_train(zs, inject_index=inject)
-        g_loss = g_nonsaturating_loss(self.D(fake))
+        with self._autocast():
+            fake = self.g_train(zs, inject_index=inject)
+            fake_pred = self.D(fake)
+        fake = widened(fake)  # the foot terms (FK) and the losses in fp32 (or float64)
+        g_loss = g_nonsaturating_loss(widened(fake_pred))
         total = g_loss
         losses = {"g": g_loss}
         if tc.touch_weight > 0 or tc.contact_weight > 0:
@@ -523,7 +541,7 @@ class Trainer:
         self._guarded_step(self.g_optim, losses)
         out = {k: v.detach() for k, v in losses.items()}
 
-        if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:
+        if self.step % tc.g_reg_every == 0 and tc.path_weight > 0:  # fp32 in every precision (module docstring)
             n = max(1, self.local_batch // tc.path_batch_shrink)
             zp, inject_p = self._z(n)
             fake_p, wplus = self.g_train(zp, inject_index=inject_p, return_latents=True)
@@ -542,6 +560,10 @@ class Trainer:
         self._ema_weight.fill_(1.0 - self._ema_decay())
         _accumulate(self.G_ema, self.G, weight=self._ema_weight)
         return out
+
+    def _autocast(self):
+        """The context of the forward passes (see the module docstring: bf16 autocast, or nothing for fp32)."""
+        return precision_autocast(self.precision, self.device)
 
     def _ema_decay(self) -> float:
         """EMA with a half-life of ``ema_kimg`` thousand samples, ramped up to 5% of the samples seen (StyleGAN2-ADA)
@@ -715,6 +737,7 @@ class Trainer:
             data_source=self.data.source,
             data_summary=_plain(self.data.summary),
             last_losses=dict(self.last_losses),
+            precision=self.precision,
         )
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -760,6 +783,15 @@ class Trainer:
             raise CheckpointError(f"checkpoint does not match this model: {exc}") from None
         for opt in (self.g_optim, self.d_optim):  # this run's device decides, not the saved flag
             set_capturable(opt, self._capturable)
+        saved = st.get("precision", DEFAULT_PRECISION)
+        if saved not in PRECISIONS:
+            raise CheckpointError(f"checkpoint was trained in precision {saved!r}, which this modi does not know "
+                                  f"({', '.join(PRECISIONS)}); upgrade modi")
+        if self._precision_asked is None:
+            self.precision = saved
+        elif self._precision_asked != saved and self.rank == 0:
+            self.log(f"modi train: the checkpoint was trained in {saved}; continuing in {self.precision} as asked "
+                     f"(weights and optimiser states carry over unchanged)")
         self.step = int(st["step"])
         self._saved_step = self.step
         self.mean_path_length.fill_(float(st.get("mean_path_length", 0.0)))

@@ -115,13 +115,17 @@ def test_torch_form_where_the_kernel_does_not_apply(monkeypatch):
     def path():
         return type(demod.demod_scale(w, index, offsets, s, up, n_out, batch).grad_fn).__name__
 
+    def name():
+        return demod.demod_scale(w, index, offsets, s, up, n_out, batch).grad_fn.name()
+
     assert path() == "demod_scale_eagerBackward"
-    monkeypatch.setenv("MODI_EXT_EAGER", "0")  # the registered path: torch ops only
-    assert path() != "demod_scale_eagerBackward"
+    monkeypatch.setenv("MODI_EXT_EAGER", "0")  # the registered op (compile, dispatch modes): the kernel still
+    assert "modi_ext_demod_scale" in name()
     monkeypatch.delenv("MODI_EXT_EAGER")
-    monkeypatch.setenv("MODI_EXT_DEMOD", "torch")  # asked for by name
-    assert path() != "demod_scale_eagerBackward"
+    monkeypatch.setenv("MODI_EXT_DEMOD", "torch")  # asked for by name: torch ops
+    assert "demod_scale" not in name()
     monkeypatch.delenv("MODI_EXT_DEMOD")
+    assert "demod_scale" not in demod.demod_scale(w, index, offsets, s, up, n_out, batch, impl="dense").grad_fn.name()
     half = demod.demod_scale(w.to(torch.bfloat16), index, offsets, s.detach().to(torch.bfloat16), up, n_out, batch)
     assert half.dtype == torch.bfloat16  # no bfloat16 CPU kernel: the torch form
     assert ops.demod_scale is demod.demod_scale  # the public name is this dispatcher
@@ -144,3 +148,24 @@ def test_bad_input_names_the_problem():
     d = op(w, s, index, offsets, up, n_out, 1e-8)
     with pytest.raises(RuntimeError, match="grad and d must be"):
         torch.ops.modi_ext.demod_scale_backward(d[:, :, :-1], d, w, s, index, offsets, up, n_out, [True, True])
+
+
+@pytest.mark.parametrize("kind", ["conv", "up"])
+def test_registered_op_and_eager_function_agree(monkeypatch, kind):
+    """The op through the dispatcher (``MODI_EXT_EAGER=0``: what compile and dispatch modes see) and through its eager
+    Function: the same values, first-order gradients and gradients of a gradient (the torch form's graph)."""
+    w, s, index, offsets, up, n_out, batch = _case(kind, 21)
+
+    def run():
+        wl, sl = w.clone().requires_grad_(True), s.clone().requires_grad_(True)
+        d = demod.demod_scale(wl, index, offsets, sl, up, n_out, batch)
+        gw, gs = torch.autograd.grad((d * d).sum(), [wl, sl], create_graph=True)
+        (gw.pow(2).sum() + gs.pow(2).sum()).backward()
+        return d.grad_fn.name(), d, gw, gs, wl.grad, sl.grad
+
+    eager = run()
+    monkeypatch.setenv("MODI_EXT_EAGER", "0")
+    registered = run()
+    assert eager[0] == "demod_scale_eagerBackward" and "modi_ext_demod_scale" in registered[0]
+    for a, b in zip(eager[1:], registered[1:]):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

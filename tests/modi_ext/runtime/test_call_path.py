@@ -35,12 +35,14 @@ def _depth(public: str) -> int:
     raise AssertionError(f"{public} is not on the stack: {names}")
 
 
-def _recording(monkeypatch, module, name: str, public: str) -> list[int]:
+def _recording(monkeypatch, module, name: str, public: str, op: str | None = None) -> list[int]:
+    """Depths of the calls of ``module.name`` made under ``public`` (only those launching ``op``, if given)."""
     depths: list[int] = []
     real = getattr(module, name)
 
     def wrapper(*args, **kwargs):
-        depths.append(_depth(public))
+        if op is None or args[0] == op:
+            depths.append(_depth(public))
         return real(*args, **kwargs)
     monkeypatch.setattr(module, name, wrapper)
     return depths
@@ -50,7 +52,7 @@ def _recording(monkeypatch, module, name: str, public: str) -> list[int]:
 @pytest.mark.parametrize("autocast", [False, True])
 def test_skeletal_conv_reaches_launch_within_four_calls(monkeypatch, autocast):
     monkeypatch.setenv("MODI_EXT_IMPL", "ext")
-    launches = _recording(monkeypatch, kernels, "launch", "skeletal_conv")
+    launches = _recording(monkeypatch, kernels, "launch", "skeletal_conv", op="skeletal_conv")
     checked = _recording(monkeypatch, ops, "check_args", "skeletal_conv")
     topo = csr_from_lists([[0, 1], [0, 1, 2], [1, 2]])
     x = torch.randn(2, 3, 3, 8)
@@ -64,7 +66,7 @@ def test_skeletal_conv_reaches_launch_within_four_calls(monkeypatch, autocast):
 @needs_ext
 def test_fk_reaches_launch_within_four_calls(monkeypatch):
     monkeypatch.setenv("MODI_EXT_IMPL", "ext")
-    launches = _recording(monkeypatch, kernels, "launch", "fk")
+    launches = _recording(monkeypatch, kernels, "launch", "fk", op="fk")
     parents = [-1, 0, 1, 1]
     q = torch.nn.functional.normalize(torch.randn(2, 4, 4), dim=-1)
     fk(q, torch.randn(4, 3), parents, torch.randn(2, 3))

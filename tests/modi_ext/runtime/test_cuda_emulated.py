@@ -445,6 +445,60 @@ def test_emulator_warp_intrinsics_and_atomics():
     assert out[8 * n].item() == n  # one atomicAdd per thread
 
 
+# ------------------------------------------------------------------------------------------------ demodulation
+@pytest.mark.parametrize("dtype", DTYPES, ids=str)
+@pytest.mark.parametrize("case", ["conv.plain", "conv.style", "up.plain", "up.style"])
+def test_demod_kernels(case, dtype):
+    """csrc/demod/cuda.cu against the float64 torch form, forward and both gradients, schedule-independent."""
+    from modi_ext.runtime import payload
+
+    (c,) = [c for c in payload.DEMOD_CASES if c.name == f"demod.{case}"]
+    p = payload.demod_inputs(c, dtype)
+    out = schedules(lambda: (lambda d, g: (d,) + tuple(g))(*payload._demod_call(payload_table(), c, p, "cpu", dtype)))
+    want_d, want_g = payload.demod_oracle(c, p)
+    close(out[0], want_d, dtype, f"{case} d")
+    for got, want, name in zip(out[1:], want_g, ("weight", "style")):
+        close(got, want, dtype, f"{case} grad {name}")
+
+
+def test_demod_kernels_read_no_map_values_on_the_host_and_skip_bad_entries():
+    """No host read of index/offsets (a sync on a GPU): an out-of-range up index is skipped on the device, so its
+    pair adds nothing, rather than read through."""
+    from modi_ext.runtime import payload
+
+    c = [c for c in payload.DEMOD_CASES if c.name == "demod.up.style"][0]
+    p = payload.demod_inputs(c, torch.float64)
+    bad = p["index"].clone()
+    bad[0] = 99
+    d = ops().demod_scale(p["w"], p["s"], bad, p["offsets"], True, p["n_out"], DEMOD_EPS)
+    w = p["w"].clone()
+    w[:, 0] = 0  # the skipped pair
+    want = ops().demod_scale(w, p["s"], p["index"], p["offsets"], True, p["n_out"], DEMOD_EPS)
+    assert torch.equal(d, want)
+
+
+@pytest.mark.parametrize("defect", ["off_by_one", "wrong_scale"])
+def test_demod_planted_faults_are_caught(defect):
+    """off_by_one drops the last tap of every squared-weight sum (forward and both gradients); wrong_scale scales
+    the weight gradient by 1 + 2^-9.  Both stay finite: the float64 comparison catches them, and so does the
+    self-check, which then names the demod op."""
+    from modi_ext.runtime import payload, selfcheck
+
+    c = [c for c in payload.DEMOD_CASES if c.name == "demod.conv.style"][0]
+    assert max(payload.run_case(payload_table(), c, "cpu", torch.float32)) < payload.TOL[torch.float32]
+    with injected(defect):
+        fwd, bwd = payload.run_case(payload_table(), c, "cpu", torch.float32)
+        assert max(fwd, bwd / payload.GRAD_FACTOR) > payload.TOL[torch.float32], (fwd, bwd)
+        res = selfcheck.run("cpu", torch.float32, lib="modi_ext_emu")
+    assert not res["ok"] and "demod_scale" in res["errors"], res["errors"]
+
+
+def payload_table():
+    from modi_ext.runtime import kernels
+
+    return kernels.kernel_table("modi_ext_emu")
+
+
 # ------------------------------------------------------------------------------------------------ injected defects
 @pytest.mark.parametrize("defect", ("drop_sync", "off_by_one"))
 def test_injected_defect_is_caught(defect):
@@ -548,13 +602,14 @@ EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c1
 
 
 def _expected_instantiations(dtypes=DTYPES) -> set[str]:
-    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 20 per dtype plus the topology kernel."""
+    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 23 per dtype plus the topology kernel."""
     want = {"topology_kernel"}
     for t in (EMU_TYPES[d] for d in dtypes):
         for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
                                              ("false", "true")):
             want.add(f"{k}<{t}, {bm}, {flag}>")
-        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "fk_offsets_reduce_kernel"):
+        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "fk_offsets_reduce_kernel",
+                  "demod_forward_kernel", "demod_style_grad_kernel", "demod_weight_grad_kernel"):
             want.add(f"{k}<{t}>")
         for k, flag in itertools.product(("fk_forward_kernel", "fk_backward_kernel"), ("false", "true")):
             want.add(f"{k}<{t}, {flag}>")
@@ -574,10 +629,10 @@ def _launched_since(before: dict) -> set[str]:
 
 def test_the_emulator_registers_every_instantiation():
     """Each instantiation some host code can launch registers itself at load time (cuda_emu.h KernelRegistration):
-    the registry is exactly the list written out here (81 today) -- the yardstick of the payload test below."""
+    the registry is exactly the list written out here (93 today) -- the yardstick of the payload test below."""
     registered = _cuda_instantiations(EMU.registered_kernels())
     assert registered == _expected_instantiations(), (sorted(registered ^ _expected_instantiations()))
-    assert len(registered) == 1 + 20 * len(DTYPES)
+    assert len(registered) == 1 + 23 * len(DTYPES)
     assert {"divergent_barrier_kernel", "race_kernel"} <= set(EMU.registered_kernels())  # self-test kernels too
 
 
@@ -592,14 +647,15 @@ def test_the_shared_payload_launches_every_instantiation():
     launched = _launched_since(before)
     registered = _cuda_instantiations(EMU.registered_kernels())
     assert launched == registered, f"never launched by the payload: {sorted(registered - launched)}"
-    assert len(launched) == 81
+    assert len(launched) == 93
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=str)
 def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
     """The first-use self-check (modi_ext.runtime.selfcheck, the payload against the float64 oracle) on the emulated
-    kernels: it passes, and it launched all 20 instantiations of its dtype and the topology kernel -- the 64-row
-    tiles, split-K and FK offsets gradients on every plan that training runs included.  Its first-use time on this
+    kernels: it passes, and it launched all 23 instantiations of its dtype and the topology kernel -- the 64-row
+    tiles, split-K, FK offsets gradients on every plan and the demodulation coefficients that training runs
+    included.  Its first-use time on this
     CPU is printed (-s), not asserted (the machine may be shared)."""
     from modi_ext.runtime import selfcheck
 
@@ -608,7 +664,7 @@ def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
     res = selfcheck.run("cpu", dtype, lib="modi_ext_emu")
     seconds = time.perf_counter() - t0
     assert res["ok"], res["errors"]
-    assert set(res["max_error"]) == {"skeletal_conv", "skeletal_down", "skeletal_up", "fk"}
+    assert set(res["max_error"]) == {"skeletal_conv", "skeletal_down", "skeletal_up", "fk", "demod_scale"}
     assert _launched_since(before) == _expected_instantiations((dtype,))
     print(f"\nself-check {dtype} on the emulated kernels: {seconds:.2f} s, {res['cases']} cases")
 

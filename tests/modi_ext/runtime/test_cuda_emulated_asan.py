@@ -28,7 +28,7 @@ pytestmark = pytest.mark.cuda_emulated
 
 REPO = Path(__file__).resolve().parents[3]
 CSRC = REPO / "csrc"
-SOURCES = ("skeletal_emu.cpp", "fk_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")
+SOURCES = ("skeletal_emu.cpp", "fk_emu.cpp", "demod_emu.cpp", "cuda_emu.cpp", "emu_module.cpp", "defs_emu.cpp")
 NAME, LIB = "_C_emu_asan", "modi_ext_emu_asan"
 
 
@@ -141,7 +141,7 @@ def test_payload_under_address_sanitizer_is_clean_and_complete(asan_module):
     assert "ERROR: AddressSanitizer" not in r.stderr, r.stderr[-6000:]
     # this build has the csrc/<op>/cuda.cu kernels only (no emu_selftest.cpp): launched must be all it registered
     assert set(res["launched"]) == set(res["registered"]), sorted(set(res["registered"]) - set(res["launched"]))
-    assert len(res["launched"]) == 81
+    assert len(res["launched"]) == 93
 
 
 def test_injected_global_out_of_bounds_read_is_caught(asan_module):

@@ -19,6 +19,7 @@ import textwrap
 import pytest
 import torch
 
+import modi_ext
 from modi_ext import HAS_EXT
 from modi_ext.fk import fk, fk_reference
 from modi_ext.runtime import kernels, payload
@@ -683,3 +684,31 @@ def test_fk_double_backward_gradgradcheck():
     q, off, root = fk_inputs(parents, (2, 3), torch.float64)
     leaves = [t.to(DEV).requires_grad_() for t in (q, off, root)]
     torch.autograd.gradgradcheck(lambda a, o, r: fk(a, o, parents, r, impl="ext"), leaves)
+
+
+# ------------------------------------------------------------------------------------------------ demodulation
+@pytest.mark.parametrize("up", [False, True])
+@pytest.mark.parametrize("styled", [False, True])
+def test_demod_kernel_gradcheck_and_opcheck(up, styled):
+    """csrc/demod/cuda.cu: the public op on CUDA runs the kernel, gradcheck in float64 (first order on the kernel,
+    second order through the torch form), and opcheck of both C++ ops."""
+    from modi_ext.demod import ops as demod
+
+    c = [c for c in payload.DEMOD_CASES if c.up == up and c.styled == styled][0]
+    p = payload.demod_inputs(c, torch.float64)
+    w = p["w"].to(DEV).requires_grad_()
+    s = p["s"].to(DEV).requires_grad_() if styled else None
+    idx, off, n_out, batch = p["index"].to(DEV), p["offsets"].to(DEV), p["n_out"], c.B
+    d = demod.demod_scale(w, idx, off, s, up, n_out, batch)
+    assert any(r["kind"] == "path" and r["op"] == "demod_scale" and r["path"] == "ext" and r["device"].startswith(DEV)
+               for r in modi_ext.dispatch_report())
+    leaves = (w,) + ((s,) if styled else ())
+    fn = lambda *t: demod.demod_scale(t[0], idx, off, t[1] if styled else None, up, n_out, batch)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, leaves)
+    assert torch.autograd.gradgradcheck(fn, leaves)
+    torch.library.opcheck(torch.ops.modi_ext.demod_scale.default, (w.detach(), s.detach() if styled else None, idx,
+                                                                     off, up, n_out, 1e-8))
+    raw = torch.ops.modi_ext.demod_scale(w.detach(), s.detach() if styled else None, idx, off, up, n_out, 1e-8)
+    torch.library.opcheck(torch.ops.modi_ext.demod_scale_backward.default,
+                          (torch.randn_like(raw), raw, w.detach(), s.detach() if styled else None, idx, off, up,
+                           n_out, [True, True]))

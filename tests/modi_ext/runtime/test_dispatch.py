@@ -176,7 +176,7 @@ def test_kernel_probe_runs_once_per_device_type(monkeypatch):
         call(ops, p)
         fk(q, off, PARENTS, root)
     ops_probed = sorted({op for op, _ in calls})
-    assert len(calls) == len(ops_probed) == 6, calls  # 4 skeletal + 2 FK ops, each probed exactly once
+    assert len(calls) == len(ops_probed) == 8, calls  # 4 skeletal + 2 FK + 2 demod ops, each probed exactly once
     assert {key for _, key in calls} == {"CPU"}
 
 
@@ -299,14 +299,19 @@ def test_selfcheck_covers_what_training_runs(monkeypatch):
 
 
 @needs_ext
-def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch):
-    from modi_ext.demod import ops as demod
+@pytest.mark.parametrize("which", ["forward", "backward"])
+def test_selfcheck_covers_the_demodulation_coefficients(monkeypatch, which):
     from modi_ext.runtime import selfcheck
 
-    real = demod.demod_scale
-    monkeypatch.setattr(demod, "demod_scale", lambda *a: real(*a) * 1.01)
+    if which == "forward":
+        real = dispatch.KERNELS["demod_scale"]
+        monkeypatch.setitem(dispatch.KERNELS, "demod_scale", lambda *a: real(*a) * 1.01)
+    else:
+        real = dispatch.KERNELS["demod_scale_backward"]
+        monkeypatch.setitem(dispatch.KERNELS, "demod_scale_backward", lambda *a: tuple(t * 1.01 for t in real(*a)))
     res = selfcheck.run("cpu", torch.float32)
-    assert not res["ok"] and set(res["errors"]) == {"demod_scale"} and "error" in res["errors"]["demod_scale"]
+    assert not res["ok"] and set(res["errors"]) == {"demod_scale"}
+    assert f"{which} error" in res["errors"]["demod_scale"], res["errors"]
 
 
 def test_one_selfcheck_key_per_device(monkeypatch):
@@ -587,7 +592,7 @@ def test_demod_sums_are_deterministic_and_unchanged(monkeypatch, up):
 
     w, idx, off, s = p["w"], p["idx"], p["off"], p["s"]
     monkeypatch.setattr(torch.Tensor, "index_add", no_index_add)
-    d = ops.demod_scale(w, idx, off, s, up, 5 if up else off.numel() - 1, 2)
+    d = ops.demod_scale(w, idx, off, s, up, 5 if up else off.numel() - 1, 2, impl="dense")  # the torch form
     monkeypatch.undo()
     # the value it had before (the dense reference's coefficients)
     if up:
@@ -669,7 +674,7 @@ def test_validate_payloads_run_on_cpu(tmp_path):
 
     res = json.loads((tmp_path / "k.json").read_text())
     assert res["errors"] == {}
-    assert {r.split(".")[0] for r in res["ran"]} == {"conv", "down", "up", "fk"}
+    assert {r.split(".")[0] for r in res["ran"]} == {"conv", "down", "up", "fk", "demod"}
     assert {r.rsplit(".", 1)[1] for r in res["ran"]} == {"float32", "float64"}  # the CPU kernels' dtypes
 
 
