@@ -71,6 +71,7 @@ inline Geo check_inputs(const Backend& be, int64_t kind, const at::Tensor& x, co
   g.B = x.size(0);
   g.Tin = x.size(3);
   TORCH_CHECK(g.B > 0, "x has an empty batch (B == 0)");
+  TORCH_CHECK(x.size(1) > 0, "x has no channels (C == 0)");  // BLAS would get a zero leading dimension
   TORCH_CHECK(g.Tin > 0, "x has zero frames (T == 0)");
   g.U = weight.size(3);
   TORCH_CHECK(g.U % 2 == 1, "weight kernel width U=", g.U, " must be odd");

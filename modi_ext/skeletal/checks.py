@@ -66,6 +66,8 @@ def check_args(kind: int, x, weight, bias, index, offsets, n_out: int | None, st
     b, cin, e_in, t_len = x.shape
     if b == 0:
         raise ValueError("x has an empty batch (B == 0)")
+    if cin == 0:  # the BLAS paths would be handed a zero leading dimension (an MKL error and garbage, not an error)
+        raise ValueError("x has no channels (C == 0)")
     if t_len == 0:
         raise ValueError("x has zero frames (T == 0)")
     u = weight.shape[3]

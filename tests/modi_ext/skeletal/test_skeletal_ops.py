@@ -384,6 +384,7 @@ def _good(kind="conv"):
     (lambda a, k: a.__setitem__(0, a[0].transpose(2, 3).contiguous().transpose(2, 3)), ValueError, "x must be contig"),
     (lambda a, k: a.__setitem__(0, a[0][:0]), ValueError, "empty batch"),
     (lambda a, k: a.__setitem__(0, a[0][..., :0]), ValueError, "zero frames"),
+    (lambda a, k: a.__setitem__(0, a[0][:, :0].contiguous()), ValueError, "no channels"),
     (lambda a, k: a.__setitem__(0, a[0][:, :2].contiguous()), ValueError, "channels"),
     (lambda a, k: a.__setitem__(0, a[0][:, :, :3].contiguous()), ValueError, "entities"),
     (lambda a, k: a.__setitem__(1, a[1][..., :2].contiguous()), ValueError, "odd"),
@@ -446,3 +447,5 @@ def test_raw_ops_reject_bad_input_with_runtime_error():
         op(x, w, b, index, offsets, None, None, "wrap")
     with pytest.raises(RuntimeError, match="empty batch"):
         op(x[:0], w, b, index, offsets, None, None, "zeros")
+    with pytest.raises(RuntimeError, match="no channels"):
+        op(x[:, :0].contiguous(), w, b, index, offsets, None, None, "zeros")
