@@ -16,6 +16,7 @@ plumbing, not a figure).  A stage that cannot run on this machine says why (``st
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import re
@@ -291,40 +292,121 @@ def graphed_support(trainer_cls) -> str | None:
     return None
 
 
-def time_modi(ctx: Ctx, batch: int, iters: int, **kw) -> dict:
+def time_modi(ctx: Ctx, batch: int, iters: int, keep: dict | None = None, graph_warmup: int | None = None,
+              **kw) -> dict:
+    """modi's step timed over ``iters`` iterations after a warm-up. ``keep`` (a dict) gets every step's losses and
+    the trainer's final state (for ``compare_cycles``); ``graph_warmup`` sets a graphed trainer's eager steps per
+    kind before its capture."""
     tr = modi_trainer(ctx, batch, **kw)
-    warm = 2 if ctx.tiny else CYCLE  # a whole cycle: every kind's kernels, plans and allocations
+    if graph_warmup is not None and tr.graphs is not None:
+        tr.graphs.warmup = graph_warmup
+    # a whole cycle: every kind's kernels, plans and allocations; graphed with a warm-up of 1 per kind, every kind
+    # is captured by step CYCLE (r1+path: warmed at 0, captured at 16), so the runs compared time one step later
+    warm = 2 if ctx.tiny else CYCLE + (1 if keep is not None else 0)
+    losses = []
     for _ in range(warm):
-        tr.train_step()
+        losses.append(tr.train_step())
     ctx.sync()
     times = []
     for _ in range(iters):
         k = kind(tr.step)
         ctx.sync()
         t = time.perf_counter()
-        tr.train_step()
+        losses.append(tr.train_step())
         ctx.sync()
         times.append((k, time.perf_counter() - t))
-    return {"batch": batch, "preset": tr.cfg.name if hasattr(tr.cfg, "name") else ("small" if ctx.tiny else "paper"),
-            "windows": list(tr.data.windows.shape), **cycle_summary(times)}
+    if keep is not None:
+        keep.update(losses=losses, state=trainer_state(tr))
+    res = {"batch": batch, "preset": tr.cfg.name if hasattr(tr.cfg, "name") else ("small" if ctx.tiny else "paper"),
+           "windows": list(tr.data.windows.shape), **cycle_summary(times)}
+    if tr.graphs is not None:
+        res["graphs"] = tr.graphs_record()
+    return res
+
+
+def trainer_state(tr) -> dict[str, torch.Tensor]:
+    """Every weight (G, D, G_ema), optimiser state and the mean path length of a trainer, copied."""
+    out = {}
+    for name, module in (("G", tr.G), ("D", tr.D), ("G_ema", tr.G_ema)):
+        out.update({f"{name}.{k}": v.detach().clone() for k, v in module.state_dict().items()})
+    for name, opt in (("g_opt", tr.g_optim), ("d_opt", tr.d_optim)):
+        for pid, st in opt.state_dict()["state"].items():
+            out.update({f"{name}.{pid}.{k}": torch.as_tensor(v).detach().clone() for k, v in st.items()})
+    out["mean_path_length"] = tr.mean_path_length.detach().clone()
+    return out
+
+
+GRAPH_RTOL, GRAPH_ATOL = 1e-3, 1e-4  # float tolerance of graphed vs eager (GPU kernels need not be bit-reproducible)
+
+
+def compare_cycles(eager: dict, graphed: dict, rtol: float = GRAPH_RTOL, atol: float = GRAPH_ATOL) -> dict:
+    """Graphed against eager from the same seed: every step's losses and every tensor of the final state allclose
+    (``equal``), with the largest differences and what differs."""
+    worst_loss, bad_losses = 0.0, []
+    for i, (a, b) in enumerate(zip(eager["losses"], graphed["losses"])):
+        for k in sorted(set(a) | set(b)):
+            if k not in a or k not in b:
+                bad_losses.append(f"step {i} {k}: missing")
+                continue
+            d = abs(a[k] - b[k])
+            worst_loss = max(worst_loss, d)
+            if not d <= atol + rtol * abs(a[k]):  # a NaN on one side is a difference
+                bad_losses.append(f"step {i} {k}: {a[k]:.6g} vs {b[k]:.6g}")
+    worst_w, bad_state = 0.0, []
+    sa, sb = eager["state"], graphed["state"]
+    for k in sorted(set(sa) | set(sb)):
+        if k not in sa or k not in sb or sa[k].shape != sb[k].shape:
+            bad_state.append(f"{k}: missing or reshaped")
+            continue
+        x, y = sa[k].double(), sb[k].double()
+        if x.numel():
+            worst_w = max(worst_w, float((x - y).abs().max()))
+        if not torch.allclose(x, y, rtol=rtol, atol=atol):
+            bad_state.append(k)
+    steps = len(eager["losses"])
+    equal = steps == len(graphed["losses"]) and not bad_losses and not bad_state
+    return {"equal": equal, "steps": steps, "rtol": rtol, "atol": atol, "max_abs_loss_diff": worst_loss,
+            "max_abs_state_diff": worst_w, "losses_differ": bad_losses[:20], "state_differs": bad_state[:20]}
 
 
 def stage_modi_step(ctx: Ctx, partial: Callable) -> dict:
+    """modi's step eager, then (with CUDA graphs, on a GPU) graphed from the same seed: per batch the timings of
+    both and ``graphed_equals_eager`` -- every loss of the two cycles and the final weights and optimiser states
+    allclose, the proof that ``modi.models.modi.graphs.AUTO_ENABLES_GRAPHS`` waits for."""
     from modi.models.modi.training import Trainer
 
     batches = (2,) if ctx.tiny else (16, 64)
     iters = 2 if ctx.tiny else CYCLE
     res: dict[str, Any] = {"eager": {}, "config": RELEASED}
-    for b in batches:
-        res["eager"][str(b)] = time_modi(ctx, b, iters)
-        partial(res)
     kw = graphed_support(Trainer)
     if kw is None:
         res["graphed"] = {"status": "not available", "reason": "modi has no CUDA-graph training path yet"}
     elif not ctx.cuda:
-        res["graphed"] = {"status": "skipped", "reason": "no CUDA"}
+        res["graphed"] = res["graphed_equals_eager"] = {"status": "skipped", "reason": "no CUDA"}
     else:
-        res["graphed"] = {str(b): time_modi(ctx, b, iters, **{kw: "on"}) for b in batches}
+        res["graphed"], res["graphed_equals_eager"] = {}, {"status": "running", "equal": None}
+    graphs = kw is not None and ctx.cuda
+    for b in batches:
+        eager: dict = {}
+        res["eager"][str(b)] = time_modi(ctx, b, iters, keep=eager if graphs else None, **({kw: "off"} if kw else {}))
+        partial(res)
+        if not graphs:
+            continue
+        graphed: dict = {}
+        # one eager step per kind before its capture: the proof and the timing fit the stage's budget, and the
+        # warm-up's job (lazy initialisation, MODI_EXT_IMPL=auto's timing) is done by then (the eager run's too)
+        res["graphed"][str(b)] = time_modi(ctx, b, iters, keep=graphed, graph_warmup=1, **{kw: "on"})
+        res["graphed_equals_eager"][str(b)] = compare_cycles(eager, graphed)
+        del eager, graphed
+        gc.collect()  # the graphed trainer (a trainer and its graphs refer to each other) and its memory pool
+        torch.cuda.empty_cache()
+        per = [v for k, v in res["graphed_equals_eager"].items() if k.isdigit()]
+        res["graphed_equals_eager"].update(status="pass" if all(v["equal"] for v in per) else "fail",
+                                           equal=all(v["equal"] for v in per))
+        if res["eager"][str(b)]["cycle_mean_s"] and res["graphed"][str(b)]["cycle_mean_s"]:
+            res["graphed"][str(b)]["speedup_over_eager"] = round(res["eager"][str(b)]["cycle_mean_s"]
+                                                                 / res["graphed"][str(b)]["cycle_mean_s"], 3)
+        partial(res)
     return res
 
 

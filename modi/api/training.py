@@ -13,6 +13,9 @@
 * **Precision**: ``precision="bf16"`` runs the forward passes under bf16 autocast (weights, optimiser states and
   checkpoints stay fp32; docs/precision.md). A resumed run keeps its checkpoint's precision unless one is given,
   which it then switches to (and logs); None means that, or fp32 for a new run.
+* **CUDA graphs** (MoDi): ``cuda_graphs="auto"|"on"|"off"`` replays each kind of training step as one CUDA graph
+  (``modi.models.modi.graphs``; docs/training.md). ``auto`` is eager until a GPU has shown graphed training equal to
+  eager; ``on`` on a CPU is one warning and eager.
 
 ``progress`` is called after every iteration with a :class:`Progress`.
 """
@@ -43,6 +46,7 @@ from modi.models.ganimator.training import TrainingInterrupted, blocks_of, check
 from modi.models.modi.checkpoint import load_checkpoint
 from modi.models.modi import distributed as mdist
 from modi.models.modi.config import ABLATIONS, MoDiConfig, make_config
+from modi.models.modi.graphs import GRAPH_MODES, check_graph_mode
 from modi.models.precision import PRECISIONS, check_precision
 from modi.models.modi.training import Trainer, TrainResult, newest_checkpoint, prepare_data
 from modi.data.normalization import Normalizer
@@ -181,7 +185,8 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
                       dist_timeout: float | None = None, tensorboard: bool = True, cache: bool = True,
                       bar: bool = True, log: Callable[[str], Any] | None = None,
                       progress: ProgressCallback | None = None, spelling: Mapping[str, str] = PYTHON_SPELLING,
-                      hold: list | None = None, precision: str | None = None) -> TrainResult:
+                      hold: list | None = None, precision: str | None = None,
+                      cuda_graphs: str = "auto") -> TrainResult:
     """One MoDi training run into the run folder ``out``, in this process or as one rank of a torchrun launch
     (``modi train`` is this call); returns the trainer's result (``exit_code`` 130 / 143 after Ctrl-C / SIGTERM,
     with a resumable checkpoint saved).
@@ -196,9 +201,11 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
       for a caller that must keep the process group alive until it exits (``modi.cli.leave_without_teardown``);
     * ``log`` gets rank 0's summary lines; ``bar`` shows progress bars on rank 0; ``progress`` is called after
       every step; messages name the options as ``spelling`` says (the CLI's flags, or Python's arguments);
-    * ``precision``: ``fp32`` or ``bf16``; None keeps a resumed checkpoint's (fp32 for a new run)."""
+    * ``precision``: ``fp32`` or ``bf16``; None keeps a resumed checkpoint's (fp32 for a new run);
+    * ``cuda_graphs``: ``auto``, ``on`` or ``off`` (see the module); the summary line says what ran."""
     if precision is not None:
         check_precision(precision)
+    check_graph_mode(cuda_graphs)
     set_threads(threads)
     dev = modi_device(device)
     state: dict = {"trainer": None, "resumed": None}  # what a lost peer's line reports
@@ -210,7 +217,7 @@ def run_modi_training(data: str | os.PathLike, out: str | os.PathLike, *, preset
         rank, world = mdist.init_distributed_from_env(dev, dist_timeout)
         with _run_folder_lock(run_dir, rank, world, dev):
             return _train(data, run_dir, preset, default_preset, ablations, dict(config or {}), resume, dev, rank,
-                          world, state, tensorboard, cache, bar, log, progress, spelling, precision)
+                          world, state, tensorboard, cache, bar, log, progress, spelling, precision, cuda_graphs)
     except (Exception, faults.Terminated) as exc:
         # a peer's failure; or torchrun's SIGTERM, sent to every worker once one has died, which can reach this
         # rank before its own next collective fails: either way the lost peer is what to report
@@ -308,7 +315,7 @@ def _resume_state(resume: bool | str | os.PathLike | None, run_dir: Path, rank: 
 
 def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: dict, resume, dev: torch.device,
            rank: int, world: int, state: dict, tensorboard: bool, cache: bool, bar: bool, log, progress,
-           spelling: Mapping[str, str], precision: str | None) -> TrainResult:
+           spelling: Mapping[str, str], precision: str | None, cuda_graphs: str = "auto") -> TrainResult:
     say = log if rank == 0 else None
     found = _resume_state(resume, run_dir, rank, world, spelling, say)
     resume_state = None
@@ -339,12 +346,14 @@ def _train(data, run_dir: Path, preset, default_preset, ablations, overrides: di
     if rank == 0:
         faults.atomic_write(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=1) + "\n")
     trainer = _ModiTrainer(cfg, td, run_dir, device=dev, resume=resume_state, progress=bar, tensorboard=tensorboard,
-                           log=log or (lambda _m: None), progress_fn=progress, precision=precision)
+                           log=log or (lambda _m: None), progress_fn=progress, precision=precision,
+                           cuda_graphs=cuda_graphs)
     state["trainer"] = trainer
     s = td.summary
     _say(say, f"modi train: {td.windows.shape[0]} training windows {tuple(td.windows.shape[1:])} from "
               f"{s.get('train_clips', '?')} clips; hierarchy {td.hierarchy.entity_counts}; preset {cfg.preset}; "
-              f"{world} process(es) on {dev}; {cfg.train.iters} iterations; precision {trainer.precision}")
+              f"{world} process(es) on {dev}; {cfg.train.iters} iterations; precision {trainer.precision}; "
+              f"{trainer.graphs_summary()}")
     result = trainer.train()  # a NaN/inf loss: NonFiniteLossError, a UserError (one line, exit 2)
     losses = ", ".join(f"{k} {v:.4f}" for k, v in result.last_losses.items()
                        if k in ("d", "g", "r1", "path", "touch", "contact"))
@@ -358,7 +367,7 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str |
                device: str | torch.device = "cpu", threads: int | None = None,
                progress: ProgressCallback | None = None, bar: bool = False, tensorboard: bool = False,
                cache: bool = True, log: Callable[[str], Any] | None = None,
-               precision: str | None = None) -> ModiGenerator:
+               precision: str | None = None, cuda_graphs: str = "auto") -> ModiGenerator:
     """Train MoDi on every BVH under ``data`` (or the word ``procedural``: the built-in clips) into the run folder
     ``out`` (``checkpoint.pt``, ``log.jsonl``, ``config.json``, sample previews); returns the trained generator.
 
@@ -366,7 +375,9 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str |
     ``iters``, ``batch``, ``seed``. ``resume=True`` continues the run's newest checkpoint (``resume="auto"``: when
     there is one, else a new run; ``resume=PATH``: that file) with its config: ``iters`` may extend it, an option
     that differs from it is refused. ``precision``: ``fp32`` or ``bf16`` (bf16 autocast for the forward passes;
-    None: a resumed checkpoint's, else fp32; given on a resume, the run switches to it). ``bar`` shows tqdm's bar;
+    None: a resumed checkpoint's, else fp32; given on a resume, the run switches to it). ``cuda_graphs``: ``auto``
+    (eager until graphs are proven on a GPU), ``on`` (one CUDA graph per kind of step; on a CPU one warning, eager)
+    or ``off``; a capture that fails is one warning and the run goes on eagerly. ``bar`` shows tqdm's bar;
     ``log`` receives the summary lines (e.g. ``print``).
     Cost: the data preparation (cached in ``out``), then ``iters`` steps (about 0.1 s each for the small preset on a
     CPU core). Under torchrun every rank makes this call. See the module for the guarantees (lock, no overwrite,
@@ -374,7 +385,7 @@ def train_modi(data: str | os.PathLike, out: str | os.PathLike, *, preset: str |
     overrides = _dotted(config, {"iters": iters, "batch": batch, "seed": seed})
     result = run_modi_training(data, out, preset=preset, ablations=ablations, config=overrides, resume=resume,
                                device=device, threads=threads, tensorboard=tensorboard, cache=cache, bar=bar,
-                               log=log, progress=progress, precision=precision)
+                               log=log, progress=progress, precision=precision, cuda_graphs=cuda_graphs)
     if result.interrupted:
         raise TrainingInterrupted(result.checkpoint, result.signum)
     return ModiGenerator.from_checkpoint(result.checkpoint, device=modi_device(device))
@@ -478,4 +489,4 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
 
 __all__ = ["Progress", "ProgressCallback", "train_modi", "run_modi_training", "train_ganimator", "modi_config",
            "ganimator_config", "config_differences", "launched_by_torchrun", "modi_device", "TrainingInterrupted",
-           "GANIMATOR_PRESETS", "PRECISIONS"]
+           "GANIMATOR_PRESETS", "PRECISIONS", "GRAPH_MODES"]

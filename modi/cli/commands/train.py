@@ -6,6 +6,10 @@ import argparse
 from modi.cli import leave_without_teardown
 from modi.cli import types as ct
 
+# modi.models.modi.graphs.GRAPH_MODES, named here so that registering the command imports no trainer (a test holds
+# the two equal)
+CUDA_GRAPH_MODES = ("auto", "on", "off")
+
 
 def register(subparsers) -> None:
     from modi.api.options import MODI_ABLATIONS as ABLATIONS, MODI_PRESETS as PRESETS  # lazy: every command registers
@@ -75,6 +79,12 @@ def register(subparsers) -> None:
                    help="forward passes in fp32, or under bf16 autocast (weights, optimiser states and checkpoints "
                         "stay fp32; see docs/precision.md) (default: a resumed checkpoint's, else fp32; given on "
                         "--resume, the run switches to it)")
+    p.add_argument("--cuda-graphs", choices=CUDA_GRAPH_MODES, default="auto",
+                   help="replay each kind of training step (plain, path length, R1, both) as one CUDA graph: far "
+                        "fewer launches on a GPU. 'auto' stays eager until a GPU run has shown graphed training "
+                        "equal to eager; 'on' asks for graphs (on a CPU: one warning, eager; a step that cannot be "
+                        "captured: one warning, the run goes on eagerly); single process only (see "
+                        "docs/cli.md#cuda-graphs)")
     p.add_argument("--dist-timeout", type=ct.positive_finite_float, default=argparse.SUPPRESS, metavar="SECONDS",
                    help="under torchrun: seconds a process waits for the others before the run stops as a lost peer "
                         "(exit 75) (default: $MODI_DIST_TIMEOUT or 300)")
@@ -136,5 +146,5 @@ def run(args: argparse.Namespace) -> int:
         config=overrides, resume=args.resume, device=args.device, threads=getattr(args, "threads", None),
         dist_timeout=getattr(args, "dist_timeout", None), tensorboard=not args.no_tensorboard,
         cache=not args.no_cache, log=lambda line: print(line, flush=True), spelling={**SPELLING, **given},
-        hold=hold, precision=getattr(args, "precision", None))
+        hold=hold, precision=getattr(args, "precision", None), cuda_graphs=args.cuda_graphs)
     return result.exit_code

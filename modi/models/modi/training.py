@@ -17,6 +17,10 @@ shapes; the real windows' indices reach the device once per epoch; the losses st
 reported at the next log step, and ``NONFINITE_STEPS`` such steps in a row stop the run as a non-finite loss always
 did: ``NonFiniteLossError``, no checkpoint written.
 
+CUDA graphs (``cuda_graphs``; ``modi.models.modi.graphs``): a step is ``_prepare_step`` (what it takes from the host,
+written into device buffers: the EMA weight and, under graphs, the windows' indices) then ``_step_body`` (device work
+only), which one graph per kind captures after a warm-up and replays.
+
 Precision (docs/precision.md): with ``precision="bf16"`` the networks' forward passes run under bf16 autocast, R1's
 included; the losses and the foot terms (FK) take the networks' outputs cast to fp32; the path-length regulariser runs
 wholly in fp32 (its penalty, a small spread of large lengths, came out up to a fifth off float64's in bf16, where R1
@@ -58,6 +62,8 @@ from modi.models.modi.codec import MotionCodec
 from modi.models.modi.config import MoDiConfig
 from modi.models.modi.distributed import epoch_order as _epoch_order
 from modi.models.modi.distributed import init_distributed_from_env, shard_indices, under_torchrun
+from modi.models.modi.graphs import (CaptureBackend, CudaGraphBackend, GraphFallbackWarning, StepGraphs,
+                                     auto_enables_graphs, check_graph_mode)
 from modi.models.modi.levels import LevelSpec, build_levels
 from modi.models.modi.losses import (
     d_logistic_loss,
@@ -234,8 +240,11 @@ class Trainer:
     def __init__(self, cfg: MoDiConfig, data: TrainingData, run_dir: str | os.PathLike, *,
                  device: str | torch.device | None = None, resume: str | os.PathLike | dict | None = None,
                  progress: bool = True, tensorboard: bool = True, write_samples: bool = True,
-                 log: Callable[[str], None] | None = None, precision: str | None = None):
+                 log: Callable[[str], None] | None = None, precision: str | None = None,
+                 cuda_graphs: str = "auto", graph_backend: CaptureBackend | None = None):
         self.cfg = cfg.validate()
+        self.cuda_graphs = check_graph_mode(cuda_graphs)  # asked; ``graphs`` / ``graphs_record()``: what runs
+        self.graphs: StepGraphs | None = None
         # None: a new run's default, or a resumed run's checkpoint's; given: this precision (a resume switches)
         self._precision_asked = check_precision(precision) if precision is not None else None
         self.precision = self._precision_asked or DEFAULT_PRECISION
@@ -301,6 +310,7 @@ class Trainer:
         if resume is not None:
             self.load_state(resume)
 
+        self.graphs, self._graphs_why = self._make_graphs(graph_backend)
         self.g_train: nn.Module = self.G
         self.d_train: nn.Module = self.D
         if self.distributed:
@@ -326,6 +336,58 @@ class Trainer:
                 raise
             except Exception as exc:  # noqa: BLE001 - tensorboard is optional at run time
                 warnings.warn(f"TensorBoard logging disabled: {exc}", stacklevel=2)
+
+    # ------------------------------------------------------------------------------------------- CUDA graphs
+    def _make_graphs(self, backend: CaptureBackend | None) -> tuple[StepGraphs | None, str]:
+        """The step's graphs (``modi.models.modi.graphs``) for ``cuda_graphs``, or None and why this run is eager.
+        ``backend`` replaces the CUDA one (tests run the step through ``graphs.OpTape`` on the CPU)."""
+        mode = self.cuda_graphs
+        if mode == "off":
+            return None, "off"
+        if self.distributed:  # DDP's bucketed all-reduces are not captured here
+            if mode == "on" and self.rank == 0:
+                warnings.warn(f"modi train: CUDA graphs run in one process only; this run has {self.world} (DDP) "
+                              f"and trains eagerly", GraphFallbackWarning, stacklevel=3)
+            return None, f"one process only; this run has {self.world}"
+        if backend is None:
+            if self.device.type != "cuda":
+                if mode == "on":
+                    warnings.warn(f"modi train: CUDA graphs need a CUDA device; this run is on {self.device} and "
+                                  f"trains eagerly", GraphFallbackWarning, stacklevel=3)
+                return None, f"needs a CUDA device; this run is on {self.device}"
+            if mode == "auto" and not auto_enables_graphs(self.device):
+                return None, "auto: off until a GPU run has shown a graphed cycle equal to an eager one"
+            backend = CudaGraphBackend(self.device)
+        # the step's window indices, filled before each step (a graph reads this buffer, not a slice of the order)
+        self._index_buffer = torch.zeros(self.local_batch, dtype=torch.long, device=self.device)
+        return StepGraphs(backend, on_fail=self._after_failed_capture), "on"
+
+    def _after_failed_capture(self) -> None:
+        self._flags = {}  # a half-run body's non-finite flags; the eager retry makes its own
+        for opt in (self.g_optim, self.d_optim):
+            opt.__dict__.pop("found_inf", None)
+
+    def graphs_record(self) -> dict[str, Any]:
+        """What ``cuda_graphs`` asked and what ran (``ran``: on, off, or fell back: eager after a failed capture),
+        as the run's summary line and checkpoint record it."""
+        rec: dict[str, Any] = {"asked": self.cuda_graphs, "ran": "off", "reason": self._graphs_why}
+        if self.graphs is not None:
+            rec.update(self.graphs.report())
+            rec["ran"] = "on" if self.graphs.active else "fell back"
+            rec["reason"] = self.graphs.fallback or ""
+        return rec
+
+    def graphs_summary(self) -> str:
+        """One phrase for the run's summary line: ``CUDA graphs on`` or ``CUDA graphs off (why)``."""
+        rec = self.graphs_record()
+        return f"CUDA graphs {rec['ran']}" + (f" ({rec['reason']})" if rec["reason"] else "")
+
+    def _step_kind(self) -> str:
+        """plain, path, r1 or r1+path: the lazy regularisers this step runs (one graph each)."""
+        tc = self.cfg.train
+        r1 = tc.r1_gamma > 0 and self.step % tc.d_reg_every == 0
+        path = tc.path_weight > 0 and self.step % tc.g_reg_every == 0
+        return "r1+path" if r1 and path else "r1" if r1 else "path" if path else "plain"
 
     # ------------------------------------------------------------------------------------------- randomness
     def _z(self, n: int) -> tuple[list[Tensor], Tensor | None]:
@@ -372,7 +434,7 @@ class Trainer:
         return self._stream[1][within:within + local]
 
     def _real_batch(self) -> Tensor:
-        return self.windows[self._device_indices()]
+        return self.windows[self._index_buffer if self.graphs is not None else self._device_indices()]
 
     def _check_same_data(self) -> None:
         """Every rank must hold the same windows in the same order (the shards are cut from one permutation):
@@ -465,14 +527,31 @@ class Trainer:
     # ------------------------------------------------------------------------------------------- one iteration
     def run_step(self) -> dict[str, Tensor]:
         """One D step (+ lazy R1), one G step (+ lazy path length), EMA and mean-W updates; the losses as 0-d
-        device tensors, not read (no host sync: read them with ``read_losses``, or use ``train_step``)."""
-        out = self._d_step()
-        out.update(self._g_step())
-        self._count_skips()
+        device tensors, not read (no host sync: read them with ``read_losses``, or use ``train_step``). Under CUDA
+        graphs the step's kind is replayed (after its warm-up and capture: ``graphs.StepGraphs``)."""
+        self._prepare_step()
+        if self.graphs is None:
+            out = self._step_body()
+        else:
+            out = self.graphs.run(self._step_kind(), self._step_body)
         self.step += 1
         # lazy regularisers run on other steps than the logged ones: their latest values are reported with each
         self._latest_reg.update({k: v for k, v in out.items() if k in ("r1", "path", "path_length")})
         self._pending = out
+        return out
+
+    def _prepare_step(self) -> None:
+        """What a step takes from the host, written into device buffers before it runs (a graph holds the
+        buffers, not the values): this step's EMA weight, and under graphs its windows' indices."""
+        self._ema_weight.fill_(1.0 - self._ema_decay())
+        if self.graphs is not None:
+            self._index_buffer.copy_(self._device_indices())
+
+    def _step_body(self) -> dict[str, Tensor]:
+        """The device work of one step, all of it (what a graph of the step's kind holds)."""
+        out = self._d_step()
+        out.update(self._g_step())
+        self._count_skips()
         return out
 
     def train_step(self) -> dict[str, float]:
@@ -481,10 +560,12 @@ class Trainer:
 
     def d_step(self) -> dict[str, float]:
         """Discriminator update on the non-saturating loss, plus lazy R1 every ``d_reg_every`` steps."""
+        self._prepare_step()
         return read_losses(self._d_step())
 
     def g_step(self) -> dict[str, float]:
         """Generator update (adversarial + foot terms), lazy path length, mean-W tracking and the EMA copy."""
+        self._prepare_step()
         return read_losses(self._g_step())
 
     def _d_step(self) -> dict[str, Tensor]:
@@ -557,13 +638,17 @@ class Trainer:
         with torch.no_grad():  # mean of W (truncation target), averaged over processes so replicas agree
             w_mean = self._all_mean(self.G.mapping(zs[0]).mean(0))
             self.G.w_avg.lerp_(w_mean, 1.0 - tc.w_avg_beta)
-        self._ema_weight.fill_(1.0 - self._ema_decay())
         _accumulate(self.G_ema, self.G, weight=self._ema_weight)
         return out
 
     def _autocast(self):
-        """The context of the forward passes (see the module docstring: bf16 autocast, or nothing for fp32)."""
-        return precision_autocast(self.precision, self.device)
+        """The context of the forward passes (see the module docstring: bf16 autocast, or nothing for fp32). Under
+        graphs, autocast keeps no cache of cast weights (as torch advises: a replay must redo each cast, never read
+        one cached outside it); the casts are the same, so are the results."""
+        ctx = precision_autocast(self.precision, self.device)
+        if self.graphs is not None and isinstance(ctx, torch.autocast):
+            return torch.autocast(self.device.type, dtype=ctx.fast_dtype, cache_enabled=False)
+        return ctx
 
     def _ema_decay(self) -> float:
         """EMA with a half-life of ``ema_kimg`` thousand samples, ramped up to 5% of the samples seen (StyleGAN2-ADA)
@@ -738,6 +823,7 @@ class Trainer:
             data_summary=_plain(self.data.summary),
             last_losses=dict(self.last_losses),
             precision=self.precision,
+            cuda_graphs=_plain(self.graphs_record()),
         )
 
     def save_checkpoint(self, path: str | os.PathLike | None = None) -> Path:
@@ -807,6 +893,8 @@ class Trainer:
             warnings.warn(f"checkpoint was written by {len(rngs)} process(es), this run has {self.world}: "
                           "random streams restart (training continues, but not bit-for-bit)", stacklevel=2)
             torch.manual_seed(self.cfg.train.seed * 1000 + self.rank + 7 * self.step)
+        if self.graphs is not None:  # the optimisers' state tensors are new: every kind is captured again
+            self.graphs.reset()
 
 
 def read_losses(losses: dict[str, Tensor | float]) -> dict[str, float]:
