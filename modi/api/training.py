@@ -46,7 +46,7 @@ from modi.models.ganimator.training import TrainingInterrupted, blocks_of, check
 from modi.models.modi.checkpoint import load_checkpoint
 from modi.models.modi import distributed as mdist
 from modi.models.modi.config import ABLATIONS, MoDiConfig, make_config
-from modi.models.modi.graphs import GRAPH_MODES, check_graph_mode
+from modi.models.modi.graphs import GRAPH_MODES, GraphFallbackWarning, check_graph_mode
 from modi.models.precision import PRECISIONS, check_precision
 from modi.models.modi.training import Trainer, TrainResult, newest_checkpoint, prepare_data
 from modi.data.normalization import Normalizer
@@ -489,4 +489,4 @@ def train_ganimator(bvh: str | os.PathLike | Sequence[str | os.PathLike], out: s
 
 __all__ = ["Progress", "ProgressCallback", "train_modi", "run_modi_training", "train_ganimator", "modi_config",
            "ganimator_config", "config_differences", "launched_by_torchrun", "modi_device", "TrainingInterrupted",
-           "GANIMATOR_PRESETS", "PRECISIONS", "GRAPH_MODES"]
+           "GANIMATOR_PRESETS", "PRECISIONS", "GRAPH_MODES", "GraphFallbackWarning"]

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+import warnings
 
 from modi.cli import leave_without_teardown
 from modi.cli import types as ct
@@ -141,10 +143,25 @@ def run(args: argparse.Namespace) -> int:
     hold: list = []
     if api.launched_by_torchrun():  # the process group is never torn down: see leave_without_teardown
         leave_without_teardown(hold)
-    result = api.run_modi_training(
-        args.data, args.out, preset=getattr(args, "preset", None), default_preset="paper", ablations=args.ablation,
-        config=overrides, resume=args.resume, device=args.device, threads=getattr(args, "threads", None),
-        dist_timeout=getattr(args, "dist_timeout", None), tensorboard=not args.no_tensorboard,
-        cache=not args.no_cache, log=lambda line: print(line, flush=True), spelling={**SPELLING, **given},
-        hold=hold, precision=getattr(args, "precision", None), cuda_graphs=args.cuda_graphs)
+    with warnings.catch_warnings():  # restores the hook on the way out
+        warnings.showwarning = _one_line(warnings.showwarning, api.GraphFallbackWarning)
+        result = api.run_modi_training(
+            args.data, args.out, preset=getattr(args, "preset", None), default_preset="paper",
+            ablations=args.ablation, config=overrides, resume=args.resume, device=args.device,
+            threads=getattr(args, "threads", None), dist_timeout=getattr(args, "dist_timeout", None),
+            tensorboard=not args.no_tensorboard, cache=not args.no_cache, log=lambda line: print(line, flush=True),
+            spelling={**SPELLING, **given}, hold=hold, precision=getattr(args, "precision", None),
+            cuda_graphs=args.cuda_graphs)
     return result.exit_code
+
+
+def _one_line(show, category: type):
+    """``warnings.showwarning`` that prints a ``category`` warning as its message alone on stderr (the CUDA-graph
+    notices are one line each, not Python's two with the source), and hands any other warning to ``show``."""
+
+    def showwarning(message, cat, filename, lineno, file=None, line=None):
+        if issubclass(cat, category):
+            print(str(message), file=file or sys.stderr, flush=True)
+        else:
+            show(message, cat, filename, lineno, file, line)
+    return showwarning

@@ -234,10 +234,10 @@ def test_no_graphs_with_ddp(proc_data, tmp_path):
         dist.destroy_process_group()
 
 
-def test_api_and_cli_take_the_modes(tmp_path):
+def test_api_and_cli_take_the_modes(tmp_path, capsys):
     from modi.api import train_modi
     from modi.cli import build_parser
-    from modi.cli.commands.train import CUDA_GRAPH_MODES
+    from modi.cli.commands.train import CUDA_GRAPH_MODES, _one_line
 
     assert CUDA_GRAPH_MODES == GRAPH_MODES
     with pytest.raises(UserError, match="cuda_graphs 'fast': choose one of auto, on, off"):
@@ -246,6 +246,12 @@ def test_api_and_cli_take_the_modes(tmp_path):
     parser = build_parser()
     assert parser.parse_args(["train", "d", "--out", str(tmp_path / "o")]).cuda_graphs == "auto"
     assert parser.parse_args(["train", "d", "--out", str(tmp_path / "o"), "--cuda-graphs", "on"]).cuda_graphs == "on"
+    # the command prints a graph notice as its one line, and leaves other warnings to Python
+    others = []
+    show = _one_line(lambda *a, **k: others.append(a[0]), GraphFallbackWarning)
+    show(GraphFallbackWarning("modi train: CUDA graphs ..."), GraphFallbackWarning, "x.py", 1)
+    show(UserWarning("else"), UserWarning, "x.py", 1)
+    assert capsys.readouterr().err == "modi train: CUDA graphs ...\n" and [str(w) for w in others] == ["else"]
 
 
 def test_the_device_scripts_comparison_tells_equal_from_not():
