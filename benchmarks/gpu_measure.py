@@ -190,6 +190,9 @@ def kind(i: int) -> str:
     return "r1+path" if i % 16 == 0 else "path" if i % 4 == 0 else "plain"
 
 
+KINDS = {kind(i) for i in range(CYCLE)}  # the step kinds of one cycle (the trainer's names for them)
+
+
 def cycle_summary(times: list[tuple[str, float]]) -> dict:
     kinds: dict[str, list[float]] = {}
     for k, t in times:
@@ -396,7 +399,12 @@ def stage_modi_step(ctx: Ctx, partial: Callable) -> dict:
         # one eager step per kind before its capture: the proof and the timing fit the stage's budget, and the
         # warm-up's job (lazy initialisation, MODI_EXT_IMPL=auto's timing) is done by then (the eager run's too)
         res["graphed"][str(b)] = time_modi(ctx, b, iters, keep=graphed, graph_warmup=1, **{kw: "on"})
-        res["graphed_equals_eager"][str(b)] = compare_cycles(eager, graphed)
+        cmp = compare_cycles(eager, graphed)
+        # equal results prove nothing if the run fell back to eager: every kind of the cycle must have been replayed
+        graphs = res["graphed"][str(b)].get("graphs", {})
+        cmp["all_kinds_graphed"] = graphs.get("ran") == "on" and set(graphs.get("replays", {})) >= KINDS
+        cmp["equal"] = cmp["equal"] and cmp["all_kinds_graphed"]
+        res["graphed_equals_eager"][str(b)] = cmp
         del eager, graphed
         gc.collect()  # the graphed trainer (a trainer and its graphs refer to each other) and its memory pool
         torch.cuda.empty_cache()

@@ -245,7 +245,8 @@ class StepGraphs:
 
     After a failed capture every later step runs eagerly (``fallback`` says why; one :class:`GraphFallbackWarning`).
     ``reset()`` drops the graphs and the warm-up counts: after a checkpoint load the optimiser's state tensors are
-    new, and a graph holds the addresses it captured."""
+    new, and a graph holds the addresses it captured. A graph also keeps every host value it captured (learning
+    rates, loss weights, the config): change one mid-run and ``reset()``, or the replays go on with the old one."""
 
     def __init__(self, backend: CaptureBackend, warmup: int = GRAPH_WARMUP,
                  on_fail: Callable[[], None] | None = None):
