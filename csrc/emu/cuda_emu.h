@@ -21,7 +21,8 @@
 // Test-only defects, chosen at run time (set_injected_defect, emu_control.h; off unless a test turns one on):
 // drop_sync (the first __syncthreads() of row_gemm_kernel is skipped), off_by_one (one shared-memory index of the row
 // GEMM is shifted by one), global_oob (split_reduce_kernel reads one split past the end of its global workspace) or
-// wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it).
+// wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it) or
+// wrong_slope (act_backward_kernel's negative-side slope is 2^-9 off: the same kind of finite error).
 #include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
 
 #include <c10/core/Device.h>

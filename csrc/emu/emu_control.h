@@ -16,6 +16,7 @@
 #define MODI_EMU_INJECT_OFF_BY_ONE_ID 2
 #define MODI_EMU_INJECT_GLOBAL_OOB_ID 3
 #define MODI_EMU_INJECT_WRONG_SCALE_ID 4
+#define MODI_EMU_INJECT_WRONG_SLOPE_ID 5
 
 namespace modi_emu {
 void set_seed(uint64_t seed);  // 0: threads and blocks in index order; else a seeded permutation

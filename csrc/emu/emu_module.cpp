@@ -57,12 +57,14 @@ PyObject* py_launch_counts(PyObject*, PyObject*) {
   return d;
 }
 
-// Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale".
+// Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale",
+// "wrong_slope".
 const std::pair<const char*, int> kDefects[] = {{"", 0},
                                                 {"drop_sync", MODI_EMU_INJECT_DROP_SYNC_ID},
                                                 {"off_by_one", MODI_EMU_INJECT_OFF_BY_ONE_ID},
                                                 {"global_oob", MODI_EMU_INJECT_GLOBAL_OOB_ID},
-                                                {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID}};
+                                                {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID},
+                                                {"wrong_slope", MODI_EMU_INJECT_WRONG_SLOPE_ID}};
 
 PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
   const char* name = PyUnicode_AsUTF8(arg);

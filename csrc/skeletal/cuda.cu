@@ -147,7 +147,8 @@ __device__ __forceinline__ acc_t<T> read_tr(const T* row, int Ls, int Lt, int ta
 
 // Epilogue of the row / transposed GEMMs: element (b, m, e, t) of a (B, M, E, To) output.
 //   ws set:   ws[...] = acc                                   (unscaled input gradient, for the style gradient)
-//   else:     out[...] = acc * escale[b, m, e] * style[b, m] + bias[m]   (each factor optional)
+//   else:     out[...] = acc * escale[b, m, e] * style[b, m] + bias[m]   (each factor optional), then with act
+//             the bias activation (skeletal.h)
 template <typename T>
 struct Epi {
   T* out = nullptr;
@@ -155,6 +156,7 @@ struct Epi {
   const T* escale = nullptr;  // (B, M, E)
   const T* style = nullptr;   // (B, M)
   const T* bias = nullptr;    // (M,)
+  bool act = false;
   int E = 0;
 };
 
@@ -170,6 +172,7 @@ __device__ __forceinline__ void epi_store(const Epi<T>& e, int M, int To, int b,
   if (e.escale) v *= ld(e.escale + r);
   if (e.style) v *= ld(e.style + int64_t(b) * M + m);
   if (e.bias) v += ld(e.bias + m);
+  if (e.act) v = act_fwd(v);
   st(e.out + i, v);
 }
 
@@ -608,6 +611,22 @@ __global__ void style_finish_kernel(const acc_t<T>* __restrict__ gxp, const T* _
   if (threadIdx.x == 0) st(gs + bi, dot);
 }
 
+// The backward of the bias activation (skeletal.h), elementwise: gp = act_slope(y) * gy, and yp = y / act_slope(y)
+// (the pre-activation, for the scale gradient) where yp is set.
+template <typename T>
+__global__ void act_backward_kernel(const T* __restrict__ gy, const T* __restrict__ y, int64_t n, T* __restrict__ gp,
+                                    T* __restrict__ yp) {
+  using A = acc_t<T>;
+  for (int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
+    const A v = ld(y + i);
+    // MODI_EMU_WRONG_SLOPE: the emulator's planted fault (0 in every other build), a negative-side slope 2^-9 off
+    A k = act_slope(v);
+    if (MODI_EMU_WRONG_SLOPE && v < A(0)) k *= A(1) + A(1.0 / 512);
+    st(gp + i, k * ld(gy + i));
+    if (yp) st(yp + i, v / k);
+  }
+}
+
 // Demodulation-scale gradient: warp per (b, o, j): gd = sum_t gy * (y - bias[o]) / d   (y = d * z + bias).
 template <typename T>
 __global__ void scale_grad_kernel(const T* __restrict__ gy, const T* __restrict__ y, const T* __restrict__ bias,
@@ -727,7 +746,7 @@ GemmArgs<T> gemm_args(const Geo& g, const Gathered<T>& in, int64_t M, const T* w
 at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
                         const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                         int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                        c10::string_view padding_mode) {
+                        c10::string_view padding_mode, bool act) {
   const Geo g = check_inputs(kCudaBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
@@ -742,6 +761,7 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     epi.out = y.data_ptr<T>();
     epi.escale = scale.has_value() ? scale->data_ptr<T>() : nullptr;
     epi.bias = bias.has_value() ? bias->data_ptr<T>() : nullptr;
+    epi.act = act;
     epi.E = static_cast<int>(g.Eout);
     Factor<T> sty;
     if (style.has_value()) sty = Factor<T>{style->data_ptr<T>(), g.Cin, 1, 0};
@@ -762,22 +782,22 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
 at::Tensor skeletal_conv_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                               const at::Tensor& index, const at::Tensor& offsets,
                               const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                              c10::string_view padding_mode) {
-  return forward_cuda(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                              c10::string_view padding_mode, bool act) {
+  return forward_cuda(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_down_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                               const at::Tensor& index, const at::Tensor& offsets,
                               const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                              c10::string_view padding_mode) {
-  return forward_cuda(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                              c10::string_view padding_mode, bool act) {
+  return forward_cuda(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_up_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                             const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
                             const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                            c10::string_view padding_mode) {
-  return forward_cuda(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+                            c10::string_view padding_mode, bool act) {
+  return forward_cuda(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act);
 }
 
 // ------------------------------------------------------------------------------------------------ backward
@@ -785,11 +805,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     const at::Tensor& grad, const at::Tensor& out, const at::Tensor& x, const at::Tensor& weight,
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
-    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
+    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask, bool act) {
   const Geo g = check_backward_inputs(kCudaBackend, grad, out, x, weight, bias, index, offsets, style, scale,
                                       padding_mode, kind, n_out);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
+  if (act) {  // from the pre-activation on, the backward is the one without act
+    const bool need_pre = output_mask[3] && scale.has_value();
+    at::Tensor g_pre = at::empty_like(grad), y_pre = need_pre ? at::empty_like(out) : out;
+    const int64_t n = grad.numel();
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "modi_ext::skeletal_act_backward", [&] {
+      using T = scalar_t;
+      const int threads = 256;
+      const int64_t blocks = std::max<int64_t>(1, std::min<int64_t>(ceil_div(n, threads), 4096));
+      MODI_LAUNCH((act_backward_kernel<T>), static_cast<unsigned>(blocks), threads, 0, stream, grad.data_ptr<T>(),
+          out.data_ptr<T>(), n, g_pre.data_ptr<T>(), need_pre ? y_pre.data_ptr<T>() : nullptr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+    return skeletal_backward_cuda(g_pre, y_pre, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
+                                  n_out, output_mask, false);
+  }
   const int device = x.device().index();
   const bool up = kind == kUp;
   const int64_t rows = offsets.numel() - 1;
