@@ -515,7 +515,7 @@ struct WArgs : Gathered<T> {
   int rows = 0;
   const int* off = nullptr;
   const int* idx = nullptr;
-  int64_t n_chunk = 0;  // reduction columns per split, a multiple of kBK
+  int64_t n_chunk = 0;  // reduction columns per split, a multiple of 4
   int64_t lda = 0;
   T* gw = nullptr;
   acc_t<T>* ws = nullptr;  // (splits, weight numel) partials, or null to write gw

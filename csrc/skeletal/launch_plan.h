@@ -41,7 +41,9 @@ inline WgradPlan wgrad_plan(int64_t N, int64_t rows, int64_t nnz, int64_t cu, in
   int64_t s = cdiv(waves2(sm_count), p.ktiles * p.mtiles);
   s = std::min(s, N / kMinSplitCols);
   s = std::max<int64_t>(1, std::min(s, kMaxSplits));
-  p.n_chunk = std::max<int64_t>(kBK, cdiv(cdiv(N, s), kBK) * kBK);
+  // equal chunks, a multiple of 4 columns so the left operand's 4-vectors stay aligned; rounding may leave one
+  // split fewer than asked (only when s > 17, as each chunk holds >= 64 columns)
+  p.n_chunk = std::max<int64_t>(4, cdiv(cdiv(N, s), 4) * 4);
   p.splits = std::max<int64_t>(1, cdiv(N, p.n_chunk));  // no empty split
   return p;
 }
