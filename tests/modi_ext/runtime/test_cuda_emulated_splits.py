@@ -74,8 +74,9 @@ def gemms(preset: str, batch: int):
         # down: out = coarse rows; its input gradient is the transposed GEMM over the fine entities
         out.append((f"down{lv}", (nc, rows, nnz, 3 * cf, cc), [(nc, cc, rows, nnz, 3 * cf),
                                                                 (nf, cf, fine, nnz, 3 * cc)]))
-        # up: forward is the transposed GEMM over the fine entities, its input gradient the row GEMM
-        out.append((f"up{lv}", (nf, rows, nnz, 3 * cc, cf), [(nf, cf, fine, nnz, 3 * cc),
+        # up (coarse x in, fine out): forward is the transposed GEMM over the fine entities, its input gradient the
+        # row GEMM; the weight gradient sums over the coarse input's columns
+        out.append((f"up{lv}", (nc, rows, nnz, 3 * cf, cc), [(nf, cf, fine, nnz, 3 * cc),
                                                              (nc, cc, rows, nnz, 3 * cf)]))
     return out
 
