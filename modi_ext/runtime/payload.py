@@ -10,8 +10,8 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
 
 * ``narrow`` (cin 3, cout 5, B x T = 16, 5 entities): the 32-row tiles of the row / transposed / weight-gradient
   GEMMs, one weight-gradient split;
-* ``wide`` (cin 34, cout 36, B x T = 260 > 256, 3 entities): the 64-row tiles and the split-K weight gradient
-  (``split_reduce_kernel``);
+* ``wide`` (cin 34, cout 36, B x T = 260 >= 2 x 64, 3 entities): the 64-row tiles and the split-K weight gradient
+  (``split_reduce_kernel``; csrc/skeletal/launch_plan.h);
 * both modulated, demodulated and biased, every gradient asked for: ``style_finish_kernel`` and
   ``scale_grad_kernel``; conv / down and up: the plain and the blur (adjoint) variants;
 * FK, one joint count per launch plan of ``csrc/fk/cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
@@ -66,7 +66,7 @@ class SkeletalCase:
 
     @property
     def columns(self) -> int:
-        """B x T of the weight-gradient reduction (split-K above 256)."""
+        """B x T of the weight-gradient reduction (split in runs of >= 64 columns: csrc/skeletal/launch_plan.h)."""
         return self.B * (self.T // 2 if self.kind == "down" else self.T)
 
 

@@ -303,8 +303,8 @@ def test_multi_tile_split_k(kind, dtype):
 
 @pytest.mark.parametrize("sms", (1, 1000))
 def test_split_k_by_multiprocessor_count(sms):
-    """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 8 splits with a ragged
-    last one (B*T = 1800, chunks of 240) with 1000 SMs."""
+    """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 27 splits with a ragged
+    last one (B*T = 1800, chunks of 68) with 1000 SMs (csrc/skeletal/launch_plan.h)."""
     p = Problem("conv", "style", "zeros", U=3, bias=False, seed=9, B=2, cin=4, cout=6, T=900, n=3)
     EMU.set_sm_count(sms)
     try:
