@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from modi_ext.act import fused_leaky_relu
 from modi_ext.fk import checks as fk_checks
 from modi_ext.fk import ops as fk_ops
 from modi_ext.skeletal import ops
@@ -80,6 +81,16 @@ class _SkeletalBase(nn.Module):
             self.weight_scale.fill_(1.0)
         self.scale_folded = True
 
+    def _epilogue(self, act: "FusedLeakyReLU | None") -> dict:
+        """The op's bias and ``act`` arguments: the layer's bias, or -- with ``act``, the activation that follows a
+        bias-free layer -- that activation's bias and activation, run in the op's epilogue (``modi_ext.act``)."""
+        if act is None:
+            return dict(bias=self.bias)
+        if self.bias is not None:
+            raise ValueError(f"{type(self).__name__} has a bias of its own: build it with bias=False to fuse the "
+                             f"activation that follows it (act=)")
+        return dict(bias=act.bias, act=True)
+
     def effective_weight(self) -> torch.Tensor:
         """Compact weight as the op sees it (equalised-lr factor applied)."""
         if self.scale_folded:
@@ -99,9 +110,10 @@ class SkeletalConv(_SkeletalBase):
         topo = csr_from_lists(neighbors, n_in=len(neighbors) if len(neighbors) else None, name="neighbors")
         self._setup(topo, in_ch, out_ch, kernel_size, padding_mode, bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ops.skeletal_conv(x, self.effective_weight(), self.bias, self.index, self.offsets,
-                                 padding_mode=self.padding_mode)
+    def forward(self, x: torch.Tensor, act: "FusedLeakyReLU | None" = None) -> torch.Tensor:
+        """``act``: the bias-free layer's following activation, fused into the op (``act(self(x))`` in one op)."""
+        return ops.skeletal_conv(x, self.effective_weight(), index=self.index, offsets=self.offsets,
+                                 padding_mode=self.padding_mode, **self._epilogue(act))
 
     def dense_weight(self) -> torch.Tensor:
         """Masked dense ``(Cout, Cin, E, E, U)`` weight, equalised-lr factor applied."""
@@ -122,9 +134,10 @@ class SkeletalDownsample(_SkeletalBase):
         self._setup(csr_from_lists(pooling, name="pooling", require_cover=True), in_ch, out_ch, kernel_size,
                     padding_mode, bias)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ops.skeletal_down(x, self.effective_weight(), self.bias, self.index, self.offsets,
-                                 padding_mode=self.padding_mode)
+    def forward(self, x: torch.Tensor, act: "FusedLeakyReLU | None" = None) -> torch.Tensor:
+        """``act``: as :meth:`SkeletalConv.forward`'s."""
+        return ops.skeletal_down(x, self.effective_weight(), index=self.index, offsets=self.offsets,
+                                 padding_mode=self.padding_mode, **self._epilogue(act))
 
     def dense_weight(self) -> torch.Tensor:
         """Masked dense ``(Cout, Cin, E_coarse, E_fine, U)`` weight, equalised-lr factor applied."""
@@ -148,9 +161,10 @@ class SkeletalUpsample(_SkeletalBase):
         self._setup(csr_from_lists(pooling, name="pooling", require_cover=True), in_ch, out_ch, kernel_size,
                     padding_mode, bias, up=True)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ops.skeletal_up(x, self.effective_weight(), self.bias, self.index, self.offsets, self.n_fine,
-                               padding_mode=self.padding_mode)
+    def forward(self, x: torch.Tensor, act: "FusedLeakyReLU | None" = None) -> torch.Tensor:
+        """``act``: as :meth:`SkeletalConv.forward`'s."""
+        return ops.skeletal_up(x, self.effective_weight(), index=self.index, offsets=self.offsets, n_out=self.n_fine,
+                               padding_mode=self.padding_mode, **self._epilogue(act))
 
     def dense_weight(self) -> torch.Tensor:
         """Masked dense ``(Cout, Cin, E_fine, E_coarse, U)``: entry [o,i,f,c,u] carries x[i,c,t] to fine frame 2t+u-U//2."""
@@ -160,22 +174,6 @@ class SkeletalUpsample(_SkeletalBase):
     def extra_repr(self) -> str:
         return (f"{self.in_ch}, {self.out_ch}, entities={self.n_out}->{self.n_fine}, pairs={self.index.numel()}, "
                 f"kernel_size={self.kernel_size}, padding_mode={self.padding_mode!r}, bias={self.bias is not None}")
-
-
-SQRT2 = math.sqrt(2.0)
-
-
-def fused_leaky_relu(x: torch.Tensor, bias: torch.Tensor | None, slope: float = 0.2) -> torch.Tensor:
-    """Bias + leaky ReLU + gain sqrt(2), which keeps the activations' second moment at 1 (StyleGAN2); ``bias``
-    ``(C,)`` is added along dimension 1.
-
-    Computed as leaky_relu(sqrt(2) x + sqrt(2) b): leaky ReLU is positively homogeneous, so the gain moves inside,
-    where the bias add applies it (``add``'s ``alpha``), and the activation runs in place on that fresh tensor:
-    one elementwise pass and one allocation less than add, activation, multiply."""
-    if bias is None:
-        return F.leaky_relu(x * SQRT2, slope, inplace=True)
-    b = (bias * SQRT2).view(1, -1, *([1] * (x.ndim - 2)))
-    return F.leaky_relu(torch.add(b, x, alpha=SQRT2), slope, inplace=True)
 
 
 class FusedLeakyReLU(nn.Module):
@@ -216,8 +214,8 @@ class EqualLinear(nn.Module):
 class ModulatedSkeletalConv(nn.Module):
     """StyleGAN2 modulated skeletal conv (in place, up or down), with its own affine style layer.
 
-    ``forward(x, w)``: ``s = affine(w)`` (bias initialised to 1), then the fused modulated op; no bias or
-    activation (the generator adds noise and a fused bias + leaky ReLU).  ``topology`` is the neighbor list for
+    ``forward(x, w, act=None)``: ``s = affine(w)`` (bias initialised to 1), then the fused modulated op; no bias of
+    its own: the generator's bias + leaky ReLU follows, fused into the op when passed as ``act``.  ``topology`` is the neighbor list for
     ``mode="same"`` and the coarse -> fine pooling map for ``"up"`` / ``"down"``.
     """
 
@@ -247,19 +245,20 @@ class ModulatedSkeletalConv(nn.Module):
     def dense_weight(self) -> torch.Tensor:
         return self.conv.dense_weight()
 
-    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, w: torch.Tensor, act: "FusedLeakyReLU | None" = None) -> torch.Tensor:
+        """``act``: the activation that follows, fused into the op (as :meth:`SkeletalConv.forward`'s)."""
         if w.dim() != 2 or w.shape[1] != self.style_dim:
             raise ValueError(f"w must be (B, {self.style_dim}), got shape {tuple(w.shape)}")
         if w.shape[0] != x.shape[0]:
             raise ValueError(f"w has batch {w.shape[0]} but x has {x.shape[0]}")
         s = self.affine(w)
         c = self.conv
-        kw = dict(style=s, demodulate=self.demodulate, padding_mode=c.padding_mode)
+        kw = dict(style=s, demodulate=self.demodulate, padding_mode=c.padding_mode, **c._epilogue(act))
         if self.mode == "same":
-            return ops.skeletal_conv(x, c.effective_weight(), None, c.index, c.offsets, **kw)
+            return ops.skeletal_conv(x, c.effective_weight(), index=c.index, offsets=c.offsets, **kw)
         if self.mode == "down":
-            return ops.skeletal_down(x, c.effective_weight(), None, c.index, c.offsets, **kw)
-        return ops.skeletal_up(x, c.effective_weight(), None, c.index, c.offsets, c.n_fine, **kw)
+            return ops.skeletal_down(x, c.effective_weight(), index=c.index, offsets=c.offsets, **kw)
+        return ops.skeletal_up(x, c.effective_weight(), index=c.index, offsets=c.offsets, n_out=c.n_fine, **kw)
 
     def extra_repr(self) -> str:
         return f"mode={self.mode!r}, demodulate={self.demodulate}, style_dim={self.style_dim}"

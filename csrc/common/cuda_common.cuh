@@ -48,15 +48,19 @@
 #endif
 
 // Test-only defects of the emulator, chosen at run time (csrc/emu/cuda_emu.h: off_by_one, global_oob,
-// wrong_scale): 0 in every other build, so the CUDA build compiles to the same code.
+// wrong_scale, split_edge, wrong_slope): 0 in every other build, so the CUDA build compiles to the same code.
 #ifdef MODI_EXT_EMULATE_CUDA
 #define MODI_EMU_OFF_BY_ONE (::modi_emu::injected_defect() == MODI_EMU_INJECT_OFF_BY_ONE_ID ? 1 : 0)
 #define MODI_EMU_GLOBAL_OOB (::modi_emu::injected_defect() == MODI_EMU_INJECT_GLOBAL_OOB_ID ? 1 : 0)
 #define MODI_EMU_WRONG_SCALE (::modi_emu::injected_defect() == MODI_EMU_INJECT_WRONG_SCALE_ID ? 1 : 0)
+#define MODI_EMU_SPLIT_EDGE (::modi_emu::injected_defect() == MODI_EMU_INJECT_SPLIT_EDGE_ID ? 1 : 0)
+#define MODI_EMU_WRONG_SLOPE (::modi_emu::injected_defect() == MODI_EMU_INJECT_WRONG_SLOPE_ID ? 1 : 0)
 #else
 #define MODI_EMU_OFF_BY_ONE 0
 #define MODI_EMU_GLOBAL_OOB 0
 #define MODI_EMU_WRONG_SCALE 0
+#define MODI_EMU_SPLIT_EDGE 0
+#define MODI_EMU_WRONG_SLOPE 0
 #endif
 
 namespace modi_ext {
@@ -105,6 +109,29 @@ __device__ __forceinline__ acc_t<T> ld(const T* p) {
 template <typename T, typename A>
 __device__ __forceinline__ void st(T* p, A v) {
   *p = static_cast<T>(v);
+}
+
+// V consecutive elements as one aligned vector: a single V * sizeof(T)-byte load on the GPU (what CUTLASS's
+// AlignedArray relies on).  Callers check vec_aligned first and fall back to scalar loads otherwise.
+template <int V, typename T>
+struct alignas(V * sizeof(T)) Vec {
+  T v[V];
+};
+
+template <int V, typename T>
+__device__ __forceinline__ bool vec_aligned(const T* p) {
+  return reinterpret_cast<uintptr_t>(p) % (V * sizeof(T)) == 0;
+}
+
+// out[i] = p[i], i < V, with p aligned to V elements (a misaligned vector load faults on a GPU; the emulator says so).
+template <int V, typename T>
+__device__ __forceinline__ void ld_vec(const T* p, acc_t<T> (&out)[V]) {
+#ifdef MODI_EXT_EMULATE_CUDA
+  if (!vec_aligned<V>(p)) ::modi_emu::fail("misaligned vector load");
+#endif
+  const Vec<V, T> v = *reinterpret_cast<const Vec<V, T>*>(p);
+#pragma unroll
+  for (int i = 0; i < V; ++i) out[i] = static_cast<acc_t<T>>(v.v[i]);
 }
 
 inline at::ScalarType acc_scalar_type(at::ScalarType t) {

@@ -116,6 +116,7 @@ uint64_t g_seed = 0;
 int g_sm_count = 108;
 std::atomic<int> g_defect{0};
 std::map<std::string, int64_t> g_counts;
+std::map<std::string, std::array<unsigned, 3>> g_grids;
 
 enum class St { Ready, Barrier, Warp, Done };
 
@@ -472,6 +473,7 @@ void run_launch(const LaunchSpec& spec) {
     std::lock_guard<std::mutex> lk(g_mu);
     seed = g_seed;
     ++g_counts[b.kname];
+    g_grids[b.kname] = {g.x, g.y, g.z};
   }
   TORCH_CHECK(g_block == nullptr, "modi_emu: nested kernel launch");
   static thread_local std::unique_ptr<Arena> tl_arena;
@@ -543,6 +545,11 @@ std::map<std::string, int64_t> launch_counts() {
 void reset_launch_counts() {
   std::lock_guard<std::mutex> lk(g_mu);
   g_counts.clear();
+  g_grids.clear();
+}
+std::map<std::string, std::array<unsigned, 3>> last_grids() {
+  std::lock_guard<std::mutex> lk(g_mu);
+  return g_grids;
 }
 
 }  // namespace modi_emu

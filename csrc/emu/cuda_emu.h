@@ -20,8 +20,11 @@
 
 // Test-only defects, chosen at run time (set_injected_defect, emu_control.h; off unless a test turns one on):
 // drop_sync (the first __syncthreads() of row_gemm_kernel is skipped), off_by_one (one shared-memory index of the row
-// GEMM is shifted by one), global_oob (split_reduce_kernel reads one split past the end of its global workspace) or
-// wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it).
+// GEMM is shifted by one), global_oob (split_reduce_kernel reads one split past the end of its global workspace),
+// wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it),
+// split_edge (every split but the first starts one step late: the weight gradient drops one batch x time column, the
+// row / transposed GEMMs one 16-deep k stage, at each inner split boundary; finite) or wrong_slope
+// (act_backward_kernel's negative-side slope is 2^-9 off: finite).
 #include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
 
 #include <c10/core/Device.h>

@@ -1,6 +1,7 @@
 // Host-side controls of the emulator (schedule seed, launch counters), used by the test module emu_module.cpp.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <map>
 #include <set>
@@ -16,6 +17,8 @@
 #define MODI_EMU_INJECT_OFF_BY_ONE_ID 2
 #define MODI_EMU_INJECT_GLOBAL_OOB_ID 3
 #define MODI_EMU_INJECT_WRONG_SCALE_ID 4
+#define MODI_EMU_INJECT_SPLIT_EDGE_ID 5
+#define MODI_EMU_INJECT_WRONG_SLOPE_ID 6
 
 namespace modi_emu {
 void set_seed(uint64_t seed);  // 0: threads and blocks in index order; else a seeded permutation
@@ -25,5 +28,6 @@ void set_injected_defect(int id);  // test-only run-time defect (MODI_EMU_INJECT
 int injected_defect();
 std::map<std::string, int64_t> launch_counts();  // kernel instantiation -> launches since the last reset
 void reset_launch_counts();
+std::map<std::string, std::array<unsigned, 3>> last_grids();  // kernel instantiation -> grid of its latest launch
 std::set<std::string> registered_kernels();  // every kernel instantiation the loaded code can launch
 }  // namespace modi_emu

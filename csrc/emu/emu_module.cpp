@@ -8,6 +8,7 @@
 
 #include "emu/emu_control.h"
 #include "common/ops.h"
+#include "skeletal/launch_plan.h"
 
 #define MODI_EMU_TORCH_LIBRARY(ns, m) TORCH_LIBRARY(ns, m)
 MODI_EMU_TORCH_LIBRARY(MODI_EMU_LIB, m) {
@@ -57,12 +58,15 @@ PyObject* py_launch_counts(PyObject*, PyObject*) {
   return d;
 }
 
-// Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale".
+// Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale",
+// "split_edge", "wrong_slope".
 const std::pair<const char*, int> kDefects[] = {{"", 0},
                                                 {"drop_sync", MODI_EMU_INJECT_DROP_SYNC_ID},
                                                 {"off_by_one", MODI_EMU_INJECT_OFF_BY_ONE_ID},
                                                 {"global_oob", MODI_EMU_INJECT_GLOBAL_OOB_ID},
-                                                {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID}};
+                                                {"wrong_scale", MODI_EMU_INJECT_WRONG_SCALE_ID},
+                                                {"split_edge", MODI_EMU_INJECT_SPLIT_EDGE_ID},
+                                                {"wrong_slope", MODI_EMU_INJECT_WRONG_SLOPE_ID}};
 
 PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
   const char* name = PyUnicode_AsUTF8(arg);
@@ -74,7 +78,8 @@ PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
     }
   }
   PyErr_Format(PyExc_ValueError,
-               "unknown defect '%s' (expected '', 'drop_sync', 'off_by_one', 'global_oob' or 'wrong_scale')", name);
+               "unknown defect '%s' (expected '', 'drop_sync', 'off_by_one', 'global_oob', 'wrong_scale', 'split_edge' "
+               "or 'wrong_slope')", name);
   return nullptr;
 }
 
@@ -100,6 +105,55 @@ PyObject* py_registered_kernels(PyObject*, PyObject*) {
   return l;
 }
 
+// {name: value} of int64 pairs; null (Python error set) on failure.
+PyObject* int_dict(std::initializer_list<std::pair<const char*, long long>> items) {
+  PyObject* d = PyDict_New();
+  if (!d) return nullptr;
+  for (const auto& [k, n] : items) {
+    PyObject* v = PyLong_FromLongLong(n);
+    if (!v || PyDict_SetItemString(d, k, v) < 0) {
+      Py_XDECREF(v);
+      Py_DECREF(d);
+      return nullptr;
+    }
+    Py_DECREF(v);
+  }
+  return d;
+}
+
+PyObject* py_wgrad_plan(PyObject*, PyObject* args) {
+  long long N, rows, nnz, cu, M;
+  int sms;
+  if (!PyArg_ParseTuple(args, "LLLLLi", &N, &rows, &nnz, &cu, &M, &sms)) return nullptr;
+  const auto p = modi_ext::skeletal::plan::wgrad_plan(N, rows, nnz, cu, M, sms);
+  return int_dict({{"ktiles", p.ktiles}, {"mtiles", p.mtiles}, {"splits", p.splits}, {"n_chunk", p.n_chunk},
+                   {"ctas", p.ctas()}});
+}
+
+PyObject* py_gemm_plan(PyObject*, PyObject* args) {
+  long long N, M, ents, nnz, cu;
+  int sms;
+  if (!PyArg_ParseTuple(args, "LLLLLi", &N, &M, &ents, &nnz, &cu, &sms)) return nullptr;
+  const auto p = modi_ext::skeletal::plan::gemm_plan(N, M, ents, nnz, cu, sms);
+  return int_dict({{"ntiles", p.ntiles}, {"mtiles", p.mtiles}, {"ents", p.ents}, {"splits", p.splits},
+                   {"ctas", p.ctas()}});
+}
+
+PyObject* py_last_grids(PyObject*, PyObject*) {
+  PyObject* d = PyDict_New();
+  if (!d) return nullptr;
+  for (const auto& [name, g] : modi_emu::last_grids()) {
+    PyObject* v = Py_BuildValue("(kkk)", (unsigned long)g[0], (unsigned long)g[1], (unsigned long)g[2]);
+    if (!v || PyDict_SetItemString(d, name.c_str(), v) < 0) {
+      Py_XDECREF(v);
+      Py_DECREF(d);
+      return nullptr;
+    }
+    Py_DECREF(v);
+  }
+  return d;
+}
+
 PyObject* py_reset_launch_counts(PyObject*, PyObject*) {
   modi_emu::reset_launch_counts();
   Py_RETURN_NONE;
@@ -110,9 +164,15 @@ PyMethodDef kMethods[] = {
     {"schedule_seed", py_get_seed, METH_NOARGS, "The current schedule seed."},
     {"set_sm_count", py_set_sm_count, METH_O, "Multiprocessor count the host code sees (cuda::sm_count; default 108)."},
     {"launch_counts", py_launch_counts, METH_NOARGS, "{kernel instantiation: launches} since the last reset."},
-    {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters."},
+    {"reset_launch_counts", py_reset_launch_counts, METH_NOARGS, "Clear the launch counters (and the last grids)."},
+    {"last_grids", py_last_grids, METH_NOARGS, "{kernel instantiation: (x, y, z)} grid of its latest launch."},
+    {"wgrad_plan", py_wgrad_plan, METH_VARARGS,
+     "wgrad_plan(N, rows, nnz, C*U, M, sms): the weight gradient's launch (skeletal/launch_plan.h)."},
+    {"gemm_plan", py_gemm_plan, METH_VARARGS,
+     "gemm_plan(N, M, ents, nnz, C*U, sms): a row / transposed GEMM's launch (skeletal/launch_plan.h)."},
     {"set_injected_defect", py_set_injected_defect, METH_O,
-     "Test-only: turn on a defect ('drop_sync', 'off_by_one', 'global_oob', 'wrong_scale') or off ('')."},
+     "Test-only: turn on a defect ('drop_sync', 'off_by_one', 'global_oob', 'wrong_scale', 'split_edge', "
+     "'wrong_slope') or off ('')."},
     {"injected_defect", py_injected_defect, METH_NOARGS, "The run-time defect in force ('' = none)."},
     {"registered_kernels", py_registered_kernels, METH_NOARGS,
      "Sorted names of every kernel instantiation the module can launch (registered at load time)."},

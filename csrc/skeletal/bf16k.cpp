@@ -271,9 +271,17 @@ void forward(const Geo& g, const Csr& csr, const bf16* x, const bf16* w, const b
             ptr[(s * Cp + cp) * U + u] = xc.row(u % S, cp, csr.idx[p0 + s]) + 2 * (b0 * Tq + u / S);
       nn_gemm(pk.at(j), Co, k * Cp * U, ptr, N, acc, ldacc);
       for (int64_t bl = 0; bl < nbl; ++bl)
-        for (int64_t o = 0; o < Co; ++o)
-          cvt.affine(acc + o * ldacc + bl * Tq, y + (((b0 + bl) * Co + o) * g.Eout + j) * g.Tout, g.Tout,
-                     scale_at(b0 + bl, o, j), bias_at(o));
+        for (int64_t o = 0; o < Co; ++o) {
+          float* row = acc + o * ldacc + bl * Tq;
+          bf16* dst = y + (((b0 + bl) * Co + o) * g.Eout + j) * g.Tout;
+          if (g.act) {  // the activation in fp32, one rounding
+            const float f = scale_at(b0 + bl, o, j), bb = bias_at(o);
+            for (int64_t t2 = 0; t2 < g.Tout; ++t2) row[t2] = act_fwd(row[t2] * f + bb);
+            cvt.affine(row, dst, g.Tout, 1.f, 0.f);
+          } else {
+            cvt.affine(row, dst, g.Tout, scale_at(b0 + bl, o, j), bias_at(o));
+          }
+        }
     };
     const Phase compute[] = {phase(static_cast<int64_t>(order.size()), task)};
     run_stages({{prep, 2}, {compute, 1}}, par);
@@ -325,6 +333,7 @@ void forward(const Geo& g, const Csr& csr, const bf16* x, const bf16* w, const b
       for (int64_t o = 0; o < Co; ++o) {
         up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, tmp, g.Tout, h, g.reflect,
                scale_at(b, o, f), bias_at(o));
+        if (g.act) act_row(tmp, g.Tout);
         cvt.affine(tmp, y + ((b * Co + o) * g.Eout + f) * g.Tout, g.Tout, 1.f, 0.f);
       }
     }

@@ -23,6 +23,7 @@ namespace skeletal {
 struct Geo {
   int64_t kind, B, Cin, Cout, Ein, Eout, Tin, Tout, U, h, nnz;
   bool reflect;
+  bool act = false;  // the bias activation in the epilogue (skeletal.h)
   double macs;  // multiply-adds of one GEMM pass (forward, input or weight gradient)
 };
 

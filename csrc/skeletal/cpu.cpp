@@ -23,6 +23,7 @@
 #include <numeric>
 #include <vector>
 
+#include <ATen/OpMathType.h>
 #include <ATen/Parallel.h>
 #include <torch/library.h>
 
@@ -281,6 +282,7 @@ void forward_conv_down(const Geo& g, const Csr& csr, const T* x, const T* w, con
         const T* src = acc + o * N + bl * g.Tout;
         T* dst = y + ((b * g.Cout + o) * g.Eout + j) * g.Tout;
         for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = src[t2] * f + bb;
+        if (g.act) act_row(dst, g.Tout);
       }
     }
   };
@@ -312,6 +314,7 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
         for (int64_t o = 0; o < g.Cout; ++o) {
           T* dst = y + (((b0 + bl) * g.Cout + o) * g.Eout + f) * g.Tout;
           std::fill(dst, dst + g.Tout, bias ? bias[o] : T(0));
+          if (g.act) act_row(dst, g.Tout);
         }
       return;
     }
@@ -330,6 +333,7 @@ void forward_up(const Geo& g, const Csr& csr, const T* x, const T* w, const T* b
         blur_row<T>(v, bl_out, g.Tout);
         T* dst = y + ((b * g.Cout + o) * g.Eout + f) * g.Tout;
         for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = bl_out[t2] * fs + bb;
+        if (g.act) act_row(dst, g.Tout);
       }
     }
   };
@@ -356,8 +360,9 @@ void forward_dispatch(const Geo& g, const Csr& csr, const T* x, const T* w, cons
 at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
                        const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                        int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                       c10::string_view padding_mode) {
-  const Geo g = check_inputs(kCpuBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+                       c10::string_view padding_mode, bool act) {
+  Geo g = check_inputs(kCpuBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+  g.act = act;
   const Csr csr = make_csr(index, offsets, kind == kUp ? g.Eout : g.Ein);
   at::Tensor y = at::empty({g.B, g.Cout, g.Eout, g.Tout}, x.options());
   if (x.scalar_type() == at::kBFloat16) {
@@ -379,6 +384,27 @@ at::Tensor forward_any(int64_t kind, const at::Tensor& x, const at::Tensor& weig
 }
 
 // ------------------------------------------------------------------------------------------------ backward
+// The backward of the bias activation (skeletal.h), one pass over the output: dL/dpre = act_slope(y) * grad, and,
+// where the scale gradient needs it, pre = y / act_slope(y) (else `out` as it is: nothing reads it).
+std::pair<at::Tensor, at::Tensor> act_prologue(const at::Tensor& grad, const at::Tensor& out, bool need_pre) {
+  at::Tensor g_pre = at::empty_like(grad), y_pre = need_pre ? at::empty_like(out) : out;
+  AT_DISPATCH_FLOATING_TYPES_AND(at::kBFloat16, grad.scalar_type(), "skeletal_act_backward", [&] {
+    using A = at::opmath_type<scalar_t>;
+    const scalar_t* gy = grad.data_ptr<scalar_t>();
+    const scalar_t* y = out.data_ptr<scalar_t>();
+    scalar_t* gp = g_pre.data_ptr<scalar_t>();
+    scalar_t* yp = need_pre ? y_pre.data_ptr<scalar_t>() : nullptr;
+    at::parallel_for(0, grad.numel(), 1 << 15, [&](int64_t i0, int64_t i1) {
+      for (int64_t i = i0; i < i1; ++i) {
+        const A k = act_slope(static_cast<A>(y[i]));
+        gp[i] = static_cast<scalar_t>(k * static_cast<A>(gy[i]));
+        if (yp) yp[i] = static_cast<scalar_t>(static_cast<A>(y[i]) / k);
+      }
+    });
+  });
+  return {g_pre, y_pre};
+}
+
 template <typename T>
 void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, const T* x, const T* w, const T* bias,
                    const T* style, const T* scale, T* gx, T* gw, T* gb, T* gs, T* gd) {
@@ -580,31 +606,36 @@ void backward_impl(const Geo& g, const Csr& csr, const T* gy, const T* out, cons
 at::Tensor skeletal_conv_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                              const at::Tensor& index, const at::Tensor& offsets,
                              const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                             c10::string_view padding_mode) {
-  return skeletal::forward_any(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                             c10::string_view padding_mode, bool act) {
+  return skeletal::forward_any(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_down_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                              const at::Tensor& index, const at::Tensor& offsets,
                              const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                             c10::string_view padding_mode) {
-  return skeletal::forward_any(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                             c10::string_view padding_mode, bool act) {
+  return skeletal::forward_any(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_up_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                            const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
                            const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                           c10::string_view padding_mode) {
-  return skeletal::forward_any(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+                           c10::string_view padding_mode, bool act) {
+  return skeletal::forward_any(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act);
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_backward_cpu(
     const at::Tensor& grad, const at::Tensor& out, const at::Tensor& x, const at::Tensor& weight,
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
-    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
+    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask, bool act) {
   const skeletal::Geo g = skeletal::check_backward_inputs(kCpuBackend, grad, out, x, weight, bias, index, offsets,
                                                           style, scale, padding_mode, kind, n_out);
+  if (act) {  // from the pre-activation on, the backward is the one without act
+    auto [g_pre, y_pre] = skeletal::act_prologue(grad, out, output_mask[3] && scale.has_value());
+    return skeletal_backward_cpu(g_pre, y_pre, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
+                                 n_out, output_mask, false);
+  }
   const skeletal::Csr csr = skeletal::make_csr(index, offsets, kind == kUp ? g.Eout : g.Ein);
   auto empty = [&] { return at::empty({0}, x.options()); };
   at::Tensor gx = output_mask[0] ? at::empty_like(x) : empty();

@@ -13,6 +13,7 @@
 
 #include "common/tasks.h"
 #include "skeletal/check.h"
+#include "skeletal/skeletal.h"
 
 namespace modi_ext {
 namespace skeletal {
@@ -271,6 +272,12 @@ struct Csr {
   std::vector<int64_t> toff, tent, tpair;  // input entity -> (row entity, pair), ordered by row entity
   int64_t rows = 0, cols = 0, max_deg = 0, max_tdeg = 0;
 };
+
+// The bias activation over one finished output row: the epilogue's last step with act (skeletal.h).
+template <typename T>
+inline void act_row(T* row, int64_t n) {
+  for (int64_t t = 0; t < n; ++t) row[t] = act_fwd(row[t]);
+}
 
 }  // namespace skeletal
 }  // namespace modi_ext

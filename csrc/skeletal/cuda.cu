@@ -11,13 +11,16 @@
 //       A = weight read transposed, G = the adjoint of the strided read: every source frame that the forward op
 //       would have carried to target frame t (reflect padding folded back, optionally followed by the blur).
 //       Used by: up forward, conv / down input-gradient.
-//   weight-gradient GEMM (`wgrad`)  gW[m, row pairs] = sum_(b,t) L[m, (b,t)] G[k, (b,t)], with the reduction over
-//       batch x time split across blocks into fp32 partials (no atomics), then summed by a second kernel.
+//   weight-gradient GEMM (`wgrad`)  gW[m, row pairs] = sum_(b,t) L[m, (b,t)] G[k, (b,t)], one block per k tile
+//       of a row, with the reduction over batch x time split across blocks into fp32 partials (no atomics).
 // The three share one main loop (gemm_main_loop); the row and transposed GEMMs also one block body (gemm_block).
 //
-// Tiles: one block per (column tile of batch x time, output-channel tile, entity); 64 x 64 (or 32 x 64 when the
-// GEMM has <= 32 rows) outputs per block, 4 x 4 per thread, 16-deep reduction stages double-buffered in shared
-// memory (the gathered operand is staged with time innermost).  Accumulation is fp32 (fp64 for double inputs);
+// Tiles: one block per (column tile of batch x time, output-channel tile, entity [x k split]); 64 x 64 (or 32 x 64
+// when the GEMM has <= 32 rows) outputs per block, 4 x 4 per thread, 16-deep reduction stages double-buffered in
+// shared memory (the gathered operand is staged with time innermost; contiguous aligned runs of the weight and of
+// the weight gradient's left operand are read as 4-vectors).  Where those grids would leave SMs idle (small batch,
+// coarse levels), the reduction is split across blocks (launch_plan.h) into partials that split_reduce_kernel sums
+// in a fixed order, so results stay deterministic.  Accumulation is fp32 (fp64 for double inputs);
 // inputs may be float32, float64, float16 or bfloat16.  Nothing synchronises with the host and no tensor is read on
 // the host, so a training step can be captured in a CUDA graph.  Index validation happens on the device (topology
 // kernel, CUDA_KERNEL_ASSERT), which also sanitises the CSR it hands to the GEMMs so no access can go out of bounds.
@@ -26,6 +29,7 @@
 //   * topology: int32, (rows + 1) + nnz [+ (cols + 1) + 2 nnz for the transposed CSR]   (a few KB)
 //   * style gradient: fp32 (fp64) copy of the unscaled input gradient, the size of x, only when d/dstyle is wanted
 //   * weight gradient: S fp32 (fp64) partial weight gradients, S <= 32 splits of batch x time (S = 1: none)
+//   * row / transposed GEMM: S fp32 (fp64) partial outputs, S <= 32 splits of each entity's k range (S = 1: none)
 #include <torch/library.h>
 
 #include <ATen/ATen.h>
@@ -34,6 +38,7 @@
 
 #include "common/cuda_common.cuh"
 #include "skeletal/check.h"
+#include "skeletal/launch_plan.h"
 #include "skeletal/skeletal.h"
 
 namespace modi_ext {
@@ -47,9 +52,8 @@ using skeletal::check_backward_inputs;
 using skeletal::check_inputs;
 using skeletal::Geo;
 
-constexpr int kBK = 16;  // reduction depth of one shared-memory stage
-constexpr int kBN = 64;  // output columns (batch x time) per block
-constexpr int kMaxSplits = 32;
+using skeletal::plan::kBK;  // reduction depth of one shared-memory stage
+using skeletal::plan::kBN;  // output columns (batch x time) per block
 
 template <int BM>
 struct Tile {
@@ -147,7 +151,8 @@ __device__ __forceinline__ acc_t<T> read_tr(const T* row, int Ls, int Lt, int ta
 
 // Epilogue of the row / transposed GEMMs: element (b, m, e, t) of a (B, M, E, To) output.
 //   ws set:   ws[...] = acc                                   (unscaled input gradient, for the style gradient)
-//   else:     out[...] = acc * escale[b, m, e] * style[b, m] + bias[m]   (each factor optional)
+//   else:     out[...] = acc * escale[b, m, e] * style[b, m] + bias[m]   (each factor optional), then with act
+//             the bias activation (skeletal.h)
 template <typename T>
 struct Epi {
   T* out = nullptr;
@@ -155,21 +160,23 @@ struct Epi {
   const T* escale = nullptr;  // (B, M, E)
   const T* style = nullptr;   // (B, M)
   const T* bias = nullptr;    // (M,)
+  bool act = false;
   int E = 0;
 };
 
+// Element i of the (B, M, E, To) output: row r = (b * M + m) * E + ent = i / To.
 template <typename T>
-__device__ __forceinline__ void epi_store(const Epi<T>& e, int M, int To, int b, int m, int ent, int t,
-                                          acc_t<T> v) {
-  const int64_t r = (int64_t(b) * M + m) * e.E + ent;
-  const int64_t i = r * To + t;
+__device__ __forceinline__ void epi_store_at(const Epi<T>& e, int M, int To, int64_t i, acc_t<T> v) {
   if (e.ws) {
     e.ws[i] = v;
     return;
   }
+  const int64_t r = i / To;
   if (e.escale) v *= ld(e.escale + r);
-  if (e.style) v *= ld(e.style + int64_t(b) * M + m);
-  if (e.bias) v += ld(e.bias + m);
+  const int64_t bm = r / e.E;  // b * M + m
+  if (e.style) v *= ld(e.style + bm);
+  if (e.bias) v += ld(e.bias + bm % M);
+  if (e.act) v = act_fwd(v);
   st(e.out + i, v);
 }
 
@@ -216,14 +223,16 @@ __device__ __forceinline__ void gemm_main_loop(int nk, const Load& load, const S
 }
 
 // A thread's place in a block of the row / transposed GEMMs: the block's output tile (rows from m0, columns from n0
-// of the N = B x L columns), the A elements the thread stages (column a_k, rows a_m + i * A_STEP) and the B elements
-// (column b_n, rows b_k + i * B_STEP) with that column's batch element bb and frame tt (n_ok: a column < N), and the
-// outputs it accumulates (rows ty + i * TY, columns tx + j * TX).
+// of the N = B x L columns), the A elements the thread stages (transposed GEMM: column a_k, rows a_m + i * A_STEP;
+// row GEMM, one 4-vector along k: columns v_k ... v_k + 3 of row v_m) and the B elements (column b_n, rows
+// b_k + i * B_STEP) with that column's batch element bb and frame tt (n_ok: a column < N), and the outputs it
+// accumulates (rows ty + i * TY, columns tx + j * TX).
 template <int BM>
 struct TilePlace {
+  static_assert(Tile<BM>::A_PER == 4 && Tile<BM>::NT == 4 * BM, "one A 4-vector per thread");
   int m0;
   int64_t n0;
-  int a_k, a_m, b_n, b_k;
+  int a_k, a_m, v_k, v_m, b_n, b_k;
   bool n_ok;
   int bb, tt;
   int tx, ty;
@@ -233,6 +242,8 @@ struct TilePlace {
     n0 = int64_t(blockIdx.x) * kBN;
     a_k = tid % kBK;
     a_m = tid / kBK;
+    v_k = (tid % 4) * 4;
+    v_m = tid / 4;
     b_n = tid % kBN;
     b_k = tid / kBN;
     const int64_t ncol = n0 + b_n;
@@ -244,10 +255,11 @@ struct TilePlace {
   }
 };
 
-// Epilogue of the row / transposed GEMMs: a thread's outputs (in range) to entity `ent` of the (B, M, E, L) output.
+// Epilogue of the row / transposed GEMMs: a thread's outputs (in range) to entity `ent` of the (B, M, E, L) output,
+// or unscaled to `part` (the same layout) when the k range is split.
 template <typename T, int BM>
-__device__ __forceinline__ void store_tile(const Epi<T>& epi, int M, int64_t N, int L, const TilePlace<BM>& tp,
-                                           int ent, const acc_t<T> (&acc)[4][4]) {
+__device__ __forceinline__ void store_tile(const Epi<T>& epi, acc_t<T>* part, int M, int64_t N, int L,
+                                           const TilePlace<BM>& tp, int ent, const acc_t<T> (&acc)[4][4]) {
 #pragma unroll
   for (int i = 0; i < 4; ++i) {
     const int m = tp.m0 + tp.ty + i * Tile<BM>::TY;
@@ -258,7 +270,12 @@ __device__ __forceinline__ void store_tile(const Epi<T>& epi, int M, int64_t N, 
       if (n >= N) continue;
       const int b = static_cast<int>(n / L);
       const int t = static_cast<int>(n - int64_t(b) * L);
-      epi_store(epi, M, L, b, m, ent, t, acc[i][j]);
+      const int64_t o = ((int64_t(b) * M + m) * epi.E + ent) * L + t;
+      if (part) {
+        part[o] = acc[i][j];
+      } else {
+        epi_store_at(epi, M, L, o, acc[i][j]);
+      }
     }
   }
 }
@@ -382,10 +399,14 @@ struct GemmArgs : Gathered<T> {
   const int* tent = nullptr;
   const int* tpair = nullptr;
   Epi<T> epi;
+  int ksplits = 1;                 // runs each entity's k stages are split into (launch_plan.h gemm_plan)
+  acc_t<T>* part = nullptr;        // ksplits > 1: (ksplits, B, M, E, L) partials, reduced by split_reduce_kernel
+  int64_t out_numel = 0;           // B * M * E * L
 };
 
 // One block of the row (kTr = false; kBlur: read through the blur's adjoint) or the transposed GEMM (kTr = true;
-// kBlur: then the blur): the output tile of entity blockIdx.z, rows m0.., columns n0...
+// kBlur: then the blur): the output tile of entity blockIdx.z / ksplits, rows m0.., columns n0.., over run
+// blockIdx.z % ksplits of the entity's k stages.
 template <typename T, int BM, bool kTr, bool kBlur>
 __device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
   using A = acc_t<T>;
@@ -393,23 +414,30 @@ __device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
   MODI_SHARED(A, As, [2][kBK][BM + 1]);
   MODI_SHARED(A, Bs, [2][kBK][kBN + 1]);
   const TilePlace<BM> tp(a.N, a.L);
-  const int ent = blockIdx.z;                    // row GEMM: the row entity; transposed: the column entity
+  const int ent = blockIdx.z / a.ksplits;        // row GEMM: the row entity; transposed: the column entity
+  const int ks = blockIdx.z - ent * a.ksplits;
   const int* const eoff = kTr ? a.toff : a.off;  // its neighbours (readers) q0 ... q0 + K / CU - 1
   const int q0 = eoff[ent];
   const int CU = a.C * a.U;
   const int K = (eoff[ent + 1] - q0) * CU;
+  // This block's run of stages [s0, s1): equal runs in split order (an empty run still writes its zero partial).
+  const int nk = (K + kBK - 1) / kBK, run = (nk + a.ksplits - 1) / a.ksplits;
+  const int s0 = ks * run + (ks > 0 ? MODI_EMU_SPLIT_EDGE : 0);  // 0 outside the emulator's defect injection
+  const int s1 = (ks + 1) * run < nk ? (ks + 1) * run : nk;
   [[maybe_unused]] const T* wblk = a.w + int64_t(q0) * CU;  // row GEMM only: the row's weight block
   [[maybe_unused]] const int pos0 = a.s * tp.tt - a.h;      // row GEMM only: the column's first frame
 
   A ra[TL::A_PER], rb[TL::B_PER];
   auto load = [&](int stage) {
-    const int k0 = stage * kBK;
-    if constexpr (!kTr) {  // A: the row's weight block
-      const int k = k0 + tp.a_k;
+    const int k0 = (s0 + stage) * kBK;
+    if constexpr (!kTr) {  // A: the row's weight block, contiguous along k: one 4-vector where aligned
+      const int m = tp.m0 + tp.v_m, k = k0 + tp.v_k;
+      const T* p = wblk + int64_t(m < a.M ? m : 0) * a.lda + k;
+      if (m < a.M && k + 3 < K && cuda::vec_aligned<4>(p)) {
+        cuda::ld_vec<4>(p, ra);
+      } else {
 #pragma unroll
-      for (int i = 0; i < TL::A_PER; ++i) {
-        const int m = tp.m0 + tp.a_m + i * TL::A_STEP;
-        ra[i] = (m < a.M && k < K) ? ld(wblk + m * a.lda + k) : A(0);
+        for (int i = 0; i < 4; ++i) ra[i] = (m < a.M && k + i < K) ? ld(p + i) : A(0);
       }
     } else {  // A: the weight read transposed
       const int k = k0 + tp.a_k;
@@ -446,8 +474,13 @@ __device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
     }
   };
   auto store = [&](int buf) {
+    if constexpr (!kTr) {
 #pragma unroll
-    for (int i = 0; i < TL::A_PER; ++i) As[buf][tp.a_k][tp.a_m + i * TL::A_STEP] = ra[i];
+      for (int i = 0; i < 4; ++i) As[buf][tp.v_k + i][tp.v_m] = ra[i];
+    } else {
+#pragma unroll
+      for (int i = 0; i < TL::A_PER; ++i) As[buf][tp.a_k][tp.a_m + i * TL::A_STEP] = ra[i];
+    }
     // MODI_EMU_OFF_BY_ONE (row GEMM only) is 0 outside the emulator's defect-injection build (common/cuda_common.cuh)
     constexpr int shift = kTr ? 0 : 1;
 #pragma unroll
@@ -455,8 +488,9 @@ __device__ __forceinline__ void gemm_block(const GemmArgs<T>& a) {
   };
 
   A acc[4][4];
-  gemm_main_loop<A, BM>((K + kBK - 1) / kBK, load, store, As, Bs, acc, tp.ty, tp.tx);
-  store_tile<T, BM>(a.epi, a.M, a.N, a.L, tp, ent, acc);  // transposed: entities with no reader get bias (or 0)
+  gemm_main_loop<A, BM>(s1 > s0 ? s1 - s0 : 0, load, store, As, Bs, acc, tp.ty, tp.tx);
+  // transposed: entities with no reader get bias (or 0)
+  store_tile<T, BM>(a.epi, a.part ? a.part + ks * a.out_numel : nullptr, a.M, a.N, a.L, tp, ent, acc);
 }
 
 template <typename T, int BM, bool kBlurAdj>
@@ -473,16 +507,18 @@ __global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const GemmArgs<T>
 // gW[m * lda + (p0 * C * U) + k] = sum_{n = (b, t)} L[m, n] * G[k, n]
 //   L[m, n] = lsrc[b, m, row, t] * lfac(b, m, row)      (lsrc is (B, M, El, L))
 //   G[k, n] = the row GEMM's gathered operand for this row.
-// Grid: (split of the n range, m tile, row); each block walks all k tiles of its row (the host does not know the
-// degrees: they live on the device).  One split writes gW directly; several write fp32 partials (reduced later).
+// Grid (k-tile slot, m tile, split of the n range): slot s is the s-th kBN-wide k tile in row order (tiles do not
+// cross rows); the host only bounds the slot count (launch_plan.h), so slots past the last tile exit.  One split
+// writes gW directly; several write fp32 partials, reduced in split order by split_reduce_kernel.
 template <typename T>
 struct WArgs : Gathered<T> {
   const T* lsrc = nullptr;
   int M = 0, El = 0;
   Factor<T> lfac;
+  int rows = 0;
   const int* off = nullptr;
   const int* idx = nullptr;
-  int64_t n_chunk = 0;  // reduction columns per split, a multiple of kBK
+  int64_t n_chunk = 0;  // reduction columns per split, a multiple of 4
   int64_t lda = 0;
   T* gw = nullptr;
   acc_t<T>* ws = nullptr;  // (splits, weight numel) partials, or null to write gw
@@ -495,93 +531,120 @@ __global__ void __launch_bounds__(Tile<BM>::NT) wgrad_kernel(const WArgs<T> a) {
   using TL = Tile<BM>;
   constexpr int R_PER = kBN * kBK / TL::NT;  // right-operand elements per thread per stage
   constexpr int R_STEP = TL::NT / kBK;
+  static_assert(TL::A_PER == 4 && TL::NT == 4 * BM, "one left-operand 4-vector per thread");
   MODI_SHARED(A, Ls, [2][kBK][BM + 1]);
   MODI_SHARED(A, Rs, [2][kBK][kBN + 1]);
   const int tid = threadIdx.x;
-  const int row = blockIdx.z;
-  const int m0 = blockIdx.y * BM;
-  const int split = blockIdx.x;
-  const int64_t nb = int64_t(split) * a.n_chunk;
-  const int64_t ne = nb + a.n_chunk < a.N ? nb + a.n_chunk : a.N;
-  const int p0 = a.off[row];
   const int CU = a.C * a.U;
+  int row = -1, kc0 = 0;  // this block's k tile: columns kc0 ... kc0 + kBN - 1 of `row`'s weight block
+  for (int r = 0, slot = blockIdx.x; r < a.rows; ++r) {
+    const int nt = ((a.off[r + 1] - a.off[r]) * CU + kBN - 1) / kBN;
+    if (slot < nt) {
+      row = r;
+      kc0 = slot * kBN;
+      break;
+    }
+    slot -= nt;
+  }
+  if (row < 0) return;  // past the last tile: the whole block, before any barrier
+  const int m0 = blockIdx.y * BM;
+  const int split = blockIdx.z;
+  // MODI_EMU_SPLIT_EDGE is 0 outside the emulator's defect injection (common/cuda_common.cuh)
+  const int64_t nb = int64_t(split) * a.n_chunk + (split > 0 ? MODI_EMU_SPLIT_EDGE : 0);
+  const int64_t ne = int64_t(split) * a.n_chunk + a.n_chunk < a.N ? int64_t(split) * a.n_chunk + a.n_chunk : a.N;
+  const int p0 = a.off[row];
   const int K = (a.off[row + 1] - p0) * CU;
 
-  const int l_n = tid % kBK, l_m = tid / kBK;  // both operands: fixed n offset, rows / columns step A_STEP
+  const int l_n = tid % kBK, l_m = tid / kBK;  // right operand: fixed n offset, k columns step R_STEP
+  const int v_n = (tid % 4) * 4, v_m = tid / 4;  // left operand: n offsets v_n ... v_n + 3 of row m0 + v_m
   const int tx = tid % TL::TX, ty = tid / TL::TX;
   const int nsteps = ne > nb ? static_cast<int>((ne - nb + kBK - 1) / kBK) : 0;
 
-  for (int kc0 = 0; kc0 < K; kc0 += kBN) {
-    // This thread's right-operand columns in the k tile: (c, u, entity), fixed across the n loop.
-    int rc[R_PER], ru[R_PER], re[R_PER];
-    bool rk[R_PER];
+  // This thread's right-operand columns in the k tile: (c, u, entity), fixed across the n loop.
+  int rc[R_PER], ru[R_PER], re[R_PER];
+  bool rk[R_PER];
+#pragma unroll
+  for (int i = 0; i < R_PER; ++i) {
+    const int kk = kc0 + l_m + i * R_STEP;
+    rk[i] = kk < K;
+    const int k = rk[i] ? kk : 0;
+    const int r = k / CU, rem = k - r * CU;
+    rc[i] = rem / a.U;
+    ru[i] = rem - rc[i] * a.U;
+    re[i] = a.idx[p0 + r];
+  }
+  const int lm = m0 + v_m;
+  const bool lm_ok = lm < a.M;
+  A rl[4], rr[R_PER];
+  auto lval = [&](int64_t n) {  // L[lm, n], 0 outside the split
+    if (n >= ne || !lm_ok) return A(0);
+    const int b = static_cast<int>(n / a.L), t = static_cast<int>(n - int64_t(b) * a.L);
+    return ld(a.lsrc + ((int64_t(b) * a.M + lm) * a.El + row) * a.L + t) * a.lfac.at(b, lm, row);
+  };
+  auto load = [&](int stage) {  // L: the output-side rows; R: the gathered inputs
+    {  // L is contiguous along n within a batch element: one 4-vector where aligned
+      const int64_t n = nb + int64_t(stage) * kBK + v_n;
+      const int b = static_cast<int>(n / a.L), t = static_cast<int>(n - int64_t(b) * a.L);
+      const T* p = a.lsrc + ((int64_t(b) * a.M + (lm_ok ? lm : 0)) * a.El + row) * a.L + t;
+      if (lm_ok && n + 3 < ne && t + 3 < a.L && cuda::vec_aligned<4>(p)) {
+        cuda::ld_vec<4>(p, rl);
+        const A f = a.lfac.at(b, lm, row);
+#pragma unroll
+        for (int i = 0; i < 4; ++i) rl[i] *= f;
+      } else {
+#pragma unroll
+        for (int i = 0; i < 4; ++i) rl[i] = lval(n + i);
+      }
+    }
+    const int64_t n = nb + int64_t(stage) * kBK + l_n;
+    const bool n_ok = n < ne;
+    const int b = n_ok ? static_cast<int>(n / a.L) : 0;
+    const int t = n_ok ? static_cast<int>(n - int64_t(b) * a.L) : 0;
+    const int pos0 = a.s * t - a.h;
 #pragma unroll
     for (int i = 0; i < R_PER; ++i) {
-      const int kk = kc0 + l_m + i * R_STEP;
-      rk[i] = kk < K;
-      const int k = rk[i] ? kk : 0;
-      const int r = k / CU, rem = k - r * CU;
-      rc[i] = rem / a.U;
-      ru[i] = rem - rc[i] * a.U;
-      re[i] = a.idx[p0 + r];
+      rr[i] = (n_ok && rk[i])
+                  ? read_fwd<T, kBlurAdj>(a.src.row(b, rc[i], re[i]), a.src.L, pos0 + ru[i], a.reflect) *
+                        a.fac.at(b, rc[i], re[i])
+                  : A(0);
     }
-    A rl[TL::A_PER], rr[R_PER];
-    auto load = [&](int stage) {  // L: the output-side rows; R: the gathered inputs
-      const int64_t n = nb + int64_t(stage) * kBK + l_n;
-      const bool n_ok = n < ne;
-      const int b = n_ok ? static_cast<int>(n / a.L) : 0;
-      const int t = n_ok ? static_cast<int>(n - int64_t(b) * a.L) : 0;
+  };
+  auto store = [&](int buf) {
 #pragma unroll
-      for (int i = 0; i < TL::A_PER; ++i) {
-        const int m = m0 + l_m + i * TL::A_STEP;
-        rl[i] = (n_ok && m < a.M)
-                    ? ld(a.lsrc + ((int64_t(b) * a.M + m) * a.El + row) * a.L + t) * a.lfac.at(b, m, row)
-                    : A(0);
-      }
-      const int pos0 = a.s * t - a.h;
+    for (int i = 0; i < 4; ++i) Ls[buf][v_n + i][v_m] = rl[i];
 #pragma unroll
-      for (int i = 0; i < R_PER; ++i) {
-        rr[i] = (n_ok && rk[i]) ? read_fwd<T, kBlurAdj>(a.src.row(b, rc[i], re[i]), a.src.L, pos0 + ru[i],
-                                                        a.reflect) *
-                                      a.fac.at(b, rc[i], re[i])
-                                : A(0);
-      }
-    };
-    auto store = [&](int buf) {
-#pragma unroll
-      for (int i = 0; i < TL::A_PER; ++i) Ls[buf][l_n][l_m + i * TL::A_STEP] = rl[i];
-#pragma unroll
-      for (int i = 0; i < R_PER; ++i) Rs[buf][l_n][l_m + i * R_STEP] = rr[i];
-    };
+    for (int i = 0; i < R_PER; ++i) Rs[buf][l_n][l_m + i * R_STEP] = rr[i];
+  };
 
-    A acc[4][4];
-    gemm_main_loop<A, BM>(nsteps, load, store, Ls, Rs, acc, ty, tx);
+  A acc[4][4];
+  gemm_main_loop<A, BM>(nsteps, load, store, Ls, Rs, acc, ty, tx);
 #pragma unroll
-    for (int i = 0; i < 4; ++i) {
-      const int m = m0 + ty + i * TL::TY;
-      if (m >= a.M) continue;
+  for (int i = 0; i < 4; ++i) {
+    const int m = m0 + ty + i * TL::TY;
+    if (m >= a.M) continue;
 #pragma unroll
-      for (int j = 0; j < 4; ++j) {
-        const int kc = kc0 + tx + j * TL::TX;
-        if (kc >= K) continue;
-        const int64_t o = int64_t(m) * a.lda + int64_t(p0) * CU + kc;
-        if (a.ws) {
-          a.ws[int64_t(split) * a.wnumel + o] = acc[i][j];
-        } else {
-          st(a.gw + o, acc[i][j]);
-        }
+    for (int j = 0; j < 4; ++j) {
+      const int kc = kc0 + tx + j * TL::TX;
+      if (kc >= K) continue;
+      const int64_t o = int64_t(m) * a.lda + int64_t(p0) * CU + kc;
+      if (a.ws) {
+        a.ws[int64_t(split) * a.wnumel + o] = acc[i][j];
+      } else {
+        st(a.gw + o, acc[i][j]);
       }
     }
   }
 }
 
+// out = sum over the splits, in split order, of the (splits, n) partials, through the epilogue (wgrad: a plain store).
 template <typename T>
-__global__ void split_reduce_kernel(const acc_t<T>* __restrict__ ws, int splits, int64_t n, T* __restrict__ out) {
+__global__ void split_reduce_kernel(const acc_t<T>* __restrict__ ws, int splits, int64_t n, const Epi<T> epi, int M,
+                                    int To) {
   for (int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
     acc_t<T> s = 0;
     // MODI_EMU_GLOBAL_OOB is 0 outside the emulator's defect injection (common/cuda_common.cuh)
     for (int k = 0; k < splits + MODI_EMU_GLOBAL_OOB; ++k) s += ws[int64_t(k) * n + i];
-    st(out + i, s);
+    epi_store_at(epi, M, To, i, s);
   }
 }
 
@@ -608,6 +671,22 @@ __global__ void style_finish_kernel(const acc_t<T>* __restrict__ gxp, const T* _
   if (threadIdx.x == 0) st(gs + bi, dot);
 }
 
+// The backward of the bias activation (skeletal.h), elementwise: gp = act_slope(y) * gy, and yp = y / act_slope(y)
+// (the pre-activation, for the scale gradient) where yp is set.
+template <typename T>
+__global__ void act_backward_kernel(const T* __restrict__ gy, const T* __restrict__ y, int64_t n, T* __restrict__ gp,
+                                    T* __restrict__ yp) {
+  using A = acc_t<T>;
+  for (int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x; i < n; i += int64_t(gridDim.x) * blockDim.x) {
+    const A v = ld(y + i);
+    // MODI_EMU_WRONG_SLOPE: the emulator's planted fault (0 in every other build), a negative-side slope 2^-9 off
+    A k = act_slope(v);
+    if (MODI_EMU_WRONG_SLOPE && v < A(0)) k *= A(1) + A(1.0 / 512);
+    st(gp + i, k * ld(gy + i));
+    if (yp) st(yp + i, v / k);
+  }
+}
+
 // Demodulation-scale gradient: warp per (b, o, j): gd = sum_t gy * (y - bias[o]) / d   (y = d * z + bias).
 template <typename T>
 __global__ void scale_grad_kernel(const T* __restrict__ gy, const T* __restrict__ y, const T* __restrict__ bias,
@@ -626,24 +705,45 @@ __global__ void scale_grad_kernel(const T* __restrict__ gy, const T* __restrict_
 }
 
 // ------------------------------------------------------------------------------------------------ launchers
-// f(std::integral_constant<int, BM>{}) with the tile height BM of a GEMM of M rows: 32 when M <= 32, else 64.
+// f(std::integral_constant<int, BM>{}) with the tile height BM of a GEMM of M rows (plan::tile_rows).
 template <typename F>
 void with_tile_rows(int M, const F& f) {
-  if (M <= 32) {
+  if (skeletal::plan::tile_rows(M) == 32) {
     f(std::integral_constant<int, 32>{});
   } else {
     f(std::integral_constant<int, 64>{});
   }
 }
 
+// Sums (splits, n) partials in split order into epi (M, To: the epilogue's output geometry).
+template <typename T>
+void launch_split_reduce(const acc_t<T>* ws, int64_t splits, int64_t n, const Epi<T>& epi, int M, int To,
+                         cudaStream_t stream) {
+  const int threads = 256;
+  const int64_t blocks = std::min<int64_t>(ceil_div(n, threads), 4096);
+  MODI_LAUNCH((split_reduce_kernel<T>), static_cast<unsigned>(blocks), threads, 0, stream, ws,
+      static_cast<int>(splits), n, epi, M, To);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+}
+
 // The row (kTr = false) or the transposed GEMM over `ents` entities: grid (column tiles of the N columns, row tiles
-// of the M rows, entities).
+// of the M rows, entities x k splits).  With k splits the epilogue runs in the reduction, over fp32 (fp64) partials
+// of splits x output numel.
 template <typename T, bool kTr, bool kBlur>
-void launch_gemm(const GemmArgs<T>& a, int64_t ents, cudaStream_t stream) {
+void launch_gemm(GemmArgs<T> a, int64_t ents, int64_t nnz, int device, const at::TensorOptions& opts,
+                 cudaStream_t stream) {
+  const auto p = skeletal::plan::gemm_plan(a.N, a.M, ents, nnz, int64_t(a.C) * a.U, cuda::sm_count(device));
+  at::Tensor part;
+  a.ksplits = static_cast<int>(p.splits);
+  if (p.splits > 1) {
+    a.out_numel = a.N * a.M * ents;
+    part = at::empty({p.splits * a.out_numel}, opts.dtype(cuda::acc_scalar_type(opts.dtype().toScalarType())));
+    a.part = part.data_ptr<acc_t<T>>();
+  }
   with_tile_rows(a.M, [&](auto tile) {
     constexpr int BM = decltype(tile)::value;
-    const dim3 grid(static_cast<unsigned>(ceil_div(a.N, kBN)), static_cast<unsigned>(ceil_div(a.M, BM)),
-                    static_cast<unsigned>(ents));
+    const dim3 grid(static_cast<unsigned>(p.ntiles), static_cast<unsigned>(p.mtiles),
+                    static_cast<unsigned>(ents * p.splits));
     if constexpr (kTr) {
       MODI_LAUNCH((tr_gemm_kernel<T, BM, kBlur>), grid, Tile<BM>::NT, 0, stream, a);
     } else {
@@ -651,39 +751,34 @@ void launch_gemm(const GemmArgs<T>& a, int64_t ents, cudaStream_t stream) {
     }
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (p.splits > 1) launch_split_reduce<T>(a.part, p.splits, a.out_numel, a.epi, a.M, a.L, stream);
 }
 
-// Weight gradient into gw (same layout as the weight).  Splits the batch x time reduction so that about two waves
-// of blocks are in flight; partials live in an fp32 (fp64) workspace of splits x weight numel (splits <= 32).
+// Weight gradient into gw (same layout as the weight): grid (k-tile slots, m tiles, splits of batch x time) of
+// plan::wgrad_plan; with several splits, partials live in an fp32 (fp64) workspace of splits x weight numel.
 template <typename T, bool kBlurAdj>
-void launch_wgrad(WArgs<T> a, int64_t rows, const at::Tensor& gw, int device, cudaStream_t stream) {
-  const int bm = a.M <= 32 ? 32 : 64;
-  const int64_t mtiles = ceil_div(a.M, bm);
-  const int64_t base = rows * mtiles;
-  int64_t splits = ceil_div(2 * cuda::sm_count(device), base);
-  splits = std::min<int64_t>(splits, ceil_div(a.N, 256));
-  splits = std::max<int64_t>(1, std::min<int64_t>(splits, kMaxSplits));
-  a.n_chunk = ceil_div(ceil_div(a.N, splits), kBK) * kBK;
-  splits = ceil_div(a.N, a.n_chunk);  // no empty split
+void launch_wgrad(WArgs<T> a, int64_t rows, int64_t nnz, const at::Tensor& gw, int device, cudaStream_t stream) {
+  const auto p = skeletal::plan::wgrad_plan(a.N, rows, nnz, int64_t(a.C) * a.U, a.M, cuda::sm_count(device));
+  a.rows = static_cast<int>(rows);
+  a.n_chunk = p.n_chunk;
   a.gw = gw.data_ptr<T>();
   a.wnumel = gw.numel();
   at::Tensor ws;
-  if (splits > 1) {
-    ws = at::empty({splits * a.wnumel}, gw.options().dtype(cuda::acc_scalar_type(gw.scalar_type())));
+  if (p.splits > 1) {
+    ws = at::empty({p.splits * a.wnumel}, gw.options().dtype(cuda::acc_scalar_type(gw.scalar_type())));
     a.ws = ws.data_ptr<acc_t<T>>();
   }
-  const dim3 grid(static_cast<unsigned>(splits), static_cast<unsigned>(mtiles), static_cast<unsigned>(rows));
+  const dim3 grid(static_cast<unsigned>(p.ktiles), static_cast<unsigned>(p.mtiles), static_cast<unsigned>(p.splits));
   with_tile_rows(a.M, [&](auto tile) {
     constexpr int BM = decltype(tile)::value;
     MODI_LAUNCH((wgrad_kernel<T, BM, kBlurAdj>), grid, Tile<BM>::NT, 0, stream, a);
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
-  if (splits > 1) {
-    const int threads = 256;
-    const int64_t blocks = std::min<int64_t>(ceil_div(a.wnumel, threads), 4096);
-    MODI_LAUNCH((split_reduce_kernel<T>), static_cast<unsigned>(blocks), threads, 0, stream,
-        a.ws, static_cast<int>(splits), a.wnumel, a.gw);
-    C10_CUDA_KERNEL_LAUNCH_CHECK();
+  if (p.splits > 1) {
+    Epi<T> out;
+    out.out = a.gw;
+    out.E = 1;
+    launch_split_reduce<T>(a.ws, p.splits, a.wnumel, out, 1, 1, stream);
   }
 }
 
@@ -727,7 +822,7 @@ GemmArgs<T> gemm_args(const Geo& g, const Gathered<T>& in, int64_t M, const T* w
 at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
                         const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
                         int64_t n_out, const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                        c10::string_view padding_mode) {
+                        c10::string_view padding_mode, bool act) {
   const Geo g = check_inputs(kCudaBackend, kind, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
@@ -742,6 +837,7 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     epi.out = y.data_ptr<T>();
     epi.escale = scale.has_value() ? scale->data_ptr<T>() : nullptr;
     epi.bias = bias.has_value() ? bias->data_ptr<T>() : nullptr;
+    epi.act = act;
     epi.E = static_cast<int>(g.Eout);
     Factor<T> sty;
     if (style.has_value()) sty = Factor<T>{style->data_ptr<T>(), g.Cin, 1, 0};
@@ -751,9 +847,9 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, src, sty, g.Tout), g.Cout,
                                        weight.data_ptr<T>(), topo, epi);
     if (!up) {
-      launch_gemm<T, false, false>(a, rows, stream);
+      launch_gemm<T, false, false>(a, rows, g.nnz, x.device().index(), x.options(), stream);
     } else {
-      launch_gemm<T, true, true>(a, cols, stream);
+      launch_gemm<T, true, true>(a, cols, g.nnz, x.device().index(), x.options(), stream);
     }
   });
   return y;
@@ -762,22 +858,22 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
 at::Tensor skeletal_conv_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                               const at::Tensor& index, const at::Tensor& offsets,
                               const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                              c10::string_view padding_mode) {
-  return forward_cuda(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                              c10::string_view padding_mode, bool act) {
+  return forward_cuda(kConv, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_down_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                               const at::Tensor& index, const at::Tensor& offsets,
                               const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                              c10::string_view padding_mode) {
-  return forward_cuda(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode);
+                              c10::string_view padding_mode, bool act) {
+  return forward_cuda(kDown, x, weight, bias, index, offsets, 0, style, scale, padding_mode, act);
 }
 
 at::Tensor skeletal_up_cuda(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                             const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
                             const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                            c10::string_view padding_mode) {
-  return forward_cuda(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode);
+                            c10::string_view padding_mode, bool act) {
+  return forward_cuda(kUp, x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act);
 }
 
 // ------------------------------------------------------------------------------------------------ backward
@@ -785,11 +881,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
     const at::Tensor& grad, const at::Tensor& out, const at::Tensor& x, const at::Tensor& weight,
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
-    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask) {
+    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask, bool act) {
   const Geo g = check_backward_inputs(kCudaBackend, grad, out, x, weight, bias, index, offsets, style, scale,
                                       padding_mode, kind, n_out);
   const c10::cuda::CUDAGuard guard(x.device());
   const cudaStream_t stream = current_stream(x);
+  if (act) {  // from the pre-activation on, the backward is the one without act
+    const bool need_pre = output_mask[3] && scale.has_value();
+    at::Tensor g_pre = at::empty_like(grad), y_pre = need_pre ? at::empty_like(out) : out;
+    const int64_t n = grad.numel();
+    AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "modi_ext::skeletal_act_backward", [&] {
+      using T = scalar_t;
+      const int threads = 256;
+      const int64_t blocks = std::max<int64_t>(1, std::min<int64_t>(ceil_div(n, threads), 4096));
+      MODI_LAUNCH((act_backward_kernel<T>), static_cast<unsigned>(blocks), threads, 0, stream, grad.data_ptr<T>(),
+          out.data_ptr<T>(), n, g_pre.data_ptr<T>(), need_pre ? y_pre.data_ptr<T>() : nullptr);
+      C10_CUDA_KERNEL_LAUNCH_CHECK();
+    });
+    return skeletal_backward_cuda(g_pre, y_pre, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
+                                  n_out, output_mask, false);
+  }
   const int device = x.device().index();
   const bool up = kind == kUp;
   const int64_t rows = offsets.numel() - 1;
@@ -848,9 +959,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
       const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cout, kind == kConv ? 1 : 2, gsrc, dsc, g.Tin), g.Cin,
                                          weight.data_ptr<T>(), topo, epi);
       if (up) {
-        launch_gemm<T, false, true>(a, rows, stream);
+        launch_gemm<T, false, true>(a, rows, g.nnz, device, x.options(), stream);
       } else {
-        launch_gemm<T, true, false>(a, cols, stream);
+        launch_gemm<T, true, false>(a, cols, g.nnz, device, x.options(), stream);
       }
       if (want_gs) {
         MODI_LAUNCH((style_finish_kernel<T>), static_cast<unsigned>(g.B * g.Cin), 256, 0, stream,
@@ -872,9 +983,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
       a.idx = topo.idx;
       a.lda = g.nnz * a.C * g.U;
       if (up) {
-        launch_wgrad<T, true>(a, rows, gw, device, stream);
+        launch_wgrad<T, true>(a, rows, g.nnz, gw, device, stream);
       } else {
-        launch_wgrad<T, false>(a, rows, gw, device, stream);
+        launch_wgrad<T, false>(a, rows, g.nnz, gw, device, stream);
       }
     }
   });

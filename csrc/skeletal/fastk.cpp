@@ -295,6 +295,7 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
           const float* src_row = acc + o * ldacc + bl * Tq;
           float* dst = y + ((b * Co + o) * g.Eout + j) * g.Tout;
           for (int64_t t2 = 0; t2 < g.Tout; ++t2) dst[t2] = src_row[t2] * f + bb;
+          if (g.act) act_row(dst, g.Tout);
         }
       }
     };
@@ -335,8 +336,9 @@ void forward(const Geo& g, const Csr& csr, const float* x, const float* w, const
       for (int64_t o = 0; o < Co; ++o) {
         const float fs = scale ? scale[(b * Co + o) * g.Eout + f] : 1.f;
         const float bb = bias ? bias[o] : 0.f;
-        up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, y + ((b * Co + o) * g.Eout + f) * g.Tout,
-               g.Tout, h, g.reflect, fs, bb);
+        float* dst = y + ((b * Co + o) * g.Eout + f) * g.Tout;
+        up_row(acc[0] + o * ldacc + bl * Tq, acc[1] + o * ldacc + bl * Tq, dst, g.Tout, h, g.reflect, fs, bb);
+        if (g.act) act_row(dst, g.Tout);
       }
     }
   };

@@ -12,27 +12,44 @@ namespace modi_ext {
 
 enum SkeletalKind : int64_t { kConv = 0, kDown = 1, kUp = 2 };
 
-// y = scale * op(x * style) + bias.  weight: (Cout, nnz, Cin, U) for conv/down, (Cin, nnz, Cout, U) for up.
+// `act`: StyleGAN2's bias activation in the epilogue, y = gain * leaky_relu(scale * op(x * style) + bias), slope 0.2,
+// gain sqrt(2) (the second moment stays 1).  Its backward reads the derivative off y alone (y > 0 exactly where the
+// pre-activation is), so the op saves nothing more; act_pre inverts it for the scale gradient.
+constexpr double kActSlope = 0.2;
+constexpr double kActGain = 1.4142135623730951;
+#if defined(__CUDACC__)
+#define MODI_ACT_HD __host__ __device__ __forceinline__
+#else
+#define MODI_ACT_HD inline
+#endif
+template <typename A>
+MODI_ACT_HD A act_fwd(A v) { return v > A(0) ? v * A(kActGain) : v * A(kActGain * kActSlope); }
+// dL/dpre = act_slope(y) * dL/dy, and pre = y / act_slope(y)
+template <typename A>
+MODI_ACT_HD A act_slope(A y) { return y > A(0) ? A(kActGain) : A(kActGain * kActSlope); }
+
+// y = scale * op(x * style) + bias (then the activation, with act).  weight: (Cout, nnz, Cin, U) for conv/down, (Cin, nnz, Cout, U) for up.
 // (index, offsets): CSR from each row entity (output for conv/down, coarse for up) to its input entities.
 at::Tensor skeletal_conv_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                              const at::Tensor& index, const at::Tensor& offsets,
                              const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                             c10::string_view padding_mode);
+                             c10::string_view padding_mode, bool act);
 at::Tensor skeletal_down_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                              const at::Tensor& index, const at::Tensor& offsets,
                              const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                             c10::string_view padding_mode);
+                             c10::string_view padding_mode, bool act);
 at::Tensor skeletal_up_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                            const at::Tensor& index, const at::Tensor& offsets, int64_t n_out,
                            const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale,
-                           c10::string_view padding_mode);
+                           c10::string_view padding_mode, bool act);
 
-// Gradients (x, weight, bias, style, scale) given grad of the output and the forward output `out`.
+// Gradients (x, weight, bias, style, scale) given grad of the output and the forward output `out` (after the
+// activation, with act).
 // Entries not requested by output_mask (x, weight, style, scale) or whose input is absent come back empty.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_backward_cpu(
     const at::Tensor& grad, const at::Tensor& out, const at::Tensor& x, const at::Tensor& weight,
     const std::optional<at::Tensor>& bias, const at::Tensor& index, const at::Tensor& offsets,
     const std::optional<at::Tensor>& style, const std::optional<at::Tensor>& scale, c10::string_view padding_mode,
-    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask);
+    int64_t kind, int64_t n_out, std::array<bool, 4> output_mask, bool act);
 
 }  // namespace modi_ext

@@ -48,8 +48,8 @@ int main() {
   auto conv = find("modi_ext::skeletal_conv").typed<at::Tensor(const at::Tensor&, const at::Tensor&,
                                                                const std::optional<at::Tensor>&, const at::Tensor&,
                                                                const at::Tensor&, const std::optional<at::Tensor>&,
-                                                               const std::optional<at::Tensor>&, c10::string_view)>();
-  auto y = conv.call(x, w, bias, index, offsets, std::nullopt, std::nullopt, "zeros");
+                                                               const std::optional<at::Tensor>&, c10::string_view, bool)>();
+  auto y = conv.call(x, w, bias, index, offsets, std::nullopt, std::nullopt, "zeros", false);
   // y[1, 2, 1, 4] = sum over neighbors n of entity 1 (pairs 2..4), channels, taps + bias
   double want = bias[2].item<double>();
   for (int64_t p = 2; p < 5; ++p)
@@ -67,8 +67,8 @@ int main() {
   auto down = find("modi_ext::skeletal_down").typed<at::Tensor(const at::Tensor&, const at::Tensor&,
                                                                const std::optional<at::Tensor>&, const at::Tensor&,
                                                                const at::Tensor&, const std::optional<at::Tensor>&,
-                                                               const std::optional<at::Tensor>&, c10::string_view)>();
-  auto yd = down.call(x, wd, std::nullopt, pidx, poff, std::nullopt, std::nullopt, "reflect");
+                                                               const std::optional<at::Tensor>&, c10::string_view, bool)>();
+  auto yd = down.call(x, wd, std::nullopt, pidx, poff, std::nullopt, std::nullopt, "reflect", false);
   report("skeletal_down", yd.sizes() == torch::IntArrayRef({B, Co, 2, T / 2}) && yd.isfinite().all().item<bool>(),
          "shape ok");
 
@@ -76,13 +76,13 @@ int main() {
                                                            const std::optional<at::Tensor>&, const at::Tensor&,
                                                            const at::Tensor&, int64_t,
                                                            const std::optional<at::Tensor>&,
-                                                           const std::optional<at::Tensor>&, c10::string_view)>();
+                                                           const std::optional<at::Tensor>&, c10::string_view, bool)>();
   // adjoint check: <down(x), g> == <x, up_without_blur(g)> is not observable through the blurred op, so check
   // the DC behaviour instead: a constant input through an all-ones 1-tap weight stays constant (blur gain 1 per
   // output frame pair) away from the edges.
   auto ones_w = torch::ones({Co, 3, Ci, 1}, f64);
   auto xc = torch::ones({B, Co, 2, T}, f64);
-  auto yu = up.call(xc, ones_w, std::nullopt, pidx, poff, E, std::nullopt, std::nullopt, "zeros");
+  auto yu = up.call(xc, ones_w, std::nullopt, pidx, poff, E, std::nullopt, std::nullopt, "zeros", false);
   const double mid = yu[0][0][1][T].item<double>();
   report("skeletal_up", yu.sizes() == torch::IntArrayRef({B, Ci, E, 2 * T}) && std::abs(mid - Co * 1.0) < 1e-12,
          "interior value " + std::to_string(mid) + " want " + std::to_string(double(Co)));
@@ -92,9 +92,9 @@ int main() {
                      const at::Tensor&, const at::Tensor&, const at::Tensor&, const at::Tensor&,
                      const std::optional<at::Tensor>&, const at::Tensor&, const at::Tensor&,
                      const std::optional<at::Tensor>&, const std::optional<at::Tensor>&, c10::string_view, int64_t,
-                     int64_t, std::array<bool, 4>)>();
+                     int64_t, std::array<bool, 4>, bool)>();
   auto grads = bwd.call(torch::ones_like(y), y, x, w, bias, index, offsets, std::nullopt, std::nullopt, "zeros", 0,
-                        E, {true, true, false, false});
+                        E, {true, true, false, false}, false);
   const double gb = std::get<2>(grads)[0].item<double>();
   report("skeletal_backward", std::abs(gb - double(B * E * T)) < 1e-9 && std::get<0>(grads).sizes() == x.sizes(),
          "grad_bias[0]=" + std::to_string(gb));

@@ -10,8 +10,8 @@ blur/adjoint flag; FK's are the dtype and where the walk state lives):
 
 * ``narrow`` (cin 3, cout 5, B x T = 16, 5 entities): the 32-row tiles of the row / transposed / weight-gradient
   GEMMs, one weight-gradient split;
-* ``wide`` (cin 34, cout 36, B x T = 260 > 256, 3 entities): the 64-row tiles and the split-K weight gradient
-  (``split_reduce_kernel``);
+* ``wide`` (cin 34, cout 36, B x T = 260 >= 2 x 64, 3 entities): the 64-row tiles and the split-K weight gradient
+  (``split_reduce_kernel``; csrc/skeletal/launch_plan.h);
 * both modulated, demodulated and biased, every gradient asked for: ``style_finish_kernel`` and
   ``scale_grad_kernel``; conv / down and up: the plain and the blur (adjoint) variants;
 * FK, one joint count per launch plan of ``csrc/fk/cuda.cu`` (walk state in shared memory for 128 / 64 / 32 threads,
@@ -31,6 +31,7 @@ from typing import Callable, Mapping
 
 import torch
 
+from modi_ext.act import fused_leaky_relu
 from modi_ext.demod import dense as demod_dense
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk.reference import fk_reference
@@ -61,10 +62,11 @@ class SkeletalCase:
     padding: str = "reflect"
     lists: tuple = ()  # the CSR map: conv neighbours, or down / up coarse -> fine groups
     n_in: int = 5  # entities the map reads (conv: all of them; down / up: the fine ones)
+    act: bool = False  # the bias activation in the epilogue (modi_ext.act)
 
     @property
     def columns(self) -> int:
-        """B x T of the weight-gradient reduction (split-K above 256)."""
+        """B x T of the weight-gradient reduction (split in runs of >= 64 columns: csrc/skeletal/launch_plan.h)."""
         return self.B * (self.T // 2 if self.kind == "down" else self.T)
 
 
@@ -82,7 +84,7 @@ def _cases() -> tuple[SkeletalCase, ...]:
         pad = "zeros" if kind == "down" else "reflect"
         lists, n_in = _lists(kind, small=False)
         out.append(SkeletalCase(f"{kind}.narrow", kind, B=2, cin=3, cout=5, T=16 if kind == "down" else 8,
-                                padding=pad, lists=lists, n_in=n_in))
+                                padding=pad, lists=lists, n_in=n_in, act=True))
         # Few entities, one sample, U = 1: the tile height and the split depend on none of them, and the emulator's
         # cost (the self-check's first use on the CPU) is blocks x threads.
         lists, n_in = _lists(kind, small=True)
@@ -174,21 +176,33 @@ def skeletal_inputs(case: SkeletalCase, dtype: torch.dtype, seed: int = 1234) ->
         a = torch.einsum("bi,oijnu->boj", s.pow(2), dense.pow(2))
     d = torch.rsqrt(a + DEMOD_EPS).to(dtype).double()
     gy = _rnd(g, dtype, case.B, case.cout, n_out, t_out)
-    return dict(x=x, w=w, b=b, s=s, d=d, gy=gy, index=topo.index, offsets=topo.offsets, n_out=n_out)
+    p = dict(x=x, w=w, b=b, s=s, d=d, gy=gy, index=topo.index, offsets=topo.offsets, n_out=n_out)
+    if case.act:  # where the pre-activation is within rounding of 0 either slope is right: no gradient flows there
+        pre = _skeletal_pre(case, p)
+        tol = 64 * torch.finfo(dtype).eps * max(1.0, float(pre.abs().max()))
+        p["gy"] = torch.where(pre.abs() < tol, 0.0, gy)
+    return p
 
 
-def skeletal_oracle(case: SkeletalCase, p: dict) -> tuple[torch.Tensor, tuple]:
-    """``y = d * A_W(x * s) + b`` in float64 (d and s independent inputs, as the kernels take them) and the
-    gradients of ``<gy, y>`` w.r.t. (x, w, b, s, d)."""
-    leaves = [p[k].clone().requires_grad_() for k in ("x", "w", "b", "s", "d")]
-    x, w, b, s, d = leaves
+def _skeletal_pre(case: SkeletalCase, p: dict, leaves: tuple | None = None) -> torch.Tensor:
+    """``d * A_W(x * s) + b`` in float64 (the pre-activation; ``y`` itself without ``act``)."""
+    x, w, b, s, d = leaves if leaves is not None else (p[k] for k in ("x", "w", "b", "s", "d"))
     args = (p["index"], p["offsets"])
     if case.kind == "up":
         z = reference.skeletal_up(x, w, None, *args, p["n_out"], s, False, case.padding)
     else:
         f = reference.skeletal_conv if case.kind == "conv" else reference.skeletal_down
         z = f(x, w, None, *args, s, False, case.padding)
-    y = z * d.unsqueeze(-1) + b.view(1, -1, 1, 1)
+    return z * d.unsqueeze(-1) + b.view(1, -1, 1, 1)
+
+
+def skeletal_oracle(case: SkeletalCase, p: dict) -> tuple[torch.Tensor, tuple]:
+    """``y = d * A_W(x * s) + b`` (then the bias activation, with ``case.act``) in float64 (d and s independent
+    inputs, as the kernels take them) and the gradients of ``<gy, y>`` w.r.t. (x, w, b, s, d)."""
+    leaves = [p[k].clone().requires_grad_() for k in ("x", "w", "b", "s", "d")]
+    y = _skeletal_pre(case, p, tuple(leaves))
+    if case.act:
+        y = fused_leaky_relu(y, None)
     grads = torch.autograd.grad(y, leaves, p["gy"])
     return y.detach(), tuple(gr.detach() for gr in grads)
 
@@ -245,11 +259,11 @@ def _skeletal_call(table: Mapping[str, Callable], case: SkeletalCase, p: dict, d
     x, w, b, s, d, gy = (dev(p[k]) for k in ("x", "w", "b", "s", "d", "gy"))
     idx, off = p["index"].to(device), p["offsets"].to(device)
     if case.kind == "up":
-        y = table["skeletal_up"](x, w, b, idx, off, p["n_out"], s, d, case.padding)
+        y = table["skeletal_up"](x, w, b, idx, off, p["n_out"], s, d, case.padding, case.act)
     else:
-        y = table[f"skeletal_{case.kind}"](x, w, b, idx, off, s, d, case.padding)
+        y = table[f"skeletal_{case.kind}"](x, w, b, idx, off, s, d, case.padding, case.act)
     grads = table["skeletal_backward"](gy, y, x, w, b, idx, off, s, d, case.padding, KIND_ID[case.kind], p["n_out"],
-                                       [True, True, True, True])
+                                       [True, True, True, True], case.act)
     return y, tuple(grads)
 
 

@@ -18,12 +18,13 @@ KIND_CONV, KIND_DOWN, KIND_UP = 0, 1, 2  # the ``kind`` argument of the C++ back
 NAMES = {KIND_CONV: "skeletal_conv", KIND_DOWN: "skeletal_down", KIND_UP: "skeletal_up"}  # the C++ ops
 
 
-def kernel_args(kind: int, x, weight, bias, index, offsets, n_out: int, style, scale, padding_mode: str) -> tuple:
+def kernel_args(kind: int, x, weight, bias, index, offsets, n_out: int, style, scale, padding_mode: str,
+                act: bool = False) -> tuple:
     """The arguments of the C++ op ``NAMES[kind]`` in its schema's order (``csrc/skeletal/schema.cpp``): only the
     up op takes ``n_out`` (conv and down read their output entities off ``offsets``)."""
     if kind == KIND_UP:
-        return x, weight, bias, index, offsets, n_out, style, scale, padding_mode
-    return x, weight, bias, index, offsets, style, scale, padding_mode
+        return x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act
+    return x, weight, bias, index, offsets, style, scale, padding_mode, act
 _FLOATS = (torch.float32, torch.float64)
 _CUDA_FLOATS = _FLOATS + (torch.float16, torch.bfloat16)  # the CUDA kernels accumulate half types in fp32
 _CPU_FLOATS = _FLOATS + (torch.bfloat16,)  # bf16 on the CPU: the bf16 kernels or dense (``dispatch.route``)
@@ -45,8 +46,11 @@ def _is_tracing() -> bool:
         return False
 
 
-def check_args(kind: int, x, weight, bias, index, offsets, n_out: int | None, style, demodulate, padding_mode) -> int:
+def check_args(kind: int, x, weight, bias, index, offsets, n_out: int | None, style, demodulate, padding_mode,
+               act: bool = False) -> int:
     """Validate every argument; returns the number of output entities. Errors name the argument."""
+    if not isinstance(act, bool):
+        raise TypeError(f"act must be a bool, got {type(act).__name__}")
     for name, t in (("x", x), ("weight", weight), ("index", index), ("offsets", offsets)):
         if not isinstance(t, torch.Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")

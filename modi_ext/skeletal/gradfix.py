@@ -23,6 +23,7 @@ import os
 
 import torch
 
+from modi_ext.act import backward_from_output, fused_leaky_relu
 from modi_ext.runtime import eager, kernels
 from modi_ext.runtime.eager import needed
 from modi_ext.runtime.loader import HAS_EXT
@@ -118,16 +119,20 @@ _GradWeightEager = eager.make_function("skeletal_grad_weight_eager", _grad_weigh
 def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Tensor, weight: torch.Tensor,
                    bias: torch.Tensor | None, index: torch.Tensor, offsets: torch.Tensor,
                    style: torch.Tensor | None, scale: torch.Tensor | None, padding_mode: str, n_out: int,
-                   need: dict[str, bool]) -> dict[str, torch.Tensor | None]:
-    """Gradients of ``y = scale * A_W (x * style) + bias`` as a differentiable graph (``create_graph=True``).
+                   need: dict[str, bool], act: bool = False) -> dict[str, torch.Tensor | None]:
+    """Gradients of ``y = scale * A_W (x * style) + bias`` (then, with ``act``, the bias activation) as a
+    differentiable graph (``create_graph=True``).
 
     ``out`` is the saved ``y``: the scale gradient reads ``A_W (x * style) = (y - bias) / scale`` from it instead of
-    recomputing the op (``scale`` is a demodulation factor, ``rsqrt(...) > 0``).  ``MODI_EXT_DOUBLE=ref``: through
-    the dense reference instead.
+    recomputing the op (``scale`` is a demodulation factor, ``rsqrt(...) > 0``); with ``act``, the gradient and
+    ``y`` are first taken back through the activation (``modi_ext.act.backward_from_output``).  ``MODI_EXT_DOUBLE=ref``:
+    through the dense reference instead.
     """
     if os.environ.get("MODI_EXT_DOUBLE", "ext").strip().lower() == "ref":
         return _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode,
-                                         n_out, need)
+                                         n_out, need, act)
+    if act:
+        grad, out = backward_from_output(grad, out, pre=bool(need["scale"] and scale is not None))
     res: dict[str, torch.Tensor | None] = dict.fromkeys(need)
     if need["bias"] and bias is not None:
         res["bias"] = grad.sum((0, 2, 3))
@@ -153,7 +158,8 @@ def graph_backward(kind: int, grad: torch.Tensor, out: torch.Tensor, x: torch.Te
     return res
 
 
-def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode, n_out, need):
+def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style, scale, padding_mode, n_out, need,
+                              act):
     """Gradients as a differentiable graph by re-running the op on the dense reference (slow, exact)."""
     args = dict(x=x, weight=weight, bias=bias, style=style, scale=scale)
     wanted = [k for k, v in need.items() if v and args[k] is not None]
@@ -168,7 +174,9 @@ def _reference_graph_backward(kind, grad, x, weight, bias, index, offsets, style
         y = reference.skeletal_conv(x, weight, None, index, offsets, style, False, padding_mode)
     if scale is not None:
         y = y * scale.unsqueeze(-1)
-    if bias is not None:
+    if act:
+        y = fused_leaky_relu(y, bias)
+    elif bias is not None:
         y = y + bias.view(1, -1, 1, 1)
     grads = torch.autograd.grad(y, [args[k] for k in wanted], grad, create_graph=True, allow_unused=True)
     res.update(zip(wanted, grads))

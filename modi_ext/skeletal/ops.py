@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from modi_ext.act import fused_leaky_relu
 from modi_ext.demod.ops import demod_scale  # noqa: F401  (re-exported: the kernels' demodulation coefficients)
 from modi_ext.runtime import amp, dispatch, kernels
 from modi_ext.skeletal import dense, reference, registration  # noqa: F401  (registration: fakes, autograd on import)
@@ -29,56 +30,60 @@ __all__ = ["skeletal_conv", "skeletal_down", "skeletal_up", "to_dense", "from_de
 
 
 def _call(kind: int, impl: str | None, x, weight, bias, index, offsets, n_out, style, demodulate: bool,
-          padding_mode: str) -> torch.Tensor:
+          padding_mode: str, act: bool) -> torch.Tensor:
     """One call of ``NAMES[kind]``: autocast, checks, path, kernel (see the module docstring)."""
     device = amp.autocast_device(x)
     if device is not None:
         (x, weight, bias, style), out_dtype = amp.cast(device, x, weight, bias, style,
                                                        bf16_kernels=dispatch.cpu_bf16_kernels(impl))
         with torch.autocast(device, enabled=False):
-            y = _call(kind, impl, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+            y = _call(kind, impl, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode, act)
         return y if out_dtype is None else y.to(out_dtype)
-    n_out = check_args(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    n_out = check_args(kind, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode, act)
     path = dispatch.route(NAMES[kind], x, impl=impl, record=True, inputs=(x, weight, style),
-                          options=(n_out, demodulate, bias is not None, padding_mode),
+                          options=(n_out, demodulate, bias is not None, padding_mode, act),
                           rerun=lambda p, x, weight, style: _call(kind, p, x, weight, bias, index, offsets, n_out,
-                                                                  style, demodulate, padding_mode))
+                                                                  style, demodulate, padding_mode, act))
     if path == "ext":
         up = kind == KIND_UP
         scale = demod_scale(weight, index, offsets, style, up, n_out, x.shape[0]) if demodulate else None
         return kernels.launch(NAMES[kind], *kernel_args(kind, x, weight, bias, index, offsets, n_out, style, scale,
-                                                        padding_mode))
+                                                        padding_mode, act))
     form = reference if path == "ref" else dense
+    b = None if act else bias  # with act, the bias goes in before the activation, below
     if kind == KIND_UP:
-        return form.skeletal_up(x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
-    fn = form.skeletal_conv if kind == KIND_CONV else form.skeletal_down
-    return fn(x, weight, bias, index, offsets, style, demodulate, padding_mode)
+        y = form.skeletal_up(x, weight, b, index, offsets, n_out, style, demodulate, padding_mode)
+    else:
+        fn = form.skeletal_conv if kind == KIND_CONV else form.skeletal_down
+        y = fn(x, weight, b, index, offsets, style, demodulate, padding_mode)
+    return fused_leaky_relu(y, bias) if act else y
 
 
 def skeletal_conv(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                   offsets: torch.Tensor, *, style: torch.Tensor | None = None, demodulate: bool = False,
-                  padding_mode: str = "zeros", impl: str | None = None) -> torch.Tensor:
+                  padding_mode: str = "zeros", act: bool = False, impl: str | None = None) -> torch.Tensor:
     """In-place skeletal conv ``(B, Cin, E, T) -> (B, Cout, E, T)``; weight ``(Cout, nnz, Cin, U)``.
 
     ``(index, offsets)`` is the CSR neighbor map (``modi_ext.csr.csr_from_lists``).  Exact semantics in
     ``modi_ext.skeletal.reference``.  ``impl``: 'auto', 'ext', 'dense' or 'ref' forces a path for this call
-    (default: ``MODI_EXT_IMPL``), as every op's.
+    (default: ``MODI_EXT_IMPL``), as every op's.  ``act``: StyleGAN2's bias activation after the bias
+    (``modi_ext.act``), in the kernels' epilogue: ``fused_leaky_relu(skeletal_conv(x, w, None, ...), bias)`` in one op.
     """
-    return _call(KIND_CONV, impl, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
+    return _call(KIND_CONV, impl, x, weight, bias, index, offsets, None, style, demodulate, padding_mode, act)
 
 
 def skeletal_down(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                   offsets: torch.Tensor, *, style: torch.Tensor | None = None, demodulate: bool = False,
-                  padding_mode: str = "zeros", impl: str | None = None) -> torch.Tensor:
+                  padding_mode: str = "zeros", act: bool = False, impl: str | None = None) -> torch.Tensor:
     """Convolutional scaler ``(B, Cin, E_fine, T) -> (B, Cout, E_coarse, T // 2)``; CSR = coarse -> fine map."""
-    return _call(KIND_DOWN, impl, x, weight, bias, index, offsets, None, style, demodulate, padding_mode)
+    return _call(KIND_DOWN, impl, x, weight, bias, index, offsets, None, style, demodulate, padding_mode, act)
 
 
 def skeletal_up(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, index: torch.Tensor,
                 offsets: torch.Tensor, n_out: int, *, style: torch.Tensor | None = None, demodulate: bool = False,
-                padding_mode: str = "zeros", impl: str | None = None) -> torch.Tensor:
+                padding_mode: str = "zeros", act: bool = False, impl: str | None = None) -> torch.Tensor:
     """Coarse -> fine ``(B, Cin, E_coarse, T) -> (B, Cout, n_out, 2T)``: adjoint of down, then [1,3,3,1] blur.
 
     weight ``(Cin, nnz, Cout, U)`` (the layout of the down op it is the adjoint of); CSR = coarse -> fine map.
     """
-    return _call(KIND_UP, impl, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode)
+    return _call(KIND_UP, impl, x, weight, bias, index, offsets, n_out, style, demodulate, padding_mode, act)

@@ -37,46 +37,46 @@ def _autograd_rules(kind: int):
 
     def setup_context(ctx, inputs, output):
         if up:
-            x, weight, bias, index, offsets, n_out, style, scale, padding_mode = inputs
+            x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act = inputs
         else:
-            x, weight, bias, index, offsets, style, scale, padding_mode = inputs
+            x, weight, bias, index, offsets, style, scale, padding_mode, act = inputs
             n_out = offsets.shape[0] - 1
         ctx.save_for_backward(x, weight, bias, index, offsets, style, scale, output)
-        ctx.meta = (padding_mode, n_out)
+        ctx.meta = (padding_mode, n_out, act)
 
     def backward(ctx, grad):
         x, weight, bias, index, offsets, style, scale, out = ctx.saved_tensors
-        padding_mode, n_out = ctx.meta
+        padding_mode, n_out, act = ctx.meta
         want = lambda i: needed(ctx, i)  # noqa: E731  (not just requires_grad: what the engine will use)
         s = 6 if up else 5  # the style's position; the scale's is next
         need = dict(x=want(0), weight=want(1), bias=want(2), style=want(s), scale=want(s + 1))
         if torch.is_grad_enabled():  # create_graph: a differentiable backward made of the kernels themselves
             res = graph_backward(kind, grad, out, x, weight, bias, index, offsets, style, scale, padding_mode,
-                                 n_out, need)
+                                 n_out, need, act)
             gx, gw, gb, gs, gd = res["x"], res["weight"], res["bias"], res["style"], res["scale"]
         else:
             mask = [bool(need["x"]), bool(need["weight"]), bool(need["style"]), bool(need["scale"])]
             gx, gw, gb, gs, gd = torch.ops.modi_ext.skeletal_backward(
                 grad.contiguous(), out, x, weight, bias, index, offsets, style, scale, padding_mode, kind,
-                n_out, mask)
+                n_out, mask, act)
             gx = gx if need["x"] else None
             gw = gw if need["weight"] else None
             gb = gb if (need["bias"] and bias is not None) else None
             gs = gs if (need["style"] and style is not None) else None
             gd = gd if (need["scale"] and scale is not None) else None
         if up:
-            return gx, gw, gb, None, None, None, gs, gd, None
-        return gx, gw, gb, None, None, gs, gd, None
+            return gx, gw, gb, None, None, None, gs, gd, None, None
+        return gx, gw, gb, None, None, gs, gd, None, None
 
     return setup_context, backward
 
 
 def _make_fake(kind: int):
     if kind == KIND_UP:
-        def fake(x, weight, bias, index, offsets, n_out, style, scale, padding_mode):
+        def fake(x, weight, bias, index, offsets, n_out, style, scale, padding_mode, act=False):
             return x.new_empty(_out_shape(kind, x, weight, offsets, n_out))
     else:
-        def fake(x, weight, bias, index, offsets, style, scale, padding_mode):
+        def fake(x, weight, bias, index, offsets, style, scale, padding_mode, act=False):
             return x.new_empty(_out_shape(kind, x, weight, offsets, None))
     return fake
 
@@ -87,7 +87,8 @@ def _register() -> None:
         lib.register_fake(f"modi_ext::{NAMES[kind]}")(_make_fake(kind))
 
     @lib.register_fake("modi_ext::skeletal_backward")
-    def _bwd_fake(grad, out, x, weight, bias, index, offsets, style, scale, padding_mode, kind, n_out, output_mask):
+    def _bwd_fake(grad, out, x, weight, bias, index, offsets, style, scale, padding_mode, kind, n_out, output_mask,
+                  act=False):
         gx = torch.empty_like(x) if output_mask[0] else x.new_empty(0)
         gw = torch.empty_like(weight) if output_mask[1] else x.new_empty(0)
         gb = x.new_empty(bias.shape) if bias is not None else x.new_empty(0)

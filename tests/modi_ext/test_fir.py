@@ -31,3 +31,12 @@ def test_fast_forms_are_the_filter(t, dtype):
 def test_the_reference_blur_reads_the_same_taps():
     x = torch.randn(3, 2, 9, dtype=torch.float64)
     torch.testing.assert_close(blur(x), _conv(x, (2, 1), UP_GAIN), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("t", [2, 5, 16])
+@pytest.mark.parametrize("fn", [blur_time, downsample_time, upsample_time], ids=lambda f: f.__name__)
+def test_gradients_of_any_order(fn, t):
+    """Each backward is the adjoint filter pass (itself differentiable): gradcheck and gradgradcheck in float64."""
+    x = torch.randn(2, 3, 2, t, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(fn, (x,), eps=1e-6, atol=1e-8)
+    assert torch.autograd.gradgradcheck(fn, (x,), eps=1e-6, atol=1e-8)

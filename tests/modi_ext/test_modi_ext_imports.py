@@ -8,8 +8,8 @@ edge is in the graph too; the root ``modi_ext/__init__.py`` is the composition r
 The layers, lowest first; a module imports only from its own layer or below (``LAYERS``):
 
 0. ``runtime.omp_wait``: the standard library only (it must run before torch is imported);
-1. the light package ``__init__``s (``runtime``, ``demod``), ``csr`` (neighbor lists -> CSR maps) and ``fir`` (the
-   time filter's taps and its fast forms);
+1. the light package ``__init__``s (``runtime``, ``demod``), ``csr`` (neighbor lists -> CSR maps), ``fir`` (the
+   time filter's taps and its fast forms) and ``act`` (the bias activation);
 2. the references, the oracles: ``fk.reference`` (the one Python FK), ``demod.reference``, ``skeletal.reference``;
 3. the dense forms: ``demod.dense``, ``skeletal.dense``, ``fk.dense``;
 4. the runtime that finds a call's path: ``runtime.loader``, ``eager``, ``kernels``, ``amp``, ``dispatch``;
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[2]
 NAME = "modi_ext"
 LAYERS: list[set[str]] = [
     {"runtime.omp_wait"},
-    {"runtime", "demod", "csr", "fir"},
+    {"runtime", "demod", "csr", "fir", "act"},
     {"fk.reference", "demod.reference", "skeletal.reference"},
     {"demod.dense", "skeletal.dense", "fk.dense"},
     {"runtime.loader", "runtime.eager", "runtime.kernels", "runtime.amp", "runtime.dispatch"},

@@ -137,6 +137,25 @@ def down_layer(cfg: ModelConfig, cin: int, cout: int, fine: LevelSpec, coarse: L
                                                             bias=False))
 
 
+FUSABLE = (ext.SkeletalConv, ext.SkeletalDownsample, ext.SkeletalUpsample)
+
+
+def act_slot(conv: nn.Module) -> int | None:
+    """Where the bias + leaky ReLU after a discriminator layer of the factories above can run in a skeletal op's
+    epilogue (``act=``): ``-1`` for the layer itself, the index of that op in an ``nn.Sequential`` that has only
+    crops after it (a crop commutes with an elementwise activation), or None (a dense ablation, or pooling between
+    the conv and the activation)."""
+    if isinstance(conv, FUSABLE):
+        return -1 if conv.bias is None else None
+    if isinstance(conv, nn.Sequential):
+        for i in range(len(conv) - 1, -1, -1):
+            if isinstance(conv[i], FUSABLE):
+                return i if conv[i].bias is None else None
+            if not isinstance(conv[i], CropStart):
+                return None
+    return None
+
+
 class Blur(nn.Module):
     def __init__(self, pad_start: int = 0):
         super().__init__()

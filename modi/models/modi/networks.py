@@ -16,12 +16,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from modi.models.modi.ablations import conv_layer, down_layer, modconv_layer
+from modi.models.modi.ablations import act_slot, conv_layer, down_layer, modconv_layer
 from modi.models.modi.config import ModelConfig
 from modi.models.modi.fastpaths import std_entities_frames, std_normalised_leaky_relu_
 from modi.models.modi.levels import LevelSpec, unpool_matrix
 from modi_ext.fir import upsample_time as fir_upsample_time
-from modi_ext.layers import EqualLinear, FusedLeakyReLU
+from modi_ext.layers import EqualLinear, FusedLeakyReLU, ModulatedSkeletalConv
 
 SQRT2 = math.sqrt(2.0)
 
@@ -61,7 +61,8 @@ class StyledConv(nn.Module):
     """Modulated conv -> [noise injection] -> fused bias + leaky ReLU.
 
     The released MoDi has no noise injection (modulated conv + bias + leaky ReLU); StyleGAN2's per-(entity, frame)
-    noise is the ``use_noise`` option."""
+    noise is the ``use_noise`` option.  With nothing between the skeletal conv and its activation (no noise, no
+    activation demodulation), the activation runs in the op's epilogue (``fuse_act``)."""
 
     def __init__(self, conv: nn.Module, out_ch: int, n_entities: int, n_frames: int, use_noise: bool,
                  demodulate_activations: bool = False, stylegan2_up: bool = False):
@@ -72,8 +73,13 @@ class StyledConv(nn.Module):
         self.noise = NoiseInjection() if use_noise else None
         self.act = FusedLeakyReLU(out_ch)
         self.noise_shape = (n_entities, n_frames)
+        self.fuse_act = isinstance(conv, ModulatedSkeletalConv) and not use_noise and not demodulate_activations
 
     def forward(self, x: torch.Tensor, w: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        if self.fuse_act:  # the crop of the StyleGAN2 upsampler commutes with the activation
+            if self.stylegan2_up:
+                return self.conv(F.pad(x, (1, 0)), w, act=self.act)[..., 2:].contiguous()
+            return self.conv(x, w, act=self.act)
         x = self.conv(F.pad(x, (1, 0)), w)[..., 2:] if self.stylegan2_up else self.conv(x, w)
         if self.demodulate_activations and self.noise is None and self.act.bias is not None \
                 and not torch.is_grad_enabled():  # sampling: the same values without the autograd form's tensors
@@ -277,13 +283,23 @@ class Generator(nn.Module):
 
 # --------------------------------------------------------------------------------------------- discriminator
 class ConvAct(nn.Module):
+    """A bias-free conv, then bias + leaky ReLU: in the skeletal op's epilogue where ``ablations.act_slot`` finds
+    one."""
+
     def __init__(self, conv: nn.Module, out_ch: int):
         super().__init__()
         self.conv = conv
         self.act = FusedLeakyReLU(out_ch)
+        self.slot = act_slot(conv)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.act(self.conv(x))
+        if self.slot is None:
+            return self.act(self.conv(x))
+        if self.slot < 0:
+            return self.conv(x, act=self.act)
+        for i, m in enumerate(self.conv):
+            x = m(x, act=self.act) if i == self.slot else m(x)
+        return x.contiguous()  # after a crop: the next op takes contiguous input
 
 
 class ResBlock(nn.Module):

@@ -31,6 +31,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from modi_ext.act import fused_leaky_relu
 from modi_ext.demod.reference import DEMOD_EPS
 from modi_ext.fk import fk_reference
 from modi_ext.skeletal import reference
@@ -136,8 +137,9 @@ class Problem:
     """Random inputs of one skeletal op in float64, already rounded to `dtype`."""
 
     def __init__(self, kind, mod="none", padding="zeros", U=3, bias=True, dtype=torch.float32, seed=0, B=2,
-                 cin=3, cout=5, T=None, n=None, unread=False, single=False):
+                 cin=3, cout=5, T=None, n=None, unread=False, single=False, act=False):
         rng = random.Random(seed)
+        self.act = act
         g = torch.Generator().manual_seed(seed)
         self.kind, self.padding, self.dtype, self.U = kind, padding, dtype, U
         h = U // 2
@@ -170,6 +172,9 @@ class Problem:
         self.demod = "demod" in mod
         self.d = self.demod_coefficients().to(dtype).double() if self.demod else None
         self.gy = rnd(B, cout, self.n_out, self.t_out)
+        if act:  # within rounding of a kink either slope is right: no gradient flows there
+            pre = self.pre(self.x, self.w, self.b, self.s, self.d)
+            self.gy = torch.where(pre.abs() < 64 * torch.finfo(dtype).eps * pre.abs().max(), 0.0, self.gy)
 
     def demod_coefficients(self) -> torch.Tensor:
         """d[b, o, j] from the masked dense weight, independently of modi_ext.skeletal.ops (the reference's formula)."""
@@ -185,6 +190,11 @@ class Problem:
         return torch.rsqrt(a + DEMOD_EPS)
 
     def ref(self, x, w, b, s, d):
+        """y = d * A_W(x * s) + b (then the bias activation, with act), float64."""
+        y = self.pre(x, w, b, s, d)
+        return fused_leaky_relu(y, None) if self.act else y
+
+    def pre(self, x, w, b, s, d):
         """y = d * A_W(x * s) + b, float64 (d and s independent inputs, as the kernels take them)."""
         args = (self.index, self.offsets)
         if self.kind == "up":
@@ -204,16 +214,16 @@ class Problem:
         a = [self.cast(t) for t in (self.x, self.w, self.b)]
         st, d = self.cast(self.s), self.cast(self.d)
         if self.kind == "up":
-            return o.skeletal_up(*a, self.index, self.offsets, self.n_out, st, d, self.padding)
+            return o.skeletal_up(*a, self.index, self.offsets, self.n_out, st, d, self.padding, self.act)
         f = o.skeletal_conv if self.kind == "conv" else o.skeletal_down
-        return f(*a, self.index, self.offsets, st, d, self.padding)
+        return f(*a, self.index, self.offsets, st, d, self.padding, self.act)
 
     def backward(self, out, mask=(True, True, True, True), x=None, w=None, lib="modi_ext_emu"):
         x = self.cast(self.x) if x is None else x
         w = self.cast(self.w) if w is None else w
         return ops(lib).skeletal_backward(self.cast(self.gy), out, x, w, self.cast(self.b), self.index,
                                           self.offsets, self.cast(self.s), self.cast(self.d), self.padding,
-                                          KIND_ID[self.kind], self.n_out, list(mask))
+                                          KIND_ID[self.kind], self.n_out, list(mask), self.act)
 
 
 def close(got, want, dtype, what):
@@ -230,7 +240,7 @@ def check_problem(p: Problem, backward=True, lib="modi_ext_emu"):
     y = schedules(lambda: (p.forward(lib),))[0]
     want = p.ref(p.x, p.w, p.b, p.s, p.d)
     close(y, want, p.dtype, f"{p.kind} forward")
-    if p.demod and p.dtype == torch.float64:  # the test's coefficients are the reference's own demodulation
+    if p.demod and p.dtype == torch.float64 and not p.act:  # the coefficients are the reference's own demodulation
         if p.kind == "up":
             full = reference.skeletal_up(p.x, p.w, p.b, p.index, p.offsets, p.n_out, p.s, True, p.padding)
         else:
@@ -273,6 +283,16 @@ def test_dtypes(kind, dtype):
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=str)
+@pytest.mark.parametrize("mod", MODS)
+@pytest.mark.parametrize("kind", KINDS)
+def test_bias_activation_epilogue(kind, mod, dtype):
+    """act: the bias activation in the GEMM epilogue and its backward prologue (every gradient, the scale's from the
+    pre-activation recovered off y), against the float64 reference followed by modi_ext.act."""
+    seed = zlib.crc32(f"act/{kind}/{mod}/{dtype}".encode()) % 10_000
+    check_problem(Problem(kind, mod, "zeros", 3, True, dtype, seed=seed, unread=kind != "conv", act=True))
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=str)
 @pytest.mark.parametrize("kind", KINDS)
 def test_multi_tile_split_k(kind, dtype):
     """64-row tiles, several output-channel / column / reduction tiles, B*T > 256 (split-K weight gradient)."""
@@ -283,8 +303,8 @@ def test_multi_tile_split_k(kind, dtype):
 
 @pytest.mark.parametrize("sms", (1, 1000))
 def test_split_k_by_multiprocessor_count(sms):
-    """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 8 splits with a ragged
-    last one (B*T = 1800, chunks of 240) with 1000 SMs."""
+    """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 27 splits with a ragged
+    last one (B*T = 1800, chunks of 68) with 1000 SMs (csrc/skeletal/launch_plan.h)."""
     p = Problem("conv", "style", "zeros", U=3, bias=False, seed=9, B=2, cin=4, cout=6, T=900, n=3)
     EMU.set_sm_count(sms)
     try:
@@ -493,6 +513,20 @@ def test_demod_planted_faults_are_caught(defect):
     assert not res["ok"] and "demod_scale" in res["errors"], res["errors"]
 
 
+def test_bias_activation_planted_fault_is_caught():
+    """wrong_slope: the activation's backward prologue scales the negative side's slope by 1 + 2^-9 -- finite, so only
+    the float64 comparison sees it, in the suite's check and in the self-check (its act=True cases)."""
+    from modi_ext.runtime import selfcheck
+
+    p = Problem("conv", "style_demod", "zeros", 3, True, torch.float32, seed=17, act=True)
+    check_problem(p)
+    with injected("wrong_slope"):
+        with pytest.raises(AssertionError, match="grad"):
+            check_problem(p)
+        res = selfcheck.run("cpu", torch.float32, lib="modi_ext_emu")
+    assert not res["ok"] and "skeletal_conv" in res["errors"], res["errors"]
+
+
 def payload_table():
     from modi_ext.runtime import kernels
 
@@ -602,13 +636,14 @@ EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c1
 
 
 def _expected_instantiations(dtypes=DTYPES) -> set[str]:
-    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 23 per dtype plus the topology kernel."""
+    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 24 per dtype plus the topology kernel."""
     want = {"topology_kernel"}
     for t in (EMU_TYPES[d] for d in dtypes):
         for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
                                              ("false", "true")):
             want.add(f"{k}<{t}, {bm}, {flag}>")
-        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "fk_offsets_reduce_kernel",
+        for k in ("split_reduce_kernel", "style_finish_kernel", "scale_grad_kernel", "act_backward_kernel",
+                  "fk_offsets_reduce_kernel",
                   "demod_forward_kernel", "demod_style_grad_kernel", "demod_weight_grad_kernel"):
             want.add(f"{k}<{t}>")
         for k, flag in itertools.product(("fk_forward_kernel", "fk_backward_kernel"), ("false", "true")):
@@ -629,10 +664,10 @@ def _launched_since(before: dict) -> set[str]:
 
 def test_the_emulator_registers_every_instantiation():
     """Each instantiation some host code can launch registers itself at load time (cuda_emu.h KernelRegistration):
-    the registry is exactly the list written out here (93 today) -- the yardstick of the payload test below."""
+    the registry is exactly the list written out here (97 today) -- the yardstick of the payload test below."""
     registered = _cuda_instantiations(EMU.registered_kernels())
     assert registered == _expected_instantiations(), (sorted(registered ^ _expected_instantiations()))
-    assert len(registered) == 1 + 23 * len(DTYPES)
+    assert len(registered) == 1 + 24 * len(DTYPES)
     assert {"divergent_barrier_kernel", "race_kernel"} <= set(EMU.registered_kernels())  # self-test kernels too
 
 
@@ -647,13 +682,13 @@ def test_the_shared_payload_launches_every_instantiation():
     launched = _launched_since(before)
     registered = _cuda_instantiations(EMU.registered_kernels())
     assert launched == registered, f"never launched by the payload: {sorted(registered - launched)}"
-    assert len(launched) == 93
+    assert len(launched) == 97
 
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=str)
 def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
     """The first-use self-check (modi_ext.runtime.selfcheck, the payload against the float64 oracle) on the emulated
-    kernels: it passes, and it launched all 23 instantiations of its dtype and the topology kernel -- the 64-row
+    kernels: it passes, and it launched all 24 instantiations of its dtype and the topology kernel -- the 64-row
     tiles, split-K, FK offsets gradients on every plan and the demodulation coefficients that training runs
     included.  Its first-use time on this
     CPU is printed (-s), not asserted (the machine may be shared)."""

@@ -456,3 +456,53 @@ def test_inv_std_entities_frames_is_one_over_torch_std(shape, dtype):
     want = x.double().std((2, 3), keepdim=True).reciprocal()
     tol = 1e-5 if dtype == torch.float32 else 1e-12
     torch.testing.assert_close(inv_std_entities_frames(x).double(), want, rtol=tol, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize("variant", ["default", "stylegan2-padding", "pool", "noise"])
+def test_fused_activation_equals_the_unfused_layers(variant):
+    """Where the bias + leaky ReLU runs in the skeletal op's epilogue (StyledConv.fuse_act, ConvAct.slot), the
+    generator and discriminator give what the separate activation modules give, values and every gradient
+    (float64); where something sits between conv and activation (pooling, noise), nothing is fused."""
+    from modi.models.modi.networks import ConvAct
+
+    _, h = hierarchy_of(humanoid, None)
+    kw = {"stylegan2-padding": dict(time_padding="stylegan2"), "pool": dict(scaler="pool"),
+          "noise": dict(noise_injection=True)}.get(variant, {})
+    cfg = tiny(h.n_levels, **kw)
+    levels = build_levels(h, cfg, 16)
+    torch.manual_seed(0)
+    g, d = Generator(cfg, levels, K).double(), Discriminator(cfg, levels, K).double()
+    with torch.no_grad():
+        for m in list(g.modules()) + list(d.modules()):
+            if isinstance(m, (StyledConv, ConvAct)):
+                m.act.bias.normal_()  # zero-initialised: make the bias matter
+    styled = [m for m in g.modules() if isinstance(m, StyledConv)]
+    convacts = [m for m in d.modules() if isinstance(m, ConvAct)]
+    fused = sum(m.fuse_act for m in styled) + sum(m.slot is not None for m in convacts)
+    if variant == "noise":
+        assert not any(m.fuse_act for m in styled)
+    elif variant == "pool":  # the unpooling up-convs and the pooling down-convs are not fused, the rest are
+        assert not all(m.fuse_act for m in styled) and any(m.fuse_act for m in styled)
+        assert any(m.slot is None for m in convacts)
+    else:
+        assert all(m.fuse_act for m in styled) and all(m.slot is not None for m in convacts)
+    assert fused > 0
+
+    def run():
+        torch.manual_seed(1)
+        z = torch.randn(2, cfg.latent_dim, dtype=torch.float64)
+        x = g(z, noise_mode="const")
+        out = d(x)
+        params = list(g.parameters()) + list(d.parameters())
+        grads = torch.autograd.grad(out.square().sum(), params, allow_unused=True)
+        return [x, out] + [gr for gr in grads if gr is not None]
+
+    got = run()
+    for m in styled:
+        m.fuse_act = False
+    for m in convacts:
+        m.slot = None
+    want = run()
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
