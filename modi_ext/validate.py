@@ -69,7 +69,7 @@ MEASURE_BUDGET_S = 330.0  # a 6-minute device call: the budget plus start-up, wi
 MEASURE_STAGES = ("build", "cuda_tests", "modi_step", "peer_modi_step", "sampling", "ganimator", "profile")
 MEASURE_TIMED = ("modi_step", "peer_modi_step", "ganimator")  # again with TF32 off on both sides, time allowing
 # seconds per stage on one H100/H200; each gets min(this, what is left of --budget)
-MEASURE_TIMEOUTS = {"build": 170, "cuda_tests": 75, "modi_step": 50, "peer_modi_step": 60, "sampling": 20,
+MEASURE_TIMEOUTS = {"build": 170, "cuda_tests": 75, "modi_step": 80, "peer_modi_step": 60, "sampling": 20,
                     "ganimator": 50, "profile": 30}
 MEASURE_TIMEOUTS_TF32OFF = {"modi_step": 30, "peer_modi_step": 40, "ganimator": 35}
 
