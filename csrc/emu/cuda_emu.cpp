@@ -338,6 +338,7 @@ void syncthreads(int line) {
 }
 
 unsigned warp_exchange(unsigned mask, const void* v, size_t n, void* all, int line) {
+  if (n > 8) fail("warp exchange of more than 8 bytes per lane at line " + std::to_string(line));
   Block& b = block();
   Fiber& f = b.f[b.cur];
   const int lane = f.ctx.linear & 31;
@@ -389,8 +390,10 @@ void* shared_storage(const char* name, int line, size_t bytes, void (*fill)(void
   const size_t k = b.shared.size();
   auto& pool = g_arena->shared;
   if (pool.size() <= k) pool.emplace_back(0, nullptr);
-  if (pool[k].first < bytes) pool[k] = {bytes, std::make_unique<unsigned char[]>(bytes)};
-  void* p = pool[k].second.get();
+  // 128-byte aligned, as __align__ asks of a GPU's shared arrays (WMMA pointers must be 256-bit aligned)
+  if (pool[k].first < bytes) pool[k] = {bytes, std::make_unique<unsigned char[]>(bytes + 127)};
+  const auto raw = reinterpret_cast<uintptr_t>(pool[k].second.get());
+  void* p = reinterpret_cast<void*>((raw + 127) & ~uintptr_t(127));
   fill(p, bytes);
   b.static_bytes += bytes;
   if (b.static_bytes + b.dyn_bytes > kSmemLimit) {

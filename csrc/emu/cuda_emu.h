@@ -23,8 +23,10 @@
 // GEMM is shifted by one), global_oob (split_reduce_kernel reads one split past the end of its global workspace),
 // wrong_scale (style_finish_kernel scales the style gradient by 1 + 2^-9: finite, only a tolerance can see it),
 // split_edge (every split but the first starts one step late: the weight gradient drops one batch x time column, the
-// row / transposed GEMMs one 16-deep k stage, at each inner split boundary; finite) or wrong_slope
-// (act_backward_kernel's negative-side slope is 2^-9 off: finite).
+// row / transposed GEMMs one 16-deep k stage, at each inner split boundary; finite), wrong_slope
+// (act_backward_kernel's negative-side slope is 2^-9 off: finite), mma_fragment_offset (the tensor-core forward's two
+// B fragments per warp are read at each other's column offset: finite, outputs in the wrong columns) or mma_tile_edge
+// (its gathered operand's k edge is one short: the last reduction row of each entity is dropped; finite).
 #include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
 
 #include <c10/core/Device.h>

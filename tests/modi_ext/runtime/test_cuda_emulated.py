@@ -626,7 +626,7 @@ def test_cuda_compile_check_uses_the_flags_of_setup_py():
 # ------------------------------------------------------------------------------------------------ coverage
 def _global_kernels() -> set[str]:
     names = set()
-    for src in (REPO / "csrc").glob("*/*.cu"):
+    for src in [*(REPO / "csrc").glob("*/*.cu"), *(REPO / "csrc").glob("*/*.cuh")]:
         names.update(re.findall(r"__global__\s+void\s+(?:__launch_bounds__\([^)]*\)\s+)?(\w+)", src.read_text()))
     return names
 
@@ -635,8 +635,15 @@ EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c1
              torch.bfloat16: "c10::BFloat16"}
 
 
+# Opt-in kernels (off unless a switch turns them on, so neither the payload nor the self-check launches them) and
+# their instantiations: the tensor-core forward, MODI_EXT_CUDA_MMA=1 (test_cuda_emulated_mma.py runs it).
+OPT_IN_KERNELS = {"mma_row_gemm_kernel"}
+OPT_IN = {"mma_row_gemm_kernel<c10::BFloat16>"}
+
+
 def _expected_instantiations(dtypes=DTYPES) -> set[str]:
-    """The kernel instantiations csrc/<op>/cuda.cu can launch, written out: 24 per dtype plus the topology kernel."""
+    """The kernel instantiations of the default paths of csrc/<op>/cuda.cu, written out: 24 per dtype plus the
+    topology kernel (OPT_IN aside)."""
     want = {"topology_kernel"}
     for t in (EMU_TYPES[d] for d in dtypes):
         for k, bm, flag in itertools.product(("row_gemm_kernel", "tr_gemm_kernel", "wgrad_kernel"), (32, 64),
@@ -664,23 +671,26 @@ def _launched_since(before: dict) -> set[str]:
 
 def test_the_emulator_registers_every_instantiation():
     """Each instantiation some host code can launch registers itself at load time (cuda_emu.h KernelRegistration):
-    the registry is exactly the list written out here (97 today) -- the yardstick of the payload test below."""
+    the registry is exactly the list written out here (97 default-path ones and the opt-in tensor-core forward,
+    98 today) -- the yardstick of the payload test below."""
     registered = _cuda_instantiations(EMU.registered_kernels())
-    assert registered == _expected_instantiations(), (sorted(registered ^ _expected_instantiations()))
-    assert len(registered) == 1 + 24 * len(DTYPES)
+    want = _expected_instantiations() | OPT_IN
+    assert registered == want, sorted(registered ^ want)
+    assert len(registered) == 1 + 24 * len(DTYPES) + len(OPT_IN)
     assert {"divergent_barrier_kernel", "race_kernel"} <= set(EMU.registered_kernels())  # self-test kernels too
 
 
 def test_the_shared_payload_launches_every_instantiation():
     """modi_ext.runtime.payload (what validate's sanitizer steps, the GPU tests and the self-check run) launches every
-    kernel instantiation the emulator registered, in fp32/fp64/fp16/bf16, and matches the float64 oracle."""
+    kernel instantiation the emulator registered but the opt-in ones (OPT_IN: their switches are off), in
+    fp32/fp64/fp16/bf16, and matches the float64 oracle."""
     from modi_ext.runtime import kernels, payload
 
     before = EMU.launch_counts()
     res = payload.run(kernels.kernel_table("modi_ext_emu"), "cpu", payload.DTYPES)
     assert not res["errors"], res["errors"]
     launched = _launched_since(before)
-    registered = _cuda_instantiations(EMU.registered_kernels())
+    registered = _cuda_instantiations(EMU.registered_kernels()) - OPT_IN
     assert launched == registered, f"never launched by the payload: {sorted(registered - launched)}"
     assert len(launched) == 97
 
@@ -705,13 +715,15 @@ def test_selfcheck_launches_every_instantiation_of_its_dtype(dtype):
 
 
 def test_every_kernel_instantiation_ran(request):
-    """Runs last: every __global__ kernel of csrc/*/cuda.cu, in every dtype and tile/blur variant, was run above."""
+    """Runs last: every __global__ kernel of csrc/*/cuda.cu but the opt-in ones, in every dtype and tile/blur
+    variant, was run above."""
     defined = {n for n in dir(request.module) if n.startswith("test_")}
     selected = {i.originalname for i in request.session.items if i.module is request.module}
     if not defined <= selected:
         pytest.skip("the launch counts are accumulated over the whole module; run all of it for this check")
     counts = EMU.launch_counts()
     ran = {re.match(r"\w+", k).group(0) for k in counts}
-    assert _global_kernels() <= ran, f"kernels never executed: {sorted(_global_kernels() - ran)}"
+    default = _global_kernels() - OPT_IN_KERNELS  # the opt-in ones: test_cuda_emulated_mma.py
+    assert default <= ran, f"kernels never executed: {sorted(default - ran)}"
     missing = sorted(_expected_instantiations() - set(counts))
     assert not missing, f"kernel instantiations never executed: {missing}"

@@ -97,6 +97,16 @@ RUNNER = textwrap.dedent("""
             ran.append(case.name + "." + str(dt))
             if fwd > payload.TOL[dt] or bwd > payload.GRAD_FACTOR * payload.TOL[dt]:
                 errors[ran[-1]] = [fwd, bwd]
+    if "bfloat16" in dtypes and not only:  # the opt-in tensor-core forward (bf16 conv / down) under its switch
+        import os
+        os.environ["MODI_EXT_CUDA_MMA"] = "1"
+        bf = torch.bfloat16
+        for case in payload.cases(bf, ("skeletal",)):
+            fwd, bwd = payload.run_case(table, case, "cpu", bf)
+            ran.append(case.name + ".mma")
+            if fwd > payload.TOL[bf] or bwd > payload.GRAD_FACTOR * payload.TOL[bf]:
+                errors[ran[-1]] = [fwd, bwd]
+        del os.environ["MODI_EXT_CUDA_MMA"]
     print("RESULT " + json.dumps(dict(ran=ran, errors=errors, launched=sorted(emu.launch_counts()),
                                       registered=emu.registered_kernels())))
 """).format(name=NAME)
@@ -132,16 +142,18 @@ def _result(r: subprocess.CompletedProcess) -> dict:
 
 
 def test_payload_under_address_sanitizer_is_clean_and_complete(asan_module):
-    """Every kernel instantiation (the whole payload, four dtypes) runs under AddressSanitizer without one global
-    out-of-bounds access, and matches the float64 oracle."""
+    """Every kernel instantiation (the whole payload, four dtypes, then its bf16 skeletal cases again with the opt-in
+    tensor-core forward) runs under AddressSanitizer without one global out-of-bounds access, and matches the
+    float64 oracle."""
     r, seconds = _run(asan_module)
     res = _result(r)
     print(f"\npayload under AddressSanitizer: {seconds:.1f} s, {len(res['ran'])} cases")
     assert not res["errors"], res["errors"]
     assert "ERROR: AddressSanitizer" not in r.stderr, r.stderr[-6000:]
-    # this build has the csrc/<op>/cuda.cu kernels only (no emu_selftest.cpp): launched must be all it registered
+    # this build has the csrc/<op>/cuda.cu kernels only (no emu_selftest.cpp): launched must be all it registered,
+    # the 97 of the default paths and the opt-in tensor-core forward (its bf16 pass above)
     assert set(res["launched"]) == set(res["registered"]), sorted(set(res["registered"]) - set(res["launched"]))
-    assert len(res["launched"]) == 97
+    assert len(res["launched"]) == 98
 
 
 def test_injected_global_out_of_bounds_read_is_caught(asan_module):
