@@ -14,7 +14,7 @@
 //   weight-gradient GEMM (`wgrad`)  gW[m, row pairs] = sum_(b,t) L[m, (b,t)] G[k, (b,t)], one block per k tile
 //       of a row, with the reduction over batch x time split across blocks into fp32 partials (no atomics).
 // The three share one main loop (gemm_main_loop); the row and transposed GEMMs also one block body (gemm_block).
-// The bf16 conv / down forward can instead run the row GEMM on the tensor cores: skeletal/mma_forward.cuh (opt-in,
+// The bf16 forwards can instead run their GEMM on the tensor cores: skeletal/mma_forward.cuh (opt-in,
 // MODI_EXT_CUDA_MMA=1).
 //
 // Tiles: one block per (column tile of batch x time, output-channel tile, entity [x k split]); 64 x 64 (or 32 x 64
@@ -508,7 +508,7 @@ __global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const GemmArgs<T>
   gemm_block<T, BM, true, kBlur>(a);
 }
 
-// The opt-in tensor-core form of the row GEMM (conv / down forward, bf16): mma_row_gemm_kernel, launch_mma_forward.
+// The opt-in tensor-core form of the forward GEMMs (bf16): mma_gemm_kernel, launch_mma_forward.
 #include "skeletal/mma_forward.cuh"
 
 // ------------------------------------------------------------------------------------------------ weight gradient
@@ -827,7 +827,7 @@ GemmArgs<T> gemm_args(const Geo& g, const Gathered<T>& in, int64_t M, const T* w
 }
 
 // ------------------------------------------------------------------------------------------------ forward
-// MODI_EXT_CUDA_MMA=1: bf16 conv / down forwards run on the tensor cores (skeletal/mma_forward.cuh).  Read per call,
+// MODI_EXT_CUDA_MMA=1: bf16 forwards run on the tensor cores (skeletal/mma_forward.cuh).  Read per call,
 // so a test or benchmark can switch it; off by default: no GPU has timed it against the SIMT kernels yet.
 bool mma_forward_requested() {
   const char* v = std::getenv("MODI_EXT_CUDA_MMA");
@@ -862,8 +862,12 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, src, sty, g.Tout), g.Cout,
                                        weight.data_ptr<T>(), topo, epi);
     if constexpr (std::is_same_v<T, at::BFloat16>) {
-      if (!up && mma_forward_requested()) {
-        launch_mma_forward<T>(a, rows, x.device().index(), stream);
+      if (mma_forward_requested()) {
+        if (!up) {
+          launch_mma_forward<T, false>(a, rows, x.device().index(), stream);
+        } else {
+          launch_mma_forward<T, true>(a, cols, x.device().index(), stream);
+        }
         return;
       }
     }

@@ -1,18 +1,20 @@
-// Tensor-core (WMMA) form of the row GEMM of the conv / down forward: bf16 operands, fp32 accumulation.
-// Opt-in: MODI_EXT_CUDA_MMA=1 (read per call in forward_cuda); no default path uses it until a GPU has timed it.
+// Tensor-core (WMMA) form of the forward GEMMs: bf16 operands, fp32 accumulation.  The row GEMM (kTr = false) for
+// conv / down, the transposed GEMM (kTr = true: the adjoint read, then the blur) for up; the same products as
+// gemm_block's.  Opt-in: MODI_EXT_CUDA_MMA=1 (read per call in forward_cuda); no default path uses it until a GPU has
+// timed it.
 //
 // Included by skeletal/cuda.cu inside its anonymous namespace, after the types it shares with the SIMT kernels:
-// GemmArgs (the gathered operand and the topology), read_fwd, and the epilogue Epi / epi_store_at, so scale, style,
-// bias and the bias activation are exactly the SIMT kernels'.
+// GemmArgs (the gathered operand and the topology), read_fwd / read_tr, and the epilogue Epi / epi_store_at, so
+// scale, style, bias and the bias activation are exactly the SIMT kernels'.
 //
-//   out[b, m, j, t] = sum_k W_j[m, k] X_j[k, (b, t)],   k = (r * C + c) * U + u over the r-th neighbour of j
+//   out[b, m, j, t] = sum_k W_j[m, k] X_j[k, (b, t)],   k = (r * C + c) * U + u over the r-th neighbour (reader) of j
 //
 // Block: entity blockIdx.z, rows m0 = blockIdx.y * kBM .. + 31, column tiles blockIdx.x, + gridDim.x, ... of the
 // N = B x L columns.  4 warps in 2 x 2 over the 32 x 64 tile, each warp 16 x 32 outputs (two accumulator fragments).
 //   * The weight rows are staged as bf16 in panels of kKP reduction columns.  A panel stays resident while the block
 //     walks its column tiles: with K <= kKP (most skeletal layers) it is read from global memory once per block.
-//   * The gathered operand is decoded (neighbour, channel, tap, padding, stride, style) once per block and 16-deep
-//     stage into a 16 x 64 bf16 tile, x * style rounded to bf16 once, then read by every warp's fragments.
+//   * The gathered operand is decoded (neighbour, channel, tap, padding, stride or its adjoint, blur, style) once per
+//     block and 16-deep stage into a 16 x 64 bf16 tile, rounded to bf16 once, then read by every warp's fragments.
 //   * The accumulators go through shared memory to the per-element epilogue.
 // Single-buffered stages: the shape of the computation first; pipelining (cp.async, double buffers) once a GPU can
 // time it.  Launch: grid.x is sized for about two waves, so a block walks several column tiles at large B x L.
@@ -30,8 +32,8 @@ static_assert(kBM * kLdw * 2 + kBK * kLdb * 2 + kBM * kLdc * 4 <= 48 * 1024, "st
 
 }  // namespace tc
 
-template <typename T>
-__global__ void __launch_bounds__(tc::kThreads) mma_row_gemm_kernel(const GemmArgs<T> a) {
+template <typename T, bool kTr>
+__global__ void __launch_bounds__(tc::kThreads) mma_gemm_kernel(const GemmArgs<T> a) {
 #if defined(__CUDA_ARCH__) && __CUDA_ARCH__ < 800
   (void)a;
   __trap();  // bf16 WMMA needs sm_80; the launcher refuses older devices
@@ -45,11 +47,12 @@ __global__ void __launch_bounds__(tc::kThreads) mma_row_gemm_kernel(const GemmAr
   const int tid = threadIdx.x, warp = tid / 32;
   const int wm = warp / 2, wn = warp % 2;  // this warp's 16 x 32 outputs: rows 16 wm, columns 32 wn
   const int ent = blockIdx.z, m0 = blockIdx.y * tc::kBM;
-  const int q0 = a.off[ent];
+  const int* const eoff = kTr ? a.toff : a.off;  // the entity's neighbours (transposed: readers) q0 ...
+  const int q0 = eoff[ent];
   const int CU = a.C * a.U;
-  const int K = (a.off[ent + 1] - q0) * CU;
+  const int K = (eoff[ent + 1] - q0) * CU;  // transposed: 0 for an entity nobody reads (its outputs get the bias)
   const int nk = (K + tc::kBK - 1) / tc::kBK;
-  const T* const wblk = a.w + int64_t(q0) * CU;  // the entity's weight block: row m at wblk + m * lda
+  [[maybe_unused]] const T* const wblk = a.w + int64_t(q0) * CU;  // row GEMM: the entity's block, row m at + m * lda
   const int64_t ntiles = (a.N + tc::kBN - 1) / tc::kBN;
 
   wmma::fragment<wmma::matrix_a, 16, 16, 16, E, wmma::row_major> fa;
@@ -69,7 +72,17 @@ __global__ void __launch_bounds__(tc::kThreads) mma_row_gemm_kernel(const GemmAr
         for (int i = tid; i < tc::kBM * kw; i += tc::kThreads) {
           const int r = i / kw, c = i - r * kw;
           const int m = m0 + r, k = kp0 + c;
-          Ws[r][c] = __float2bfloat16(m < a.M && k < K ? ld(wblk + int64_t(m) * a.lda + k) : 0.0f);
+          float v = 0.0f;
+          if (m < a.M && k < K) {
+            if constexpr (!kTr) {
+              v = ld(wblk + int64_t(m) * a.lda + k);
+            } else {  // w[ci, pair, m, u], read transposed
+              const int rr = k / CU, rem = k - rr * CU;
+              const int ci = rem / a.U, u = rem - ci * a.U;
+              v = ld(a.w + ((int64_t(ci) * a.nnz + a.tpair[q0 + rr]) * a.M + m) * a.U + u);
+            }
+          }
+          Ws[r][c] = __float2bfloat16(v);
         }
       }
       // Stage row kk, column j: reduction index k0 + kk (zero past K), column n0 + j (zero past N); threads run
@@ -85,8 +98,13 @@ __global__ void __launch_bounds__(tc::kThreads) mma_row_gemm_kernel(const GemmAr
           const int b = static_cast<int>(n / a.L), t = static_cast<int>(n - int64_t(b) * a.L);
           const int r = k / CU, rem = k - r * CU;
           const int c = rem / a.U, u = rem - c * a.U;
-          const int e = a.idx[q0 + r];
-          v = read_fwd<T, false>(a.src.row(b, c, e), a.src.L, a.s * t + u - a.h, a.reflect) * a.fac.at(b, c, e);
+          if constexpr (!kTr) {
+            const int e = a.idx[q0 + r];
+            v = read_fwd<T, false>(a.src.row(b, c, e), a.src.L, a.s * t + u - a.h, a.reflect) * a.fac.at(b, c, e);
+          } else {
+            const int e = a.tent[q0 + r];
+            v = read_tr<T, true>(a.src.row(b, c, e), a.src.L, a.L, t, a.h - u, a.s, a.reflect) * a.fac.at(b, c, e);
+          }
         }
         Bs[kk][j] = __float2bfloat16(v);
       }
@@ -118,8 +136,9 @@ __global__ void __launch_bounds__(tc::kThreads) mma_row_gemm_kernel(const GemmAr
 #endif
 }
 
-// The conv / down forward of `a` (bf16) over `ents` row entities on the tensor cores.
-template <typename T>
+// The forward of `a` (bf16) on the tensor cores: the row GEMM (conv / down) over `ents` row entities, or the
+// transposed GEMM (up) over `ents` column entities.
+template <typename T, bool kTr>
 void launch_mma_forward(const GemmArgs<T>& a, int64_t ents, int device, cudaStream_t stream) {
   TORCH_CHECK(cuda::cc_major(device) >= 8,
               "modi_ext: MODI_EXT_CUDA_MMA=1 needs bf16 tensor cores (compute capability 8.0 or later)");
@@ -128,6 +147,6 @@ void launch_mma_forward(const GemmArgs<T>& a, int64_t ents, int device, cudaStre
   const int64_t want = ceil_div(2 * int64_t(cuda::sm_count(device)), mtiles * std::max<int64_t>(ents, 1));
   const int64_t gx = std::max<int64_t>(1, std::min(ntiles, want));
   const dim3 grid(static_cast<unsigned>(gx), static_cast<unsigned>(mtiles), static_cast<unsigned>(ents));
-  MODI_LAUNCH((mma_row_gemm_kernel<T>), grid, tc::kThreads, 0, stream, a);
+  MODI_LAUNCH((mma_gemm_kernel<T, kTr>), grid, tc::kThreads, 0, stream, a);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
