@@ -251,15 +251,20 @@ class ModulatedSkeletalConv(nn.Module):
     def dense_weight(self) -> torch.Tensor:
         return self.conv.dense_weight()
 
-    def forward(self, x: torch.Tensor, w: torch.Tensor, act: "FusedLeakyReLU | None" = None) -> torch.Tensor:
-        """``act``: the activation that follows, fused into the op (as :meth:`SkeletalConv.forward`'s)."""
+    def forward(self, x: torch.Tensor, w: torch.Tensor, act: "FusedLeakyReLU | None" = None,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+        """``act``: the activation that follows, fused into the op (as :meth:`SkeletalConv.forward`'s); or ``bias``
+        ``(out_ch,)``: a bias that follows, added in the op's epilogue."""
+        if act is not None and bias is not None:
+            raise ValueError("pass act= (its bias is the activation's) or bias=, not both")
         if w.dim() != 2 or w.shape[1] != self.style_dim:
             raise ValueError(f"w must be (B, {self.style_dim}), got shape {tuple(w.shape)}")
         if w.shape[0] != x.shape[0]:
             raise ValueError(f"w has batch {w.shape[0]} but x has {x.shape[0]}")
         s = self.affine(w)
         c = self.conv
-        kw = dict(style=s, demodulate=self.demodulate, padding_mode=c.padding_mode, **c._epilogue(act))
+        epi = c._epilogue(act) if bias is None else dict(bias=bias)
+        kw = dict(style=s, demodulate=self.demodulate, padding_mode=c.padding_mode, **epi)
         if self.mode == "same":
             return ops.skeletal_conv(x, c.effective_weight(), index=c.index, offsets=c.offsets, **kw)
         if self.mode == "down":

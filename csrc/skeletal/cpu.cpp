@@ -395,10 +395,13 @@ std::pair<at::Tensor, at::Tensor> act_prologue(const at::Tensor& grad, const at:
     scalar_t* gp = g_pre.data_ptr<scalar_t>();
     scalar_t* yp = need_pre ? y_pre.data_ptr<scalar_t>() : nullptr;
     at::parallel_for(0, grad.numel(), 1 << 15, [&](int64_t i0, int64_t i1) {
-      for (int64_t i = i0; i < i1; ++i) {
-        const A k = act_slope(static_cast<A>(y[i]));
-        gp[i] = static_cast<scalar_t>(k * static_cast<A>(gy[i]));
-        if (yp) yp[i] = static_cast<scalar_t>(static_cast<A>(y[i]) / k);
+_Pragma("omp simd")
+      for (int64_t i = i0; i < i1; ++i)
+        gp[i] = static_cast<scalar_t>(act_slope(static_cast<A>(y[i])) * static_cast<A>(gy[i]));
+      if (yp) {
+_Pragma("omp simd")
+        for (int64_t i = i0; i < i1; ++i)
+          yp[i] = static_cast<scalar_t>(static_cast<A>(y[i]) / act_slope(static_cast<A>(y[i])));
       }
     });
   });

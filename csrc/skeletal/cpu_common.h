@@ -276,6 +276,7 @@ struct Csr {
 // The bias activation over one finished output row: the epilogue's last step with act (skeletal.h).
 template <typename T>
 inline void act_row(T* row, int64_t n) {
+#pragma omp simd
   for (int64_t t = 0; t < n; ++t) row[t] = act_fwd(row[t]);
 }
 

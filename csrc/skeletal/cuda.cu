@@ -28,7 +28,7 @@
 // kernel, CUDA_KERNEL_ASSERT), which also sanitises the CSR it hands to the GEMMs so no access can go out of bounds.
 //
 // Workspaces (all from the caching allocator, freed on return):
-//   * topology: int32, (rows + 1) + nnz [+ (cols + 1) + 2 nnz for the transposed CSR]   (a few KB)
+//   * topology: int32, (rows + 1) + nnz + (cols + 1) + 2 nnz (a few KB), kept per layer's maps (TopologyCache)
 //   * style gradient: fp32 (fp64) copy of the unscaled input gradient, the size of x, only when d/dstyle is wanted
 //   * weight gradient: S fp32 (fp64) partial weight gradients, S <= 32 splits of batch x time (S = 1: none)
 //   * row / transposed GEMM: S fp32 (fp64) partial outputs, S <= 32 splits of each entity's k range (S = 1: none)
@@ -36,9 +36,12 @@
 
 #include <ATen/ATen.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <cstring>
+#include <mutex>
 #include <type_traits>
+#include <vector>
 
 #include "common/cuda_common.cuh"
 #include "common/wmma.cuh"
@@ -353,22 +356,79 @@ struct DevTopo {
 };
 
 DevTopo build_topology(const at::Tensor& index, const at::Tensor& offsets, int64_t rows, int64_t cols, int64_t nnz,
-                       bool transpose, cudaStream_t stream) {
-  const int64_t n = (rows + 1) + nnz + (transpose ? (cols + 1) + 2 * nnz : 0);
+                       cudaStream_t stream) {
+  const int64_t n = (rows + 1) + nnz + (cols + 1) + 2 * nnz;
   DevTopo t;
   t.buf = at::empty({n}, index.options().dtype(at::kInt));
   int* p = t.buf.data_ptr<int>();
   MODI_LAUNCH(topology_kernel, 1, 256, 0, stream, offsets.data_ptr<int64_t>(), index.data_ptr<int64_t>(),
-              static_cast<int>(rows), static_cast<int>(cols), static_cast<int>(nnz), p, transpose);
+              static_cast<int>(rows), static_cast<int>(cols), static_cast<int>(nnz), p, true);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   t.off = p;
   t.idx = p + rows + 1;
-  if (transpose) {
-    t.toff = t.idx + nnz;
-    t.tent = t.toff + cols + 1;
-    t.tpair = t.tent + nnz;
-  }
+  t.toff = t.idx + nnz;
+  t.tent = t.toff + cols + 1;
+  t.tpair = t.tent + nnz;
   return t;
+}
+
+// The device CSR (and its transpose) of a layer's maps, built once and reused while they are unchanged: a layer hands
+// the same index and offsets buffers to every call, and rebuilding them was a launch of a one-block kernel per op.
+// An entry is keyed by the two storages -- held weakly, so a freed map's entry is dropped and its StorageImpl cannot
+// be reused while the entry holds it -- their offsets and version counters (an in-place edit rebuilds), the sizes,
+// the device and the stream (a build is ordered on its stream only).
+class TopologyCache {
+ public:
+  DevTopo get(const at::Tensor& index, const at::Tensor& offsets, int64_t rows, int64_t cols, int64_t nnz,
+              cudaStream_t stream) {
+    const Key k{index.storage().unsafeGetStorageImpl(), offsets.storage().unsafeGetStorageImpl(),
+                index.storage_offset(), offsets.storage_offset(), index._version(), offsets._version(), rows, cols,
+                nnz, index.device().index(), stream};
+    std::lock_guard<std::mutex> lock(mu_);
+    for (const Entry& e : entries_)
+      if (e.key == k && !e.index.expired() && !e.offsets.expired()) return e.topo;
+    entries_.erase(std::remove_if(entries_.begin(), entries_.end(),
+                                  [&](const Entry& e) {
+                                    return e.index.expired() || e.offsets.expired() ||
+                                           (e.key.index == k.index && e.key.offsets == k.offsets);
+                                  }),
+                   entries_.end());
+    if (entries_.size() >= kMaxEntries) entries_.erase(entries_.begin());
+    entries_.push_back(Entry{k, index.storage().getWeakStorageImpl(), offsets.storage().getWeakStorageImpl(),
+                             build_topology(index, offsets, rows, cols, nnz, stream)});
+    return entries_.back().topo;
+  }
+
+ private:
+  struct Key {
+    const void* index;
+    const void* offsets;
+    int64_t index_offset, offsets_offset;
+    int64_t index_version, offsets_version;
+    int64_t rows, cols, nnz;
+    int device;
+    cudaStream_t stream;
+    bool operator==(const Key& o) const {
+      return index == o.index && offsets == o.offsets && index_offset == o.index_offset &&
+             offsets_offset == o.offsets_offset && index_version == o.index_version &&
+             offsets_version == o.offsets_version && rows == o.rows && cols == o.cols && nnz == o.nnz &&
+             device == o.device && stream == o.stream;
+    }
+  };
+  struct Entry {
+    Key key;
+    c10::weak_intrusive_ptr<c10::StorageImpl> index, offsets;
+    DevTopo topo;
+  };
+  static constexpr size_t kMaxEntries = 512;  // a model's layers, several models, a few streams
+  std::mutex mu_;
+  std::vector<Entry> entries_;
+};
+
+DevTopo device_topology(const at::Tensor& index, const at::Tensor& offsets, int64_t rows, int64_t cols,
+                        int64_t nnz, cudaStream_t stream) {
+  static TopologyCache cache;
+  return cache.get(index, offsets, rows, cols, nnz, stream);
 }
 
 // ----------------------------------------------------------------------------------------------- row / transposed GEMM
@@ -844,7 +904,7 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
   const bool up = kind == kUp;
   const int64_t rows = offsets.numel() - 1;
   const int64_t cols = up ? g.Eout : g.Ein;
-  const DevTopo topo = build_topology(index, offsets, rows, cols, g.nnz, /*transpose=*/up, stream);
+  const DevTopo topo = device_topology(index, offsets, rows, cols, g.nnz, stream);
   at::Tensor y = at::empty({g.B, g.Cout, g.Eout, g.Tout}, x.options());
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "modi_ext::skeletal_forward_cuda", [&] {
     using T = scalar_t;
@@ -943,7 +1003,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
   at::Tensor gd = want_gd ? at::empty_like(*scale) : empty();
   const bool need_in = want_gx || want_gs;
   if (!need_in && !want_gw && !want_gd) return {gx, gw, gb, gs, gd};
-  const DevTopo topo = build_topology(index, offsets, rows, cols, g.nnz, /*transpose=*/need_in && !up, stream);
+  const DevTopo topo = device_topology(index, offsets, rows, cols, g.nnz, stream);
 
   AT_DISPATCH_FLOATING_TYPES_AND2(at::kHalf, at::kBFloat16, x.scalar_type(), "modi_ext::skeletal_backward_cuda", [&] {
     using T = scalar_t;

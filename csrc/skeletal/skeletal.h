@@ -3,6 +3,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <optional>
 
 #include <ATen/ATen.h>
@@ -22,13 +23,25 @@ constexpr double kActGain = 1.4142135623730951;
 #else
 #define MODI_ACT_HD inline
 #endif
+// v * m + |v| * d is v * gain for v > 0 and v * gain * slope for v < 0 (m and d: the two slopes' mean and half
+// difference): no compare, hence no branch -- GCC keeps `v > 0 ? v * a : v * b` a branch under -ftrapping-math, and
+// it mispredicts on half the elements.  A NaN stays NaN.
+constexpr double kActMean = (kActGain + kActGain * kActSlope) / 2;
+constexpr double kActHalfDiff = (kActGain - kActGain * kActSlope) / 2;
 template <typename A>
-MODI_ACT_HD A act_fwd(A v) { return v > A(0) ? v * A(kActGain) : v * A(kActGain * kActSlope); }
+MODI_ACT_HD A act_fwd(A v) {
+#if defined(__CUDACC__)
+  return v * A(kActMean) + fabs(v) * A(kActHalfDiff);
+#else
+  return v * A(kActMean) + std::abs(v) * A(kActHalfDiff);
+#endif
+}
 // dL/dpre = act_slope(y) * dL/dy, and pre = y / act_slope(y)
 template <typename A>
 MODI_ACT_HD A act_slope(A y) { return y > A(0) ? A(kActGain) : A(kActGain * kActSlope); }
 
-// y = scale * op(x * style) + bias (then the activation, with act).  weight: (Cout, nnz, Cin, U) for conv/down, (Cin, nnz, Cout, U) for up.
+// y = scale * op(x * style) + bias (then the activation, with act).
+// weight: (Cout, nnz, Cin, U) for conv/down, (Cin, nnz, Cout, U) for up.
 // (index, offsets): CSR from each row entity (output for conv/down, coarse for up) to its input entities.
 at::Tensor skeletal_conv_cpu(const at::Tensor& x, const at::Tensor& weight, const std::optional<at::Tensor>& bias,
                              const at::Tensor& index, const at::Tensor& offsets,

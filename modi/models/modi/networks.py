@@ -108,7 +108,10 @@ class ToMotion(nn.Module):
             self.unpool = None
 
     def forward(self, x: torch.Tensor, w: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
-        out = self.conv(x, w) + self.bias
+        if isinstance(self.conv, ModulatedSkeletalConv):  # the bias in the op's epilogue
+            out = self.conv(x, w, bias=self.bias.view(-1))
+        else:
+            out = self.conv(x, w) + self.bias
         if skip is not None:
             if self.skeleton_aware:
                 skip = fir_upsample_time(torch.einsum("bket,fe->bkft", skip, self.unpool))
@@ -246,15 +249,16 @@ class Generator(nn.Module):
         elif len(noise) != len(layers):
             raise ValueError(f"expected {len(layers)} noise tensors, got {len(noise)}")
         b = wplus.shape[0]
+        ws = wplus.unbind(1)  # one view per style; their gradients meet in one stack (a select each: a copy and an add)
         x = self.const.repeat(b, 1, 1, 1)
-        x = self.conv1(x, wplus[:, 0], noise[0])
-        skip = self.to_motion1(x, wplus[:, 1])
+        x = self.conv1(x, ws[0], noise[0])
+        skip = self.to_motion1(x, ws[1])
         idx, n_idx = 1, 1
         for block, to_motion in zip(self.blocks, self.to_motions):
             for j, conv in enumerate(block):
-                x = conv(x, wplus[:, idx + j], noise[n_idx])
+                x = conv(x, ws[idx + j], noise[n_idx])
                 n_idx += 1
-            skip = to_motion(x, wplus[:, idx + len(block)], skip)
+            skip = to_motion(x, ws[idx + len(block)], skip)
             idx += len(block)
         return skip
 

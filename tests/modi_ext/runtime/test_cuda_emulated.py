@@ -322,6 +322,25 @@ def test_single_entity_csr(kind):
         check_problem(Problem(kind, "style_demod", "zeros", U=5, dtype=dtype, seed=3, single=True, n=4))
 
 
+def test_topology_is_built_once_per_layer_and_again_after_an_in_place_edit():
+    """The device CSR of a layer's maps is cached (cuda.cu TopologyCache): calls on the same maps launch no topology
+    kernel; an in-place edit of the index (a new version) rebuilds it, and the results follow the edited map."""
+    def builds():
+        return EMU.launch_counts().get("topology_kernel", 0)
+
+    p = Problem("conv", "style", "zeros", 3, True, torch.float64, seed=23)
+    check_problem(p)
+    before = builds()
+    for _ in range(3):
+        p.backward(p.forward())
+    assert builds() == before
+    rows = [p.index[int(a):int(b)].flip(0) for a, b in zip(p.offsets[:-1], p.offsets[1:])]
+    assert any(len(r) > 1 for r in rows)
+    p.index.copy_(torch.cat(rows))  # the same shape and storage, another map: a new version
+    check_problem(p)
+    assert builds() == before + 1
+
+
 def test_unread_fine_entities_get_bias_and_no_gradient():
     """A pooling map that leaves fine entities unread: up writes bias there, down's input gradient is zero."""
     p = Problem("up", "style", "zeros", U=3, seed=8, unread=True, n=8)
