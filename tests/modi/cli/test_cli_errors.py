@@ -136,7 +136,7 @@ CASES: list[tuple[str, str]] = [
     ("train {d} --out {out} --precision fp16", "argument --precision: invalid choice"),
     ("train {d} --out {out} --precision nan", "argument --precision: invalid choice"),
     ("ganimator train {clip} --out {out} --precision bfloat16", "argument --precision: invalid choice"),
-    ("train {d} --out {out} --cuda-graphs yes", "--cuda-graphs: invalid choice: 'yes' (choose from auto, on, off)"),
+    ("train {d} --out {out} --cuda-graphs yes", "argument --cuda-graphs: invalid choice"),
     ("generate {tiny} --out {out} --psi 1e30", "argument --psi"),
     ("generate {tiny} --out {out} --psi inf", "argument --psi"),
     ("generate {tiny} --out {out} --batch 0", "argument --batch"),
