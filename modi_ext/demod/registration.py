@@ -2,13 +2,14 @@
 
 The schemas are C++ (``csrc/demod/schema.cpp``); this is what they need from Python, done on import when the
 extension is built.  The backward is the C++ ``demod_scale_backward``; a gradient that must itself be differentiable
-(``create_graph``: path length, R1) is recomputed from the torch form (``modi_ext.demod.dense``), so every order of
-gradient stays exact.  The same rules make the op's eager ``autograd.Function`` (``kernels.EAGER``).
+(``create_graph``: path length, R1) is built in closed form from the saved coefficients (``graph_gradients``), in
+torch ops whose graph leads back into this op, so every order of gradient stays exact.  The same rules make the op's eager ``autograd.Function`` (``kernels.EAGER``).
 """
 from __future__ import annotations
 
 import torch
 
+from modi_ext.csr import pair_entity
 from modi_ext.demod import dense
 from modi_ext.runtime import eager, kernels
 from modi_ext.runtime.eager import needed
@@ -23,15 +24,40 @@ def ops_defined() -> bool:
                                                                               "demod_scale_backward")
 
 
-def torch_form(weight, style, index, offsets, up: bool, n_out: int) -> torch.Tensor:
-    """``dense.demod_scale`` without the batch expansion: ``(Bs, Cout, E_out)``, as the C++ op returns it."""
-    return dense.demod_scale(weight, index, offsets, style, up, n_out, style.shape[0] if style is not None else 1)
-
-
 def _setup_context(ctx, inputs, output) -> None:
     weight, style, index, offsets, up, n_out, _eps = inputs
     ctx.save_for_backward(weight, style, index, offsets, output)
     ctx.up, ctx.n_out = up, n_out
+
+
+def graph_gradients(grad, d, weight, style, index, offsets, up: bool, n_out: int, want: tuple[bool, bool]):
+    """The weight and style gradients of ``d = rsqrt(s^2 . Q + eps)`` as a differentiable graph (``create_graph``).
+
+    With ``Q[o, j, i] = sum_{p in j, u} W[o, p, i, u]^2`` and ``h = -g d^3 / 2`` (``d`` the op's saved output, whose
+    own graph leads back into this op): ``grad_s = 2 s (h . Q)`` and ``grad_W = 2 W h[segment] s^2``.  A handful of
+    small ops each way, where re-running the torch form and differentiating it took about five times as many, each a
+    launch on CUDA and each differentiated again by the step that asked for the graph (path length, R1).
+    """
+    dtype = weight.dtype
+    if dtype in dense._HALF:  # summed in float32, as the torch form does
+        grad, d, weight = grad.float(), d.float(), weight.float()
+        style = style.float() if style is not None else None
+    h = grad * d.pow(3) * -0.5  # (Bs, Cout, E_out)
+    segment = index if up else pair_entity(offsets, index.shape[0])
+    s2 = style.square() if style is not None else None
+    gw = gs = None
+    if want[0]:
+        if up:  # weight (Ci, nnz, Co, U), Q (Ci, Ef, Co), h (B, Co, Ef)
+            gq = torch.einsum("bof,bi->ifo", h, s2) if s2 is not None else h.sum(0).t().unsqueeze(0)
+        else:  # weight (Co, nnz, Ci, U), Q (Co, Eo, Ci), h (B, Co, Eo)
+            gq = torch.einsum("boj,bi->oji", h, s2) if s2 is not None else h.sum(0).unsqueeze(-1)
+        gw = (weight * (2.0 * gq.index_select(1, segment)).unsqueeze(-1)).to(dtype)
+    if want[1]:  # h . Q summed over the pairs and taps of W^2 directly: no segment sum
+        hp = h.index_select(2, segment)  # (B, Cout, nnz)
+        hq = (torch.einsum("bop,ipou->bi", hp, weight.square()) if up
+              else torch.einsum("bop,opiu->bi", hp, weight.square()))
+        gs = (2.0 * style * hq).to(dtype)
+    return gw, gs
 
 
 def _backward(ctx, grad):
@@ -40,12 +66,8 @@ def _backward(ctx, grad):
     none = (None,) * 5
     if not any(want):
         return (None, None) + none
-    if torch.is_grad_enabled():  # create_graph: the gradient must have a graph, so take it from the torch form
-        inputs = [t for t, w in zip((weight, style), want) if w]
-        with torch.enable_grad():
-            d_t = torch_form(weight, style, index, offsets, ctx.up, ctx.n_out)
-            got = iter(torch.autograd.grad(d_t, inputs, grad, create_graph=True))
-        gw, gs = (next(got) if w else None for w in want)
+    if torch.is_grad_enabled():  # create_graph: the gradient must have a graph
+        gw, gs = graph_gradients(grad, d, weight, style, index, offsets, ctx.up, ctx.n_out, want)
         return (gw, gs) + none
     gw, gs = torch.ops.modi_ext.demod_scale_backward(grad.contiguous(), d, weight, style, index, offsets, ctx.up,
                                                      ctx.n_out, list(want))
