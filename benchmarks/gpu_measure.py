@@ -533,6 +533,103 @@ def stage_sampling(ctx: Ctx, partial: Callable) -> dict:
             "graphed": {"status": "not available", "reason": "no CUDA-graph sampling path in modi"}}
 
 
+# ------------------------------------------------------------------------------------------------ kernels
+KERNEL_OPS = ("skeletal_conv", "modulated_conv")  # issue 52's GPU rows: the finest level's fwd+bwd
+KERNEL_PATHS = ("ext", "ext_mma", "dense", "ref")
+
+
+def _bench_cuda():
+    """benchmarks/bench_cuda.py, loaded by path (it owns the cases: the ops called directly, on MoDi's levels)."""
+    import importlib.util
+
+    name = "_modi_bench_cuda"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "bench_cuda.py")
+        sys.modules[name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(sys.modules[name])
+    return sys.modules[name]
+
+
+def _mma(fn: Callable) -> Callable:
+    """``fn`` with the tensor-core kernels asked for (``MODI_EXT_CUDA_MMA=1``, read by the C++ op at each call),
+    backward included."""
+    def run(*a):
+        before = os.environ.get("MODI_EXT_CUDA_MMA")
+        os.environ["MODI_EXT_CUDA_MMA"] = "1"
+        try:
+            return fn(*a)
+        finally:
+            if before is None:
+                os.environ.pop("MODI_EXT_CUDA_MMA", None)
+            else:
+                os.environ["MODI_EXT_CUDA_MMA"] = before
+    return run
+
+
+def _fwd_bwd(fn: Callable, leaves: list[torch.Tensor], grad: list[torch.Tensor]) -> Callable[[], tuple]:
+    def run():
+        y = fn(*leaves)
+        if not grad:
+            grad.append(torch.randn_like(y))
+        return (y.detach(),) + torch.autograd.grad(y, leaves, grad[0])
+    return run
+
+
+def _max_rel_diff(a: tuple, b: tuple) -> float:
+    """Largest |a - b| over each tensor's largest |b|, over the output and every gradient."""
+    return max(float((x.float() - y.float()).abs().max() / y.float().abs().max().clamp_min(1e-30))
+               for x, y in zip(a, b))
+
+
+def stage_kernels(ctx: Ctx, partial: Callable) -> dict:
+    """The finest skeletal and modulated conv's fwd+bwd at batch 256 on every path: the SIMT kernels (``ext``), the
+    tensor-core kernels (``ext_mma``: ``MODI_EXT_CUDA_MMA=1``; bf16, and TF32 for fp32 where this build has it and
+    torch allows it), ``dense`` and the reference (one cuDNN conv), interleaved medians per dtype; and how far the
+    tensor-core results lie from the SIMT kernels' (what the emulator checks in CI, here on the real units)."""
+    bc = _bench_cuda()
+    batch, reps, warmup = (2, 2, 1) if ctx.tiny else (256, 20, 3)
+    dtypes = ("fp32", "bf16")
+    res: dict[str, Any] = {"batch": batch, "reps": reps, "level": "finest", "cases": {}}
+    for tag in dtypes:
+        dtype = bc.DTYPES[tag]
+        for op, level, ref, ext, leaves, meta, dense_fn in bc._skeletal_defs(dtype, batch, ctx.device):
+            if level != "finest" or op not in KERNEL_OPS:
+                continue
+            key = f"{op}.finest.b{batch}.{tag}.fwd_bwd"
+            row: dict[str, Any] = {**meta, "dtype": tag}
+            try:
+                leaves_i = [t.detach().clone().requires_grad_(True) for t in leaves]
+                grad: list[torch.Tensor] = []
+                fns = {"ext": _fwd_bwd(ext, leaves_i, grad), "ext_mma": _fwd_bwd(_mma(ext), leaves_i, grad),
+                       "dense": _fwd_bwd(dense_fn, leaves_i, grad), "ref": _fwd_bwd(ref, leaves_i, grad)}
+                outs = {p: fns[p]() for p in KERNEL_PATHS}
+                row["mma_vs_ext_max_rel_diff"] = _max_rel_diff(outs["ext_mma"], outs["ext"])
+                row["ext_vs_ref_max_rel_diff"] = _max_rel_diff(outs["ext"], outs["ref"])
+                times: dict[str, list[float]] = {p: [] for p in KERNEL_PATHS}
+                for i in range(warmup + reps):
+                    for p in KERNEL_PATHS:
+                        ctx.sync()
+                        t = time.perf_counter()
+                        fns[p]()
+                        ctx.sync()
+                        if i >= warmup:
+                            times[p].append((time.perf_counter() - t) * 1e3)
+                ms = {p: round(statistics.median(v), 4) for p, v in times.items()}
+                best_ext = min(ms["ext"], ms["ext_mma"])
+                other = min(ms["dense"], ms["ref"])
+                row.update(ms=ms, spread_ms={p: [round(min(v), 4), round(max(v), 4)] for p, v in times.items()},
+                           best_ext="ext" if ms["ext"] <= ms["ext_mma"] else "ext_mma",
+                           fastest_other="dense" if ms["dense"] <= ms["ref"] else "ref",
+                           speedup_best_ext_vs_fastest_other=round(other / best_ext, 3))
+            except Exception as exc:  # noqa: BLE001 -- one case's failure is recorded; the others still run
+                row.update(status="fail", error=f"{type(exc).__name__}: {exc}")
+            res["cases"][key] = row
+            partial(res)
+    if any(r.get("status") == "fail" for r in res["cases"].values()):
+        res["status"] = "fail"
+    return res
+
+
 # ------------------------------------------------------------------------------------------------ GANimator
 def ganimator_clip(ctx: Ctx) -> Path:
     _, RG = _peers()
@@ -704,8 +801,8 @@ def stage_profile(ctx: Ctx, partial: Callable) -> dict:
 
 STAGE_FUNCS: dict[str, Callable[[Ctx, Callable], dict]] = {
     "build": stage_build, "cuda_tests": stage_cuda_tests, "modi_step": stage_modi_step,
-    "peer_modi_step": stage_peer_modi_step, "sampling": stage_sampling, "ganimator": stage_ganimator,
-    "profile": stage_profile}
+    "peer_modi_step": stage_peer_modi_step, "kernels": stage_kernels, "sampling": stage_sampling,
+    "ganimator": stage_ganimator, "profile": stage_profile}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -66,12 +66,13 @@ SUBSET = "finest|level1|fk"  # benchmark cases: the levels that dominate a train
 # ``--out DIR``: the GPU step measurements, one JSON per stage (benchmarks/gpu_measure.py runs each stage)
 MEASURE_SCRIPT = ROOT / "benchmarks" / "gpu_measure.py"
 MEASURE_BUDGET_S = 330.0  # a 6-minute device call: the budget plus start-up, with time left for a rerun
-MEASURE_STAGES = ("build", "cuda_tests", "modi_step", "peer_modi_step", "sampling", "ganimator", "profile")
-MEASURE_TIMED = ("modi_step", "peer_modi_step", "ganimator")  # again with TF32 off on both sides, time allowing
+MEASURE_STAGES = ("build", "cuda_tests", "modi_step", "peer_modi_step", "kernels", "sampling", "ganimator",
+                  "profile")
+MEASURE_TIMED = ("modi_step", "peer_modi_step", "kernels", "ganimator")  # again with TF32 off on both sides, time allowing
 # seconds per stage on one H100/H200; each gets min(this, what is left of --budget)
-MEASURE_TIMEOUTS = {"build": 170, "cuda_tests": 75, "modi_step": 80, "peer_modi_step": 60, "sampling": 20,
-                    "ganimator": 50, "profile": 30}
-MEASURE_TIMEOUTS_TF32OFF = {"modi_step": 30, "peer_modi_step": 40, "ganimator": 35}
+MEASURE_TIMEOUTS = {"build": 170, "cuda_tests": 75, "modi_step": 80, "peer_modi_step": 60, "kernels": 30,
+                    "sampling": 20, "ganimator": 50, "profile": 30}
+MEASURE_TIMEOUTS_TF32OFF = {"modi_step": 30, "peer_modi_step": 40, "kernels": 15, "ganimator": 35}
 
 
 @dataclass

@@ -49,6 +49,11 @@ def test_dry_run_writes_every_stage_json_with_the_precision_settings(tmp_path):
         assert _read(tmp_path / "sampling.json")["motions_per_s"] > 0
         prof = _read(tmp_path / "profile.json")["kinds"]
         assert prof and all(k["aten_events"] > 0 and "gpu_busy_fraction" in k for k in prof.values())
+    kern = _read(tmp_path / "kernels.json")  # issue 52's GPU rows; on the CPU the tensor-core switch changes nothing
+    assert kern["status"] == "pass" and len(kern["cases"]) == 4, kern
+    for case in kern["cases"].values():
+        assert set(case["ms"]) == {"ext", "ext_mma", "dense", "ref"} and case["mma_vs_ext_max_rel_diff"] == 0.0
+        assert case["ext_vs_ref_max_rel_diff"] < (0.05 if case["dtype"] == "bf16" else 1e-4), case
     peer = _read(tmp_path / "peer_modi_step.json")
     if peer["status"] == "pass":  # the authors' code ran on the CPU, with the stand-in ops
         assert peer["evidence"]["op_module"] == "modi stand-in"
