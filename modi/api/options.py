@@ -13,6 +13,7 @@ from modi.models.ganimator.config import PRESETS as GANIMATOR_PRESETS
 from modi.models.ganimator.config import preset as ganimator_preset
 from modi.models.modi.config import ABLATIONS as MODI_ABLATIONS
 from modi.models.modi.config import PRESETS as MODI_PRESETS
+from modi.models.modi.graphs import GRAPH_MODES
 from modi.models.precision import PRECISIONS
 
 LENGTH_UNITS = tuple(UNITS_MM)  # the named length units of the mm metrics (besides "auto")
@@ -32,5 +33,4 @@ def ganimator_preset_help() -> str:
 
 
 __all__ = ["PREVIEW_RULE", "DatasetConfig", "PROCEDURAL_KINDS", "GANIMATOR_PRESETS", "MODI_PRESETS", "MODI_ABLATIONS",
-           "LENGTH_UNITS", "PRECISIONS",
-           "ganimator_preset_help"]
+           "LENGTH_UNITS", "PRECISIONS", "GRAPH_MODES", "ganimator_preset_help"]

@@ -8,14 +8,10 @@ import warnings
 from modi.cli import leave_without_teardown
 from modi.cli import types as ct
 
-# modi.models.modi.graphs.GRAPH_MODES, named here so that registering the command imports no trainer (a test holds
-# the two equal)
-CUDA_GRAPH_MODES = ("auto", "on", "off")
-
 
 def register(subparsers) -> None:
     from modi.api.options import MODI_ABLATIONS as ABLATIONS, MODI_PRESETS as PRESETS  # lazy: every command registers
-    from modi.api.options import PRECISIONS  # lazy: every command registers
+    from modi.api.options import GRAPH_MODES, PRECISIONS  # lazy: every command registers
 
     p = subparsers.add_parser(
         "train", help="train a MoDi generator on BVH clips",
@@ -81,7 +77,7 @@ def register(subparsers) -> None:
                    help="forward passes in fp32, or under bf16 autocast (weights, optimiser states and checkpoints "
                         "stay fp32; see docs/precision.md) (default: a resumed checkpoint's, else fp32; given on "
                         "--resume, the run switches to it)")
-    p.add_argument("--cuda-graphs", choices=CUDA_GRAPH_MODES, default="auto",
+    p.add_argument("--cuda-graphs", choices=GRAPH_MODES, default="auto",
                    help="replay each kind of training step (plain, path length, R1, both) as one CUDA graph: far "
                         "fewer launches on a GPU. 'auto' stays eager until a GPU run has shown graphed training "
                         "equal to eager; 'on' asks for graphs (on a CPU: one warning, eager; a step that cannot be "
