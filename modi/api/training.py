@@ -55,9 +55,9 @@ from modi.data.normalization import Normalizer
 @dataclass(frozen=True)
 class Progress:
     """One finished training iteration: ``step`` of ``total`` (GANimator: within block ``block`` of
-    ``n_blocks``), the iteration's ``losses`` and the ``seconds`` since the call started. MoDi's ``losses`` are
-    given at its log steps (every ``train.log_every`` and the last) and are empty between them, so that a step asks
-    nothing of the device."""
+    ``n_blocks``), the iteration's ``losses`` and the ``seconds`` since the call started. ``losses`` are given at
+    the log steps (MoDi: every ``train.log_every`` and the last; GANimator: every ``LOG_EVERY`` = 10 iterations
+    and a block's last) and are empty between them, so that an iteration asks nothing of the device."""
 
     model: str
     step: int
@@ -399,18 +399,13 @@ class _GanimatorTrainer(GanimatorTrainer):
         super().__init__(*args, **kwargs)
         self._progress_fn = progress_fn
         self._t0 = time.time()
-        self._losses: dict[str, float] = {}
-
-    def _iteration(self, *args: Any, **kwargs: Any) -> dict[str, float]:
-        self._losses = super()._iteration(*args, **kwargs)
-        return self._losses
 
     def _progress(self, state: str, block_rate: float | None = None, force: bool = False) -> None:
         super()._progress(state, block_rate, force)
         if self._progress_fn is not None and state == "training" and block_rate is not None:
             b = self.state["block"]
             self._progress_fn(Progress("ganimator", int(self.state["iteration"]), self.cfg.block_budget(b),
-                                       {k: float(v) for k, v in self._losses.items()}, time.time() - self._t0,
+                                       dict(self.losses_read), time.time() - self._t0,
                                        b, len(self.blocks)))
 
 

@@ -13,6 +13,11 @@ nothing else. Ctrl-C and SIGTERM finish the iteration and save (``modi.faults``)
 meanwhile, ``log.jsonl`` gets the losses every ``LOG_EVERY`` iterations, and ``progress.json`` (rewritten
 atomically at most once a second) says where the schedule stands, for front ends such as the Blender add-on.
 
+An iteration asks nothing of the device: its losses stay device tensors, read at log iterations (every
+``LOG_EVERY`` and a block's last); a NaN/inf loss skips its optimiser step on the device (fused Adam's
+``found_inf``) and is reported at the next log iteration or save, which stops the run as a non-finite loss always
+did (``NonFiniteLossError``, naming the first one), so no non-finite weight ever exists and none is saved.
+
 Precision (docs/precision.md): with ``precision="bf16"`` the generators' and discriminators' forward passes run under
 bf16 autocast, the WGAN-GP's included (in bf16 it keeps as many digits as the WGAN loss itself); the losses and the
 contact consistency (FK) take their outputs cast to fp32, and the weights, optimiser states, fake pools and
@@ -40,13 +45,14 @@ from modi.models.ganimator.config import GanimatorConfig
 from modi.models.ganimator.data import K, check_compatible, real_pyramid, resample, sequence_pyramid
 from modi.models.ganimator.data import Sequence as Clip
 from modi.models.ganimator.networks import GanimatorModel, synthesize
-from modi.models.optim import frozen_heap, fused_adam
+from modi.models.optim import frozen_heap, fused_adam, fused_groups
 from modi.models.precision import DEFAULT_PRECISION, PRECISIONS, check_precision, precision_autocast, widened
 from modi_ext.layers import ForwardKinematics
 
 FORMAT = "modi.ganimator/1"
 CHECKPOINT_NAME = "ganimator.ckpt"
-LOG_EVERY = 10  # iterations between lines of RUN/log.jsonl
+LOG_EVERY = 10  # iterations between lines of RUN/log.jsonl (and the iterations whose losses are read)
+GUARDED = {"D": "discriminator", "G": "generator adversarial + contact", "R": "reconstruction"}  # the updates
 PROGRESS_NAME = "progress.json"  # RUN/progress.json: block, iteration, totals, ETA, state (see Trainer._progress)
 
 
@@ -207,6 +213,8 @@ class ContactConsistency(nn.Module):
 
         self.fk = ForwardKinematics(skeleton.parents, torch.as_tensor(skeleton.offsets, dtype=torch.float32))
         self.feet = list(feet)
+        # the feet as a device index (a Python list would upload one every call)
+        self.register_buffer("feet_index", torch.tensor(self.feet, dtype=torch.long), persistent=False)
         self.J = skeleton.n_joints
         self.sixd = sixd
 
@@ -221,7 +229,7 @@ class ContactConsistency(nn.Module):
         rm = x[:, :, J]  # (B, 6, T): per-fine-frame displacement, so scale to this level's frame step
         dx, y, dz = rm[:, 0] / rate, rm[:, 1], rm[:, 2] / rate
         root = torch.stack([torch.cumsum(dx, -1), y, torch.cumsum(dz, -1)], dim=-1)  # (B, T, 3)
-        pos = self.fk(quats, root)[:, :, self.feet]  # (B, T, C, 3)
+        pos = self.fk(quats, root).index_select(2, self.feet_index)  # (B, T, C, 3)
         vel = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1) * rate
         vel = torch.cat([torch.zeros_like(vel[:, :1]), vel], dim=1)  # (B, T, C)
         label = x[:, 0, J + 1:].transpose(1, 2)  # (B, T, C)
@@ -229,6 +237,13 @@ class ContactConsistency(nn.Module):
 
 
 # ------------------------------------------------------------------------------------------- trainer
+
+
+def read_losses(losses: dict[str, Tensor]) -> dict[str, float]:
+    """The losses of an iteration as floats, in one host read."""
+    if not losses:
+        return {}
+    return dict(zip(losses, torch.stack([v.float().reshape(()) for v in losses.values()]).tolist()))
 
 
 def blocks_of(n_levels: int, group: int) -> list[list[int]]:
@@ -277,6 +292,15 @@ class Trainer:
         self.opt_d: dict[int, torch.optim.Optimizer] = {}
         self.writer = None
         self._saved: str | None = None  # schedule position of the checkpoint on disk (for a disk-full message)
+        # The non-finite guard, on the device (see _guarded_step): whether a loss was NaN/inf since the run started,
+        # the first such iteration (1-based, of the block) and which update it was; read at log iterations, saves
+        # and the block's end. ``losses_read``: the last iteration's losses where it was read (else empty).
+        self._bad_seen = torch.zeros((), device=self.device)
+        self._bad_iteration = torch.zeros((), device=self.device)
+        self._bad_what = torch.zeros((), dtype=torch.long, device=self.device)
+        self._iteration_dev = torch.zeros((), device=self.device)
+        self._what_codes = torch.arange(len(GUARDED), device=self.device)
+        self.losses_read: dict[str, float] = {}
 
     # --------------------------------------------------------------------------------- persistence
 
@@ -298,6 +322,7 @@ class Trainer:
         }
 
     def save(self) -> None:
+        self.check_guard()
         m = self.model
         bad = [f"{kind} {l}" for kind, nets in (("generator", m.gens), ("discriminator", m.discs))
                for l, net in enumerate(nets) if not all(bool(torch.isfinite(t).all()) for t in net.parameters())]
@@ -312,21 +337,42 @@ class Trainer:
         raise NonFiniteLossError(f"{what}: GANimator training stopped; {kept}. Try another --seed, or check the "
                                  "BVH for NaN or huge values")
 
-    def _generator_step(self, loss: Tensor, levels: Sequence[int], what: str) -> None:
-        """One optimiser step of the generators of ``levels`` on ``loss`` (after the finiteness check)."""
-        self._check_finite(loss, f"{what}, levels {levels[0]}-{levels[-1]}")
-        for l in levels:
-            self.opt_g[l].zero_grad(set_to_none=True)
+    def _guarded_step(self, opts: Sequence[torch.optim.Optimizer], loss: Tensor, what: str,
+                      levels: Sequence[int]) -> None:
+        """``loss.backward()`` and a step of ``opts``, skipped on the device when the loss is NaN/inf (fused Adam's
+        ``found_inf``), the first such update recorded for ``check_guard`` to report: no host read, and no
+        non-finite weight ever exists. An optimiser off the fused kernel (a checkpoint saved without it) checks on
+        the host and stops at once, as every step did before."""
+        bad = torch.isfinite(loss.detach()).logical_not().float().reshape(())
+        if not all(fused_groups(o) for o in opts):
+            if bool(bad):
+                self._diverged(f"non-finite loss ({GUARDED[what]}, levels {levels[0]}-{levels[-1]}) in block "
+                               f"{self.state['block'] + 1}/{len(self.blocks)}, iteration {self.state['iteration'] + 1}")
+            loss.backward()
+            for o in opts:
+                o.step()
+            return
+        first = (self._bad_seen == 0) & (bad > 0)
+        self._bad_iteration.copy_(torch.where(first, self._iteration_dev, self._bad_iteration))
+        self._bad_what.copy_(torch.where(first, self._what_codes[list(GUARDED).index(what)], self._bad_what))
+        self._bad_seen.copy_(torch.maximum(self._bad_seen, bad))
         loss.backward()
-        for l in levels:
-            self.opt_g[l].step()
+        for o in opts:
+            o.found_inf = bad
+            try:
+                o.step()
+            finally:
+                del o.found_inf
 
-    def _check_finite(self, loss: Tensor, name: str) -> None:
-        """Before a backward pass: a NaN/inf loss stops the run (see ``NonFiniteLossError``)."""
-        if not bool(torch.isfinite(loss.detach()).all()):
-            n = len(self.blocks)
-            self._diverged(f"non-finite loss ({name}) in block {self.state['block'] + 1}/{n}, "
-                           f"iteration {self.state['iteration'] + 1}")
+    def check_guard(self) -> None:
+        """Read the non-finite guard (one host read): a NaN/inf loss since the run started stops it, with the
+        first one named (see ``NonFiniteLossError``)."""
+        seen, iteration, what = torch.stack([self._bad_seen, self._bad_iteration,
+                                             self._bad_what.to(self._bad_seen.dtype)]).tolist()
+        if seen:
+            levels = self.blocks[min(self.state["block"], len(self.blocks) - 1)]
+            self._diverged(f"non-finite loss ({list(GUARDED.values())[int(what)]}, levels {levels[0]}-{levels[-1]}) "
+                           f"in block {self.state['block'] + 1}/{len(self.blocks)}, iteration {int(iteration)}")
 
     def _position(self) -> str:
         b, n = self.state["block"], len(self.blocks)
@@ -490,29 +536,34 @@ class Trainer:
             t_block = time.time()
             t_save = time.time()
             first_it = self.state["iteration"]
-            losses: dict[str, float] = {}
+            self._iteration_dev.fill_(first_it)
             self._progress("training", force=True)
             while self.state["iteration"] < budget:
+                it = self.state["iteration"] + 1
+                logged = it % LOG_EVERY == 0 or it == budget  # the iterations whose losses are read
                 try:
                     losses = self._iteration(levels, M, n_sub, cached_prev)
+                    if logged:
+                        self.check_guard()
                 except NonFiniteLossError:
                     bar.close()
                     if self.writer is not None:
                         self.writer.close()
                     raise
-                self.state["iteration"] += 1
-                it = self.state["iteration"]
+                self.losses_read = read_losses(losses) if logged else {}
+                self.state["iteration"] = it
                 bar.update(1)
                 self._progress("training", block_rate=(time.time() - t_block) / max(1, it - first_it))
-                if it % LOG_EVERY == 0 or it == budget:
+                if logged:
                     faults.append_line(self.run_dir / "log.jsonl", json.dumps(
-                        {"block": b, "iteration": it, **{k: round(float(v), 6) for k, v in losses.items()}}))
-                if it % 50 == 0 or it == budget:
-                    bar.set_postfix({k: f"{v:.3g}" for k, v in losses.items() if k in ("D", "G", "rec", "con")})
+                        {"block": b, "iteration": it, **{k: round(v, 6) for k, v in self.losses_read.items()}}))
+                if it % 50 == 0 or it == budget:  # a log iteration too (LOG_EVERY divides 50)
+                    bar.set_postfix({k: f"{v:.3g}" for k, v in self.losses_read.items()
+                                     if k in ("D", "G", "rec", "con")})
                     if self.writer is not None:
                         step = sum(cfg.block_budgets(b)) + it
                         with faults.output_errors(self.run_dir / "tb"):  # event files appended by the library
-                            for k, v in losses.items():
+                            for k, v in self.losses_read.items():
                                 self.writer.add_scalar(f"block{b}/{k}", v, step)
                 now = time.time()
                 if now - t_save > cfg.checkpoint_every:
@@ -535,7 +586,7 @@ class Trainer:
             bar.close()
             self.state["block_seconds"][b] += time.time() - t_block
             self.state["history"].append({"block": b, "levels": levels, "iterations": self.state["iteration"],
-                                          **({k: float(v) for k, v in losses.items()} if losses else {})})
+                                          **self.losses_read})
             self.state["block"] += 1
             self.state["iteration"] = 0
             self.state["levels_done"] = levels[-1] + 1
@@ -597,19 +648,21 @@ class Trainer:
                 self.writer.close()
         raise TrainingInterrupted(self.ckpt, stop.signum)
 
-    def _iteration(self, levels: list[int], M: int, n_sub: int, cached_prev: dict) -> dict[str, float]:
+    def _iteration(self, levels: list[int], M: int, n_sub: int, cached_prev: dict) -> dict[str, Tensor]:
+        """One iteration; its losses as 0-d device tensors, not read (reading them waits for the device: the loop
+        reads them at log iterations)."""
         cfg, model = self.cfg, self.model
-        out: dict[str, float] = {}
+        out: dict[str, Tensor] = {}
+        self._iteration_dev.add_(1)
         for sub in range(n_sub):
             kind = "D" if sub < cfg.d_steps else ("G" if sub < cfg.d_steps + cfg.g_steps else "R")
             for m in range(M):
                 reals = self.reals[m]
                 if kind == "D":
                     fakes = self._forward(m, levels, "random", False, cached_prev)
-                    total = 0.0
                     for l in levels:
                         self.opt_d[l].zero_grad(set_to_none=True)
-                    loss = 0.0
+                    loss = total = 0.0
                     for l, fake in zip(levels, fakes):
                         d = model.discs[l]
                         pooled = self.pools[l].query(fake)
@@ -620,17 +673,13 @@ class Trainer:
                         n_fake = pooled.shape[0]
                         loss_d = 0.5 * (scores[:n_fake].mean() - scores[n_fake:].mean())
                         loss = loss + loss_d + cfg.lambda_gp * gp
-                        total += float(loss_d.detach())
-                        out["gp"] = float(gp.detach())
-                    self._check_finite(loss, f"discriminator, levels {levels[0]}-{levels[-1]}")
-                    loss.backward()
-                    for l in levels:
-                        self.opt_d[l].step()
+                        total = total + loss_d.detach()
+                        out["gp"] = gp.detach()
+                    self._guarded_step([self.opt_d[l] for l in levels], loss, "D", levels)
                     out["D"] = total / len(levels)
                 elif kind == "G":
                     fakes = self._forward(m, levels, "random", True, cached_prev)
-                    loss = 0.0
-                    g_adv = con = 0.0
+                    loss = g_adv = con = 0.0
                     for l, fake in zip(levels, fakes):
                         d = model.discs[l]
                         for p in d.parameters():
@@ -643,22 +692,27 @@ class Trainer:
                         rate = model.rates[m][l] if cfg.contact_rescale else 1.0
                         c = self.consistency(fake, rate) if cfg.lambda_contact > 0 else fake.new_zeros(())
                         loss = loss + adv + cfg.lambda_contact * c
-                        g_adv += float(adv.detach())
-                        con += float(c.detach())
-                    self._generator_step(loss, levels, "generator adversarial + contact")
+                        g_adv = g_adv + adv.detach()
+                        con = con + c.detach()
+                    self._generator_step(loss, levels, "G")
                     out["G"], out["con"] = g_adv / len(levels), con / len(levels)
                 else:
                     recs = self._forward(m, levels, "rec", True, cached_prev)
-                    loss = 0.0
-                    rec_total = 0.0
+                    loss = rec_total = 0.0
                     for l, rec in zip(levels, recs):
                         r = (rec - reals[l]).abs().mean()
                         loss = loss + cfg.lambda_rec * r
-                        rec_total += float(r.detach())
-                        out[f"rec{l}"] = float(r.detach())
-                    self._generator_step(loss, levels, "reconstruction")
+                        rec_total = rec_total + r.detach()
+                        out[f"rec{l}"] = r.detach()
+                    self._generator_step(loss, levels, "R")
                     out["rec"] = rec_total / len(levels)
         return out
+
+    def _generator_step(self, loss: Tensor, levels: Sequence[int], what: str) -> None:
+        """One guarded step of the generators of ``levels`` on ``loss``."""
+        for l in levels:
+            self.opt_g[l].zero_grad(set_to_none=True)
+        self._guarded_step([self.opt_g[l] for l in levels], loss, what, levels)
 
 
 def train(clips: Sequence[Clip], cfg: GanimatorConfig, run_dir: str | Path, progress: bool = True,

@@ -209,6 +209,10 @@ def test_train_ganimator_guarantees_and_progress(clip, gan_run, tmp_path, tiny_g
     fresh = tmp_path / "fresh"
     modi.train_ganimator(clip, fresh, preset="tiny", progress=seen.append, **tiny_ganimator)
     assert seen and seen[-1].model == "ganimator" and seen[-1].step == seen[-1].total
+    # losses at the log iterations (every 10th and a block's last), read from the device there only
+    assert all(bool(p.losses) == (p.step % 10 == 0 or p.step == p.total) for p in seen)
+    assert {"D", "G", "rec", "con", "gp"} <= set(seen[-1].losses) and all(isinstance(v, float)
+                                                                          for v in seen[-1].losses.values())
     with pytest.raises(UserError, match="unknown GANimator option"):
         modi.train_ganimator(clip, tmp_path / "x", preset="tiny", no_such_option=1)
     with pytest.raises(UserError, match="unknown preset"):

@@ -452,8 +452,62 @@ def _nan_after(monkeypatch, calls: int) -> None:
     monkeypatch.setattr(gt, "gradient_penalty", gp)
 
 
-def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch):
+def test_an_iteration_asks_nothing_of_the_device(tmp_path, monkeypatch):
+    """Outside log iterations an iteration reads no value from the device and uploads nothing: the losses stay
+    tensors, the non-finite guard skips a step on the device, the feet are a device index. The fake pool's coin
+    (``FakePool.query``) is a draw from the CPU generator, as the authors' pool draws, so on CUDA it waits for
+    nothing; its reads are counted apart, and every one of them is of a CPU tensor."""
+    from benchmarks.step_ops import OpCounter
+
+    from modi.models.ganimator import training as gt
+
+    cfg = tiny_cfg(iterations=6, max_levels=2, coarse_ratio=0.5, d_steps=2)
+    seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8, cfg=cfg)
+    trainer = Trainer([seq], cfg, tmp_path / "r")
+    counter, in_pool, pool_reads = OpCounter(), [False], []
+
+    class Watch(torch.utils._python_dispatch.TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if in_pool[0] and func is torch.ops.aten._local_scalar_dense.default:
+                pool_reads.append(args[0].device.type)
+            return func(*args, **(kwargs or {}))
+
+    query = gt.FakePool.query
+
+    def watched_query(self, fake):
+        in_pool[0] = True
+        try:
+            return query(self, fake)
+        finally:
+            in_pool[0] = False
+
+    monkeypatch.setattr(gt.FakePool, "query", watched_query)
+    iteration = trainer._iteration
+
+    def counted(*a, **k):
+        counter.mark(pool_reads=len(pool_reads))
+        with counter, Watch():
+            return iteration(*a, **k)
+
+    monkeypatch.setattr(trainer, "_iteration", counted)
+    trainer.run(progress=False, log=None)
+    steps = counter.steps[1:6]  # the first iteration also makes what is made once (checks, self-test)
+    assert len(steps) == 5 and pool_reads and set(pool_reads) == {"cpu"}
+    marks = [s["pool_reads"] for s in counter.steps[1:7]]
+    for s, before, after in zip(steps, marks, marks[1:]):
+        assert s["syncs"] == after - before, s["syncs"]  # the pool's coin, nothing else
+        assert s["h2d"] == 0
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["skipped-on-the-device", "host-check"])
+def test_a_non_finite_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch, fused):
+    """Fused Adam skips the step on the device and the save reads the guard; an optimiser off the fused kernel (a
+    checkpoint saved without it) checks on the host before its step. Either way: the same message and checkpoint."""
+    from modi.models.ganimator import training as gt
     from modi.models.ganimator.training import NonFiniteLossError
+
+    if not fused:
+        monkeypatch.setattr(gt, "fused_adam", lambda params, lr, betas: torch.optim.Adam(params, lr=lr, betas=betas))
 
     cfg = tiny_cfg(iterations=4, max_levels=2, coarse_ratio=0.5)
     seq = clip_seq([-1, 0, 1, 0, 3], T=40, seed=8)
