@@ -93,5 +93,5 @@ def csr_from_lists(lists: Sequence[Sequence[int]], n_in: int | None = None, *,
 
 def pair_entity(offsets: torch.Tensor, nnz: int) -> torch.Tensor:
     """Output entity of each pair, from CSR offsets (compile-friendly: the output size is given)."""
-    counts = offsets[1:] - offsets[:-1]
-    return torch.repeat_interleave(torch.arange(counts.numel(), device=offsets.device), counts, output_size=nnz)
+    # repeat_interleave(counts) is [0] * counts[0] + [1] * counts[1] + ...: the entity of each pair, in one op
+    return torch.repeat_interleave(offsets.diff(), output_size=nnz)

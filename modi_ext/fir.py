@@ -28,15 +28,17 @@ _SUM = sum(FIR_TAPS)
 _WEIGHTS: dict[tuple, torch.Tensor] = {}
 
 
-def _weight(gain: float, x: torch.Tensor, groups: int) -> torch.Tensor:
-    """The filter times ``gain / sum(taps)`` as a depthwise conv weight ``(groups, 1, 1, 4)``: made once per gain,
-    dtype and device (a tensor made per call would be a host-to-device copy per call on a GPU), then expanded."""
-    key = (gain, x.dtype, x.device)
+def _weight(gain: float, x: torch.Tensor, groups: int, before: int = 0, after: int = 0) -> torch.Tensor:
+    """The filter times ``gain / sum(taps)`` as a depthwise conv weight ``(groups, 1, 1, before + 4 + after)``, with
+    ``before`` / ``after`` zero taps: made once per form, dtype and device (a tensor made per call would be a
+    host-to-device copy per call on a GPU), then expanded."""
+    key = (gain, before, after, x.dtype, x.device)
     w = _WEIGHTS.get(key)
     if w is None:
-        w = torch.tensor([t * gain / _SUM for t in FIR_TAPS], dtype=x.dtype, device=x.device).view(1, 1, 1, -1)
+        taps = [0.0] * before + [t * gain / _SUM for t in FIR_TAPS] + [0.0] * after
+        w = torch.tensor(taps, dtype=x.dtype, device=x.device).view(1, 1, 1, -1)
         _WEIGHTS[key] = w
-    return w.expand(groups, 1, 1, len(FIR_TAPS))
+    return w.expand(groups, 1, 1, w.shape[-1])
 
 
 def _rows(x: torch.Tensor) -> tuple[torch.Tensor, int]:
@@ -50,10 +52,14 @@ def _filter(x: torch.Tensor, form: tuple) -> torch.Tensor:
     correlation of the zero-padded signal, keeping every ``stride``-th frame -- or ``("trans", gain, length)`` -- zero
     insertion to ``length`` frames (``2T`` or ``2T + 1``) then the filter, as a transposed conv of stride 2."""
     r, g = _rows(x)
-    w = _weight(form[1], x, g)
     if form[0] == "corr":
-        y = F.conv2d(F.pad(r, form[2:4]), w, stride=(1, form[4]), groups=g)
+        # uneven zero padding as the conv's own even padding of a filter with zero taps on the short side: one op,
+        # where a pad then a conv is two (each a launch on a GPU)
+        pad = max(form[2], form[3])
+        w = _weight(form[1], x, g, pad - form[2], pad - form[3])
+        y = F.conv2d(r, w, stride=(1, form[4]), padding=(0, pad), groups=g)
     else:
+        w = _weight(form[1], x, g)
         y = F.conv_transpose2d(r, w, stride=(1, 2), padding=(0, 1), output_padding=(0, form[2] - 2 * x.shape[-1]),
                                groups=g)
     return y.reshape(*x.shape[:-1], y.shape[-1])

@@ -33,30 +33,34 @@ def _setup_context(ctx, inputs, output) -> None:
 def graph_gradients(grad, d, weight, style, index, offsets, up: bool, n_out: int, want: tuple[bool, bool]):
     """The weight and style gradients of ``d = rsqrt(s^2 . Q + eps)`` as a differentiable graph (``create_graph``).
 
-    With ``Q[o, j, i] = sum_{p in j, u} W[o, p, i, u]^2`` and ``h = -g d^3 / 2`` (``d`` the op's saved output, whose
-    own graph leads back into this op): ``grad_s = 2 s (h . Q)`` and ``grad_W = 2 W h[segment] s^2``.  A handful of
-    small ops each way, where re-running the torch form and differentiating it took about five times as many, each a
-    launch on CUDA and each differentiated again by the step that asked for the graph (path length, R1).
+    With ``Q[o, j, i] = sum_{p in j, u} W[o, p, i, u]^2`` and ``k = g d^3`` (``d`` the op's saved output, whose own
+    graph leads back into this op): ``grad_s = -s (k . Q)`` and ``grad_W = -W k[segment] s^2``, the signs carried by
+    ``-s`` so that no op multiplies by a constant.  A handful of small ops each way, where re-running the torch form
+    and differentiating it took about five times as many, each a launch on CUDA and each differentiated again by the
+    step that asked for the graph (path length, R1).
     """
     dtype = weight.dtype
     if dtype in dense._HALF:  # summed in float32, as the torch form does
         grad, d, weight = grad.float(), d.float(), weight.float()
         style = style.float() if style is not None else None
-    h = grad * d.pow(3) * -0.5  # (Bs, Cout, E_out)
+    k = grad * d.pow(3)  # (Bs, Cout, E_out)
     segment = index if up else pair_entity(offsets, index.shape[0])
-    s2 = style.square() if style is not None else None
+    neg_s = style.neg() if style is not None else None
     gw = gs = None
     if want[0]:
-        if up:  # weight (Ci, nnz, Co, U), Q (Ci, Ef, Co), h (B, Co, Ef)
-            gq = torch.einsum("bof,bi->ifo", h, s2) if s2 is not None else h.sum(0).t().unsqueeze(0)
-        else:  # weight (Co, nnz, Ci, U), Q (Co, Eo, Ci), h (B, Co, Eo)
-            gq = torch.einsum("boj,bi->oji", h, s2) if s2 is not None else h.sum(0).unsqueeze(-1)
-        gw = (weight * (2.0 * gq.index_select(1, segment)).unsqueeze(-1)).to(dtype)
-    if want[1]:  # h . Q summed over the pairs and taps of W^2 directly: no segment sum
-        hp = h.index_select(2, segment)  # (B, Cout, nnz)
-        hq = (torch.einsum("bop,ipou->bi", hp, weight.square()) if up
-              else torch.einsum("bop,opiu->bi", hp, weight.square()))
-        gs = (2.0 * style * hq).to(dtype)
+        if neg_s is None:  # s = 1
+            kq = k.sum(0).neg()
+            gq = kq.t().unsqueeze(0) if up else kq.unsqueeze(-1)
+        else:
+            s2 = style * neg_s  # -s^2
+            # up: weight (Ci, nnz, Co, U), Q (Ci, Ef, Co); else weight (Co, nnz, Ci, U), Q (Co, Eo, Ci)
+            gq = torch.einsum("bof,bi->ifo", k, s2) if up else torch.einsum("boj,bi->oji", k, s2)
+        gw = (weight * gq.index_select(1, segment).unsqueeze(-1)).to(dtype)
+    if want[1]:  # k . Q summed over the pairs and taps of W^2 directly: no segment sum
+        kp = k.index_select(2, segment)  # (B, Cout, nnz)
+        kq = (torch.einsum("bop,ipou->bi", kp, weight.square()) if up
+              else torch.einsum("bop,opiu->bi", kp, weight.square()))
+        gs = (neg_s * kq).to(dtype)
     return gw, gs
 
 
