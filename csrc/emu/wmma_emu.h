@@ -54,7 +54,8 @@ struct storage_element<precision::tf32> {
 
 template <typename Use, int M, int N, int K, typename T, typename Layout = void>
 struct fragment {
-  static_assert(M == 16 && N == 16 && (K == 16 || K == 8), "the emulator models the 16 x 16 x 16 and 16 x 16 x 8 shapes");
+  static_assert(M == 16 && N == 16 && (K == 16 || K == 8),
+                "the emulator models the 16 x 16 x 16 and 16 x 16 x 8 shapes");
   static_assert(std::is_same_v<Use, accumulator>
                     ? std::is_same_v<T, float>
                     : (K == 16 ? (std::is_same_v<T, __nv_bfloat16> || std::is_same_v<T, __half>)

@@ -1,6 +1,6 @@
 // Tensor-core (WMMA) form of the skeletal GEMMs: bf16 operands (16 x 16 x 16 fragments) for bf16 inputs, TF32
-// operands (16 x 16 x 8, precision::tf32) for float32 inputs; fp32 accumulation either way.  Opt-in: MODI_EXT_CUDA_MMA=1,
-// and for float32 only while torch allows TF32 (cuda.cu: mma_for).
+// operands (16 x 16 x 8, precision::tf32) for float32 inputs; fp32 accumulation either way.  Opt-in:
+// MODI_EXT_CUDA_MMA=1, and for float32 only while torch allows TF32 (cuda.cu: mma_for).
 //
 // Included by skeletal/cuda.cu inside its anonymous namespace, after the types and kernels it shares with the SIMT
 // path: GemmArgs / WArgs (the gathered operand and the topology), read_fwd / read_tr, the epilogue Epi / epi_store_at

@@ -131,7 +131,7 @@ def test_mma_forward_matches_float64(size):
 
 def test_mma_block_walks_column_tiles_with_resident_weight_panels():
     """One SM: each block walks all column tiles; K = deg x 60 x 3 > 512 needs two weight panels, reloaded per
-    column tile.  The launch grid is what launch_mma_forward says: (1, row tiles, entities)."""
+    column tile.  The launch grid is what launch_mma_gemm says: (1, row tiles, entities)."""
     p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=7, B=2, cin=60, cout=24,
                 T=40, n=5, act=True)
     assert k_max(p) > 512
@@ -180,8 +180,8 @@ def test_mma_planted_faults_are_caught(defect, kind):
 
 
 def test_selfcheck_passes_with_the_mma_forward():
-    """The first-use self-check in bf16 with the switch on: its forwards run on the tensor-core kernels (backward on
-    the SIMT kernels) and pass the payload's bf16 tolerance."""
+    """The first-use self-check in bf16 with the switch on: its forwards (and backwards) run on the tensor-core
+    kernels and pass the payload's bf16 tolerance."""
     from modi_ext.runtime import selfcheck
 
     n0 = mma_launches()

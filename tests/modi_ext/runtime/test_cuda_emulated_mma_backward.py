@@ -265,10 +265,10 @@ def test_tf32_follows_torch_switch_and_the_mma_switch():
     assert mma_launches() == n0 + 6
 
 
-def test_tf32_operands_must_be_rounded():
-    """The emulator's tf32 rounding: round to nearest on the 13 dropped bits, ties away from zero (cvt.rna), checked
-    on the emulated forward of exactly representable inputs: with x and w on the TF32 grid and a single product per
-    output, the result is exact; one bit below the grid rounds."""
+def test_tf32_rounds_to_nearest_ties_away():
+    """The TF32 rounding of the operands (cvt.rna.tf32.f32: round to nearest on the 13 dropped bits, ties away from
+    zero), seen through the float32 forward with one product per output and a unit weight: inputs on the TF32 grid
+    come out exact, inputs halfway between two TF32 values come out rounded away from zero, for either sign."""
     p = Problem("conv", "none", "zeros", U=1, bias=False, dtype=torch.float32, seed=8, B=1, cin=1, cout=1, T=4,
                 single=True)
     x = torch.tensor([[[[1.0, 1.0 + 2.0 ** -10, 1.0 + 2.0 ** -11, 1.0 + 3 * 2.0 ** -11]]]])
@@ -281,6 +281,13 @@ def test_tf32_operands_must_be_rounded():
     with tf32(True), mma_on():
         yn = torch.ops.modi_ext_emu.skeletal_conv(xn, w, None, p.index, p.offsets, None, None, "zeros", False)
     assert yn.flatten().tolist() == [-1.0, -1.0 - 2.0 ** -10, -1.0 - 2.0 ** -10, -1.0 - 2.0 ** -9]
+
+
+def test_emulator_refuses_unrounded_tf32_operands():
+    """A kernel that loads float32 into TF32 fragments without __float_to_tf32 computes with bits a tensor core does
+    not read: the emulator's mma_sync names the rule instead."""
+    with pytest.raises(RuntimeError, match="tf32 operand was not rounded with __float_to_tf32"):
+        torch.ops.modi_ext_emu.emu_selftest("tf32_unrounded", 32)
 
 
 @pytest.mark.parametrize("kind", ("conv", "up"))
@@ -321,13 +328,23 @@ def test_tf32_planted_faults_are_caught():
 
 
 def test_selfcheck_passes_with_the_mma_backward():
-    """The first-use self-check in bf16 and float32 (TF32 on) with the switch on: forwards and backwards on the
-    tensor-core kernels, within the payload's tolerance of each dtype."""
+    """The first-use self-check with the switch on: bf16 forwards and backwards on the tensor-core kernels within the
+    payload's bf16 tolerance; float32 with TF32 on within TF32_TOL (the bf16 tolerance scaled by u_tf32 / u_bf16),
+    which it needs: its errors exceed the float32 tolerance the SIMT kernels meet with TF32 off."""
     from modi_ext.runtime import selfcheck
 
     n0 = mma_launches()
     with mma_on():
         res = selfcheck.run("cpu", torch.bfloat16, lib="modi_ext_emu")
     assert res["ok"], res["errors"]
-    names = {k for k, n in EMU.launch_counts().items() if k.startswith("mma_wgrad_kernel<c10::BFloat16")}
-    assert mma_launches() > n0 and names
+    assert mma_launches() > n0
+    assert any(k.startswith("mma_wgrad_kernel<c10::BFloat16") for k in EMU.launch_counts())
+    n0 = mma_launches()
+    with mma_on(), tf32(True):
+        assert selfcheck.tolerance("cpu", torch.float32, "modi_ext_emu") == selfcheck.TF32_TOL
+        assert selfcheck.tolerance("cpu", torch.float32) == selfcheck.TOL[torch.float32]  # the CPU kernels
+        res = selfcheck.run("cpu", torch.float32, lib="modi_ext_emu")
+    assert res["ok"], res["errors"]
+    assert mma_launches() > n0 and max(res["max_error"].values()) > selfcheck.TOL[torch.float32]
+    with mma_on(), tf32(False):
+        assert selfcheck.tolerance("cpu", torch.float32, "modi_ext_emu") == selfcheck.TOL[torch.float32]
