@@ -206,12 +206,13 @@ def test_mma_backward_tf32_matches_float64(size):
 
 def test_mma_weight_gradient_split_reduction_and_random_skeleton():
     """Many SMs: the weight gradient's batch x time range is split (fp32 partials, summed in split order by
-    split_reduce_kernel); a larger random skeleton, 32+ output rows, two weight-column tiles per row."""
-    p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=5, B=3, cin=9, cout=37,
+    split_reduce_kernel); a larger random skeleton, two 32-row tiles in both GEMMs, several weight-column tiles per
+    row."""
+    p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=5, B=3, cin=33, cout=37,
                 T=60, n=6, act=True)
     EMU.set_sm_count(1000)
     try:
-        plan = EMU.wgrad_plan(3 * 60, p.offsets.numel() - 1, p.index.numel(), 9 * 3, 37, 1000)
+        plan = EMU.wgrad_plan(3 * 60, p.offsets.numel() - 1, p.index.numel(), 33 * 3, 37, 1000)
         before = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel<c10::BFloat16"))
         check_backward(p)
         after = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel<c10::BFloat16"))
@@ -220,12 +221,14 @@ def test_mma_weight_gradient_split_reduction_and_random_skeleton():
     assert plan["splits"] > 1 and after == before + 2
 
 
-@pytest.mark.parametrize("kind", ("conv", "down", "up"))
-def test_tf32_forward_matches_float64(kind):
+@pytest.mark.parametrize("kind, cin", (("conv", 5), ("down", 5), ("up", 5), ("conv", 40)))
+def test_tf32_forward_matches_float64(kind, cin):
     """The float32 forward on TF32 fragments: both operands rounded to TF32 (the weight too), K products summed in
-    fp32: error <= ((1 + u_op)(1 + u_op + 16 u)(1 + (K + 6) u) - 1) D + 6 u |b|, times the activation's gain, + u_T."""
-    p = Problem(kind, "style_demod", "reflect", U=3, bias=True, dtype=torch.float32, seed=61, B=2, cin=5, cout=20,
-                T=23, act=True, unread=True)
+    fp32: error <= ((1 + u_op)(1 + u_op + 16 u)(1 + (K + 6) u) - 1) D + 6 u |b|, times the activation's gain, + u_T.
+    cin 40: K > 256, two resident weight panels of the TF32 kernel."""
+    p = Problem(kind, "style_demod", "reflect", U=3, bias=True, dtype=torch.float32, seed=61, B=2, cin=cin, cout=20,
+                T=23, act=True, unread=True, n=5 if cin > 32 else None)
+    assert cin < 32 or k_max(p) > 256
     name = f"mma_gemm_kernel<float, {'true, true' if kind == 'up' else 'false, false'}>"
     n0 = EMU.launch_counts().get(name, 0)
     with tf32(True), mma_on():
