@@ -221,6 +221,27 @@ def test_mma_weight_gradient_split_reduction_and_random_skeleton():
     assert plan["splits"] > 1 and after == before + 2
 
 
+@pytest.mark.parametrize("dtype", (torch.bfloat16, torch.float32), ids=str)
+@pytest.mark.parametrize("kind", ("down", "up"))
+def test_mma_partial_backwards_read_only_what_they_need(kind, dtype):
+    """The two partial backwards modi_ext.skeletal.gradfix asks for: the input gradient with no x values and the
+    weight gradient with no weight values (NaN here, so a read of them shows), each on its tensor-core kernel and
+    within its bound."""
+    p = Problem(kind, "none", "reflect", U=3, bias=False, dtype=dtype, seed=21, B=2, cin=6, cout=9, T=30)
+    bounds, y = backward_bounds(p)
+    nan_x = torch.full_like(p.cast(p.x), float("nan"))
+    nan_w = torch.full_like(p.cast(p.w), float("nan"))
+    n0 = mma_launches()
+    with mma_on(), tf32(True):
+        gx = schedules(lambda: p.backward(y, (True, False, False, False), x=nan_x))[0]
+        gw = schedules(lambda: p.backward(y, (False, True, False, False), w=nan_w))[1]
+    assert mma_launches() == n0 + 4
+    for got, name in ((gx, "x"), (gw, "weight")):
+        want, tol = bounds[name]
+        err = (got.double() - want).abs()
+        assert (err <= tol).all(), f"{kind} partial grad {name}: max error / bound {(err / tol).max().item():.3g}"
+
+
 @pytest.mark.parametrize("kind, cin", (("conv", 5), ("down", 5), ("up", 5), ("conv", 40)))
 def test_tf32_forward_matches_float64(kind, cin):
     """The float32 forward on TF32 fragments: both operands rounded to TF32 (the weight too), K products summed in
