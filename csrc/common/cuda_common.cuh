@@ -48,7 +48,8 @@
 #endif
 
 // Test-only defects of the emulator, chosen at run time (csrc/emu/cuda_emu.h: off_by_one, global_oob,
-// wrong_scale, split_edge, wrong_slope, mma_fragment_offset, mma_tile_edge): 0 in every other build, so the CUDA build
+// wrong_scale, split_edge, wrong_slope, mma_fragment_offset, mma_tile_edge,
+// mma_wgrad_fragment_offset, mma_wgrad_tile_edge): 0 in every other build, so the CUDA build
 // compiles to the same code.
 #ifdef MODI_EXT_EMULATE_CUDA
 #define MODI_EMU_OFF_BY_ONE (::modi_emu::injected_defect() == MODI_EMU_INJECT_OFF_BY_ONE_ID ? 1 : 0)
@@ -59,6 +60,10 @@
 #define MODI_EMU_MMA_FRAGMENT_OFFSET \
   (::modi_emu::injected_defect() == MODI_EMU_INJECT_MMA_FRAGMENT_OFFSET_ID ? 1 : 0)
 #define MODI_EMU_MMA_TILE_EDGE (::modi_emu::injected_defect() == MODI_EMU_INJECT_MMA_TILE_EDGE_ID ? 1 : 0)
+#define MODI_EMU_MMA_WGRAD_FRAGMENT_OFFSET \
+  (::modi_emu::injected_defect() == MODI_EMU_INJECT_MMA_WGRAD_FRAGMENT_OFFSET_ID ? 1 : 0)
+#define MODI_EMU_MMA_WGRAD_TILE_EDGE \
+  (::modi_emu::injected_defect() == MODI_EMU_INJECT_MMA_WGRAD_TILE_EDGE_ID ? 1 : 0)
 #else
 #define MODI_EMU_OFF_BY_ONE 0
 #define MODI_EMU_GLOBAL_OOB 0
@@ -67,6 +72,8 @@
 #define MODI_EMU_WRONG_SLOPE 0
 #define MODI_EMU_MMA_FRAGMENT_OFFSET 0
 #define MODI_EMU_MMA_TILE_EDGE 0
+#define MODI_EMU_MMA_WGRAD_FRAGMENT_OFFSET 0
+#define MODI_EMU_MMA_WGRAD_TILE_EDGE 0
 #endif
 
 namespace modi_ext {

@@ -26,7 +26,10 @@
 // row / transposed GEMMs one 16-deep k stage, at each inner split boundary; finite), wrong_slope
 // (act_backward_kernel's negative-side slope is 2^-9 off: finite), mma_fragment_offset (the tensor-core forward's two
 // B fragments per warp are read at each other's column offset: finite, outputs in the wrong columns) or mma_tile_edge
-// (its gathered operand's k edge is one short: the last reduction row of each entity is dropped; finite).
+// (its gathered operand's k edge is one short: the last reduction row of each entity is dropped; finite),
+// mma_wgrad_fragment_offset (the tensor-core weight gradient's two B fragments per warp swapped: finite, gradients in
+// the wrong weight columns) or mma_wgrad_tile_edge (its batch x time range ends one column short in every split: one
+// product of every gradient element dropped; finite).
 #include "emu/emu_control.h"  // the MODI_EMU_INJECT_*_ID numbers
 
 #include <c10/core/Device.h>

@@ -21,6 +21,8 @@
 #define MODI_EMU_INJECT_WRONG_SLOPE_ID 6
 #define MODI_EMU_INJECT_MMA_FRAGMENT_OFFSET_ID 7
 #define MODI_EMU_INJECT_MMA_TILE_EDGE_ID 8
+#define MODI_EMU_INJECT_MMA_WGRAD_FRAGMENT_OFFSET_ID 9
+#define MODI_EMU_INJECT_MMA_WGRAD_TILE_EDGE_ID 10
 
 namespace modi_emu {
 void set_seed(uint64_t seed);  // 0: threads and blocks in index order; else a seeded permutation

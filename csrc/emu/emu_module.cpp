@@ -59,7 +59,8 @@ PyObject* py_launch_counts(PyObject*, PyObject*) {
 }
 
 // Test-only run-time defects (cuda_emu.h): "" (none), "drop_sync", "off_by_one", "global_oob", "wrong_scale",
-// "split_edge", "wrong_slope", "mma_fragment_offset", "mma_tile_edge".
+// "split_edge", "wrong_slope", "mma_fragment_offset", "mma_tile_edge", "mma_wgrad_fragment_offset",
+// "mma_wgrad_tile_edge".
 const std::pair<const char*, int> kDefects[] = {{"", 0},
                                                 {"drop_sync", MODI_EMU_INJECT_DROP_SYNC_ID},
                                                 {"off_by_one", MODI_EMU_INJECT_OFF_BY_ONE_ID},
@@ -68,7 +69,10 @@ const std::pair<const char*, int> kDefects[] = {{"", 0},
                                                 {"split_edge", MODI_EMU_INJECT_SPLIT_EDGE_ID},
                                                 {"wrong_slope", MODI_EMU_INJECT_WRONG_SLOPE_ID},
                                                 {"mma_fragment_offset", MODI_EMU_INJECT_MMA_FRAGMENT_OFFSET_ID},
-                                                {"mma_tile_edge", MODI_EMU_INJECT_MMA_TILE_EDGE_ID}};
+                                                {"mma_tile_edge", MODI_EMU_INJECT_MMA_TILE_EDGE_ID},
+                                                {"mma_wgrad_fragment_offset",
+                                                 MODI_EMU_INJECT_MMA_WGRAD_FRAGMENT_OFFSET_ID},
+                                                {"mma_wgrad_tile_edge", MODI_EMU_INJECT_MMA_WGRAD_TILE_EDGE_ID}};
 
 PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
   const char* name = PyUnicode_AsUTF8(arg);
@@ -81,7 +85,8 @@ PyObject* py_set_injected_defect(PyObject*, PyObject* arg) {
   }
   PyErr_Format(PyExc_ValueError,
                "unknown defect '%s' (expected '', 'drop_sync', 'off_by_one', 'global_oob', 'wrong_scale', 'split_edge', "
-               "'wrong_slope', 'mma_fragment_offset' or 'mma_tile_edge')", name);
+               "'wrong_slope', 'mma_fragment_offset', 'mma_tile_edge', 'mma_wgrad_fragment_offset' or "
+               "'mma_wgrad_tile_edge')", name);
   return nullptr;
 }
 
@@ -174,7 +179,8 @@ PyMethodDef kMethods[] = {
      "gemm_plan(N, M, ents, nnz, C*U, sms): a row / transposed GEMM's launch (skeletal/launch_plan.h)."},
     {"set_injected_defect", py_set_injected_defect, METH_O,
      "Test-only: turn on a defect ('drop_sync', 'off_by_one', 'global_oob', 'wrong_scale', 'split_edge', "
-     "'wrong_slope', 'mma_fragment_offset', 'mma_tile_edge') or off ('')."},
+     "'wrong_slope', 'mma_fragment_offset', 'mma_tile_edge', 'mma_wgrad_fragment_offset', 'mma_wgrad_tile_edge') "
+     "or off ('')."},
     {"injected_defect", py_injected_defect, METH_NOARGS, "The run-time defect in force ('' = none)."},
     {"registered_kernels", py_registered_kernels, METH_NOARGS,
      "Sorted names of every kernel instantiation the module can launch (registered at load time)."},

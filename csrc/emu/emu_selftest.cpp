@@ -5,6 +5,7 @@
 #include <ATen/ATen.h>
 
 #include "common/cuda_common.cuh"
+#include "common/wmma.cuh"
 
 namespace modi_ext {
 namespace {
@@ -72,6 +73,26 @@ __global__ void intrinsics_kernel(float* out) {
   atomicAdd(out + 8 * blockDim.x, 1.f);
 }
 
+// One warp multiplies TF32 fragments whose elements were never rounded with __float_to_tf32 (1 + 2^-20 has mantissa
+// bits below TF32's 10): the tensor core would read only the high bits, so the emulator refuses the operands.
+__global__ void tf32_unrounded_kernel(float* out) {
+  namespace wmma = nvcuda::wmma;
+  MODI_SHARED_WMMA(float, s, [16][8]);
+  MODI_SHARED_WMMA(float, c, [16][16]);
+  for (int i = threadIdx.x; i < 16 * 8; i += 32) s[i / 8][i % 8] = 1.0f + 0x1p-20f;
+  __syncthreads();
+  wmma::fragment<wmma::matrix_a, 16, 16, 8, wmma::precision::tf32, wmma::row_major> a;
+  wmma::fragment<wmma::matrix_b, 16, 16, 8, wmma::precision::tf32, wmma::col_major> b;
+  wmma::fragment<wmma::accumulator, 16, 16, 8, float> acc;
+  wmma::load_matrix_sync(a, &s[0][0], 8);
+  wmma::load_matrix_sync(b, &s[0][0], 8);
+  wmma::fill_fragment(acc, 0.0f);
+  wmma::mma_sync(acc, a, b, acc);
+  wmma::store_matrix_sync(&c[0][0], acc, 16, wmma::mem_row_major);
+  __syncthreads();
+  out[threadIdx.x] = c[0][threadIdx.x % 16];
+}
+
 at::Tensor emu_selftest(c10::string_view name, int64_t threads) {
   TORCH_CHECK(threads >= 1 && threads <= 1024, "threads must be in [1, 1024]");
   const modi_emu::PoisonScope poison;
@@ -96,6 +117,8 @@ at::Tensor emu_selftest(c10::string_view name, int64_t threads) {
     MODI_LAUNCH(dynamic_overflow_kernel, 1, n, (n - 1) * sizeof(float), stream, p);
   } else if (name == "race") {
     MODI_LAUNCH(race_kernel, 1, n, 0, stream, p);
+  } else if (name == "tf32_unrounded") {
+    MODI_LAUNCH(tf32_unrounded_kernel, 1, n, 0, stream, p);
   } else if (name == "intrinsics") {
     MODI_LAUNCH(intrinsics_kernel, 1, n, 0, stream, p);
   } else {

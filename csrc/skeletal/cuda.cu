@@ -14,8 +14,8 @@
 //   weight-gradient GEMM (`wgrad`)  gW[m, row pairs] = sum_(b,t) L[m, (b,t)] G[k, (b,t)], one block per k tile
 //       of a row, with the reduction over batch x time split across blocks into fp32 partials (no atomics).
 // The three share one main loop (gemm_main_loop); the row and transposed GEMMs also one block body (gemm_block).
-// The bf16 forwards can instead run their GEMM on the tensor cores: skeletal/mma_forward.cuh (opt-in,
-// MODI_EXT_CUDA_MMA=1).
+// The bf16 (and, where torch allows TF32, the float32) forwards and backwards can instead run their GEMMs on the
+// tensor cores: skeletal/mma_gemm.cuh (opt-in, MODI_EXT_CUDA_MMA=1).
 //
 // Tiles: one block per (column tile of batch x time, output-channel tile, entity [x k split]); 64 x 64 (or 32 x 64
 // when the GEMM has <= 32 rows) outputs per block, 4 x 4 per thread, 16-deep reduction stages double-buffered in
@@ -568,9 +568,6 @@ __global__ void __launch_bounds__(Tile<BM>::NT) tr_gemm_kernel(const GemmArgs<T>
   gemm_block<T, BM, true, kBlur>(a);
 }
 
-// The opt-in tensor-core form of the forward GEMMs (bf16): mma_gemm_kernel, launch_mma_forward.
-#include "skeletal/mma_forward.cuh"
-
 // ------------------------------------------------------------------------------------------------ weight gradient
 // gW[m * lda + (p0 * C * U) + k] = sum_{n = (b, t)} L[m, n] * G[k, n]
 //   L[m, n] = lsrc[b, m, row, t] * lfac(b, m, row)      (lsrc is (B, M, El, L))
@@ -850,6 +847,9 @@ void launch_wgrad(WArgs<T> a, int64_t rows, int64_t nnz, const at::Tensor& gw, i
   }
 }
 
+// The opt-in tensor-core form of the GEMMs (bf16, TF32): mma_gemm_kernel, mma_wgrad_kernel and their launchers.
+#include "skeletal/mma_gemm.cuh"
+
 cudaStream_t current_stream(const at::Tensor& x) { return c10::cuda::getCurrentCUDAStream(x.device().index()); }
 
 // The gathered operand of one of a call's GEMMs: C channels of src times fac, read at stride s, over B x L columns.
@@ -887,11 +887,26 @@ GemmArgs<T> gemm_args(const Geo& g, const Gathered<T>& in, int64_t M, const T* w
 }
 
 // ------------------------------------------------------------------------------------------------ forward
-// MODI_EXT_CUDA_MMA=1: bf16 forwards run on the tensor cores (skeletal/mma_forward.cuh).  Read per call,
-// so a test or benchmark can switch it; off by default: no GPU has timed it against the SIMT kernels yet.
-bool mma_forward_requested() {
+// MODI_EXT_CUDA_MMA=1: the GEMMs of bf16 ops run on the tensor cores (skeletal/mma_gemm.cuh), and those of float32 ops
+// too while torch allows TF32 (torch.backends.cudnn.allow_tf32, the switch that governs torch's own convolutions:
+// TF32 rounds the operands to 10 mantissa bits, so a user who turned it off asked for float32 products).  Read per
+// call, so a test or benchmark can switch it; off by default: no GPU has timed it against the SIMT kernels yet.
+bool mma_requested() {
   const char* v = std::getenv("MODI_EXT_CUDA_MMA");
   return v && std::strcmp(v, "1") == 0;
+}
+
+template <typename T>
+bool mma_for(int device) {
+  if constexpr (std::is_same_v<T, at::BFloat16>) {
+    return mma_requested();  // launch_mma_* refuse a device without bf16 tensor cores
+  } else if constexpr (std::is_same_v<T, float>) {
+    // without TF32 tensor cores (before sm_80) torch's switch does nothing either: float32 stays on the SIMT kernels
+    return mma_requested() && at::globalContext().allowTF32CuDNN() && cuda::cc_major(device) >= 8;
+  } else {
+    (void)device;
+    return false;
+  }
 }
 
 at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& weight,
@@ -921,12 +936,12 @@ at::Tensor forward_cuda(int64_t kind, const at::Tensor& x, const at::Tensor& wei
     // x rows of the coarse entities that read each fine entity
     const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cin, kind == kConv ? 1 : 2, src, sty, g.Tout), g.Cout,
                                        weight.data_ptr<T>(), topo, epi);
-    if constexpr (std::is_same_v<T, at::BFloat16>) {
-      if (mma_forward_requested()) {
+    if constexpr (std::is_same_v<T, at::BFloat16> || std::is_same_v<T, float>) {
+      if (mma_for<T>(x.device().index())) {
         if (!up) {
-          launch_mma_forward<T, false>(a, rows, x.device().index(), stream);
+          launch_mma_gemm<T, false, false>(a, rows, x.device().index(), stream);
         } else {
-          launch_mma_forward<T, true>(a, cols, x.device().index(), stream);
+          launch_mma_gemm<T, true, true>(a, cols, x.device().index(), stream);
         }
         return;
       }
@@ -1043,10 +1058,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
       // read at tau] (transposed GEMM)
       const GemmArgs<T> a = gemm_args<T>(g, gathered<T>(g, g.Cout, kind == kConv ? 1 : 2, gsrc, dsc, g.Tin), g.Cin,
                                          weight.data_ptr<T>(), topo, epi);
-      if (up) {
-        launch_gemm<T, false, true>(a, rows, g.nnz, device, x.options(), stream);
-      } else {
-        launch_gemm<T, true, false>(a, cols, g.nnz, device, x.options(), stream);
+      bool done = false;
+      if constexpr (std::is_same_v<T, at::BFloat16> || std::is_same_v<T, float>) {
+        if (mma_for<T>(device)) {
+          if (up) {
+            launch_mma_gemm<T, false, true>(a, rows, device, stream);
+          } else {
+            launch_mma_gemm<T, true, false>(a, cols, device, stream);
+          }
+          done = true;
+        }
+      }
+      if (!done) {
+        if (up) {
+          launch_gemm<T, false, true>(a, rows, g.nnz, device, x.options(), stream);
+        } else {
+          launch_gemm<T, true, false>(a, cols, g.nnz, device, x.options(), stream);
+        }
       }
       if (want_gs) {
         MODI_LAUNCH((style_finish_kernel<T>), static_cast<unsigned>(g.B * g.Cin), 256, 0, stream,
@@ -1067,10 +1095,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> skeletal_
       a.off = topo.off;
       a.idx = topo.idx;
       a.lda = g.nnz * a.C * g.U;
-      if (up) {
-        launch_wgrad<T, true>(a, rows, g.nnz, gw, device, stream);
-      } else {
-        launch_wgrad<T, false>(a, rows, g.nnz, gw, device, stream);
+      bool done = false;
+      if constexpr (std::is_same_v<T, at::BFloat16> || std::is_same_v<T, float>) {
+        if (mma_for<T>(device)) {
+          if (up) {
+            launch_mma_wgrad<T, true>(a, rows, g.nnz, gw, device, stream);
+          } else {
+            launch_mma_wgrad<T, false>(a, rows, g.nnz, gw, device, stream);
+          }
+          done = true;
+        }
+      }
+      if (!done) {
+        if (up) {
+          launch_wgrad<T, true>(a, rows, g.nnz, gw, device, stream);
+        } else {
+          launch_wgrad<T, false>(a, rows, g.nnz, gw, device, stream);
+        }
       }
     }
   });

@@ -18,11 +18,26 @@ self-check); what it imports above the runtime is the references (so ``dispatch`
 """
 from __future__ import annotations
 
+import os
+
 import torch
 
 from modi_ext.runtime import kernels, payload
 
 TOL = payload.TOL
+# float32 on the CUDA kernels' tensor cores (MODI_EXT_CUDA_MMA=1 while torch.backends.cudnn.allow_tf32 is on) multiplies
+# TF32 operands, unit roundoff 2^-11: the bf16 tolerance (unit roundoff 2^-8) scaled by the ratio of the two.
+TF32_TOL = TOL[torch.bfloat16] * 2.0 ** -3
+
+
+def tolerance(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> float:
+    """The forward tolerance of (device, dtype): TF32_TOL where the CUDA kernels (an emulated table runs them on the
+    CPU) take float32 to the TF32 tensor cores, else TOL."""
+    cuda_kernels = torch.device(device).type == "cuda" or lib != kernels.LIB
+    if (dtype == torch.float32 and cuda_kernels and os.environ.get("MODI_EXT_CUDA_MMA") == "1"
+            and torch.backends.cudnn.allow_tf32):
+        return TF32_TOL
+    return TOL.get(dtype, 1e-4)
 
 
 def _families(lib: str, device_type: str) -> tuple[str, ...]:
@@ -40,7 +55,7 @@ def run(device: str, dtype: torch.dtype, lib: str = kernels.LIB) -> dict:
     """``{"ok", "errors": {op: message}, "max_error": {op: relative error}, "cases": n}`` for every kernel of
     ``lib`` (default: this build's ``torch.ops.modi_ext``, through the ``kernels.KERNELS`` hook) on (device, dtype).
     ``ok`` is False when nothing could be checked (no kernels registered for the device)."""
-    tol = TOL.get(dtype, 1e-4)
+    tol = tolerance(device, dtype, lib)
     table = kernels.KERNELS if lib == kernels.LIB else kernels.kernel_table(lib)
     families = _families(lib, torch.device(device).type)
     if lib == kernels.LIB and torch.device(device).type == "cpu" and dtype == torch.bfloat16:

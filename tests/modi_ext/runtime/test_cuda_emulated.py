@@ -655,9 +655,12 @@ EMU_TYPES = {torch.float64: "double", torch.float32: "float", torch.float16: "c1
 
 
 # Opt-in kernels (off unless a switch turns them on, so neither the payload nor the self-check launches them) and
-# their instantiations: the tensor-core forward, MODI_EXT_CUDA_MMA=1 (test_cuda_emulated_mma.py runs it).
-OPT_IN_KERNELS = {"mma_gemm_kernel"}
-OPT_IN = {"mma_gemm_kernel<c10::BFloat16, false>", "mma_gemm_kernel<c10::BFloat16, true>"}
+# their instantiations: the tensor-core GEMMs, MODI_EXT_CUDA_MMA=1 (test_cuda_emulated_mma*.py run them): bf16, and
+# float32 on TF32 -- the row / transposed GEMM with and without the blur, the weight gradient with and without it.
+OPT_IN_KERNELS = {"mma_gemm_kernel", "mma_wgrad_kernel"}
+OPT_IN = ({f"mma_gemm_kernel<{t}, {tr}, {blur}>" for t in ("c10::BFloat16", "float")
+           for tr, blur in itertools.product(("false", "true"), repeat=2)}
+          | {f"mma_wgrad_kernel<{t}, {blur}>" for t in ("c10::BFloat16", "float") for blur in ("false", "true")})
 
 
 def _expected_instantiations(dtypes=DTYPES) -> set[str]:
@@ -690,8 +693,8 @@ def _launched_since(before: dict) -> set[str]:
 
 def test_the_emulator_registers_every_instantiation():
     """Each instantiation some host code can launch registers itself at load time (cuda_emu.h KernelRegistration):
-    the registry is exactly the list written out here (97 default-path ones and the opt-in tensor-core forward's 2,
-    99 today) -- the yardstick of the payload test below."""
+    the registry is exactly the list written out here (97 default-path ones and the opt-in tensor-core GEMMs' 12,
+    109 today) -- the yardstick of the payload test below."""
     registered = _cuda_instantiations(EMU.registered_kernels())
     want = _expected_instantiations() | OPT_IN
     assert registered == want, sorted(registered ^ want)

@@ -97,15 +97,19 @@ RUNNER = textwrap.dedent("""
             ran.append(case.name + "." + str(dt))
             if fwd > payload.TOL[dt] or bwd > payload.GRAD_FACTOR * payload.TOL[dt]:
                 errors[ran[-1]] = [fwd, bwd]
-    if "bfloat16" in dtypes and not only:  # the opt-in tensor-core forward (bf16) under its switch
+    if "bfloat16" in dtypes and "float32" in dtypes and not only:
+        # the opt-in tensor-core GEMMs under their switch: bf16, and float32 on TF32 (torch's switch on)
         import os
+        from modi_ext.runtime import selfcheck
         os.environ["MODI_EXT_CUDA_MMA"] = "1"
-        bf = torch.bfloat16
-        for case in payload.cases(bf, ("skeletal",)):
-            fwd, bwd = payload.run_case(table, case, "cpu", bf)
-            ran.append(case.name + ".mma")
-            if fwd > payload.TOL[bf] or bwd > payload.GRAD_FACTOR * payload.TOL[bf]:
-                errors[ran[-1]] = [fwd, bwd]
+        torch.backends.cudnn.allow_tf32 = True
+        for dt in (torch.bfloat16, torch.float32):
+            tol = selfcheck.tolerance("cpu", dt, emu.LIBRARY)
+            for case in payload.cases(dt, ("skeletal",)):
+                fwd, bwd = payload.run_case(table, case, "cpu", dt)
+                ran.append(case.name + ".mma." + str(dt))
+                if fwd > tol or bwd > payload.GRAD_FACTOR * tol:
+                    errors[ran[-1]] = [fwd, bwd]
         del os.environ["MODI_EXT_CUDA_MMA"]
     print("RESULT " + json.dumps(dict(ran=ran, errors=errors, launched=sorted(emu.launch_counts()),
                                       registered=emu.registered_kernels())))
@@ -142,18 +146,18 @@ def _result(r: subprocess.CompletedProcess) -> dict:
 
 
 def test_payload_under_address_sanitizer_is_clean_and_complete(asan_module):
-    """Every kernel instantiation (the whole payload, four dtypes, then its bf16 skeletal cases again with the opt-in
-    tensor-core forward) runs under AddressSanitizer without one global out-of-bounds access, and matches the
-    float64 oracle."""
+    """Every kernel instantiation (the whole payload, four dtypes, then its bf16 and float32 skeletal cases again with
+    the opt-in tensor-core GEMMs, float32 on TF32) runs under AddressSanitizer without one global out-of-bounds
+    access, and matches the float64 oracle."""
     r, seconds = _run(asan_module)
     res = _result(r)
     print(f"\npayload under AddressSanitizer: {seconds:.1f} s, {len(res['ran'])} cases")
     assert not res["errors"], res["errors"]
     assert "ERROR: AddressSanitizer" not in r.stderr, r.stderr[-6000:]
     # this build has the csrc/<op>/cuda.cu kernels only (no emu_selftest.cpp): launched must be all it registered,
-    # the 97 of the default paths and the opt-in tensor-core forward's 2 (its bf16 pass above)
+    # the 97 of the default paths and the opt-in tensor-core GEMMs' 12 (the bf16 and TF32 passes above)
     assert set(res["launched"]) == set(res["registered"]), sorted(set(res["registered"]) - set(res["launched"]))
-    assert len(res["launched"]) == 99
+    assert len(res["launched"]) == 109
 
 
 def test_injected_global_out_of_bounds_read_is_caught(asan_module):

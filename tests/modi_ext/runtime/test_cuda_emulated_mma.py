@@ -1,4 +1,6 @@
-"""The tensor-core (WMMA) forward of the skeletal ops (csrc/skeletal/mma_forward.cuh), on the CPU emulator.
+"""The tensor-core (WMMA) bf16 forward of the skeletal ops (csrc/skeletal/mma_gemm.cuh), on the CPU emulator.
+
+The backward and the TF32 forms: test_cuda_emulated_mma_backward.py.
 
 The kernel is opt-in (``MODI_EXT_CUDA_MMA=1``) and takes bf16: operands are rounded to bf16 once in shared memory and
 multiplied by ``nvcuda::wmma`` 16 x 16 x 16 fragments with fp32 accumulation.  The emulator gives WMMA a plain
@@ -28,8 +30,8 @@ from test_cuda_emulated import EMU, EMU_ERROR, Problem, injected, schedules
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
-MMA = {"conv": "mma_gemm_kernel<c10::BFloat16, false>", "down": "mma_gemm_kernel<c10::BFloat16, false>",
-       "up": "mma_gemm_kernel<c10::BFloat16, true>"}
+MMA = {"conv": "mma_gemm_kernel<c10::BFloat16, false, false>", "down": "mma_gemm_kernel<c10::BFloat16, false, false>",
+       "up": "mma_gemm_kernel<c10::BFloat16, true, true>"}
 U_BF16 = torch.finfo(torch.bfloat16).eps / 2
 U_FP32 = torch.finfo(torch.float32).eps / 2
 DEFAULT_SMS = 108
@@ -60,8 +62,7 @@ def mma_on():
 
 
 def mma_launches() -> int:
-    counts = EMU.launch_counts()
-    return sum(counts.get(k, 0) for k in set(MMA.values()))
+    return sum(n for k, n in EMU.launch_counts().items() if k.startswith(("mma_gemm_kernel", "mma_wgrad_kernel")))
 
 
 def k_max(p: Problem) -> int:
@@ -130,7 +131,7 @@ def test_mma_forward_matches_float64(size):
 
 def test_mma_block_walks_column_tiles_with_resident_weight_panels():
     """One SM: each block walks all column tiles; K = deg x 60 x 3 > 512 needs two weight panels, reloaded per
-    column tile.  The launch grid is what launch_mma_forward says: (1, row tiles, entities)."""
+    column tile.  The launch grid is what launch_mma_gemm says: (1, row tiles, entities)."""
     p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=7, B=2, cin=60, cout=24,
                 T=40, n=5, act=True)
     assert k_max(p) > 512
@@ -143,15 +144,21 @@ def test_mma_block_walks_column_tiles_with_resident_weight_panels():
 
 
 def test_mma_is_opt_in():
-    """Without MODI_EXT_CUDA_MMA=1 the bf16 forward stays on the SIMT kernels; other dtypes never take the
-    tensor-core path."""
+    """Without MODI_EXT_CUDA_MMA=1 the bf16 forward and backward stay on the SIMT kernels; float32 takes the
+    tensor-core path only while torch allows TF32, float16 never."""
     n0 = mma_launches()
     assert os.environ.get("MODI_EXT_CUDA_MMA") != "1"
     for kind in ("conv", "up"):
-        Problem(kind, "style", "zeros", dtype=torch.bfloat16, seed=3).forward()
-    with mma_on():
-        Problem("conv", "style", "zeros", dtype=torch.float32, seed=3).forward()
-        Problem("up", "style", "zeros", dtype=torch.float16, seed=3).forward()
+        p = Problem(kind, "style", "zeros", dtype=torch.bfloat16, seed=3)
+        p.backward(p.forward())
+    before = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    try:
+        with mma_on():
+            Problem("conv", "style", "zeros", dtype=torch.float32, seed=3).forward()
+            Problem("up", "style", "zeros", dtype=torch.float16, seed=3).forward()
+    finally:
+        torch.backends.cudnn.allow_tf32 = before
     assert mma_launches() == n0
 
 
@@ -173,8 +180,8 @@ def test_mma_planted_faults_are_caught(defect, kind):
 
 
 def test_selfcheck_passes_with_the_mma_forward():
-    """The first-use self-check in bf16 with the switch on: its forwards run on the tensor-core kernels (backward on
-    the SIMT kernels) and pass the payload's bf16 tolerance."""
+    """The first-use self-check in bf16 with the switch on: its forwards (and backwards) run on the tensor-core
+    kernels and pass the payload's bf16 tolerance."""
     from modi_ext.runtime import selfcheck
 
     n0 = mma_launches()
