@@ -142,6 +142,15 @@ def cpu_bf16_path() -> dict:
     return _cpu_bf16_path(os.environ.get("MODI_EXT_CPU_KERNEL", ""))
 
 
+def cuda_tensor_cores() -> dict:
+    """Which CUDA kernels' GEMMs run on the tensor cores (``MODI_EXT_CUDA_MMA=1``, read per call by the C++ op):
+    bf16 whenever asked; float32 as TF32 only while ``torch.backends.cudnn.allow_tf32`` is on (and the GPU has TF32,
+    sm_80+), as torch's own convolutions; float16 and float64 never."""
+    asked = os.environ.get("MODI_EXT_CUDA_MMA") == "1"
+    return {"requested": asked, "bf16": asked, "float32_tf32": asked and bool(torch.backends.cudnn.allow_tf32),
+            "cudnn_allow_tf32": bool(torch.backends.cudnn.allow_tf32)}
+
+
 def _bf16_kernel() -> str | None:
     """"avx512_bf16", "emulated", or None for a build without the bf16 CPU kernels."""
     if not HAS_EXT or not kernels_built("cpu", "skeletal"):
@@ -323,6 +332,7 @@ def dispatch_report() -> list[dict]:
                              "selfcheck": os.environ.get("MODI_EXT_SELFCHECK", "1"), "extension_built": HAS_EXT}]
         rows += [{"kind": "build", "device_type": d, "family": f, "kernels": v} for (d, f), v in _built.items()]
         rows += [{"kind": "bf16", "device": "cpu", **cpu_bf16_path()}]
+        rows += [{"kind": "tensor_cores", "device": "cuda", **cuda_tensor_cores()}]
         rows += [{"kind": "selfcheck", "device": d, "dtype": t.replace("torch.", ""), "ok": r["ok"],
                   "errors": dict(r["errors"]), "max_error": dict(r["max_error"])} for (d, t), r in _checked.items()]
         rows += [{"kind": "auto", "device": d, "op": op, "signature": sig, **r} for (d, op, sig), r in _auto.items()]

@@ -697,3 +697,18 @@ def test_the_report_records_the_path_each_op_took(monkeypatch, impl):
     assert sum(r["calls"] for r in conv_rows) == 3, rows
     fk_rows = [r for r in rows if r["op"] == "fk"]
     assert [(r["path"], r["calls"]) for r in fk_rows] == [(impl, 1)], rows
+
+
+def test_dispatch_report_names_the_tensor_core_choice(monkeypatch):
+    """The CUDA tensor-core switch as the C++ op reads it: bf16 when asked, float32 (TF32) only while cuDNN's TF32
+    switch is on."""
+    monkeypatch.delenv("MODI_EXT_CUDA_MMA", raising=False)
+    (row,) = [r for r in modi_ext.dispatch_report() if r["kind"] == "tensor_cores"]
+    assert row["requested"] is False and row["bf16"] is False and row["float32_tf32"] is False
+    monkeypatch.setenv("MODI_EXT_CUDA_MMA", "1")
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    (row,) = [r for r in modi_ext.dispatch_report() if r["kind"] == "tensor_cores"]
+    assert row["bf16"] is True and row["float32_tf32"] is False
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", True)
+    (row,) = [r for r in modi_ext.dispatch_report() if r["kind"] == "tensor_cores"]
+    assert row["bf16"] is True and row["float32_tf32"] is True
