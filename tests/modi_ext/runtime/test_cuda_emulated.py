@@ -59,8 +59,13 @@ def ops(lib: str = "modi_ext_emu"):
     return getattr(torch.ops, lib)
 
 
+DEFAULT_SMS = 108  # the emulator's multiprocessor count outside a test that sets another
+
+
 @pytest.fixture(scope="module", autouse=True)
 def emu():
+    """The emulated module, built and clean, for every test of a module of the emulated suite (the other modules
+    import this fixture); afterwards no schedule seed, defect or SM count of a test is left behind."""
     if EMU is None:
         pytest.fail(f"modi_ext._C_emu (the emulated CUDA kernels) is not built: {EMU_ERROR}. "
                     "Build it with `python3 setup.py build_ext --inplace` (MODI_EXT_EMU must not be 0).")
@@ -68,6 +73,17 @@ def emu():
     yield EMU
     EMU.set_schedule_seed(0)
     EMU.set_injected_defect("")
+    EMU.set_sm_count(DEFAULT_SMS)
+
+
+@contextlib.contextmanager
+def sm_count(n: int):
+    """The emulator's multiprocessor count (the launch plans read it), ``n`` for the block only."""
+    EMU.set_sm_count(n)
+    try:
+        yield
+    finally:
+        EMU.set_sm_count(DEFAULT_SMS)
 
 
 @contextlib.contextmanager
@@ -306,13 +322,10 @@ def test_split_k_by_multiprocessor_count(sms):
     """The weight-gradient split follows the SM count the host code sees: none with 1 SM; 27 splits with a ragged
     last one (B*T = 1800, chunks of 68) with 1000 SMs (csrc/skeletal/launch_plan.h)."""
     p = Problem("conv", "style", "zeros", U=3, bias=False, seed=9, B=2, cin=4, cout=6, T=900, n=3)
-    EMU.set_sm_count(sms)
-    try:
+    with sm_count(sms):
         before = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel"))
         check_problem(p)
         after = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel"))
-    finally:
-        EMU.set_sm_count(108)
     assert (after > before) == (sms > 1)
 
 

@@ -26,7 +26,7 @@ import os
 import pytest
 import torch
 
-from test_cuda_emulated import EMU, EMU_ERROR, Problem, injected, schedules
+from test_cuda_emulated import EMU, Problem, emu, injected, schedules, sm_count  # noqa: F401  (emu: the fixture)
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
@@ -34,18 +34,6 @@ MMA = {"conv": "mma_gemm_kernel<c10::BFloat16, false, false>", "down": "mma_gemm
        "up": "mma_gemm_kernel<c10::BFloat16, true, true>"}
 U_BF16 = torch.finfo(torch.bfloat16).eps / 2
 U_FP32 = torch.finfo(torch.float32).eps / 2
-DEFAULT_SMS = 108
-
-
-@pytest.fixture(scope="module", autouse=True)
-def emu():
-    if EMU is None:
-        pytest.fail(f"modi_ext._C_emu (the emulated CUDA kernels) is not built: {EMU_ERROR}")
-    assert EMU.injected_defect() == ""
-    yield EMU
-    EMU.set_schedule_seed(0)
-    EMU.set_injected_defect("")
-    EMU.set_sm_count(DEFAULT_SMS)
 
 
 @contextlib.contextmanager
@@ -135,11 +123,8 @@ def test_mma_block_walks_column_tiles_with_resident_weight_panels():
     p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=7, B=2, cin=60, cout=24,
                 T=40, n=5, act=True)
     assert k_max(p) > 512
-    EMU.set_sm_count(1)
-    try:
+    with sm_count(1):
         check_mma(p)
-    finally:
-        EMU.set_sm_count(DEFAULT_SMS)
     assert EMU.last_grids()[MMA["conv"]] == (1, 1, p.n_out)
 
 

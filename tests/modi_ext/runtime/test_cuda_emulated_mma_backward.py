@@ -34,7 +34,7 @@ import pytest
 import torch
 
 from modi_ext.act import GAIN, SLOPE
-from test_cuda_emulated import EMU, EMU_ERROR, Problem, injected, schedules
+from test_cuda_emulated import EMU, Problem, emu, injected, schedules, sm_count  # noqa: F401  (emu: the fixture)
 from test_cuda_emulated_mma import check_mma, k_max, mma_on
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
@@ -45,18 +45,6 @@ U_TF32 = 2.0 ** -11
 UNIT = {torch.bfloat16: U_BF16, torch.float32: U32}
 OP_UNIT = {torch.bfloat16: U_BF16, torch.float32: U_TF32}  # the fragment format of each dtype
 TNAME = {torch.bfloat16: "c10::BFloat16", torch.float32: "float"}
-DEFAULT_SMS = 108
-
-
-@pytest.fixture(scope="module", autouse=True)
-def emu():
-    if EMU is None:
-        pytest.fail(f"modi_ext._C_emu (the emulated CUDA kernels) is not built: {EMU_ERROR}")
-    assert EMU.injected_defect() == ""
-    yield EMU
-    EMU.set_schedule_seed(0)
-    EMU.set_injected_defect("")
-    EMU.set_sm_count(DEFAULT_SMS)
 
 
 @contextlib.contextmanager
@@ -210,14 +198,11 @@ def test_mma_weight_gradient_split_reduction_and_random_skeleton():
     row."""
     p = Problem("conv", "style_demod", "reflect", U=3, bias=True, dtype=torch.bfloat16, seed=5, B=3, cin=33, cout=37,
                 T=60, n=6, act=True)
-    EMU.set_sm_count(1000)
-    try:
+    with sm_count(1000):
         plan = EMU.wgrad_plan(3 * 60, p.offsets.numel() - 1, p.index.numel(), 33 * 3, 37, 1000)
         before = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel<c10::BFloat16"))
         check_backward(p)
         after = sum(n for k, n in EMU.launch_counts().items() if k.startswith("split_reduce_kernel<c10::BFloat16"))
-    finally:
-        EMU.set_sm_count(DEFAULT_SMS)
     assert plan["splits"] > 1 and after == before + 2
 
 

@@ -8,12 +8,11 @@ boundary fault is caught.
 """
 from __future__ import annotations
 
-import contextlib
 
 import pytest
 import torch
 
-from test_cuda_emulated import EMU, EMU_ERROR, Problem, check_problem, close, injected
+from test_cuda_emulated import EMU, Problem, check_problem, close, emu, injected, sm_count  # noqa: F401  (emu: the fixture)
 
 pytestmark = [pytest.mark.cuda_emulated, pytest.mark.usefixtures("one_torch_thread")]
 
@@ -22,26 +21,6 @@ BANDAI_PARENTS = [-1, 0, 1, 2, 3, 4, 3, 6, 7, 8, 3, 10, 11, 12, 1, 14, 15, 16, 1
 FRAMES = (64, 32, 16, 8, 4)  # finest -> coarsest
 CHANNELS = {"paper": (32, 64, 64, 128, 256), "small": (16, 32, 32, 64, 96)}  # finest -> coarsest
 MIN_SPLIT_COLS, MIN_SPLIT_STAGES, MAX_SPLITS = 64, 8, 32  # launch_plan.h
-
-
-@pytest.fixture(scope="module", autouse=True)
-def emu():
-    if EMU is None:
-        pytest.fail(f"modi_ext._C_emu (the emulated CUDA kernels) is not built: {EMU_ERROR}")
-    assert EMU.injected_defect() == ""
-    yield EMU
-    EMU.set_schedule_seed(0)
-    EMU.set_injected_defect("")
-    EMU.set_sm_count(108)
-
-
-@contextlib.contextmanager
-def sm_count(n: int):
-    EMU.set_sm_count(n)
-    try:
-        yield
-    finally:
-        EMU.set_sm_count(108)
 
 
 def bandai_levels():
