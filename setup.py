@@ -189,7 +189,7 @@ def extension_modules():
 
 
 # libstdc++ as a shared library, whatever the compiler's search path finds first: _C shares C++ objects (streams,
-# locales, exceptions) with libtorch, which uses the process's one libstdc++.so.6.  The GPU image of 2026-12-04 wraps
+# locales, exceptions) with libtorch, which uses the process's one libstdc++.so.6.  A GPU image we build on wraps
 # GCC 13 in /opt/gcc/bin/g++ with -B/opt/gcc/lib/gcc/x86_64-linux-gnu/13/, where libstdc++.so is a dangling link and
 # libstdc++.a is not, so a plain -lstdc++ linked a private static copy into _C.  Its locale facet ids are not
 # libtorch's, and the first TORCH_CHECK message that formatted an integer segfaulted in ostream::_M_insert<long>.
